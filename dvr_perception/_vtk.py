@@ -1,0 +1,151 @@
+"""The one module of the core that imports ``vtkmodules``.
+
+Everything else in :mod:`dvr_perception` gets VTK classes from here, so the set of VTK modules
+the core needs is visible in one place and works with both the VTK wheel (9.7) and ParaView
+5.11's bundled VTK (9.2).  Rendering modules (OpenGL) are imported lazily by
+:func:`rendering`, because importing them is harmless but *using* them without EGL/OSMesa
+crashes the process; callers must check :func:`dvr_perception._vtk.can_render` first.
+"""
+
+from __future__ import annotations
+
+import os
+
+from vtkmodules.util.numpy_support import (
+    get_vtk_array_type,
+    numpy_to_vtk,
+    vtk_to_numpy,
+)
+from vtkmodules.vtkCommonCore import (
+    VTK_DOUBLE,
+    VTK_FLOAT,
+    vtkCommand,
+    vtkDoubleArray,
+    vtkFloatArray,
+    vtkIntArray,
+    vtkLogger,
+    vtkOutputWindow,
+    vtkStringArray,
+)
+from vtkmodules.vtkCommonDataModel import (
+    vtkDataObject,
+    vtkImageData,
+    vtkPiecewiseFunction,
+    vtkTable,
+)
+from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
+from vtkmodules.vtkIOImage import (
+    vtkDICOMImageReader,
+    vtkMetaImageReader,
+    vtkMetaImageWriter,
+    vtkNIFTIImageReader,
+    vtkNIFTIImageWriter,
+    vtkNrrdReader,
+    vtkPNGWriter,
+)
+from vtkmodules.vtkIOLegacy import vtkDataSetReader, vtkStructuredPointsWriter
+from vtkmodules.vtkIOXML import vtkXMLImageDataReader, vtkXMLImageDataWriter
+from vtkmodules.vtkRenderingCore import (
+    vtkCamera,
+    vtkColorTransferFunction,
+    vtkVolumeProperty,
+)
+
+__all__ = [
+    "VTK_DOUBLE",
+    "VTK_FLOAT",
+    "can_render",
+    "get_vtk_array_type",
+    "numpy_to_vtk",
+    "rendering",
+    "vtkAlgorithm",
+    "vtkCamera",
+    "vtkColorTransferFunction",
+    "vtkCommand",
+    "vtkDICOMImageReader",
+    "vtkDataObject",
+    "vtkDataSetReader",
+    "vtkDoubleArray",
+    "vtkFloatArray",
+    "vtkImageData",
+    "vtkIntArray",
+    "vtkLogger",
+    "vtkMetaImageReader",
+    "vtkMetaImageWriter",
+    "vtkNIFTIImageReader",
+    "vtkNIFTIImageWriter",
+    "vtkNrrdReader",
+    "vtkOutputWindow",
+    "vtkPNGWriter",
+    "vtkPiecewiseFunction",
+    "vtkStreamingDemandDrivenPipeline",
+    "vtkStringArray",
+    "vtkStructuredPointsWriter",
+    "vtkTable",
+    "vtkVolumeProperty",
+    "vtkXMLImageDataReader",
+    "vtkXMLImageDataWriter",
+    "vtk_to_numpy",
+]
+
+
+def rendering():
+    """Import and return a namespace with VTK's rendering classes (OpenGL, volume mappers).
+
+    Sets ``VTK_DEFAULT_OPENGL_WINDOW=vtkEGLRenderWindow`` when no display and no override is
+    configured, so the wheel renders headless through EGL.
+    """
+    if "DISPLAY" not in os.environ:
+        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    import types
+
+    import vtkmodules.vtkRenderingOpenGL2  # registers OpenGL overrides
+    import vtkmodules.vtkRenderingVolumeOpenGL2  # ray-cast image display helper
+    from vtkmodules.vtkRenderingCore import (
+        vtkLight,
+        vtkRenderer,
+        vtkRenderWindow,
+        vtkVolume,
+        vtkWindowToImageFilter,
+    )
+    from vtkmodules.vtkRenderingVolume import vtkFixedPointVolumeRayCastMapper
+    from vtkmodules.vtkRenderingVolumeOpenGL2 import vtkOpenGLGPUVolumeRayCastMapper
+
+    return types.SimpleNamespace(
+        vtkFixedPointVolumeRayCastMapper=vtkFixedPointVolumeRayCastMapper,
+        vtkOpenGLGPUVolumeRayCastMapper=vtkOpenGLGPUVolumeRayCastMapper,
+        vtkLight=vtkLight,
+        vtkRenderWindow=vtkRenderWindow,
+        vtkRenderer=vtkRenderer,
+        vtkVolume=vtkVolume,
+        vtkWindowToImageFilter=vtkWindowToImageFilter,
+    )
+
+
+def can_render() -> tuple[bool, str]:
+    """Return ``(True, "")`` if an off-screen OpenGL context can be made, else ``(False, why)``.
+
+    The check runs in a subprocess, because VTK segfaults (rather than raising) when neither
+    EGL nor OSMesa is available.
+    """
+    import subprocess
+    import sys
+
+    code = (
+        "from dvr_perception._vtk import rendering; r = rendering(); "
+        "w = r.vtkRenderWindow(); w.SetOffScreenRendering(1); w.SetSize(8, 8); "
+        "w.AddRenderer(r.vtkRenderer()); w.Render(); print('ok')"
+    )
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False
+        )
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return False, f"could not start a render check: {exc}"
+    if proc.returncode == 0 and "ok" in proc.stdout:
+        return True, ""
+    return False, (
+        "VTK cannot open an off-screen OpenGL context (exit code "
+        f"{proc.returncode}). Install EGL/Mesa: apt-get install libegl1 libegl-mesa0 "
+        "libgl1-mesa-dri (or libosmesa6 with VTK_DEFAULT_OPENGL_WINDOW=vtkOSOpenGLRenderWindow)."
+    )

@@ -1,0 +1,216 @@
+"""Pinhole / parallel camera with VTK's conventions, and the ``--view`` helper.
+
+Conventions (shared by our engine and the VTK reference renderer):
+
+* ``view_angle`` is the vertical field of view in degrees (``vtkCamera.GetViewAngle``).
+* ``parallel_scale`` is half the image height in world units (``vtkCamera.GetParallelScale``).
+* Images are ``(height, width, ...)`` arrays with row 0 at the **top** (as in a PNG).
+* A pixel's ray passes through the pixel centre.
+* The default view (azimuth 0, elevation 0, zoom 1) is ParaView's "reset camera": looking down
+  -z at the volume centre, +y up, at the distance that fits the bounding sphere in a 30° view.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from dvr_perception.errors import DVRInputError
+
+__all__ = ["Camera", "parse_view"]
+
+
+def _unit(v: np.ndarray, what: str) -> np.ndarray:
+    n = float(np.linalg.norm(v))
+    if not math.isfinite(n) or n == 0:
+        raise DVRInputError(f"camera: {what} must be a non-zero finite vector, got {v.tolist()}")
+    return v / n
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A camera and an image size.
+
+    Examples
+    --------
+    >>> cam = Camera(position=(0, 0, 10), focal_point=(0, 0, 0), width=4, height=2)
+    >>> origins, dirs = cam.rays()
+    >>> dirs.shape
+    (2, 4, 3)
+    >>> bool(np.allclose(np.linalg.norm(dirs, axis=-1), 1))
+    True
+    """
+
+    position: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    focal_point: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    view_up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    view_angle: float = 30.0
+    parallel_projection: bool = False
+    parallel_scale: float = 1.0
+    width: int = 512
+    height: int = 512
+
+    def __post_init__(self) -> None:
+        for name in ("position", "focal_point", "view_up"):
+            v = tuple(float(c) for c in getattr(self, name))
+            if len(v) != 3 or not all(math.isfinite(c) for c in v):
+                raise DVRInputError(f"camera: {name} must be three finite numbers, got {v}")
+            object.__setattr__(self, name, v)
+        for name in ("width", "height"):
+            val = getattr(self, name)
+            if int(val) != val or int(val) < 1:
+                raise DVRInputError(f"camera: image {name} must be a positive integer, got {val}")
+            object.__setattr__(self, name, int(val))
+        if not 0 < float(self.view_angle) < 180:
+            raise DVRInputError(
+                f"camera: view_angle must be in (0, 180) degrees, got {self.view_angle}"
+            )
+        if not float(self.parallel_scale) > 0:
+            raise DVRInputError(
+                f"camera: parallel_scale must be positive, got {self.parallel_scale}"
+            )
+        object.__setattr__(self, "view_angle", float(self.view_angle))
+        object.__setattr__(self, "parallel_scale", float(self.parallel_scale))
+        object.__setattr__(self, "parallel_projection", bool(self.parallel_projection))
+        self.basis()  # validates direction and view-up
+
+    # -- geometry ---------------------------------------------------------------------------
+    def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return unit ``(forward, right, up)`` vectors (right-handed, as VTK)."""
+        fwd = _unit(np.subtract(self.focal_point, self.position), "focal_point - position")
+        up0 = _unit(np.asarray(self.view_up, float), "view_up")
+        right = np.cross(fwd, up0)
+        if np.linalg.norm(right) < 1e-9:
+            raise DVRInputError("camera: view_up is parallel to the viewing direction")
+        right = _unit(right, "right")
+        up = np.cross(right, fwd)
+        return fwd, right, up
+
+    @property
+    def distance(self) -> float:
+        """Distance from position to focal point."""
+        return float(np.linalg.norm(np.subtract(self.focal_point, self.position)))
+
+    def rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return per-pixel ray origins and unit directions, each ``(height, width, 3)``."""
+        fwd, right, up = self.basis()
+        w, h = self.width, self.height
+        # normalised device coordinates of pixel centres, y up, row 0 at the top
+        xs = (2.0 * (np.arange(w) + 0.5) / w - 1.0)[None, :, None]
+        ys = (1.0 - 2.0 * (np.arange(h) + 0.5) / h)[:, None, None]
+        aspect = w / h
+        pos = np.asarray(self.position, float)
+        if self.parallel_projection:
+            s = self.parallel_scale
+            origins = pos + xs * (s * aspect) * right + ys * s * up
+            dirs = np.broadcast_to(fwd, (h, w, 3)).copy()
+        else:
+            t = math.tan(math.radians(self.view_angle) / 2.0)
+            dirs = fwd + xs * (t * aspect) * right + ys * t * up
+            dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+            origins = np.broadcast_to(pos, (h, w, 3)).copy()
+        return np.ascontiguousarray(origins), np.ascontiguousarray(dirs)
+
+    def with_size(self, width: int, height: int) -> Camera:
+        """Return the same camera with another image size."""
+        return replace(self, width=width, height=height)
+
+    # -- serialisation ------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        """JSON-ready dictionary (the ``--camera CAM.json`` format)."""
+        return {
+            "position": list(self.position),
+            "focal_point": list(self.focal_point),
+            "view_up": list(self.view_up),
+            "view_angle": self.view_angle,
+            "parallel_projection": self.parallel_projection,
+            "parallel_scale": self.parallel_scale,
+            "width": self.width,
+            "height": self.height,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, *, source: str = "camera") -> Camera:
+        """Build from :meth:`to_dict` output; unknown keys are an error naming ``source``."""
+        if not isinstance(d, dict):
+            raise DVRInputError(f"{source}: expected a JSON object, got {type(d).__name__}")
+        known = set(cls.__dataclass_fields__)
+        extra = set(d) - known
+        if extra:
+            raise DVRInputError(f"{source}: unknown camera field(s) {sorted(extra)}")
+        try:
+            return cls(**d)
+        except (TypeError, ValueError) as exc:
+            if isinstance(exc, DVRInputError):
+                raise DVRInputError(f"{source}: {exc}") from None
+            raise DVRInputError(f"{source}: invalid camera ({exc})") from None
+
+    @classmethod
+    def from_view(
+        cls,
+        bounds: tuple[float, float, float, float, float, float],
+        *,
+        azimuth: float = 0.0,
+        elevation: float = 0.0,
+        zoom: float = 1.0,
+        width: int = 512,
+        height: int = 512,
+        view_angle: float = 30.0,
+    ) -> Camera:
+        """Orbit camera around the centre of ``bounds`` (ParaView's reset camera, then rotate).
+
+        ``azimuth`` rotates about the view-up axis and ``elevation`` about the right axis, both
+        in degrees, as ``vtkCamera.Azimuth``/``Elevation``; ``zoom`` > 1 moves closer
+        (``vtkCamera.Dolly``).
+
+        Examples
+        --------
+        >>> cam = Camera.from_view((0, 10, 0, 10, 0, 10), width=64, height=64)
+        >>> [round(c, 3) for c in cam.focal_point]
+        [5.0, 5.0, 5.0]
+        """
+        b = np.asarray(bounds, float)
+        if b.shape != (6,) or not np.all(np.isfinite(b)):
+            raise DVRInputError(f"view: bounds must be 6 finite numbers, got {bounds}")
+        if not (math.isfinite(zoom) and zoom > 0):
+            raise DVRInputError(f"view: ZOOM must be a positive number, got {zoom}")
+        center = np.array([(b[0] + b[1]) / 2, (b[2] + b[3]) / 2, (b[4] + b[5]) / 2])
+        radius = 0.5 * float(np.linalg.norm(b[1::2] - b[0::2]))
+        radius = radius if radius > 0 else 0.5
+        dist = radius / math.sin(math.radians(view_angle) / 2.0) / zoom
+        az, el = math.radians(azimuth), math.radians(elevation)
+        # start: looking down -z, +y up; rotate about y (azimuth) then about right (elevation)
+        offset = np.array([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
+        up = np.array([-math.sin(az) * math.sin(el), math.cos(el), -math.cos(az) * math.sin(el)])
+        return cls(
+            position=tuple(center + dist * offset),
+            focal_point=tuple(center),
+            view_up=tuple(up),
+            view_angle=view_angle,
+            width=width,
+            height=height,
+        )
+
+
+def parse_view(text: str) -> tuple[float, float, float]:
+    """Parse ``"AZIMUTH,ELEVATION[,ZOOM]"``.
+
+    Examples
+    --------
+    >>> parse_view("30,-10")
+    (30.0, -10.0, 1.0)
+    """
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        vals = [float(p) for p in parts]
+    except ValueError:
+        vals = []
+    if len(vals) not in (2, 3) or not all(math.isfinite(v) for v in vals):
+        raise DVRInputError(f"--view: expected AZIMUTH,ELEVATION[,ZOOM] numbers, got {text!r}")
+    if len(vals) == 2:
+        vals.append(1.0)
+    if vals[2] <= 0:
+        raise DVRInputError(f"--view: ZOOM must be positive, got {vals[2]}")
+    return vals[0], vals[1], vals[2]
