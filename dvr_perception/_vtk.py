@@ -99,8 +99,7 @@ def rendering():
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     import types
 
-    import vtkmodules.vtkRenderingOpenGL2  # registers OpenGL overrides
-    import vtkmodules.vtkRenderingVolumeOpenGL2  # ray-cast image display helper
+    import vtkmodules.vtkRenderingOpenGL2  # noqa: F401  (registers OpenGL overrides)
     from vtkmodules.vtkRenderingCore import (
         vtkLight,
         vtkRenderer,
