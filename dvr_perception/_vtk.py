@@ -26,6 +26,7 @@ from vtkmodules.vtkCommonCore import (
     vtkLogger,
     vtkOutputWindow,
     vtkStringArray,
+    vtkStringOutputWindow,
 )
 from vtkmodules.vtkCommonDataModel import (
     vtkDataObject,
@@ -41,6 +42,7 @@ from vtkmodules.vtkIOImage import (
     vtkNIFTIImageReader,
     vtkNIFTIImageWriter,
     vtkNrrdReader,
+    vtkPNGReader,
     vtkPNGWriter,
 )
 from vtkmodules.vtkIOLegacy import vtkDataSetReader, vtkStructuredPointsWriter
@@ -76,10 +78,12 @@ __all__ = [
     "vtkNIFTIImageWriter",
     "vtkNrrdReader",
     "vtkOutputWindow",
+    "vtkPNGReader",
     "vtkPNGWriter",
     "vtkPiecewiseFunction",
     "vtkStreamingDemandDrivenPipeline",
     "vtkStringArray",
+    "vtkStringOutputWindow",
     "vtkStructuredPointsWriter",
     "vtkTable",
     "vtkVolumeProperty",
