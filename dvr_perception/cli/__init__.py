@@ -1,0 +1,122 @@
+"""The ``dvr-perception`` command line: ``render``, ``check-renderer``, ``bench``, ``demo``.
+
+Each sub-command lives in its own module with ``add_parser(subparsers, parents)`` and
+``run(args) -> int``.  :func:`main` owns the error policy: a
+:class:`~dvr_perception.errors.DVRInputError` or an ``OSError`` prints one line
+``dvr-perception: error: ...`` and exits 2; anything unexpected prints one line and exits 1
+(with a traceback under ``--debug``); a :class:`~dvr_perception.errors.DVRWarning` prints one
+line ``dvr-perception: warning: ...``.  Progress goes to stderr (``-v``), results to stdout.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import traceback
+import warnings
+from contextlib import contextmanager
+
+from dvr_perception.cli import bench, check_renderer, demo, render
+from dvr_perception.cli._common import PROG, CLIParser, common_parent
+from dvr_perception.errors import DVRInputError, DVRWarning
+
+__all__ = ["build_parser", "main"]
+
+COMMANDS = (render, check_renderer, bench, demo)
+
+
+def build_parser() -> CLIParser:
+    """Build the argument parser with one sub-parser per command."""
+    parser = CLIParser(
+        prog=PROG,
+        description="Perception-based transparency analysis for direct volume rendering.",
+    )
+    subs = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    parents = [common_parent()]
+    for module in COMMANDS:
+        module.add_parser(subs, parents)
+    return parser
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    text = _one_line(message)
+    if not issubclass(category, DVRWarning):
+        text = f"{category.__name__}: {text} ({filename}:{lineno})"
+    print(f"{PROG}: warning: {text}", file=sys.stderr)
+
+
+@contextmanager
+def _session(verbose: bool):
+    """Route logging to stderr and warnings to one-line messages for one CLI call."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(f"{PROG}: %(message)s"))
+    logger = logging.getLogger("dvr_perception")
+    old_level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO if verbose else logging.WARNING)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", DVRWarning)
+            warnings.showwarning = _show_warning
+            yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(old_level)
+
+
+def _error(message: str) -> None:
+    print(f"{PROG}: error: {_one_line(message)}", file=sys.stderr)
+
+
+def _os_error_message(exc: OSError) -> str:
+    if exc.filename is not None and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}"
+    return str(exc)
+
+
+def main(argv=None) -> int:
+    """Run the command line; return the exit status (0 ok, 1 unexpected error, 2 bad input).
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Arguments without the program name (default ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        The exit status.
+
+    Examples
+    --------
+    >>> main(["render", "phantom", "--size", "0", "--out", "x.png"])
+    2
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv
+    verbose = "-v" in argv or "--verbose" in argv
+    with _session(verbose):
+        try:
+            args = build_parser().parse_args(argv)
+            return int(args.run(args) or 0)
+        except SystemExit as exc:  # --help
+            return exc.code if isinstance(exc.code, int) else 0
+        except DVRInputError as exc:
+            _error(str(exc))
+            return 2
+        except OSError as exc:
+            _error(_os_error_message(exc))
+            return 2
+        except KeyboardInterrupt:
+            _error("interrupted")
+            return 130
+        except Exception as exc:
+            if debug:
+                traceback.print_exc()
+            hint = "" if debug else " (rerun with --debug for a traceback)"
+            _error(f"unexpected {type(exc).__name__}: {exc}{hint}")
+            return 1

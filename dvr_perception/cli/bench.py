@@ -1,0 +1,164 @@
+"""``dvr-perception bench``: time our engine against VTK's CPU volume ray caster.
+
+Reported figures (seconds unless stated):
+
+* ``load_s`` – reading (or generating) the volume; ``curvature_s`` – the curvature volume.
+* ``compile_s`` – the first, warm-up :func:`~dvr_perception.rays.engine.analyze` call (numba
+  compilation included); ``frame_s`` – median of ``--repeat`` further full calls.
+* ``vtk_frame_s`` – VTK's fixed-point ray caster, same view and size
+  (:func:`~dvr_perception.rays.vtk_reference.time_vtk_frames`); ``frame_ratio`` = ``frame_s /
+  vtk_frame_s``.
+* ``reeval_s`` – median :func:`~dvr_perception.rays.engine.reevaluate` with perturbed opacities
+  (what one optimiser step costs); ``reeval_vtk_frames`` = ``reeval_s / vtk_frame_s``.
+* ``samples_per_s`` – ray samples per second of a full frame; ``cache_mb`` – size of the
+  re-evaluation cache.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import time
+
+import numpy as np
+
+from dvr_perception.cli._common import add_scene_args, emit_json, load_scene, log
+
+__all__ = ["add_parser", "run"]
+
+EXAMPLE = """examples:
+  dvr-perception bench --json
+  dvr-perception bench ../shared/data/engine.nhdr --size 512 --repeat 3 --json
+"""
+
+
+def add_parser(subparsers, parents) -> None:
+    """Register the ``bench`` sub-command."""
+    p = subparsers.add_parser(
+        "bench",
+        parents=parents,
+        help="time full frames and opacity re-evaluations against VTK",
+        description="Benchmark the ray-analysis engine on VOLUME (default: the phantom).",
+        epilog=EXAMPLE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_scene_args(p, volume_optional=True)
+    p.add_argument("--repeat", type=int, default=5, metavar="R", help="timed repeats (default 5)")
+    p.add_argument(
+        "--seed", type=int, default=0, help="seed of the opacity perturbation (default 0)"
+    )
+    p.set_defaults(run=run)
+
+
+def _nbytes(obj, seen=None) -> int:
+    """Bytes held in NumPy arrays reachable from ``obj`` (dataclass, dict, list, object)."""
+    seen = set() if seen is None else seen
+    if id(obj) in seen:
+        return 0
+    seen.add(id(obj))
+    if isinstance(obj, np.ndarray):
+        return int(obj.nbytes)
+    if hasattr(obj, "nbytes") and isinstance(obj.nbytes, (int, np.integer)):
+        return int(obj.nbytes)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        items = [getattr(obj, f.name) for f in dataclasses.fields(obj)]
+    elif isinstance(obj, dict):
+        items = list(obj.values())
+    elif isinstance(obj, (list, tuple)):
+        items = list(obj)
+    elif hasattr(obj, "__dict__"):
+        items = list(vars(obj).values())
+    else:
+        return 0
+    return sum(_nbytes(v, seen) for v in items)
+
+
+def _median_time(fn, repeat: int) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(statistics.median(times))
+
+
+def _samples(stats: dict):
+    for key in ("samples", "n_samples", "samples_total"):
+        if key in stats:
+            return float(stats[key])
+    return None
+
+
+def run(args: argparse.Namespace) -> int:
+    """Execute ``bench``."""
+    from dvr_perception.errors import DVRInputError
+
+    if args.repeat < 1:
+        raise DVRInputError(f"--repeat: expected a positive integer, got {args.repeat}")
+    import numba
+
+    from dvr_perception.rays.curvature import curvature_volume
+    from dvr_perception.rays.engine import analyze, reevaluate
+
+    scene = load_scene(args)
+    vol, spec, cam = scene.volume, scene.spec, scene.camera
+    log.info("curvature volume")
+    t0 = time.perf_counter()
+    curv, _ = curvature_volume(vol, spec)
+    curvature_s = time.perf_counter() - t0
+
+    log.info("warm-up frame (compiles numba kernels)")
+    t0 = time.perf_counter()
+    result = analyze(vol, spec, cam, curvature=curv)
+    compile_s = time.perf_counter() - t0
+    log.info("%d timed frames", args.repeat)
+    frame_s = _median_time(lambda: analyze(vol, spec, cam, curvature=curv), args.repeat)
+
+    base = np.array([s.render_opacity for s in spec.structures], float)
+    rng = np.random.default_rng(args.seed)
+
+    def reeval():
+        ops = np.clip(base * rng.uniform(0.8, 1.2, base.shape), 0.01, 1.0)
+        reevaluate(result.cache, opacities=ops)
+
+    reeval()  # compiles the re-evaluation kernels
+    reeval_s = _median_time(reeval, args.repeat)
+
+    from dvr_perception.rays.vtk_reference import time_vtk_frames
+
+    vtk_frame_s, vtk_error = None, None
+    log.info("VTK frames")
+    try:
+        vtk_frame_s = float(time_vtk_frames(vol, spec, cam, frames=3))
+    except DVRInputError as exc:  # VTK cannot render here: report, do not fail the bench
+        vtk_error = str(exc)
+    samples = _samples(result.stats)
+    report = {
+        "volume": scene.volume_source,
+        "spec": scene.spec_source,
+        "dims": list(vol.dims),
+        "size": [cam.width, cam.height],
+        "structures": len(spec.structures),
+        "backend": result.stats.get("backend", "auto"),
+        "numba_threads": int(numba.get_num_threads()),
+        "load_s": scene.load_s,
+        "curvature_s": curvature_s,
+        "compile_s": compile_s,
+        "frame_s": frame_s,
+        "vtk_frame_s": vtk_frame_s,
+        "frame_ratio": frame_s / vtk_frame_s if vtk_frame_s else None,
+        "samples_per_s": samples / frame_s if samples is not None else None,
+        "reeval_s": reeval_s,
+        "reeval_vtk_frames": reeval_s / vtk_frame_s if vtk_frame_s else None,
+        "cache_mb": _nbytes(result.cache) / 2**20,
+        "repeat": args.repeat,
+    }
+    if vtk_error is not None:
+        report["vtk_error"] = vtk_error
+    if args.json:
+        emit_json(report)
+    else:
+        for key, value in report.items():
+            print(f"{key:>18}: {value:.4g}" if isinstance(value, float) else f"{key:>18}: {value}")
+    return 0
