@@ -4,6 +4,10 @@ Pure functions on numpy arrays (paper, Sec. 4.3): :mod:`~.luminance` turns rende
 into linear-light luminance, :mod:`~.psychophysics` estimates a layer's perceived
 transmittance (Metelli, Eq. 5 and 9; TAP, Eq. 6-7; their blend, Eq. 8; calibration), and
 :mod:`~.regions` finds the structural layers' footprints, sub-regions and relations.
+
+The three quality measures read a ray analysis: :func:`~.visibility.visibility` (Sec. 4.1,
+Eq. 1-2), :func:`~.shape.shape` (Sec. 4.2, Eq. 3-4) and :func:`~.transparency.transparency`
+(Sec. 4.3, Eq. 5-11); their results are the dataclasses of :mod:`~.results`.
 """
 
 from dvr_perception.measures.luminance import composite_luminance, luminance
@@ -23,11 +27,18 @@ from dvr_perception.measures.regions import (
     layer_relations,
     subregions,
 )
+from dvr_perception.measures.results import ShapeResult, TransparencyResult, VisibilityResult
+from dvr_perception.measures.shape import shape
+from dvr_perception.measures.transparency import transparency
+from dvr_perception.measures.visibility import visibility
 
 __all__ = [
     "Region",
     "RegionMap",
     "Relation",
+    "ShapeResult",
+    "TransparencyResult",
+    "VisibilityResult",
     "blended_transmittance",
     "calibrate",
     "composite_luminance",
@@ -37,6 +48,9 @@ __all__ = [
     "luminance",
     "luminance_range",
     "metelli_transmittance",
+    "shape",
     "subregions",
     "tap_transmittance",
+    "transparency",
+    "visibility",
 ]

@@ -1,0 +1,239 @@
+"""Result containers of the perceptual measures and the checks of their common input.
+
+The three measures (:func:`~dvr_perception.measures.visibility.visibility`,
+:func:`~dvr_perception.measures.shape.shape`,
+:func:`~dvr_perception.measures.transparency.transparency`) read a *ray analysis*: any object
+with the fields ``rgba`` (H, W, 4, premultiplied), ``image`` (H, W, 3, composited over the spec
+background), ``accumulated`` (H, W), ``visible`` and ``assigned`` (K, H, W), ``present`` (H, W,
+uint32 bitmask), ``curvature`` (H, W) and ``names`` (K strings).  Each measure reads only the
+fields it needs; the helpers here check them and raise
+:class:`~dvr_perception.errors.DVRInputError` naming the field at fault.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.measures.luminance import composite_luminance, luminance
+
+__all__ = ["ShapeResult", "TransparencyResult", "VisibilityResult"]
+
+#: Slack allowed on opacities slightly outside [0, 1] and on ``sum(visible) == accumulated``.
+_OPACITY_SLACK = 1e-5
+_SUM_SLACK = 1e-3
+
+
+@dataclass(frozen=True)
+class VisibilityResult:
+    """Visibility deviation of a rendering (paper, Sec. 4.1, Eq. 1-2).
+
+    Attributes
+    ----------
+    E_v : float
+        Mean of ``deviation`` over the non-empty rays, in [0, 2]; 0 when no ray is non-empty.
+    deviation : ndarray of float32, shape (H, W)
+        ``delta_v(r) = sum_s |assigned share - visible share|``; 0 on empty rays.
+    nonempty : ndarray of bool, shape (H, W)
+        Rays with any assigned opacity.
+    per_structure : dict
+        ``name -> {"visible_share", "assigned_share", "histogram_visible",
+        "histogram_assigned", "rays"}``: image-wide shares (floats), histograms (int64 counts
+        over ``bin_edges``) of the per-ray shares over the rays where the structure is present,
+        and the number of those rays.
+    bin_edges : ndarray of float64
+        Histogram bin edges on [0, 1].
+    notes : tuple of str
+        Remarks on degenerate input.
+    """
+
+    E_v: float
+    deviation: np.ndarray
+    nonempty: np.ndarray
+    per_structure: dict
+    bin_edges: np.ndarray
+    notes: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class ShapeResult:
+    """Shape deviation of a rendering (paper, Sec. 4.2, Eq. 3-4).
+
+    Attributes
+    ----------
+    E_s : float
+        Mean of ``deviation`` over the non-empty pixels, in [0, 1); 0 when there are none.
+    deviation : ndarray of float32, shape (H, W)
+        ``delta_s = 1 - exp(-(v_s - v_i)^2 / steepness)``; 0 on empty pixels.
+    v_s : ndarray of float32, shape (H, W)
+        Normalised structural shape (curvature), in [0, 1].
+    v_i : ndarray of float32, shape (H, W)
+        Normalised image variation (Sobel gradient magnitude of the luminance), in [0, 1].
+    nonempty : ndarray of bool, shape (H, W)
+        Pixels with accumulated opacity above 1e-3.
+    notes : tuple of str
+    """
+
+    E_s: float
+    deviation: np.ndarray
+    v_s: np.ndarray
+    v_i: np.ndarray
+    nonempty: np.ndarray
+    notes: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class TransparencyResult:
+    """Transparency deviation of a rendering (paper, Sec. 4.3, Eq. 5-11).
+
+    Attributes
+    ----------
+    E_t : float
+        ``sum_r w_r delta_t(r) / |R|`` over the non-empty regions ``R`` (Eq. 11); 0 when no
+        region is non-empty.
+    deviation : ndarray of float32, shape (H, W)
+        ``delta_t`` of the region of every pixel (0 in empty and Case-1 regions).
+    region_id : ndarray of int32, shape (H, W)
+        Index into ``regions`` of every pixel.
+    layer_set : ndarray of uint32, shape (H, W)
+        Bitmask of the layers present at every pixel (bit ``k`` = structure ``k``).
+    regions : list of dict
+        One dict per sub-region: ``id``, ``layers`` (names), ``kind`` ("empty", "plain",
+        "overlay"), ``area_fraction``, ``transmittance`` ``{name: perceived alpha_t}`` (after
+        clipping and calibration), ``measured`` ``{name: clipped, uncalibrated alpha}``,
+        ``method`` ``{name: "metelli" | "tap" | "blend" | "generalized"}``, ``clipped``
+        ``{name: raw value}`` for values clipped to [0, 1], ``undetermined`` ``{name:
+        reason}`` and ``delta_t``.
+    relations : dict
+        ``(name_i, name_j) -> {"kind": ..., "encloser": name or None}`` for every pair of
+        visible layers (``i < j`` in structure order).
+    per_structure : dict
+        ``name -> {"perceived_transparency", "perceived_opacity", "expected_opacity",
+        "undetermined_reasons"}``; the perceived values are area-weighted means over the
+        regions where the structure's transmittance was determined, else ``None``.
+    undetermined : list of dict
+        ``{"region", "structure", "reason"}`` for every excluded (region, layer).
+    notes : tuple of str
+    """
+
+    E_t: float
+    deviation: np.ndarray
+    region_id: np.ndarray
+    layer_set: np.ndarray
+    regions: list
+    relations: dict
+    per_structure: dict
+    undetermined: list
+    notes: tuple[str, ...]
+
+
+# -- input checks shared by the measures --------------------------------------------------------
+def _field(analysis, name: str, ndim: int, *, required: bool = True) -> np.ndarray | None:
+    """``analysis.<name>`` as a finite float64 array of ``ndim`` dimensions."""
+    value = getattr(analysis, name, None)
+    if value is None:
+        if required:
+            raise DVRInputError(f"analysis.{name} is missing; expected a {ndim}-D array")
+        return None
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DVRInputError(f"analysis.{name} must be a numeric array") from None
+    if arr.ndim != ndim:
+        raise DVRInputError(f"analysis.{name} must be {ndim}-D, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise DVRInputError(f"analysis.{name} must be finite (found NaN or inf)")
+    return arr
+
+
+def _opacity_range(arr: np.ndarray, name: str) -> np.ndarray:
+    if arr.size and (arr.min() < -_OPACITY_SLACK or arr.max() > 1 + _OPACITY_SLACK):
+        raise DVRInputError(
+            f"analysis.{name} must lie in [0, 1], got range [{arr.min():.6g}, {arr.max():.6g}]"
+        )
+    return np.clip(arr, 0.0, 1.0)
+
+
+def _accumulated(analysis) -> np.ndarray:
+    """Return the (H, W) accumulated opacity, checked to lie in [0, 1]."""
+    acc = _field(analysis, "accumulated", 2)
+    if acc.shape[0] == 0 or acc.shape[1] == 0:
+        raise DVRInputError(f"analysis.accumulated must have H, W >= 1, got shape {acc.shape}")
+    return _opacity_range(acc, "accumulated")
+
+
+def _stack(analysis, name: str, shape: tuple[int, int]) -> np.ndarray:
+    """Return a (K, H, W) per-structure field matching the image ``shape``."""
+    arr = _field(analysis, name, 3)
+    if arr.shape[1:] != shape:
+        raise DVRInputError(
+            f"analysis.{name} must have shape (K, {shape[0]}, {shape[1]}) to match "
+            f"analysis.accumulated, got {arr.shape}"
+        )
+    if np.any(arr < -_OPACITY_SLACK):
+        raise DVRInputError(f"analysis.{name} must be non-negative, got minimum {arr.min():.6g}")
+    return np.maximum(arr, 0.0)
+
+
+def _visible(analysis, accumulated: np.ndarray) -> np.ndarray:
+    """``analysis.visible``, checked against ``accumulated`` (warns when sums disagree)."""
+    vis = _opacity_range(_stack(analysis, "visible", accumulated.shape), "visible")
+    if vis.shape[0] and np.max(np.abs(vis.sum(axis=0) - accumulated)) > _SUM_SLACK:
+        warnings.warn(
+            "analysis.visible does not sum over the structures to analysis.accumulated "
+            f"(largest difference {np.max(np.abs(vis.sum(axis=0) - accumulated)):.3g})",
+            DVRWarning,
+            stacklevel=3,
+        )
+    return vis
+
+
+def _names(analysis, spec, k: int) -> tuple[str, ...]:
+    """Structure names of the analysis, checked against the spec when one is given."""
+    names = getattr(analysis, "names", None)
+    spec_names = None if spec is None else tuple(spec.names)
+    if names is None:
+        names = spec_names if spec_names is not None else tuple(f"s{i}" for i in range(k))
+    names = tuple(str(n) for n in names)
+    if len(names) != k:
+        raise DVRInputError(f"analysis.names has {len(names)} names for {k} structures")
+    if spec_names is not None and spec_names != names:
+        raise DVRInputError(
+            f"spec: structure names {list(spec_names)} do not match analysis.names {list(names)}"
+        )
+    return names
+
+
+def _image_luminance(analysis, spec, shape: tuple[int, int]) -> tuple[np.ndarray, list[str]]:
+    """Linear CIE Y of the rendering composited over the background, clipped to [0, 1].
+
+    With a spec, ``analysis.rgba`` is composited over ``spec.background``; without one,
+    ``analysis.image`` (already composited) is used, falling back to ``rgba`` over black.
+    Luminance above the displayable 1 is clipped, with a note.
+    """
+    notes: list[str] = []
+    rgba = getattr(analysis, "rgba", None)
+    image = getattr(analysis, "image", None)
+    if rgba is not None and (spec is not None or image is None):
+        background = (0.0, 0.0, 0.0) if spec is None else tuple(spec.background)
+        y = composite_luminance(_field(analysis, "rgba", 3), background=background)
+        source = "rgba"
+    elif image is not None:
+        y = luminance(_field(analysis, "image", 3))
+        source = "image"
+    else:
+        raise DVRInputError("analysis.rgba (or analysis.image) is missing; need the rendering")
+    if y.shape != shape:
+        raise DVRInputError(
+            f"analysis.{source} must be {shape[0]} x {shape[1]} pixels to match "
+            f"analysis.accumulated, got {y.shape}"
+        )
+    if np.any(y > 1.0):
+        notes.append(
+            f"luminance above 1 clipped to the displayable range on {np.count_nonzero(y > 1)} "
+            "pixel(s)"
+        )
+    return np.clip(y, 0.0, 1.0), notes

@@ -1,0 +1,103 @@
+"""Tests for dvr_perception.measures.shape on hand-built ray analyses."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from skimage.filters import sobel
+
+from dvr_perception.errors import DVRInputError
+from dvr_perception.measures import ShapeResult, shape
+from dvr_perception.structures.spec import Structure, StructureSpec
+
+
+def grey_analysis(grey, curvature, accumulated=None):
+    grey = np.asarray(grey, float)
+    acc = np.ones_like(grey) if accumulated is None else accumulated
+    rgba = np.stack([grey * acc] * 3 + [acc], axis=-1)
+    return SimpleNamespace(
+        rgba=rgba,
+        image=np.repeat(grey[..., None], 3, axis=-1),
+        accumulated=acc,
+        curvature=np.asarray(curvature, float),
+        names=("s",),
+    )
+
+
+def test_luminance_varying_as_curvature_gives_zero():
+    rr, cc = np.mgrid[:9, :11]
+    grey = 0.5 + 0.4 * np.sin(rr / 2.0) * np.cos(cc / 3.0)
+    curvature = 3.7 * sobel(grey)  # curvature in other units, same pattern
+    res = shape(grey_analysis(grey, curvature))
+    assert isinstance(res, ShapeResult)
+    assert res.E_s == pytest.approx(0.0, abs=1e-9)
+    np.testing.assert_allclose(res.v_s, res.v_i, atol=1e-6)
+    assert res.v_s.max() == pytest.approx(1.0)
+
+
+def test_flat_image_over_curved_structure_is_maximal():
+    res = shape(grey_analysis(np.full((5, 5), 0.5), np.full((5, 5), 2.0)))
+    assert not res.v_i.any()
+    np.testing.assert_allclose(res.v_s, 1.0)
+    assert res.E_s == pytest.approx(1.0 - np.exp(-1.0 / 0.05))
+
+
+def test_constant_volume_and_flat_image_is_zero():
+    res = shape(grey_analysis(np.full((4, 6), 0.3), np.zeros((4, 6))))
+    assert res.E_s == 0.0
+    assert not res.deviation.any()
+
+
+def test_steepness_sets_the_cost_of_a_difference():
+    # curvature normalised to 1 everywhere; image gradient 0 -> difference 1
+    ana = grey_analysis(np.full((3, 3), 0.5), np.ones((3, 3)))
+    assert shape(ana, steepness=1.0).E_s == pytest.approx(1.0 - np.exp(-1.0))
+    with pytest.raises(DVRInputError, match="steepness"):
+        shape(ana, steepness=0.0)
+    with pytest.raises(DVRInputError, match="percentile"):
+        shape(ana, percentile=0.0)
+
+
+def test_robust_maximum_ignores_an_outlier():
+    curvature = np.ones((20, 20))
+    curvature[0, 0] = 1000.0  # one spike among 400 pixels: above the 99th percentile
+    res = shape(grey_analysis(np.full((20, 20), 0.5), curvature))
+    np.testing.assert_allclose(res.v_s, 1.0)
+    res = shape(grey_analysis(np.full((20, 20), 0.5), curvature), percentile=100.0)
+    assert res.v_s[1, 1] == pytest.approx(1e-3)
+
+
+def test_only_nonempty_pixels_count():
+    acc = np.zeros((4, 4))
+    acc[:, :2] = 1.0
+    curvature = np.zeros((4, 4))
+    curvature[:, 2:] = 5.0  # curvature on empty rays is ignored
+    res = shape(grey_analysis(np.zeros((4, 4)), curvature, accumulated=acc))
+    np.testing.assert_array_equal(res.nonempty, acc > 0)
+    assert res.E_s == 0.0
+    assert not res.deviation[:, 2:].any()
+
+
+def test_empty_image_gives_zero_with_note():
+    res = shape(grey_analysis(np.zeros((3, 3)), np.zeros((3, 3)), accumulated=np.zeros((3, 3))))
+    assert res.E_s == 0.0
+    assert any("E_s = 0" in n for n in res.notes)
+
+
+def test_background_enters_the_luminance():
+    acc = np.zeros((6, 6))
+    acc[:, :3] = 1.0
+    ana = grey_analysis(np.full((6, 6), 0.5), np.zeros((6, 6)), accumulated=acc)
+    black = StructureSpec(
+        structures=(Structure(name="s", importance=1.0, color=(0.5, 0.5, 0.5), range=(0, 1)),)
+    )
+    grey = StructureSpec(structures=black.structures, background=(0.5, 0.5, 0.5))
+    assert shape(ana, black).v_i.max() == pytest.approx(1.0)  # silhouette edge on black
+    assert not shape(ana, grey).v_i.any()  # the structure matches the background
+
+
+def test_negative_curvature_is_rejected():
+    with pytest.raises(DVRInputError, match="curvature"):
+        shape(grey_analysis(np.zeros((2, 2)), -np.ones((2, 2))))
+    with pytest.raises(DVRInputError, match="curvature"):
+        shape(grey_analysis(np.zeros((2, 2)), np.ones((3, 2))))
