@@ -1,0 +1,230 @@
+"""Ray set-up and per-volume precomputation for the ray-analysis engine.
+
+Everything here is plain numpy and is shared by the numba and the numpy back ends:
+
+* :func:`clipping_range` - the near/far planes VTK's ``ResetCameraClippingRange`` would choose;
+  the near plane anchors the sample phase (``docs/vtk_conventions.md`` facts 9-10).
+* :func:`ray_segments` - per pixel ray: voxel-space origin and direction, position of the first
+  sample and number of samples, exactly where ``vtkFixedPointVolumeRayCastMapper`` samples.
+* :func:`index_volume`, :func:`voxel_normals`, :func:`block_range` - per-volume arrays (table
+  index per voxel, quantised two-sided-ready normals, min/max table index per 8^3 block), cached
+  on the :class:`~dvr_perception.volume.volume.Volume` object for as long as it lives.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+
+import numpy as np
+
+__all__ = [
+    "BLOCK",
+    "block_flags",
+    "block_range",
+    "camera_pack",
+    "clipping_range",
+    "index_volume",
+    "ray_segments",
+    "scalar_range",
+    "voxel_normals",
+]
+
+#: Cells per empty-space block along each axis (a power of two; the kernels shift by 3).
+BLOCK = 8
+_BLOCK_SHIFT = 3
+#: VTK clips rays against the box of voxel centres moved in by this many voxels.
+_INSET = 0.01
+_STORE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _store(volume) -> dict:
+    """Per-volume memo (dropped together with the volume)."""
+    d = _STORE.get(volume)
+    if d is None:
+        d = {}
+        _STORE[volume] = d
+    return d
+
+
+def clipping_range(camera, bounds) -> tuple[float, float]:
+    """Near/far distances VTK's ``ResetCameraClippingRange`` picks for ``bounds``.
+
+    Uses ``ClippingRangeExpansion = 0.5`` and the 24-bit depth-buffer tolerance 0.001.
+
+    Examples
+    --------
+    >>> from dvr_perception.rays.camera import Camera
+    >>> cam = Camera(position=(5, 5, 50), focal_point=(5, 5, 5))
+    >>> [round(v, 1) for v in clipping_range(cam, (0, 10, 0, 10, 0, 10))]
+    [34.6, 58.2]
+    """
+    fwd, _, _ = camera.basis()
+    b = np.asarray(bounds, float)
+    corners = np.array([[x, y, z] for x in b[0:2] for y in b[2:4] for z in b[4:6]])
+    dist = (corners - np.asarray(camera.position)) @ fwd
+    near, far = float(dist.min()), float(dist.max())
+    if camera.parallel_projection:
+        min_gap = 0.1 * camera.parallel_scale
+    else:
+        min_gap = 0.2 * math.tan(math.radians(camera.view_angle) / 2.0) * far
+    if far - near < min_gap:
+        extra = min_gap - far + near
+        far += extra / 2.0
+        near -= extra / 2.0
+    near = max(near, 0.0)
+    near = 0.99 * near - (far - near) * 0.5
+    far = 1.01 * far + (far - near) * 0.5
+    if near >= far:
+        near = 0.01 * far
+    near = max(near, 0.001 * far)
+    return near, far
+
+
+def camera_pack(camera, volume, step: float) -> np.ndarray:
+    """Camera, box and step packed into float64[29] for the numba ``segments`` kernel."""
+    fwd, right, up = camera.basis()
+    near, far = clipping_range(camera, volume.bounds)
+    half = (
+        camera.parallel_scale
+        if camera.parallel_projection
+        else math.tan(math.radians(camera.view_angle) / 2.0)
+    )
+    hi = np.asarray(volume.dims, float) - 1.0 - _INSET
+    return np.concatenate(
+        [
+            camera.position, fwd, right, up,
+            [half, float(camera.parallel_projection), camera.width, camera.height],
+            volume.origin, volume.spacing, hi, [near, far, step, _INSET],
+        ]
+    ).astype(np.float64)  # fmt: skip
+
+
+def ray_segments(camera, volume, step: float) -> dict:
+    """Where every pixel's ray samples the volume (VTK's phase and clipping).
+
+    Returns a dict of flat per-ray arrays (row-major pixels, row 0 at the top): ``a`` (R, 3)
+    voxel-space ray origin, ``b`` (R, 3) voxel-space displacement per world unit, ``t`` (R,)
+    world distance of the first sample, ``n`` (R,) int32 number of samples; sample ``j`` is at
+    ``a + (t + j * step) * b``.
+    """
+    origins, dirs = camera.rays()
+    fwd = camera.basis()[0]
+    near, far = clipping_range(camera, volume.bounds)
+    spacing = np.asarray(volume.spacing, float)
+    a = ((origins - np.asarray(volume.origin, float)) / spacing).reshape(-1, 3)
+    b = (dirs / spacing).reshape(-1, 3)
+    cos = np.ones(len(a)) if camera.parallel_projection else dirs.reshape(-1, 3) @ fwd
+    cos = np.maximum(cos, 1e-12)
+    t_near, t_far = near / cos, far / cos
+    lo = np.full(3, _INSET)
+    hi = np.asarray(volume.dims, float) - 1.0 - _INSET
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (lo - a) / b
+        t2 = (hi - a) / b
+    moving = b != 0
+    t_lo = np.where(moving, np.minimum(t1, t2), -np.inf)
+    t_hi = np.where(moving, np.maximum(t1, t2), np.inf)
+    outside = (~moving & ((a < lo) | (a > hi))).any(axis=1)
+    t_in = np.maximum(t_lo.max(axis=1), t_near)
+    t_out = np.minimum(t_hi.min(axis=1), t_far)
+    hit = (t_out > t_in) & ~outside
+    length = np.where(hit, t_out - t_in, 0.0)
+    t_in = t_in + 0.001 * length
+    t_out = t_out - 0.001 * length
+    with np.errstate(invalid="ignore"):
+        k0 = np.floor((t_in - t_near) / step) + 1.0
+        k1 = np.floor((t_out - t_near) / step)
+    n = np.where(hit, np.maximum(k1 - k0 + 1.0, 0.0), 0.0).astype(np.int32)
+    t_first = np.where(n > 0, t_near + k0 * step, 0.0)
+    return {"a": np.ascontiguousarray(a), "b": np.ascontiguousarray(b), "t": t_first, "n": n}
+
+
+def scalar_range(volume) -> tuple[float, float]:
+    """``volume.scalar_range``, computed once per volume."""
+    memo = _store(volume)
+    if "range" not in memo:
+        memo["range"] = volume.scalar_range
+    return memo["range"]
+
+
+def index_volume(volume, lo: float, scale: float, size: int) -> np.ndarray:
+    """Per-voxel transfer-table index ``floor((v - lo) * scale)`` clipped, as uint16 [z, y, x]."""
+    key = ("index", float(lo), float(scale), int(size))
+    memo = _store(volume)
+    if key not in memo:
+        data = volume.data
+        out = np.empty(data.shape, np.uint16)
+        for z0 in range(0, data.shape[0], 16):
+            v = (data[z0 : z0 + 16].astype(np.float64) - lo) * scale
+            np.clip(np.floor(v), 0, size - 1, out=v)
+            out[z0 : z0 + 16] = v
+        memo[key] = out
+    return memo[key]
+
+
+def voxel_normals(volume) -> np.ndarray:
+    """Return unit normals (negative gradient, VTK's central differences), int8 ``[z, y, x, 3]``.
+
+    Components are quantised to ``round(127 * n)``; voxels with zero gradient get (0, 0, 0).
+    Border voxels use the voxel itself as the missing neighbour (VTK's ``ComputeCS1CGradients``).
+    """
+    memo = _store(volume)
+    if "normals" not in memo:
+        data = volume.data
+        spacing = np.asarray(volume.spacing, float)
+        aspect = (2.0 * spacing / spacing.mean()).astype(np.float32)
+        nz = data.shape[0]
+        out = np.empty((*data.shape, 3), np.int8)
+        for z0 in range(0, nz, 16):
+            z1 = min(z0 + 16, nz)
+            lo, hi = max(z0 - 1, 0), min(z1 + 1, nz)
+            v = np.pad(data[lo:hi].astype(np.float32), ((0, 0), (1, 1), (1, 1)), mode="edge")
+            zpad = np.concatenate(
+                [v[:1]] * (z0 == 0) + [v] + [v[-1:]] * (z1 == nz), axis=0
+            )  # edge-replicate in z only at the volume border
+            c = zpad[1:-1]
+            gx = (c[:, 1:-1, :-2] - c[:, 1:-1, 2:]) / aspect[0]
+            gy = (c[:, :-2, 1:-1] - c[:, 2:, 1:-1]) / aspect[1]
+            gz = (zpad[:-2, 1:-1, 1:-1] - zpad[2:, 1:-1, 1:-1]) / aspect[2]
+            g = np.stack([gx, gy, gz], axis=-1)
+            mag = np.sqrt((g * g).sum(axis=-1, keepdims=True))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                unit = np.where(mag > 0, g / mag, 0.0)
+            out[z0:z1] = np.rint(unit * 127.0).astype(np.int8)
+        memo["normals"] = out
+    return memo["normals"]
+
+
+def _window_reduce(arr: np.ndarray, axis: int, fn) -> np.ndarray:
+    """Reduce voxels ``[8b - 1, 8b + 9]`` along ``axis`` for every block ``b``."""
+    n = arr.shape[axis]
+    nb = ((n - 2) >> _BLOCK_SHIFT) + 1
+    parts = []
+    for bi in range(nb):
+        lo, hi = max(bi * BLOCK - 1, 0), min(bi * BLOCK + BLOCK + 2, n)
+        sl = [slice(None)] * arr.ndim
+        sl[axis] = slice(lo, hi)
+        parts.append(fn(arr[tuple(sl)], axis=axis))
+    return np.stack(parts, axis=axis)
+
+
+def block_range(volume, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Min and max table index per block of 8^3 cells (with a 1-voxel apron)."""
+    key = ("blocks", id(index))
+    memo = _store(volume)
+    if key not in memo:
+        lo, hi = index, index
+        for axis in range(3):
+            lo = _window_reduce(lo, axis, np.min)
+            hi = _window_reduce(hi, axis, np.max)
+        memo[key] = (lo, hi)
+    return memo[key]
+
+
+def block_flags(bmin: np.ndarray, bmax: np.ndarray, member: np.ndarray) -> np.ndarray:
+    """uint8 flag per block: 1 if any table entry in ``[min - 1, max]`` has ``member`` True."""
+    cum = np.concatenate([[0], np.cumsum(member.astype(np.int64))])
+    lo = np.maximum(bmin.astype(np.int64) - 1, 0)
+    hi = np.minimum(bmax.astype(np.int64), len(member) - 1)
+    return np.ascontiguousarray((cum[hi + 1] - cum[lo]) > 0, dtype=np.uint8)

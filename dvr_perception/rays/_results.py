@@ -1,0 +1,80 @@
+"""Result containers of the ray-analysis engine (:class:`RayAnalysis`, :class:`RayCache`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dvr_perception.rays.camera import Camera
+from dvr_perception.structures.spec import StructureSpec
+
+__all__ = ["RayAnalysis", "RayCache"]
+
+
+@dataclass(frozen=True, eq=False)
+class RayCache:
+    """Per-ray compact sample lists of one :func:`analyze` call, for :func:`reevaluate`.
+
+    Ray ``r`` (row-major pixel) owns entries ``start[r] : start[r] + count[r]`` of ``lut``
+    (uint16 table index: structure id and membership), ``normals`` (int8 (E, 3), empty when
+    unshaded) and ``curvature`` (float32, empty without a curvature volume).
+    """
+
+    spec: StructureSpec
+    camera: Camera
+    ids: np.ndarray
+    membership: np.ndarray
+    ratio: float
+    start: np.ndarray
+    count: np.ndarray
+    lut: np.ndarray
+    normals: np.ndarray
+    curvature: np.ndarray
+    assigned: np.ndarray
+    present: np.ndarray
+    backend: str
+    stats: dict
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the per-ray sample lists and the per-pixel arrays."""
+        arrays = (self.start, self.count, self.lut, self.normals, self.curvature)
+        return int(sum(a.nbytes for a in arrays) + self.assigned.nbytes + self.present.nbytes)
+
+
+@dataclass(frozen=True, eq=False)
+class RayAnalysis:
+    """What each pixel's ray sees; arrays are ``(H, W)`` images, row 0 at the top.
+
+    See the module docstring of :mod:`dvr_perception.rays.engine` for the definitions of
+    ``visible`` (sum of ``a_i T_i``), ``assigned`` (sum of the importance-based step-corrected
+    opacity, no occlusion), ``present`` (bit ``s`` set if any sample of ``s``) and
+    ``curvature`` (visibility-weighted mean ``|H|`` over boundary samples).
+    """
+
+    rgba: np.ndarray
+    image: np.ndarray
+    accumulated: np.ndarray
+    visible: np.ndarray
+    assigned: np.ndarray
+    present: np.ndarray
+    curvature: np.ndarray
+    names: tuple[str, ...]
+    camera: Camera
+    stats: dict
+    cache: RayCache | None = None
+
+    @property
+    def visible_share(self) -> np.ndarray:
+        """``visible / accumulated`` per structure (0 where nothing accumulated)."""
+        acc = self.accumulated[None]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(acc > 0, self.visible / acc, 0.0).astype(np.float32)
+
+    @property
+    def assigned_share(self) -> np.ndarray:
+        """``assigned / assigned.sum(0)`` per structure (0 where the sum is 0)."""
+        tot = self.assigned.sum(axis=0, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(tot > 0, self.assigned / tot, 0.0).astype(np.float32)

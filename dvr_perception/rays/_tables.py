@@ -1,0 +1,140 @@
+"""Parameter checking and per-render tables of the ray-analysis engine.
+
+Turns user-facing overrides (opacities, colours, lighting, light direction, background) into the
+arrays the kernels use, validating each one with a single :class:`DVRInputError` that names the
+parameter.  Tables mimic VTK's fixed-point storage (``docs/vtk_conventions.md`` facts 4-5):
+opacities are step-corrected only above 1e-4 and, like colours, rounded to 1/32767.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from dvr_perception.errors import DVRInputError
+from dvr_perception.structures.spec import Lighting
+
+__all__ = [
+    "ERT",
+    "alpha_table",
+    "check_opacities",
+    "light_array",
+    "material",
+    "specular_table",
+    "step_and_unit",
+]
+
+#: VTK stops a ray once the remaining transmittance drops below 255/32767.
+ERT = 255.0 / 32767.0
+_FP = 32767.0
+
+
+def _quantise(x: np.ndarray) -> np.ndarray:
+    return np.floor(np.asarray(x, np.float64) * _FP + 0.5) / _FP
+
+
+def check_opacities(opacities, k: int, name: str = "opacities") -> np.ndarray:
+    """Validate ``k`` opacities in [0, 1]."""
+    try:
+        ops = np.asarray(opacities, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DVRInputError(f"{name}: expected {k} numbers in [0, 1], got {opacities!r}") from None
+    if ops.ndim != 1 or ops.shape[0] != k:
+        raise DVRInputError(
+            f"{name}: expected {k} values (one per structure), got shape {ops.shape}"
+        )
+    if not np.all(np.isfinite(ops)) or np.any((ops < 0) | (ops > 1)):
+        raise DVRInputError(f"{name}: every value must be in [0, 1], got {ops.tolist()}")
+    return ops
+
+
+def step_and_unit(spec, volume) -> tuple[float, float]:
+    """Sample distance and opacity unit distance (defaults: smallest voxel spacing)."""
+    rs = spec.rendering
+    out = []
+    for name, val in (
+        ("sample_distance", rs.sample_distance),
+        ("opacity_unit_distance", rs.opacity_unit_distance),
+    ):
+        v = float(min(volume.spacing)) if val is None else float(val)
+        if not (math.isfinite(v) and v > 0):
+            raise DVRInputError(f"rendering.{name}: must be a positive number, got {val}")
+        out.append(v)
+    return out[0], out[1]
+
+
+def alpha_table(ids: np.ndarray, memb: np.ndarray, ops: np.ndarray, ratio: float) -> np.ndarray:
+    """Step-corrected, 15-bit-rounded opacity of every table entry (float64[N])."""
+    o = np.where(ids >= 0, ops[np.maximum(ids, 0)] * memb, 0.0)
+    corr = np.where(o > 1e-4, 1.0 - np.power(np.clip(1.0 - o, 0.0, 1.0), ratio), o)
+    return _quantise(corr)
+
+
+def material(spec, *, colors=None, lighting=None) -> tuple[np.ndarray, tuple]:
+    """Colours (K, 3) rounded like VTK's table, and the K :class:`Lighting` materials."""
+    k = len(spec.structures)
+    cols = np.array([s.color for s in spec.structures], float) if colors is None else colors
+    try:
+        cols = np.asarray(cols, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DVRInputError(f"colors: expected {k} RGB triples in [0, 1], got {colors!r}") from None
+    if cols.shape != (k, 3) or not np.all(np.isfinite(cols)) or cols.min() < 0 or cols.max() > 1:
+        raise DVRInputError(
+            f"colors: expected shape ({k}, 3) with values in [0, 1], got shape {cols.shape}"
+        )
+    mats = tuple(s.lighting for s in spec.structures) if lighting is None else tuple(lighting)
+    if len(mats) != k or not all(isinstance(m, Lighting) for m in mats):
+        raise DVRInputError(f"lighting: expected a sequence of {k} Lighting objects")
+    for m in mats:
+        vals = (m.ambient, m.diffuse, m.specular, m.specular_power)
+        if not all(math.isfinite(float(v)) and float(v) >= 0 for v in vals):
+            raise DVRInputError(f"lighting: coefficients must be finite and >= 0, got {m}")
+    return _quantise(cols), mats
+
+
+def light_array(camera, mats, direction, intensity: float) -> np.ndarray:
+    """Pack materials and light geometry for the kernels: float64 (7, max(K, 3)).
+
+    Rows: ambient*I, diffuse*I, specular*I, specular power (per structure); then the world unit
+    vectors towards the light ``L``, the half vector ``H`` and the view direction ``V``.
+    """
+    try:
+        d = np.asarray(direction, dtype=np.float64)
+    except (TypeError, ValueError):
+        d = np.zeros(0)
+    if d.shape != (3,) or not np.all(np.isfinite(d)) or not np.any(d):
+        raise DVRInputError(
+            f"light_direction: expected a non-zero (x, y, z) in camera coordinates, got {direction}"
+        )
+    if not (math.isfinite(float(intensity)) and float(intensity) >= 0):
+        raise DVRInputError(f"rendering.light_intensity: must be a number >= 0, got {intensity}")
+    fwd, right, up = camera.basis()
+    lw = d[0] * right + d[1] * up - d[2] * fwd
+    lw /= np.linalg.norm(lw)
+    h = lw - fwd
+    hn = np.linalg.norm(h)
+    h = h / hn if hn > 1e-12 else lw
+    k = len(mats)
+    out = np.zeros((7, max(k, 3)))
+    inten = float(intensity)
+    out[0, :k] = [m.ambient * inten for m in mats]
+    out[1, :k] = [m.diffuse * inten for m in mats]
+    out[2, :k] = [m.specular * inten for m in mats]
+    out[3, :k] = [m.specular_power for m in mats]
+    out[4, :3], out[5, :3], out[6, :3] = lw, h, fwd
+    return out
+
+
+#: Samples of the tabulated specular curve ``x ** p`` on [0, 1].
+SPECULAR_SAMPLES = 2049
+
+
+def specular_table(mats, intensity: float) -> np.ndarray:
+    """``ks * I * x ** p`` per structure at ``x = i / 2048`` (float64 (K, 2049)).
+
+    The kernels interpolate it linearly instead of calling ``pow`` per sample.
+    """
+    x = np.linspace(0.0, 1.0, SPECULAR_SAMPLES)
+    rows = [m.specular * float(intensity) * np.power(x, m.specular_power) for m in mats]
+    return np.ascontiguousarray(np.array(rows, dtype=np.float64))

@@ -1,0 +1,391 @@
+"""The ray-analysis engine: a DVR that also measures what every ray sees of every structure.
+
+:func:`analyze` casts one ray per pixel through a :class:`~dvr_perception.volume.volume.Volume`
+and returns a :class:`RayAnalysis`: the image plus, per structure and pixel, its visible
+(occlusion-weighted) and assigned (importance-based, unoccluded) opacity, a presence bitmask
+and the visibility-weighted boundary curvature.  With ``build_cache=True`` it keeps, per ray,
+the compact list of samples with non-zero membership (:class:`RayCache`) so that
+:func:`reevaluate` can apply new opacities, colours, materials or light direction without
+touching the volume again.
+
+Conventions matched to ``vtkFixedPointVolumeRayCastMapper`` (``docs/vtk_conventions.md``):
+
+* Tables: :func:`~dvr_perception.structures.transfer.build_lut` (VTK's table size/shift/scale
+  over the data range); opacity ``1 - (1 - o m) ** (step / unit)`` for entries above 1e-4;
+  opacities and colours rounded to 1/32767.
+* Samples: box of voxel centres inset by 0.01 voxel and shrunk by 0.1 %, step of
+  ``sample_distance`` world units, **phase anchored at the near clipping plane** that
+  ``ResetCameraClippingRange`` would choose (first sample strictly past the entry).
+* Classification: each cell corner's table index ``floor((v - lo) * scale)`` is interpolated
+  trilinearly, then rounded up as VTK's fixed point does (``int(f * 32765/32768 + 32767/32768)``).
+* Compositing front to back with premultiplied colour; early ray termination when the
+  transmittance falls below 255/32767; final colour clamped to 1.
+* Shading: VTK's central-difference normals (negative gradient, border voxel as its own
+  neighbour), each corner normal flipped towards the viewer (two-sided lighting), trilinearly
+  mixed and quantised to int8; ``colour = c (ka I + kd I max(n.L, 0)) + ks I (n.H) ** p`` with a
+  white specular term (only where ``n.L > 0`` and ``n.H > 0.001``), directional light
+  ``L = x right + y up - z forward``.  VTK interpolates the shading of the 8 corner normals
+  instead; for a headlight the diffuse term is identical, the specular term differs slightly.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import warnings
+
+import numpy as np
+
+from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.rays import _grid, _tables
+from dvr_perception.rays import _numpy_kernels as _npk
+from dvr_perception.rays._results import RayAnalysis, RayCache
+from dvr_perception.rays.camera import Camera
+from dvr_perception.structures.spec import StructureSpec
+from dvr_perception.structures.transfer import build_lut
+from dvr_perception.volume.volume import Volume
+
+__all__ = ["RayAnalysis", "RayCache", "analyze", "reevaluate"]
+
+BACKENDS = ("auto", "numba", "numpy")
+_MAX_STRUCTURES = 32
+
+
+def _numba_kernels():
+    """Return the numba kernel module, or None when numba is unavailable or disabled."""
+    if os.environ.get("DVR_PERCEPTION_NO_NUMBA", "").strip() not in ("", "0"):
+        return None
+    try:
+        from dvr_perception.rays import _numba_kernels
+    except ImportError:
+        return None
+    return _numba_kernels
+
+
+def _check_inputs(volume, spec, camera, backend) -> None:
+    if not isinstance(volume, Volume):
+        raise DVRInputError(f"volume: expected a Volume, got {type(volume).__name__}")
+    if not isinstance(spec, StructureSpec):
+        raise DVRInputError(f"spec: expected a StructureSpec, got {type(spec).__name__}")
+    if not isinstance(camera, Camera):
+        raise DVRInputError(f"camera: expected a Camera, got {type(camera).__name__}")
+    k = len(spec.structures)
+    if not 1 <= k <= _MAX_STRUCTURES:
+        raise DVRInputError(f"spec.structures: expected 1 to {_MAX_STRUCTURES} structures, got {k}")
+    if backend not in BACKENDS:
+        raise DVRInputError(f"backend: expected one of {BACKENDS}, got {backend!r}")
+
+
+def _check_curvature(curvature, volume) -> np.ndarray | None:
+    if curvature is None:
+        return None
+    try:
+        c = np.asarray(curvature, dtype=np.float32)
+    except (TypeError, ValueError):
+        raise DVRInputError("curvature: expected a float array shaped like the volume") from None
+    if c.shape != volume.data.shape:
+        raise DVRInputError(
+            f"curvature: expected shape {volume.data.shape} (z, y, x) like the volume, "
+            f"got {c.shape}"
+        )
+    if not np.all(np.isfinite(c)):
+        raise DVRInputError("curvature: values must be finite")
+    return np.ascontiguousarray(np.abs(c))
+
+
+def _pick_backend(backend: str):
+    nk = _numba_kernels() if backend in ("auto", "numba") else None
+    if backend == "numba" and nk is None:
+        raise DVRInputError(
+            "backend: 'numba' was requested but numba cannot be imported "
+            "(or DVR_PERCEPTION_NO_NUMBA is set); use backend='numpy' or 'auto'"
+        )
+    return nk
+
+
+def _segments(nk, camera, volume, step: float) -> dict:
+    """Per-ray sample ranges (``_grid.ray_segments``; numba twin when available)."""
+    if nk is None:
+        return _grid.ray_segments(camera, volume, step)
+    nrays = camera.width * camera.height
+    seg = {
+        "a": np.empty((nrays, 3)),
+        "b": np.empty((nrays, 3)),
+        "t": np.empty(nrays),
+        "n": np.empty(nrays, np.int32),
+    }
+    nk.segments(_grid.camera_pack(camera, volume, step), seg["a"], seg["b"], seg["t"], seg["n"])
+    return seg
+
+
+def _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache) -> RayAnalysis:
+    h, w = camera.height, camera.width
+    k = len(spec.structures)
+    rgba = np.asarray(rgba, np.float32).reshape(h, w, 4)
+    bg = np.asarray(spec.background, np.float32)
+    image = np.clip(rgba[..., :3] + (1.0 - rgba[..., 3:]) * bg, 0.0, 1.0)
+    return RayAnalysis(
+        rgba=rgba,
+        image=image,
+        accumulated=np.ascontiguousarray(rgba[..., 3]),
+        visible=np.asarray(vis, np.float32).reshape(k, h, w),
+        assigned=np.asarray(asg, np.float32).reshape(k, h, w),
+        present=np.asarray(present, np.uint32).reshape(h, w),
+        curvature=np.asarray(cimg, np.float32).reshape(h, w),
+        names=spec.names,
+        camera=camera,
+        stats=stats,
+        cache=cache,
+    )
+
+
+def analyze(
+    volume: Volume,
+    spec: StructureSpec,
+    camera: Camera,
+    *,
+    opacities=None,
+    curvature=None,
+    backend: str = "auto",
+    build_cache: bool = True,
+) -> RayAnalysis:
+    """Render ``volume`` with ``spec`` from ``camera`` and measure every structure per pixel.
+
+    Parameters
+    ----------
+    volume : Volume
+        Scalar volume (any integer or float dtype).
+    spec : StructureSpec
+        1 to 32 range structures (label structures are not classified by this engine).
+    camera : Camera
+        View and image size.
+    opacities : array_like of float, optional
+        ``K`` rendering opacities in [0, 1]; default each structure's ``render_opacity``.
+    curvature : numpy.ndarray, optional
+        ``|mean curvature|`` per voxel ``[z, y, x]`` (0 off boundaries), e.g. from
+        :func:`dvr_perception.rays.curvature.curvature_volume`; looked up at the nearest voxel.
+    backend : {"auto", "numba", "numpy"}
+        Kernel implementation; "auto" uses numba unless it is missing or
+        ``DVR_PERCEPTION_NO_NUMBA=1``.
+    build_cache : bool
+        Keep the per-ray sample lists for :func:`reevaluate` (costs memory and a little time).
+
+    Returns
+    -------
+    RayAnalysis
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from dvr_perception.structures.spec import RenderSettings, Structure
+    >>> vol = Volume(np.full((8, 8, 8), 100, np.uint8))
+    >>> spec = StructureSpec((Structure("slab", 0.5, (1, 1, 1), range=(50, 150)),),
+    ...                      rendering=RenderSettings(shade=False))
+    >>> cam = Camera.from_view(vol.bounds, width=8, height=8)
+    >>> res = analyze(vol, spec, cam, backend="numpy")
+    >>> bool(res.accumulated[4, 4] > 0.9), float(res.visible_share[0, 4, 4])
+    (True, 1.0)
+    """
+    t_start = time.perf_counter()
+    _check_inputs(volume, spec, camera, backend)
+    k = len(spec.structures)
+    imp = np.array([s.importance for s in spec.structures], float)
+    imp = _tables.check_opacities(imp, k, "importance")
+    ops = _tables.check_opacities(
+        [s.render_opacity for s in spec.structures] if opacities is None else opacities, k
+    )
+    curv = _check_curvature(curvature, volume)
+    nk = _pick_backend(backend)
+    step, unit = _tables.step_and_unit(spec, volume)
+    cols, mats = _tables.material(spec)
+    rs = spec.rendering
+    light = _tables.light_array(camera, mats, rs.light_direction, rs.light_intensity)
+    lut = build_lut(spec, scalar_range=_grid.scalar_range(volume), dtype=volume.data.dtype)
+    ratio = step / unit
+    alpha_w = _tables.alpha_table(lut.ids, lut.membership, imp, ratio)
+    alpha_r = _tables.alpha_table(lut.ids, lut.membership, ops, ratio)
+    seg = _segments(nk, camera, volume, step)
+    shade, has_curv = bool(rs.shade), curv is not None
+    nrays = camera.width * camera.height
+    if not seg["n"].any():
+        warnings.warn(
+            f"camera sees none of volume {volume.name!r}; returning an empty image",
+            DVRWarning,
+            stacklevel=2,
+        )
+    idx = _grid.index_volume(volume, lut.lo, lut.scale, lut.size)
+    nrm = _grid.voxel_normals(volume) if shade else np.zeros((2, 2, 2, 3), np.int8)
+    cv = curv if has_curv else np.zeros((2, 2, 2), np.float32)
+    ids = np.ascontiguousarray(lut.ids)
+    memb = np.ascontiguousarray(lut.membership)
+    stab = _tables.specular_table(mats, rs.light_intensity)
+    args = (ids, alpha_r, cols, light, stab, shade, has_curv, _tables.ERT)
+    walked = int(seg["n"].sum())
+    if nk is None:
+        out = _npk.walk(idx, nrm, cv, seg, step, ids, memb, alpha_w, light, shade, has_curv, k)
+        start, count = out["off"][:-1], np.diff(out["off"])
+        c_lut, c_nrm, c_curv = out["lut"], out["nrm"], out["curv"]
+        rgba, vis, cimg = _npk.composite(start, count, c_lut, c_nrm, c_curv, *args, k)
+        present, asg = out["present"], out["assigned"]
+    else:
+        res = _walk_numba(nk, volume, lut, idx, nrm, cv, seg, step, memb, alpha_w, args, k,
+                          camera, build_cache)  # fmt: skip
+        rgba, vis, asg, present, cimg, start, count, c_lut, c_nrm, c_curv, walked = res
+    seconds = time.perf_counter() - t_start
+    samples = int(seg["n"].sum())
+    stats = {
+        "rays": nrays,
+        "rays_hit": int(np.count_nonzero(seg["n"])),
+        "samples": samples,
+        "samples_walked": walked,
+        "samples_per_second": samples / seconds if seconds > 0 else 0.0,
+        "seconds": seconds,
+        "backend": "numpy" if nk is None else "numba",
+        "sample_distance": step,
+    }
+    cache = None
+    if build_cache:
+        h, w = camera.height, camera.width
+        cache = RayCache(
+            spec=spec.with_opacities(ops),
+            camera=camera,
+            ids=ids,
+            membership=memb,
+            ratio=ratio,
+            start=np.ascontiguousarray(start, np.int64),
+            count=np.ascontiguousarray(count, np.int64),
+            lut=c_lut,
+            normals=c_nrm,
+            curvature=c_curv,
+            assigned=np.asarray(asg, np.float32).reshape(k, h, w),
+            present=np.asarray(present, np.uint32).reshape(h, w),
+            backend=stats["backend"],
+            stats=dict(stats),
+        )
+        stats["cache_entries"] = len(c_lut)
+        stats["cache_bytes"] = cache.nbytes
+    return _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache)
+
+
+def _walk_numba(nk, volume, lut, idx, nrm, cv, seg, step, memb, alpha_w, args, k, camera, build):
+    """Run the numba walk (and, when building the cache, compaction and compositing)."""
+    ids, alpha_r, cols, light, stab, shade, has_curv, ert = args
+    h, w = camera.height, camera.width
+    nrays = h * w
+    n = seg["n"]
+    bmin, bmax = _grid.block_range(volume, idx)
+    flags = _grid.block_flags(bmin, bmax, memb > 0)
+    rgba = np.zeros((nrays, 4))
+    vis = np.zeros((k, nrays))
+    asg = np.zeros((k, nrays))
+    present = np.zeros(nrays, np.uint32)
+    cimg = np.zeros(nrays)
+    count = np.zeros(nrays, np.int64)
+    walked = np.zeros(nrays, np.int64)
+    cap = np.concatenate([[0], np.cumsum(n, dtype=np.int64)])
+    total = int(cap[-1]) if build else 1
+    src_lut = np.empty(max(total, 1), np.uint16)
+    src_nrm = np.empty((max(total, 1) if build and shade else 1, 3), np.int8)
+    src_curv = np.empty(max(total, 1) if build and has_curv else 1, np.float32)
+    nk.walk(
+        idx, nrm, cv, flags, seg["a"], seg["b"], seg["t"], n, step, h, w, ids, memb, alpha_r,
+        alpha_w, cols, light, stab, shade, has_curv, build, cap[:-1], ert, rgba, vis, asg, present,
+        cimg, src_lut, src_nrm, src_curv, count, walked,
+    )  # fmt: skip
+    start = np.zeros(nrays, np.int64)
+    c_lut = np.zeros(0, np.uint16)
+    c_nrm = np.zeros((0, 3), np.int8)
+    c_curv = np.zeros(0, np.float32)
+    if build:
+        off = np.concatenate([[0], np.cumsum(count)])
+        e = int(off[-1])
+        c_lut = np.empty(e, np.uint16)
+        c_nrm = np.empty((e if shade else 0, 3), np.int8)
+        c_curv = np.empty(e if has_curv else 0, np.float32)
+        nk.compact(cap[:-1], count, off, src_lut, src_nrm, src_curv, c_lut, c_nrm, c_curv,
+                   shade, has_curv)  # fmt: skip
+        start = off[:-1].copy()
+        del src_lut, src_nrm, src_curv
+        nk.composite(start, count, c_lut, c_nrm, c_curv, h, w, *args, rgba, vis, cimg)
+    return rgba, vis, asg, present, cimg, start, count, c_lut, c_nrm, c_curv, int(walked.sum())
+
+
+def reevaluate(
+    cache: RayCache,
+    *,
+    opacities=None,
+    lighting=None,
+    colors=None,
+    light_direction=None,
+    background=None,
+) -> RayAnalysis:
+    """Re-composite a cached analysis with new opacities, materials, light or background.
+
+    Only the cached per-ray sample lists are walked (with early ray termination at the new
+    opacities); the volume is not sampled again.  ``assigned`` and ``present`` do not depend on
+    these parameters and are taken from the cache.  Unspecified parameters keep the values of
+    the :func:`analyze` call that built the cache.
+
+    Parameters
+    ----------
+    cache : RayCache
+        ``analyze(...).cache``.
+    opacities : array_like of float, optional
+        ``K`` rendering opacities in [0, 1].
+    lighting : sequence of Lighting, optional
+        ``K`` per-structure materials.
+    colors : array_like, optional
+        ``(K, 3)`` RGB in [0, 1].
+    light_direction : array_like, optional
+        Light direction in camera coordinates (``(0, 0, 1)`` = headlight).
+    background : array_like, optional
+        RGB in [0, 1] behind the volume.
+
+    Returns
+    -------
+    RayAnalysis
+        With ``cache`` set to the same cache.
+    """
+    t_start = time.perf_counter()
+    if not isinstance(cache, RayCache):
+        raise DVRInputError(
+            f"cache: expected the RayCache of analyze(..., build_cache=True), "
+            f"got {type(cache).__name__}"
+        )
+    spec, camera = cache.spec, cache.camera
+    k = len(spec.structures)
+    ops = _tables.check_opacities(
+        [s.render_opacity for s in spec.structures] if opacities is None else opacities, k
+    )
+    cols, mats = _tables.material(spec, colors=colors, lighting=lighting)
+    rs = spec.rendering
+    direction = rs.light_direction if light_direction is None else light_direction
+    light = _tables.light_array(camera, mats, direction, rs.light_intensity)
+    if background is not None:
+        bg = np.asarray(background, dtype=np.float64)
+        if bg.shape != (3,) or not np.all((bg >= 0) & (bg <= 1)):
+            raise DVRInputError(f"background: expected 3 numbers in [0, 1], got {background}")
+        spec = StructureSpec(spec.structures, tuple(bg), rs, spec.view, spec.labels_file)
+    alpha_r = _tables.alpha_table(cache.ids, cache.membership, ops, cache.ratio)
+    shade = bool(rs.shade)
+    has_curv = cache.curvature.size > 0
+    stab = _tables.specular_table(mats, rs.light_intensity)
+    args = (cache.ids, alpha_r, cols, light, stab, shade, has_curv, _tables.ERT)
+    h, w = camera.height, camera.width
+    nk = _numba_kernels() if cache.backend == "numba" else None
+    if nk is None:
+        rgba, vis, cimg = _npk.composite(
+            cache.start, cache.count, cache.lut, cache.normals, cache.curvature, *args, k
+        )
+    else:
+        rgba = np.zeros((h * w, 4))
+        vis = np.zeros((k, h * w))
+        cimg = np.zeros(h * w)
+        nk.composite(
+            cache.start, cache.count, cache.lut, cache.normals, cache.curvature, h, w, *args,
+            rgba, vis, cimg,
+        )  # fmt: skip
+    seconds = time.perf_counter() - t_start
+    stats = {"seconds": seconds, "backend": cache.backend, "rays": h * w, "reevaluated": True}
+    stats["cache_entries"] = len(cache.lut)
+    return _finish(rgba, vis, cache.assigned, cache.present, cimg, spec, camera, stats, cache)
