@@ -31,7 +31,7 @@ import numpy as np
 from scipy import ndimage
 
 from dvr_perception.errors import DVRInputError
-from dvr_perception.structures.spec import Structure, StructureSpec
+from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
 from dvr_perception.volume.volume import Volume
 
 __all__ = ["PHANTOM_MATERIALS", "make_phantom"]
@@ -39,8 +39,8 @@ __all__ = ["PHANTOM_MATERIALS", "make_phantom"]
 #: name, intensity, structure range, importance, colour -- in label order (label = index + 1)
 PHANTOM_MATERIALS: tuple[tuple[str, int, tuple[float, float], float, tuple], ...] = (
     ("skin", 48, (28.0, 70.0), 0.1, (0.95, 0.75, 0.6)),
-    ("skull", 95, (72.0, 117.0), 0.2, (0.95, 0.95, 0.85)),
-    ("brain", 140, (119.0, 161.0), 0.3, (0.85, 0.55, 0.65)),
+    ("skull", 95, (72.0, 117.0), 0.15, (0.95, 0.95, 0.85)),
+    ("brain", 140, (119.0, 161.0), 0.2, (0.85, 0.55, 0.65)),
     ("tumour", 180, (163.0, 197.0), 0.7, (1.0, 0.25, 0.15)),
     ("ventricle", 214, (199.0, 229.0), 0.8, (0.2, 0.5, 1.0)),
     ("calcification", 248, (231.0, 255.0), 0.9, (1.0, 0.9, 0.1)),
@@ -134,4 +134,12 @@ def _spec() -> StructureSpec:
         Structure(name=name, importance=imp, color=color, range=rng)
         for name, _value, rng, imp, color in PHANTOM_MATERIALS
     )
-    return StructureSpec(structures=structures, background=(0.0, 0.0, 0.0))
+    # Opacity per 8 voxels of ray length: thin shells stay see-through while the filled brain
+    # still hides most of the inner objects -- the poorly perceived starting point the
+    # optimiser is meant to fix.  Zoom 1.6 fills the frame with the head in the default view.
+    return StructureSpec(
+        structures=structures,
+        background=(0.0, 0.0, 0.0),
+        rendering=RenderSettings(opacity_unit_distance=8.0),
+        view=(0.0, 0.0, 1.6),
+    )
