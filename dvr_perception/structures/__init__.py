@@ -1,5 +1,24 @@
 """Structures: spec data model and JSON, transfer functions, automatic proposal."""
 
+from dvr_perception.structures.io import (
+    check_spec_for_volume,
+    load_spec,
+    save_spec,
+    spec_from_dict,
+    spec_to_dict,
+)
+from dvr_perception.structures.propose import propose_structures
 from dvr_perception.structures.spec import Lighting, RenderSettings, Structure, StructureSpec
 
-__all__ = ["Lighting", "RenderSettings", "Structure", "StructureSpec"]
+__all__ = [
+    "Lighting",
+    "RenderSettings",
+    "Structure",
+    "StructureSpec",
+    "check_spec_for_volume",
+    "load_spec",
+    "propose_structures",
+    "save_spec",
+    "spec_from_dict",
+    "spec_to_dict",
+]

@@ -16,7 +16,10 @@ Transfer-function semantics (shared by our engine and the VTK converters):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
+
+from dvr_perception.errors import DVRInputError
 
 __all__ = ["Lighting", "RenderSettings", "Structure", "StructureSpec"]
 
@@ -100,3 +103,233 @@ class StructureSpec:
             replace(s, opacity=float(o)) for s, o in zip(self.structures, opacities, strict=True)
         )
         return replace(self, structures=new)
+
+
+# -- validation helpers (used by dvr_perception.structures.io) ---------------------------------
+_LIGHTING_KEYS = ("ambient", "diffuse", "specular", "specular_power")
+_RENDER_KEYS = (
+    "shade",
+    "sample_distance",
+    "opacity_unit_distance",
+    "light_direction",
+    "light_intensity",
+)
+_STRUCTURE_KEYS = (
+    "name",
+    "range",
+    "label",
+    "importance",
+    "color",
+    "lighting",
+    "expected_opacity",
+    "opacity",
+    "edge",
+)
+_TOP_KEYS = ("version", "background", "structures", "rendering", "view", "labels")
+
+
+class _Checker:
+    """Field validation that raises one DVRInputError naming ``source`` and the field path."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+        self.unknown: list[str] = []
+
+    def fail(self, path: str, expected: str, got=None, *, show_got: bool = True):
+        tail = f", got {got!r}" if show_got else ""
+        raise DVRInputError(f"{self.source}: {path} {expected}{tail}")
+
+    def scan_nonfinite(self, value, path: str) -> None:
+        """Reject NaN/inf anywhere (also in unknown fields), naming the first one found."""
+        if isinstance(value, float) and not math.isfinite(value):
+            self.fail(path or "value", "must be a finite number", value)
+        elif isinstance(value, dict):
+            for k, v in value.items():
+                self.scan_nonfinite(v, f"{path}.{k}" if path else str(k))
+        elif isinstance(value, list):
+            for i, v in enumerate(value):
+                self.scan_nonfinite(v, f"{path}[{i}]")
+
+    def obj(self, value, path: str, known) -> dict:
+        if not isinstance(value, dict):
+            self.fail(path, "must be a JSON object", type(value).__name__, show_got=True)
+        prefix = f"{path}." if path else ""
+        self.unknown += [f"{prefix}{k}" for k in value if k not in known]
+        return value
+
+    def number(self, value, path: str, lo=None, hi=None, *, lo_open=False, hi_open=False):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            self.fail(path, "must be a number", value)
+        v = float(value)
+        if lo is not None or hi is not None:
+            below = lo is not None and (v <= lo if lo_open else v < lo)
+            above = hi is not None and (v >= hi if hi_open else v > hi)
+            if below or above:
+                left = "(" if lo_open else "["
+                right = ")" if hi_open or hi is None else "]"
+                lo_s = "-inf" if lo is None else f"{lo:g}"
+                hi_s = "inf" if hi is None else f"{hi:g}"
+                self.fail(path, f"must be in {left}{lo_s}, {hi_s}{right}", value)
+        return v
+
+    def vector(self, value, path: str, n, lo=None, hi=None, what: str = "numbers"):
+        sizes = n if isinstance(n, tuple) else (n,)
+        if not isinstance(value, list) or len(value) not in sizes:
+            count = " or ".join(str(s) for s in sizes)
+            self.fail(path, f"must be a list of {count} {what}", value)
+        return tuple(self.number(v, f"{path}[{i}]", lo, hi) for i, v in enumerate(value))
+
+    def optional(self, d: dict, key: str, path: str, lo, hi, **kw):
+        if d.get(key) is None:
+            return None
+        return self.number(d[key], f"{path}.{key}", lo, hi, **kw)
+
+
+def _parse_structure(c: _Checker, d, path: str, has_labels: bool) -> Structure:
+    d = c.obj(d, path, _STRUCTURE_KEYS)
+    name = d.get("name")
+    if not isinstance(name, str) or not name.strip():
+        c.fail(f"{path}.name", "must be a non-empty string", name)
+    has_range, has_label = d.get("range") is not None, d.get("label") is not None
+    if has_range == has_label:
+        which = "both" if has_range else "neither"
+        c.fail(
+            path,
+            f"must have exactly one of 'range' [lo, hi] or 'label' (got {which})",
+            show_got=False,
+        )
+    rng = label = None
+    if has_range:
+        lo, hi = c.vector(d["range"], f"{path}.range", 2)
+        if not lo < hi:
+            c.fail(f"{path}.range", "must be [lo, hi] with lo < hi", d["range"])
+        rng = (lo, hi)
+    else:
+        label = d["label"]
+        if isinstance(label, bool) or not isinstance(label, int):
+            c.fail(f"{path}.label", "must be an integer label id", label)
+        if not has_labels:
+            c.fail(
+                f"{path}.label",
+                "needs a 'labels' file at the top level of the spec",
+                show_got=False,
+            )
+    if "importance" not in d:
+        c.fail(f"{path}.importance", "is missing; expected a number in (0, 1]", show_got=False)
+    importance = c.number(d["importance"], f"{path}.importance", 0, 1, lo_open=True)
+    if "color" not in d:
+        c.fail(f"{path}.color", "is missing; expected [r, g, b] in [0, 1]", show_got=False)
+    color = c.vector(d["color"], f"{path}.color", 3, 0, 1, "numbers in [0, 1]")
+    light = Lighting()
+    if d.get("lighting") is not None:
+        ld = c.obj(d["lighting"], f"{path}.lighting", _LIGHTING_KEYS)
+        vals = {}
+        for k in _LIGHTING_KEYS[:3]:
+            if k in ld:
+                vals[k] = c.number(ld[k], f"{path}.lighting.{k}", 0, 1)
+        if "specular_power" in ld:
+            vals["specular_power"] = c.number(
+                ld["specular_power"], f"{path}.lighting.specular_power", 0, 128, lo_open=True
+            )
+        light = Lighting(**vals)
+    edge = c.optional(d, "edge", path, 0, 0.5)
+    return Structure(
+        name=name,
+        importance=importance,
+        color=color,
+        range=rng,
+        label=label,
+        edge=0.1 if edge is None else edge,
+        lighting=light,
+        opacity=c.optional(d, "opacity", path, 0, 1),
+        expected_opacity=c.optional(d, "expected_opacity", path, 0, 1),
+    )
+
+
+def _parse_rendering(c: _Checker, d) -> RenderSettings:
+    d = c.obj(d, "rendering", _RENDER_KEYS)
+    kw: dict = {}
+    if d.get("shade") is not None:
+        if not isinstance(d["shade"], bool):
+            c.fail("rendering.shade", "must be true or false", d["shade"])
+        kw["shade"] = d["shade"]
+    for key in ("sample_distance", "opacity_unit_distance"):
+        kw[key] = c.optional(d, key, "rendering", 0, None, lo_open=True)
+    if d.get("light_direction") is not None:
+        v = c.vector(d["light_direction"], "rendering.light_direction", 3)
+        if not any(v):
+            c.fail("rendering.light_direction", "must be a non-zero vector", d["light_direction"])
+        kw["light_direction"] = v
+    if d.get("light_intensity") is not None:
+        kw["light_intensity"] = c.number(d["light_intensity"], "rendering.light_intensity", 0)
+    return RenderSettings(**kw)
+
+
+def parse_spec_dict(d, source: str = "spec") -> tuple[StructureSpec, list[str]]:
+    """Validate a parsed spec JSON object; return the spec and the unknown field paths.
+
+    Raises :class:`~dvr_perception.errors.DVRInputError` (one message naming ``source`` and the
+    field path) on the first violation.  See :mod:`dvr_perception.structures.io`.
+    """
+    c = _Checker(source)
+    if not isinstance(d, dict):
+        c.fail("top level", "must be a JSON object", type(d).__name__)
+    c.scan_nonfinite(d, "")
+    c.obj(d, "", _TOP_KEYS)
+    if "version" not in d:
+        c.fail("version", f"is missing; expected {SPEC_VERSION}", show_got=False)
+    if isinstance(d["version"], bool) or d["version"] != SPEC_VERSION:
+        c.fail("version", f"must be {SPEC_VERSION}", d["version"])
+    labels = d.get("labels")
+    if labels is not None and (not isinstance(labels, str) or not labels.strip()):
+        c.fail("labels", "must be a non-empty path string", labels)
+    items = d.get("structures")
+    if not isinstance(items, list) or not items:
+        c.fail("structures", "must be a non-empty list of structures", items)
+    structures = [
+        _parse_structure(c, s, f"structures[{i}]", labels is not None) for i, s in enumerate(items)
+    ]
+    seen: dict = {}
+    for i, s in enumerate(structures):
+        key = ("name", s.name)
+        if key in seen:
+            c.fail(f"structures[{i}].name", f"duplicates structures[{seen[key]}].name", s.name)
+        seen[key] = i
+        if s.label is not None:
+            if ("label", s.label) in seen:
+                j = seen[("label", s.label)]
+                c.fail(f"structures[{i}].label", f"duplicates structures[{j}].label", s.label)
+            seen[("label", s.label)] = i
+    ranged = sorted((s.range, i) for i, s in enumerate(structures) if s.range is not None)
+    for n in range(1, len(ranged)):
+        (lo, _), i = ranged[n]
+        (plo, phi), j = max(ranged[:n], key=lambda r: r[0][1])
+        if lo < phi:
+            a, b = structures[j], structures[i]
+            c.fail(
+                f"structures[{i}].range",
+                f"[{lo:g}, {b.range[1]:g}] of {b.name!r} overlaps structures[{j}].range "
+                f"[{plo:g}, {phi:g}] of {a.name!r}; ranges may touch but not overlap",
+                show_got=False,
+            )
+    background = (0.0, 0.0, 0.0)
+    if d.get("background") is not None:
+        background = c.vector(d["background"], "background", 3, 0, 1, "numbers in [0, 1]")
+    rendering = (
+        RenderSettings() if d.get("rendering") is None else _parse_rendering(c, d["rendering"])
+    )
+    view = None
+    if d.get("view") is not None:
+        v = c.vector(d["view"], "view", (2, 3), what="numbers [azimuth, elevation, zoom]")
+        if len(v) == 3 and v[2] <= 0:
+            c.fail("view[2]", "(zoom) must be positive", d["view"][2])
+        view = (v[0], v[1], v[2] if len(v) == 3 else 1.0)
+    spec = StructureSpec(
+        structures=tuple(structures),
+        background=background,
+        rendering=rendering,
+        view=view,
+        labels_file=labels,
+        version=SPEC_VERSION,
+    )
+    return spec, c.unknown
