@@ -55,7 +55,12 @@ def run(args: argparse.Namespace) -> int:
 
     log.info("rendering %dx%d", scene.camera.width, scene.camera.height)
     t0 = time.perf_counter()
-    result = analyze(scene.volume, scene.spec, scene.camera, build_cache=False)
+    curvature = None
+    if buffers is not None:  # the curvature buffer needs the curvature volume (~2 s at 256^3)
+        from dvr_perception.rays.curvature import curvature_volume
+
+        curvature, _ = curvature_volume(scene.volume, scene.spec)
+    result = analyze(scene.volume, scene.spec, scene.camera, curvature=curvature, build_cache=False)
     seconds = time.perf_counter() - t0
     write_png(out, result.image)
     if buffers is not None:

@@ -27,6 +27,7 @@ from dvr_perception.errors import DVRInputError
 from dvr_perception.rays.camera import Camera
 from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.structures.transfer import to_vtk_property
+from dvr_perception.volume.convert import to_vtk_image
 from dvr_perception.volume.volume import Volume
 
 __all__ = [
@@ -103,17 +104,6 @@ def vtk_clipping_range(volume: Volume, camera: Camera) -> tuple[float, float]:
     return near, far
 
 
-def _to_vtk_image(volume: Volume):
-    img = _vtk.vtkImageData()
-    img.SetDimensions(*volume.dims)
-    img.SetSpacing(*volume.spacing)
-    img.SetOrigin(*volume.origin)
-    arr = _vtk.numpy_to_vtk(volume.data.ravel(), deep=True)
-    arr.SetName("scalars")
-    img.GetPointData().SetScalars(arr)
-    return img
-
-
 @functools.cache
 def _probe(kind: str) -> tuple[bool, str]:
     """Check in a subprocess that VTK can render (``kind="basic"``) or run the GPU mapper."""
@@ -162,7 +152,7 @@ class _Scene:
             m.SetUseJittering(0)
         m.SetAutoAdjustSampleDistances(0)
         m.SetSampleDistance(sd)
-        m.SetInputData(_to_vtk_image(volume))
+        m.SetInputData(to_vtk_image(volume))
         self.vol = r.vtkVolume()
         self.vol.SetMapper(m)
         self.vol.SetProperty(prop)
