@@ -1,0 +1,287 @@
+"""``dvr-perception measure``: the paper's three perceptual measures of one rendering.
+
+The command loads the scene (as ``render`` does), computes the curvature volume (``|H|`` on the
+structure boundaries, the structural shape ``v_s``), runs the ray analysis and then the
+visibility (Sec. 4.1), shape (Sec. 4.2) and transparency (Sec. 4.3) measures.  It reports
+``E_v``, ``E_s`` and ``E_t``, the per-structure shares and perceived transparencies, the layer
+relations, the undetermined (region, layer) pairs and the measures' notes.  With
+``--out-dir`` it also writes the rendering, the three deviation maps, the visibility
+histograms, the region map and ``measures.json`` (the same JSON as ``--json`` prints).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from dvr_perception._files import write_json, write_png
+from dvr_perception.cli._common import (
+    add_scene_args,
+    coverage,
+    emit_json,
+    load_scene,
+    log,
+    make_output_dir,
+)
+
+__all__ = ["FIGURES", "add_parser", "run"]
+
+EXAMPLE = """examples:
+  dvr-perception measure phantom --size 256 --json
+  dvr-perception measure ../shared/data/engine.nhdr --view=30,20 --out-dir engine_measures
+"""
+
+#: Files written into ``--out-dir``, in writing order.
+FIGURES = (
+    "image.png",
+    "visibility_deviation.png",
+    "shape_deviation.png",
+    "transparency_deviation.png",
+    "visibility_histograms.png",
+    "regions.png",
+    "measures.json",
+)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def add_parser(subparsers, parents) -> None:
+    """Register the ``measure`` sub-command."""
+    p = subparsers.add_parser(
+        "measure",
+        parents=parents,
+        help="compute the visibility, shape and transparency measures of a rendering",
+        description="Render VOLUME with the ray-analysis engine and compute E_v (visibility, "
+        "in [0, 2]), E_s (shape, in [0, 1]) and E_t (transparency, >= 0); lower is better.",
+        epilog=EXAMPLE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_scene_args(p)
+    p.add_argument(
+        "--out-dir",
+        metavar="DIR",
+        help="also write " + ", ".join(FIGURES) + " into DIR (created if needed)",
+    )
+    p.add_argument(
+        "--bins",
+        type=_positive_int,
+        default=20,
+        metavar="N",
+        help="bins of the visibility histograms on [0, 1] (default 20)",
+    )
+    p.set_defaults(run=run)
+
+
+def _structures(vis, trans, names) -> dict:
+    """Per-structure summary from the visibility and transparency results."""
+    out = {}
+    for name in names:
+        v, t = vis.per_structure[name], trans.per_structure[name]
+        out[name] = {
+            "visible_share": float(v["visible_share"]),
+            "assigned_share": float(v["assigned_share"]),
+            "perceived_transparency": t["perceived_transparency"],
+            "perceived_opacity": t["perceived_opacity"],
+            "expected_opacity": float(t["expected_opacity"]),
+            "rays": int(v["rays"]),
+        }
+    return out
+
+
+def _relations(trans) -> list[dict]:
+    """Return the layer relations as a list of ``{a, b, kind, encloser}``."""
+    return [
+        {"a": a, "b": b, "kind": rel["kind"], "encloser": rel["encloser"]}
+        for (a, b), rel in trans.relations.items()
+    ]
+
+
+def _notes(curvature: np.ndarray, vis, shp, trans) -> list[str]:
+    """Return the measures' notes, each prefixed with the measure it comes from."""
+    notes = []
+    if not np.any(curvature > 0):
+        notes.append(
+            "shape: the curvature volume is 0 everywhere (no curved structure boundary), so "
+            "v_s = 0 and E_s measures only the image variation (silhouettes, shading)"
+        )
+    for measure, result in (("visibility", vis), ("shape", shp), ("transparency", trans)):
+        notes.extend(f"{measure}: {note}" for note in result.notes)
+    return notes
+
+
+def _check_defined(report: dict) -> None:
+    """Fail loudly if a number that the measures define came out NaN or infinite."""
+    bad = [key for key in ("E_v", "E_s", "E_t") if not math.isfinite(report[key])]
+    for name, entry in report["structures"].items():
+        for key in ("visible_share", "assigned_share", "expected_opacity"):
+            if not math.isfinite(entry[key]):
+                bad.append(f"structures.{name}.{key}")
+        value = entry["perceived_transparency"]
+        if value is not None and not math.isfinite(value):
+            bad.append(f"structures.{name}.perceived_transparency")
+    if bad:
+        raise RuntimeError(f"measure produced non-finite values for {', '.join(bad)}")
+
+
+def _write_outputs(out_dir: Path, result, vis, shp, trans) -> list[Path]:
+    """Write the rendering and the figures (not ``measures.json``) into ``out_dir``."""
+    from dvr_perception.cli import _plots
+
+    files = [write_png(out_dir / "image.png", result.image)]
+    files.append(
+        _plots.save_deviation_map(
+            out_dir / "visibility_deviation.png",
+            vis.deviation,
+            title=f"visibility deviation δ_v (E_v = {vis.E_v:.4f}, range [0, 2])",
+            vmin=0.0,
+            vmax=2.0,
+            mask=vis.nonempty,
+            label="δ_v",
+        )
+    )
+    files.append(
+        _plots.save_deviation_map(
+            out_dir / "shape_deviation.png",
+            shp.deviation,
+            title=f"shape deviation δ_s (E_s = {shp.E_s:.4f}, range [0, 1])",
+            vmin=0.0,
+            vmax=1.0,
+            mask=shp.nonempty,
+            label="δ_s",
+        )
+    )
+    t_max = max(1e-3, float(np.max(trans.deviation, initial=0.0)))
+    files.append(
+        _plots.save_deviation_map(
+            out_dir / "transparency_deviation.png",
+            trans.deviation,
+            title=f"transparency deviation δ_t (E_t = {trans.E_t:.4f})",
+            vmin=0.0,
+            vmax=t_max,
+            mask=np.asarray(trans.layer_set) != 0,
+            label="δ_t",
+        )
+    )
+    files.append(
+        _plots.save_visibility_histograms(
+            out_dir / "visibility_histograms.png",
+            vis.per_structure,
+            vis.bin_edges,
+            title="per-ray assigned vs visible share over the rays meeting each structure "
+            f"(E_v = {vis.E_v:.4f})",
+        )
+    )
+    files.append(
+        _plots.save_region_map(
+            out_dir / "regions.png",
+            trans.region_id,
+            trans.regions,
+            title=f"sub-regions by layer set ({len(trans.regions)} regions)",
+        )
+    )
+    return files
+
+
+def run(args: argparse.Namespace) -> int:
+    """Execute ``measure``."""
+    t_start = time.perf_counter()
+    scene = load_scene(args)  # validates the options and the spec before anything is written
+    out_dir = make_output_dir(args.out_dir) if args.out_dir else None
+    from dvr_perception.measures import shape, transparency, visibility
+    from dvr_perception.rays.curvature import curvature_volume
+    from dvr_perception.rays.engine import analyze
+
+    log.info("computing the curvature volume")
+    t0 = time.perf_counter()
+    curvature, _ = curvature_volume(scene.volume, scene.spec)
+    t_curv = time.perf_counter() - t0
+    log.info("analysing %dx%d rays", scene.camera.width, scene.camera.height)
+    t0 = time.perf_counter()
+    result = analyze(scene.volume, scene.spec, scene.camera, curvature=curvature, build_cache=False)
+    t_analysis = time.perf_counter() - t0
+    log.info("computing the measures")
+    t0 = time.perf_counter()
+    vis = visibility(result, scene.spec, bins=args.bins)
+    shp = shape(result, scene.spec)
+    trans = transparency(result, scene.spec)
+    t_measures = time.perf_counter() - t0
+    report = {
+        "volume": scene.volume_source,
+        "spec": scene.spec_source,
+        "size": [scene.camera.width, scene.camera.height],
+        "E_v": float(vis.E_v),
+        "E_s": float(shp.E_s),
+        "E_t": float(trans.E_t),
+        "coverage": coverage(result),
+        "structures": _structures(vis, trans, result.names),
+        "relations": _relations(trans),
+        "regions": len(trans.regions),
+        "undetermined": list(trans.undetermined),
+        "notes": _notes(curvature, vis, shp, trans),
+        "seconds": None,
+        "seconds_load": scene.load_s,
+        "seconds_curvature": t_curv,
+        "seconds_analysis": t_analysis,
+        "seconds_measures": t_measures,
+        "seconds_figures": None,
+        "out_dir": None,
+        "files": [],
+        "camera": scene.camera.to_dict(),
+    }
+    _check_defined(report)
+    if out_dir is not None:
+        log.info("writing figures into %s", out_dir)
+        t0 = time.perf_counter()
+        files = _write_outputs(out_dir, result, vis, shp, trans)
+        report["seconds_figures"] = time.perf_counter() - t0
+        report["out_dir"] = str(out_dir)
+        report["files"] = [str(f) for f in [*files, out_dir / "measures.json"]]
+    report["seconds"] = time.perf_counter() - t_start
+    if out_dir is not None:
+        write_json(out_dir / "measures.json", report)
+    if args.json:
+        emit_json(report)
+        return 0
+    _print_summary(report)
+    return 0
+
+
+def _print_summary(report: dict) -> None:
+    """Print a short human-readable summary of ``report`` on stdout."""
+    w, h = report["size"]
+    print(f"measures of {report['volume']} ({w}x{h}, spec: {report['spec']})")
+    print(
+        f"  E_v {report['E_v']:.4f} (visibility, 0..2)   E_s {report['E_s']:.4f} (shape, 0..1)"
+        f"   E_t {report['E_t']:.4f} (transparency, >= 0)"
+    )
+    width = max([len(n) for n in report["structures"]] + [9])
+    print(f"  {'structure':<{width}}  visible  assigned  perceived-alpha  expected-opacity")
+    for name, s in report["structures"].items():
+        alpha = s["perceived_transparency"]
+        alpha_text = "undetermined" if alpha is None else f"{alpha:.3f}"
+        print(
+            f"  {name:<{width}}  {s['visible_share']:7.3f}  {s['assigned_share']:8.3f}  "
+            f"{alpha_text:>15}  {s['expected_opacity']:16.3f}"
+        )
+    if report["undetermined"]:
+        print(f"  {len(report['undetermined'])} undetermined (region, layer) pair(s)")
+    for note in report["notes"]:
+        print(f"  note: {note}")
+    print(
+        f"  seconds: total {report['seconds']:.2f} (analysis {report['seconds_analysis']:.2f}, "
+        f"measures {report['seconds_measures']:.2f})"
+    )
+    for f in report["files"]:
+        print(f"  wrote {f}")
