@@ -16,6 +16,7 @@ from vtkmodules.util.numpy_support import (
     numpy_to_vtk,
     vtk_to_numpy,
 )
+from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonCore import (
     VTK_DOUBLE,
     VTK_FLOAT,
@@ -56,6 +57,7 @@ from vtkmodules.vtkRenderingCore import (
 __all__ = [
     "VTK_DOUBLE",
     "VTK_FLOAT",
+    "VTKPythonAlgorithmBase",
     "can_render",
     "get_vtk_array_type",
     "numpy_to_vtk",

@@ -1,0 +1,221 @@
+"""``PerceptionMeasures``: render a volume and measure how well the rendering shows its structures.
+
+One 3-D ``vtkImageData`` in; one 2-D ``vtkImageData`` of ``width x height x 1`` points out
+(spacing 1, origin 0).  The filter runs the library pipeline
+:func:`~dvr_perception.rays.curvature.curvature_volume` ->
+:func:`~dvr_perception.rays.engine.analyze` -> :func:`~dvr_perception.measures.visibility`,
+:func:`~dvr_perception.measures.shape`, :func:`~dvr_perception.measures.transparency` with
+their default options.
+
+Point data (one tuple per pixel)
+    ``rgba`` (float32, 4 components): the engine's premultiplied colour and accumulated
+    opacity (the active scalars); ``luminance`` (float32): linear CIE Y of ``rgba`` composited
+    over the spec background; ``visibility_deviation``, ``shape_deviation``,
+    ``transparency_deviation`` (float32): the per-pixel deviations of the three measures;
+    ``layer_set`` (uint32): bitmask of the visible layers (bit ``k`` = structure ``k``);
+    ``region_id`` (int32): sub-region index of the transparency measure.
+
+Row order
+    The engine's images have row 0 at the **top** (as a PNG); VTK images have point row
+    ``j = 0`` at the **bottom**.  Every point array is flipped vertically, so the output shows
+    upright in ParaView: engine pixel ``[row, col]`` is output point ``(i=col, j=H-1-row)``,
+    i.e. ``engine = vtk_to_numpy(a).reshape(H, W, -1)[::-1]``.
+
+Field data
+    ``E_v``, ``E_s``, ``E_t``: one-tuple double arrays with the three deviations;
+    ``structure_names`` (vtkStringArray); and, ordered like ``structure_names``, double arrays
+    ``visible_share``, ``assigned_share`` (image-wide shares of the visibility measure),
+    ``perceived_transparency`` (area-weighted perceived transmittance of the transparency
+    measure; **NaN** where it could not be determined, e.g. a structure that is not visible)
+    and ``expected_opacity`` (the opacity the transparency measure expects).
+
+Errors are reported through VTK's error mechanism (see :mod:`dvr_perception.filters._base`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from dvr_perception._vtk import vtkDataObject, vtkStreamingDemandDrivenPipeline
+from dvr_perception.errors import DVRInputError
+from dvr_perception.filters._base import (
+    DVRFilterBase,
+    Parameter,
+    as_positive_float,
+    as_positive_int,
+    as_text,
+    double_array,
+    parse_json,
+    point_array,
+    string_array,
+)
+from dvr_perception.measures import composite_luminance, shape, transparency, visibility
+from dvr_perception.rays.camera import Camera
+from dvr_perception.rays.curvature import curvature_volume
+from dvr_perception.rays.engine import analyze
+from dvr_perception.structures.io import check_spec_for_volume
+
+__all__ = ["PerceptionMeasures"]
+
+
+def as_view(value, name: str):
+    """Accept ``None``/``""`` (use the spec's view) or ``(azimuth, elevation[, zoom])``."""
+    if value is None or (isinstance(value, str) and not value.strip()):
+        return None
+    try:
+        vals = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        vals = ()
+    if len(vals) == 2:
+        vals = (*vals, 1.0)
+    if len(vals) != 3 or not all(math.isfinite(v) for v in vals) or vals[2] <= 0:
+        raise DVRInputError(
+            f"{name}: expected (azimuth, elevation[, zoom]) finite numbers with zoom > 0, "
+            f"got {value!r}"
+        )
+    return vals
+
+
+class PerceptionMeasures(DVRFilterBase):
+    """VTK filter: DVR image and per-pixel / overall perceptual deviations of a volume.
+
+    The parameters are attributes, each also settable ParaView-style (``SetCameraJson(text)``,
+    ``SetView(30, 10, 1)``, ``SetWidth(256)``, ...); changing one marks the filter modified.
+
+    Attributes
+    ----------
+    spec_file : str
+        Path of a structure-spec JSON file, or
+    spec_json : str
+        the spec as JSON text (exactly one of the two).
+    camera_json : str
+        A camera as JSON text (:meth:`~dvr_perception.rays.camera.Camera.to_dict` format;
+        missing ``width``/``height`` come from the attributes below).  When empty, the camera
+        orbits the volume as given by ``view``.
+    view : tuple of float or None
+        ``(azimuth, elevation, zoom)`` (:meth:`~dvr_perception.rays.camera.Camera.from_view`);
+        ``None`` (default) uses the spec's ``view`` or ``(0, 0, 1)``.
+    width, height : int
+        Image size in pixels (default 512 x 512) when ``camera_json`` does not give it.
+    sigma : float
+        Gaussian scale of the boundary curvature (default 1.0).
+    input_array : str
+        Point array to render (default "": the active scalars).
+    """
+
+    camera_json = Parameter("", as_text)
+    view = Parameter(None, as_view)
+    width = Parameter(512, as_positive_int)
+    height = Parameter(512, as_positive_int)
+    sigma = Parameter(1.0, as_positive_float)
+
+    def __init__(self) -> None:
+        super().__init__("vtkImageData")
+
+    # -- camera -----------------------------------------------------------------------------------
+    def _camera_dict(self) -> dict | None:
+        if not self.camera_json.strip():
+            return None
+        d = parse_json(self.camera_json, "camera_json", "a camera")
+        if not isinstance(d, dict):
+            raise DVRInputError(f"camera_json: expected a JSON object, got {type(d).__name__}")
+        d = dict(d)
+        d.setdefault("width", self.width)
+        d.setdefault("height", self.height)
+        return d
+
+    def image_size(self) -> tuple[int, int]:
+        """``(width, height)`` of the output image for the current parameters."""
+        d = self._camera_dict()
+        if d is None:
+            return self.width, self.height
+        cam = Camera.from_dict(d, source="camera_json")
+        return cam.width, cam.height
+
+    def make_camera(self, volume, spec) -> Camera:
+        """Return the camera for ``volume`` (``camera_json``, else the orbit ``view``)."""
+        d = self._camera_dict()
+        if d is not None:
+            return Camera.from_dict(d, source="camera_json")
+        az, el, zoom = self.view or spec.view or (0.0, 0.0, 1.0)
+        return Camera.from_view(
+            volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=self.width, height=self.height
+        )
+
+    # -- pipeline ---------------------------------------------------------------------------------
+    def information(self, in_info, out_info) -> None:
+        """Declare the 2-D output extent ``(0, W-1, 0, H-1, 0, 0)``, spacing 1, origin 0."""
+        w, h = self.image_size()
+        info = out_info.GetInformationObject(0)
+        key = vtkStreamingDemandDrivenPipeline
+        info.Set(key.WHOLE_EXTENT(), (0, w - 1, 0, h - 1, 0, 0), 6)
+        info.Set(vtkDataObject.SPACING(), 1.0, 1.0, 1.0)
+        info.Set(vtkDataObject.ORIGIN(), 0.0, 0.0, 0.0)
+
+    def execute(self, image, output) -> None:
+        """Render, measure and fill the output image and its field data."""
+        self.UpdateProgress(0.0)
+        volume = self.load_input(image)
+        spec = self.load_spec_parameters()
+        check_spec_for_volume(spec, volume)
+        camera = self.make_camera(volume, spec)
+        self.UpdateProgress(0.05)
+        curvature, _ = curvature_volume(volume, spec, sigma=self.sigma)
+        self.UpdateProgress(0.3)
+        result = analyze(volume, spec, camera, curvature=curvature, build_cache=False)
+        self.UpdateProgress(0.7)
+        vis = visibility(result, spec)
+        self.UpdateProgress(0.75)
+        shp = shape(result, spec)
+        self.UpdateProgress(0.8)
+        trn = transparency(result, spec)
+        self.UpdateProgress(0.95)
+        lum = composite_luminance(result.rgba, background=spec.background)
+
+        w, h = camera.width, camera.height
+        output.SetExtent(0, w - 1, 0, h - 1, 0, 0)
+        output.SetSpacing(1.0, 1.0, 1.0)
+        output.SetOrigin(0.0, 0.0, 0.0)
+        pd = output.GetPointData()
+        rgba = point_array(_rows_up(result.rgba, np.float32), "rgba")
+        pd.SetScalars(rgba)
+        for name, values, dtype in (
+            ("luminance", lum, np.float32),
+            ("visibility_deviation", vis.deviation, np.float32),
+            ("shape_deviation", shp.deviation, np.float32),
+            ("transparency_deviation", trn.deviation, np.float32),
+            ("layer_set", trn.layer_set, np.uint32),
+            ("region_id", trn.region_id, np.int32),
+        ):
+            pd.AddArray(point_array(_rows_up(values, dtype), name))
+
+        fd = output.GetFieldData()
+        names = list(result.names)
+        fd.AddArray(double_array([vis.E_v], "E_v"))
+        fd.AddArray(double_array([shp.E_s], "E_s"))
+        fd.AddArray(double_array([trn.E_t], "E_t"))
+        fd.AddArray(string_array(names, "structure_names"))
+        per_v = vis.per_structure
+        per_t = trn.per_structure
+        fd.AddArray(double_array([per_v[n]["visible_share"] for n in names], "visible_share"))
+        fd.AddArray(double_array([per_v[n]["assigned_share"] for n in names], "assigned_share"))
+        fd.AddArray(
+            double_array(
+                [_nan(per_t[n]["perceived_transparency"]) for n in names],
+                "perceived_transparency",
+            )
+        )
+        fd.AddArray(double_array([per_t[n]["expected_opacity"] for n in names], "expected_opacity"))
+
+
+def _rows_up(values, dtype) -> np.ndarray:
+    """Reorder a top-row-first ``(H, W[, C])`` array to VTK point order (bottom row first)."""
+    a = np.asarray(values, dtype=dtype)[::-1]
+    h, w = a.shape[:2]
+    return np.ascontiguousarray(a.reshape(h * w, *a.shape[2:]))
+
+
+def _nan(value) -> float:
+    return math.nan if value is None else float(value)
