@@ -35,11 +35,19 @@ class RayCache:
     present: np.ndarray
     backend: str
     stats: dict
+    #: numba backend only: per-entry sample index (``steps``), the rays (``a``, ``b``, ``t``,
+    #: ``step``) and the normal and curvature volumes, so that normals and curvature of an entry
+    #: are computed when compositing first reaches it (``normals[e, 0] == -128`` until then).
+    #: The volumes are referenced, not copied (a non-negative float32 curvature array passed to
+    #: ``analyze`` is used as is: do not modify it while the cache is in use).
+    lazy: dict | None = None
 
     @property
     def nbytes(self) -> int:
         """Bytes held by the per-ray sample lists and the per-pixel arrays."""
         arrays = (self.start, self.count, self.lut, self.normals, self.curvature)
+        if self.lazy is not None:
+            arrays += (self.lazy["steps"], self.lazy["a"], self.lazy["b"], self.lazy["t"])
         return int(sum(a.nbytes for a in arrays) + self.assigned.nbytes + self.present.nbytes)
 
 

@@ -31,6 +31,7 @@ Conventions matched to ``vtkFixedPointVolumeRayCastMapper`` (``docs/vtk_conventi
 from __future__ import annotations
 
 import os
+import threading
 import time
 import warnings
 
@@ -88,6 +89,13 @@ def _check_curvature(curvature, volume) -> np.ndarray | None:
             f"curvature: expected shape {volume.data.shape} (z, y, x) like the volume, "
             f"got {c.shape}"
         )
+    nk = _numba_kernels()
+    if nk is not None:
+        c = np.ascontiguousarray(c)
+        state = nk.check_curvature(c.reshape(-1))
+        if state == 2:
+            raise DVRInputError("curvature: values must be finite")
+        return c if state == 0 else np.abs(c)  # already |H|: used as is, not copied
     if not np.all(np.isfinite(c)):
         raise DVRInputError("curvature: values must be finite")
     return np.ascontiguousarray(np.abs(c))
@@ -121,13 +129,28 @@ def _segments(nk, camera, volume, step: float) -> dict:
 def _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache) -> RayAnalysis:
     h, w = camera.height, camera.width
     k = len(spec.structures)
-    rgba = np.asarray(rgba, np.float32).reshape(h, w, 4)
     bg = np.asarray(spec.background, np.float32)
-    image = np.clip(rgba[..., :3] + (1.0 - rgba[..., 3:]) * bg, 0.0, 1.0)
+    nk = _numba_kernels()
+    if nk is not None and rgba.dtype == vis.dtype == cimg.dtype == np.float64:
+        rgba32 = np.empty((h, w, 4), np.float32)
+        image = np.empty((h, w, 3), np.float32)
+        acc = np.empty((h, w), np.float32)
+        vis32 = np.empty((k, h, w), np.float32)
+        cimg32 = np.empty((h, w), np.float32)
+        nk.finish(
+            np.ascontiguousarray(rgba).reshape(-1, 4), np.ascontiguousarray(vis).reshape(k, -1),
+            np.ascontiguousarray(cimg).reshape(-1), bg, rgba32.reshape(-1, 4),
+            image.reshape(-1, 3), acc.reshape(-1), vis32.reshape(k, -1), cimg32.reshape(-1),
+        )  # fmt: skip
+        rgba, vis, cimg = rgba32, vis32, cimg32
+    else:
+        rgba = np.asarray(rgba, np.float32).reshape(h, w, 4)
+        image = np.clip(rgba[..., :3] + (1.0 - rgba[..., 3:]) * bg, 0.0, 1.0)
+        acc = np.ascontiguousarray(rgba[..., 3])
     return RayAnalysis(
         rgba=rgba,
         image=image,
-        accumulated=np.ascontiguousarray(rgba[..., 3]),
+        accumulated=acc,
         visible=np.asarray(vis, np.float32).reshape(k, h, w),
         assigned=np.asarray(asg, np.float32).reshape(k, h, w),
         present=np.asarray(present, np.uint32).reshape(h, w),
@@ -221,6 +244,7 @@ def analyze(
     stab = _tables.specular_table(mats, rs.light_intensity)
     args = (ids, alpha_r, cols, light, stab, shade, has_curv, _tables.ERT)
     walked = int(seg["n"].sum())
+    lazy = None
     if nk is None:
         out = _npk.walk(idx, nrm, cv, seg, step, ids, memb, alpha_w, light, shade, has_curv, k)
         start, count = out["off"][:-1], np.diff(out["off"])
@@ -230,7 +254,18 @@ def analyze(
     else:
         res = _walk_numba(nk, volume, lut, idx, nrm, cv, seg, step, memb, alpha_w, args, k,
                           camera, build_cache)  # fmt: skip
-        rgba, vis, asg, present, cimg, start, count, c_lut, c_nrm, c_curv, walked = res
+        rgba, vis, asg, present, cimg, start, count, entries, walked = res
+        if entries is not None:
+            c_lut, c_nrm, c_curv = entries["lut"], entries["normals"], entries["curvature"]
+            lazy = {
+                "steps": entries["steps"],
+                "a": seg["a"],
+                "b": seg["b"],
+                "t": seg["t"],
+                "step": float(step),
+                "normal_volume": nrm,
+                "curvature_volume": cv,
+            }
     seconds = time.perf_counter() - t_start
     samples = int(seg["n"].sum())
     stats = {
@@ -261,53 +296,107 @@ def analyze(
             present=np.asarray(present, np.uint32).reshape(h, w),
             backend=stats["backend"],
             stats=dict(stats),
+            lazy=lazy,
         )
         stats["cache_entries"] = len(c_lut)
         stats["cache_bytes"] = cache.nbytes
     return _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache)
 
 
+_SCRATCH: dict = {}
+_SCRATCH_LOCK = threading.Lock()
+
+
+def _block_distance(volume, idx, memb) -> np.ndarray:
+    """Empty-space distance map of the blocks for this table (memoised per volume)."""
+    bmin, bmax = _grid.block_range(volume, idx)
+    flags = _grid.block_flags(bmin, bmax, memb > 0)
+    key = ("block_distance", id(idx), flags.shape, flags.tobytes())
+    memo = _grid._store(volume)
+    if key not in memo:
+        memo[key] = _grid.block_distance(flags)
+    return memo[key]
+
+
 def _walk_numba(nk, volume, lut, idx, nrm, cv, seg, step, memb, alpha_w, args, k, camera, build):
-    """Run the numba walk (and, when building the cache, compaction and compositing)."""
-    ids, alpha_r, cols, light, stab, shade, has_curv, ert = args
+    """Run the numba walk (with the cache: fused build and compositing, then compaction)."""
+    shade, has_curv = args[5], args[6]
     h, w = camera.height, camera.width
     nrays = h * w
     n = seg["n"]
-    bmin, bmax = _grid.block_range(volume, idx)
-    flags = _grid.block_flags(bmin, bmax, memb > 0)
+    dist = _block_distance(volume, idx, memb)
+    nchunk = max(min(h, 64), 1)
     rgba = np.zeros((nrays, 4))
     vis = np.zeros((k, nrays))
     asg = np.zeros((k, nrays))
     present = np.zeros(nrays, np.uint32)
     cimg = np.zeros(nrays)
-    count = np.zeros(nrays, np.int64)
+    start = np.empty(nrays, np.int64)
+    count = np.empty(nrays, np.int64)
     walked = np.zeros(nrays, np.int64)
-    cap = np.concatenate([[0], np.cumsum(n, dtype=np.int64)])
-    total = int(cap[-1]) if build else 1
-    src_lut = np.empty(max(total, 1), np.uint16)
-    src_nrm = np.empty((max(total, 1) if build and shade else 1, 3), np.int8)
-    src_curv = np.empty(max(total, 1) if build and has_curv else 1, np.float32)
+    per_chunk = n.reshape(h, w).sum(axis=1, dtype=np.int64)
+    per_chunk = np.bincount(np.arange(h) % nchunk, weights=per_chunk, minlength=nchunk)
+    chunk_base = np.concatenate([[0], np.cumsum(per_chunk.astype(np.int64))])
+    total = int(chunk_base[-1]) if build else 1
+    chunk_base = np.ascontiguousarray(chunk_base[:-1])
+    chunk_end = np.zeros(nchunk, np.int64)
+    cap = max(total, 1)
+    locked = _SCRATCH_LOCK.acquire(blocking=False)
+    try:
+        src_lut = _scratch("lut", cap, (), np.uint16, locked)
+        src_j = _scratch("j", cap if build else 1, (), np.int32, locked)
+        src_nrm = _scratch("nrm", cap if build and shade else 1, (3,), np.int8, locked)
+        src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked)
+        return _walk_compact(nk, idx, nrm, cv, dist, seg, step, h, w, nchunk, memb, alpha_w,
+                             args, build, chunk_base, rgba, vis, asg, present, cimg, src_lut,
+                             src_j, src_nrm, src_curv, start, count, chunk_end, walked)  # fmt: skip
+    finally:
+        if locked:
+            _SCRATCH_LOCK.release()
+
+
+def _scratch(name, n, tail, dtype, shared):
+    """Return ``n`` rows of a reusable module-level scratch array.
+
+    Page faults of fresh memory cost several ms per frame.  ``shared`` False (another thread
+    holds the scratch lock): a private array.
+    """
+    if not shared:
+        return np.empty((n, *tail), dtype)
+    a = _SCRATCH.get(name)
+    if a is None or len(a) < n:
+        a = np.empty((max(n, int(1.25 * len(a)) if a is not None else n), *tail), dtype)
+        _SCRATCH[name] = a
+    return a[:n]
+
+
+def _walk_compact(nk, idx, nrm, cv, dist, seg, step, h, w, nchunk, memb, alpha_w, args, build,
+                  chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j, src_nrm, src_curv,
+                  start, count, chunk_end, walked):  # fmt: skip
+    ids, alpha_r, cols, light, stab, shade, has_curv, ert = args
+    n = seg["n"]
     nk.walk(
-        idx, nrm, cv, flags, seg["a"], seg["b"], seg["t"], n, step, h, w, ids, memb, alpha_r,
-        alpha_w, cols, light, stab, shade, has_curv, build, cap[:-1], ert, rgba, vis, asg, present,
-        cimg, src_lut, src_nrm, src_curv, count, walked,
+        idx, nrm, cv, dist, seg["a"], seg["b"], seg["t"], n, step, h, w, nchunk, ids, memb,
+        alpha_r, alpha_w, cols, light, stab, shade, has_curv, build, chunk_base, ert, rgba, vis,
+        asg, present, cimg, src_lut, src_j, src_nrm, src_curv, start, count, chunk_end, walked,
     )  # fmt: skip
-    start = np.zeros(nrays, np.int64)
-    c_lut = np.zeros(0, np.uint16)
-    c_nrm = np.zeros((0, 3), np.int8)
-    c_curv = np.zeros(0, np.float32)
+    entries = None
     if build:
-        off = np.concatenate([[0], np.cumsum(count)])
-        e = int(off[-1])
-        c_lut = np.empty(e, np.uint16)
-        c_nrm = np.empty((e if shade else 0, 3), np.int8)
-        c_curv = np.empty(e if has_curv else 0, np.float32)
-        nk.compact(cap[:-1], count, off, src_lut, src_nrm, src_curv, c_lut, c_nrm, c_curv,
-                   shade, has_curv)  # fmt: skip
-        start = off[:-1].copy()
-        del src_lut, src_nrm, src_curv
-        nk.composite(start, count, c_lut, c_nrm, c_curv, h, w, *args, rgba, vis, cimg)
-    return rgba, vis, asg, present, cimg, start, count, c_lut, c_nrm, c_curv, int(walked.sum())
+        sizes = chunk_end - chunk_base
+        dest = np.ascontiguousarray(np.concatenate([[0], np.cumsum(sizes)])[:-1])
+        e = int(sizes.sum())
+        entries = {
+            "lut": np.empty(e, np.uint16),
+            "steps": np.empty(e, np.int32),
+            "normals": np.empty((e if shade else 0, 3), np.int8),
+            "curvature": np.empty(e if has_curv else 0, np.float32),
+        }
+        nk.compact(
+            h, w, nchunk, chunk_base, chunk_end, dest, start, src_lut, src_j, src_nrm, src_curv,
+            entries["lut"], entries["steps"], entries["normals"], entries["curvature"], shade,
+            has_curv,
+        )  # fmt: skip
+    return rgba, vis, asg, present, cimg, start, count, entries, int(walked.sum())
 
 
 def reevaluate(
@@ -322,8 +411,10 @@ def reevaluate(
     """Re-composite a cached analysis with new opacities, materials, light or background.
 
     Only the cached per-ray sample lists are walked (with early ray termination at the new
-    opacities); the volume is not sampled again.  ``assigned`` and ``present`` do not depend on
-    these parameters and are taken from the cache.  Unspecified parameters keep the values of
+    opacities); the volume is not sampled again (numba backend: normals and curvature of
+    entries that no earlier compositing reached are computed once, on first use).
+    ``assigned`` and ``present`` do not depend on these parameters and are taken from the
+    cache.  Unspecified parameters keep the values of
     the :func:`analyze` call that built the cache.
 
     Parameters
@@ -378,13 +469,29 @@ def reevaluate(
             cache.start, cache.count, cache.lut, cache.normals, cache.curvature, *args, k
         )
     else:
-        rgba = np.zeros((h * w, 4))
-        vis = np.zeros((k, h * w))
-        cimg = np.zeros(h * w)
-        nk.composite(
-            cache.start, cache.count, cache.lut, cache.normals, cache.curvature, h, w, *args,
-            rgba, vis, cimg,
-        )  # fmt: skip
+        locked = _SCRATCH_LOCK.acquire(blocking=False)
+        try:  # float64 accumulators in reused scratch; _finish copies them out as float32
+            rgba = _scratch("rgba", h * w, (4,), np.float64, locked)
+            vis = _scratch("vis", k * h * w, (), np.float64, locked).reshape(k, h * w)
+            vis.fill(0.0)
+            cimg = _scratch("cimg", h * w, (), np.float64, locked)
+            z = cache.lazy
+            ids, alpha_r, cols, light, stab, shade, has_curv, ert = args
+            nk.composite(
+                cache.start, cache.count, cache.lut, z["steps"], cache.normals, cache.curvature,
+                z["a"], z["b"], z["t"], z["step"], z["normal_volume"], z["curvature_volume"], h,
+                w, max(min(h, 64), 1), ids, alpha_r, cols, light, stab, shade, has_curv, ert, rgba,
+                vis, cimg,
+            )  # fmt: skip
+            stats = {"backend": cache.backend, "rays": h * w, "reevaluated": True}
+            stats["cache_entries"] = len(cache.lut)
+            res = _finish(rgba, vis, cache.assigned, cache.present, cimg, spec, camera, stats,
+                          cache)  # fmt: skip
+        finally:
+            if locked:
+                _SCRATCH_LOCK.release()
+        stats["seconds"] = time.perf_counter() - t_start
+        return res
     seconds = time.perf_counter() - t_start
     stats = {"seconds": seconds, "backend": cache.backend, "rays": h * w, "reevaluated": True}
     stats["cache_entries"] = len(cache.lut)

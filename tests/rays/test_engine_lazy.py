@@ -1,0 +1,63 @@
+"""Lazily computed cache entries, empty-space distances and negative curvature input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dvr_perception.rays._grid import block_distance
+from dvr_perception.rays.camera import Camera
+from dvr_perception.rays.engine import analyze, reevaluate
+from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
+from dvr_perception.volume.volume import Volume
+
+
+def _case():
+    z, y, x = np.mgrid[:40, :36, :44].astype(float)
+    d = np.sqrt((x - 20) ** 2 + (y - 18) ** 2 + (z - 21) ** 2)
+    vol = Volume(np.clip(230 - 12 * d, 0, 255).astype(np.uint8))
+    spec = StructureSpec(
+        (
+            Structure("outer", 0.9, (1.0, 0.2, 0.1), range=(40, 120)),
+            Structure("inner", 0.95, (0.1, 0.9, 0.3), range=(120, 235)),
+        ),
+        rendering=RenderSettings(shade=True),
+    )
+    cam = Camera.from_view(vol.bounds, azimuth=40, elevation=25, width=30, height=26)
+    curv = np.linspace(-1, 1, vol.data.size, dtype=np.float32).reshape(vol.data.shape)
+    return vol, spec, cam, curv
+
+
+def _assert_same(a, b):
+    for field in ("rgba", "image", "visible", "assigned", "present", "curvature"):
+        np.testing.assert_allclose(getattr(a, field), getattr(b, field), atol=1e-6, err_msg=field)
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_deeper_reevaluations_equal_fresh_analyses(backend):
+    # built with near-opaque structures: deeper entries are only reached (and their normals
+    # computed) by later re-evaluations with lower opacities
+    vol, spec, cam, curv = _case()
+    base = analyze(vol, spec, cam, curvature=curv, backend=backend)
+    for ops in ([0.2, 0.95], [0.02, 0.1], [0.9, 0.0], [0.02, 0.1]):
+        fresh = analyze(vol, spec, cam, opacities=ops, curvature=curv, backend=backend)
+        _assert_same(reevaluate(base.cache, opacities=ops), fresh)
+    _assert_same(reevaluate(base.cache), base)
+
+
+def test_negative_curvature_input_is_used_as_its_absolute_value():
+    vol, spec, cam, curv = _case()
+    a = analyze(vol, spec, cam, curvature=curv, backend="numba")
+    b = analyze(vol, spec, cam, curvature=np.abs(curv), backend="numba")
+    _assert_same(a, b)
+    assert curv.min() < 0  # the caller's array is not modified
+
+
+def test_block_distance_matches_brute_force():
+    rng = np.random.default_rng(3)
+    flags = (rng.random((5, 7, 6)) < 0.04).astype(np.uint8)
+    dist = block_distance(flags)
+    on = np.argwhere(flags)
+    for p in np.ndindex(flags.shape):
+        cheb = np.abs(on - np.array(p)).max(axis=1).min() if len(on) else 10**6
+        assert dist[p] == min(cheb, 255)
