@@ -1,0 +1,274 @@
+"""The optimisation problem: rendering parameters, and the energy of Eq. 12 from cached rays.
+
+:class:`Params` holds everything the stages may change (per-structure rendering opacity, Phong
+material and colour, and the light direction).  :class:`Problem` owns one
+:class:`~dvr_perception.rays.engine.RayCache` per view and evaluates the three measures for a
+parameter set through :func:`~dvr_perception.rays.engine.reevaluate` (the volume is never
+sampled again).  With a region mask, only the masked rays count:
+
+* ``E_v`` and ``E_s``: mean per-pixel deviation over the masked non-empty pixels;
+* ``E_t``: the area-weighted mean ``delta_t`` over the non-empty sub-regions that intersect the
+  mask, each weighted by its area *inside* the mask;
+* ``coverage``: mean accumulated opacity over the masked rays that carry assigned opacity (a
+  set that does not depend on the parameters), used to forbid "winning by fading".
+
+A visibility target ``t`` of structure ``s`` replaces its assigned share by ``t`` on the rays
+where it is present; the other structures' shares are rescaled to fill ``1 - t`` (and all are
+renormalised to sum to 1).  A transparency target ``a`` sets the expected opacity of ``s`` to
+``1 - a``.  With several views every term is the mean over the views.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from dvr_perception.errors import DVRWarning
+from dvr_perception.measures import shape, transparency
+from dvr_perception.rays.engine import reevaluate
+from dvr_perception.structures.spec import Lighting, StructureSpec
+
+__all__ = ["TERMS", "Params", "Problem"]
+
+TERMS = ("E_v", "E_s", "E_t")
+
+
+@dataclass(frozen=True, eq=False)
+class Params:
+    """Rendering parameters: opacities (K,), lighting (K, 4), colours (K, 3), light (3,)."""
+
+    opacities: np.ndarray
+    lighting: np.ndarray
+    colors: np.ndarray
+    light: np.ndarray
+
+    @classmethod
+    def from_spec(cls, spec: StructureSpec) -> Params:
+        s = spec.structures
+        light = np.asarray(spec.rendering.light_direction, float)
+        return cls(
+            opacities=np.array([x.render_opacity for x in s], float),
+            lighting=np.array(
+                [
+                    (
+                        x.lighting.ambient,
+                        x.lighting.diffuse,
+                        x.lighting.specular,
+                        x.lighting.specular_power,
+                    )
+                    for x in s
+                ],
+                float,
+            ),
+            colors=np.array([x.color for x in s], float),
+            light=light / np.linalg.norm(light),
+        )
+
+    def replace(self, **changes) -> Params:
+        return replace(self, **{k: np.array(v, float) for k, v in changes.items()})
+
+    def materials(self) -> tuple[Lighting, ...]:
+        return tuple(Lighting(*(float(v) for v in row)) for row in self.lighting)
+
+    def to_spec(self, spec: StructureSpec) -> StructureSpec:
+        """``spec`` with these opacities, materials, colours and light direction."""
+        structures = tuple(
+            replace(
+                s,
+                opacity=float(self.opacities[k]),
+                lighting=Lighting(*(float(v) for v in self.lighting[k])),
+                color=tuple(float(c) for c in self.colors[k]),
+            )
+            for k, s in enumerate(spec.structures)
+        )
+        rendering = replace(spec.rendering, light_direction=tuple(float(v) for v in self.light))
+        return replace(spec, structures=structures, rendering=rendering)
+
+    def same(self, other: Params) -> bool:
+        return all(
+            np.array_equal(getattr(self, f), getattr(other, f))
+            for f in ("opacities", "lighting", "colors", "light")
+        )
+
+
+class Problem:
+    """Terms of Eq. 12 for parameter sets, over one or more cached views.
+
+    Parameters
+    ----------
+    caches : list of RayCache
+        One per view (built with the curvature volume).
+    masks : list of (ndarray of bool or None)
+        Region mask per view (``None``: the whole image).
+    spec : StructureSpec
+        The user's spec (names, importance, expected opacities, background).
+    weights : ndarray, shape (3,)
+        ``(w_v, w_s, w_t)``.
+    targets : dict
+        Parsed targets (see :func:`~._region.parse_targets`).
+    calibration : pair of array_like or None
+        Passed to :func:`~dvr_perception.measures.transparency`.
+    """
+
+    def __init__(self, caches, masks, spec, weights, targets, calibration) -> None:
+        self.caches, self.masks = list(caches), list(masks)
+        self.spec, self.weights, self.calibration = spec, np.asarray(weights, float), calibration
+        self.names = spec.names
+        k = len(self.names)
+        self.vis_target = np.full(k, np.nan)
+        expected = []
+        for i, s in enumerate(spec.structures):
+            t = targets.get(s.name, {})
+            if "visibility" in t:
+                self.vis_target[i] = t["visibility"]
+            expected.append(None if "transparency" not in t else 1.0 - t["transparency"])
+        self.eval_spec = replace(
+            spec,
+            structures=tuple(
+                s if e is None else replace(s, expected_opacity=e)
+                for s, e in zip(spec.structures, expected, strict=True)
+            ),
+        )
+        self.nfev = 0
+
+    def present(self) -> np.ndarray:
+        """(K,) bool: structures met by some masked ray of some view."""
+        k = len(self.names)
+        bits = np.uint64(0)
+        for cache, mask in zip(self.caches, self.masks, strict=True):
+            p = cache.present if mask is None else cache.present[mask]
+            bits |= np.bitwise_or.reduce(p.astype(np.uint64), axis=None)
+        return np.array([bool(int(bits) >> i & 1) for i in range(k)])
+
+    def presence_fraction(self) -> np.ndarray:
+        """(K,) fraction of the masked rays (all views) on which each structure is present."""
+        k = len(self.names)
+        hits, total = np.zeros(k), 0
+        for cache, mask in zip(self.caches, self.masks, strict=True):
+            p = (cache.present if mask is None else cache.present[mask]).astype(np.uint64).ravel()
+            hits += [np.count_nonzero((p >> np.uint64(i)) & np.uint64(1)) for i in range(k)]
+            total += p.size
+        return hits / max(total, 1)
+
+    def render(self, params: Params, view: int = 0):
+        """Return the ray analysis of ``params`` in ``view`` (re-composited from the cache)."""
+        return reevaluate(
+            self.caches[view],
+            opacities=np.clip(params.opacities, 0.0, 1.0),
+            lighting=params.materials(),
+            colors=np.clip(params.colors, 0.0, 1.0),
+            light_direction=params.light,
+        )
+
+    def terms(self, params: Params, *, whole: bool = False) -> dict:
+        """Terms ``{E_v, E_s, E_t, E, coverage, visible_share, badness}`` averaged over views.
+
+        ``badness`` maps each term to a (K,) array of per-structure deviations (used by the
+        annealing moves).  ``whole=True`` ignores the region masks.
+        """
+        self.nfev += 1
+        per_view = []
+        for v, mask in enumerate(self.masks):
+            analysis = self.render(params, v)
+            with warnings.catch_warnings():  # float32 rounding notes, once per evaluation
+                warnings.simplefilter("ignore", DVRWarning)
+                per_view.append(self._view_terms(analysis, None if whole else mask))
+        out = {key: float(np.mean([t[key] for t in per_view])) for key in (*TERMS, "coverage")}
+        out["E"] = float(np.dot(self.weights, [out[t] for t in TERMS]))
+        out["visible_share"] = {
+            n: float(np.mean([t["visible_share"][n] for t in per_view])) for n in self.names
+        }
+        out["badness"] = {t: np.mean([p["badness"][t] for p in per_view], axis=0) for t in TERMS}
+        return out
+
+    # -- one view ---------------------------------------------------------------------------
+    def _assigned_share(self, analysis) -> np.ndarray:
+        a = np.asarray(analysis.assigned_share, float)
+        fixed_mask = ~np.isnan(self.vis_target)
+        if not fixed_mask.any():
+            return a
+        on = a > 0
+        fixed = np.where(
+            on & fixed_mask[:, None, None], np.nan_to_num(self.vis_target)[:, None, None], 0.0
+        )
+        free = np.where(fixed_mask[:, None, None], 0.0, a)
+        free_sum = free.sum(axis=0)
+        scale = np.zeros_like(free_sum)
+        np.divide(
+            np.clip(1.0 - fixed.sum(axis=0), 0.0, None), free_sum, out=scale, where=free_sum > 0
+        )
+        out = fixed + free * scale
+        total = out.sum(axis=0)
+        return np.where(total > 0, out / np.where(total > 0, total, 1.0), a)
+
+    def _view_terms(self, analysis, mask) -> dict:
+        k = len(self.names)
+        m = np.ones(analysis.accumulated.shape, bool) if mask is None else mask
+        # Eq. 2 exactly as measures.visibility computes it, with the targets' shares
+        v_share = np.clip(np.asarray(analysis.visible_share, float), 0.0, 1.0)
+        a_share = np.clip(self._assigned_share(analysis), 0.0, 1.0)
+        dev_v = np.abs(a_share - v_share).sum(axis=0)
+        rays = (np.asarray(analysis.assigned, float).sum(axis=0) > 0) & m
+        e_v = float(dev_v[rays].mean()) if rays.any() else 0.0
+        acc = np.asarray(analysis.accumulated, float)
+        coverage = float(acc[rays].mean()) if rays.any() else 0.0
+        bits = np.asarray(analysis.present, np.uint64)
+        present = (bits[None] >> np.arange(k, dtype=np.uint64)[:, None, None]) & 1 > 0
+        bad_v = np.zeros(k)
+        for i in range(k):
+            sel = present[i] & rays
+            if sel.any():
+                bad_v[i] = np.abs(a_share[i] - v_share[i])[sel].mean()
+
+        sh = shape(analysis, self.eval_spec)
+        pix = sh.nonempty & m
+        e_s = float(sh.deviation[pix].mean()) if pix.any() else 0.0
+        wts = v_share[:, pix]
+        bad_s = np.where(
+            wts.sum(axis=1) > 0,
+            (wts * sh.deviation[pix]).sum(axis=1) / np.maximum(wts.sum(axis=1), 1e-12),
+            0.0,
+        )
+
+        tr = transparency(analysis, self.eval_spec, calibration=self.calibration)
+        counts = np.bincount(tr.region_id[m].ravel(), minlength=len(tr.regions))
+        num = den = 0.0
+        s_num, s_den = np.zeros(k), np.zeros(k)
+        expected = np.array([s.target_opacity for s in self.eval_spec.structures])
+        index = {n: i for i, n in enumerate(self.names)}
+        for region in tr.regions:
+            area = float(counts[region["id"]])
+            if area == 0 or region["kind"] == "empty":
+                continue
+            num += area * region["delta_t"]
+            den += area
+            for name, alpha in region["transmittance"].items():
+                i = index[name]
+                s_num[i] += area * (1.0 - alpha - expected[i]) ** 2
+                s_den[i] += area
+        e_t = num / den if den > 0 else 0.0
+        bad_t = np.where(s_den > 0, s_num / np.maximum(s_den, 1e-12), 0.0)
+
+        acc_sum = float(acc[m].sum())
+        visible = np.asarray(analysis.visible, float)
+        shares = {
+            n: (float(visible[i][m].sum()) / acc_sum if acc_sum > 0 else 0.0)
+            for i, n in enumerate(self.names)
+        }
+        return {
+            "E_v": e_v,
+            "E_s": e_s,
+            "E_t": float(e_t),
+            "coverage": coverage,
+            "visible_share": shares,
+            "badness": {"E_v": bad_v, "E_s": bad_s, "E_t": bad_t},
+        }
+
+
+def public_terms(terms: dict) -> dict:
+    """Return a copy of ``terms`` without the internal ``badness`` arrays."""
+    out = {k: v for k, v in terms.items() if k not in ("badness", "visible_share")}
+    out["visible_share"] = dict(terms["visible_share"])
+    return out

@@ -1,0 +1,241 @@
+"""The per-stage solver: Polak-Ribiere conjugate gradients with annealing moves (Sec. 5).
+
+The stage objective ``f(x) = w' . (E_v, E_s, E_t) + PENALTY * penalty(x)`` is minimised over the
+stage's unbounded vector ``x`` (see :mod:`~dvr_perception.optimize.stages`):
+
+* **gradient**: forward finite differences with step :data:`FD_STEP` (0.01 in logit units);
+* **direction**: Polak-Ribiere+ conjugate direction, preconditioned by the inverse fraction of
+  rays on which each parameter's structure is present (small structures have small gradients),
+  reset to steepest descent when it is not a descent direction, then bent so that every nearly
+  active constraint improves (:func:`_feasible_direction`);
+* **line search**: bounded backtracking (Armijo, ``c = 1e-4``) from a step that moves the largest
+  entry by :data:`STEP` logit units, halved at most 6 times, doubled once if the first step
+  already works;
+* **annealing**: after :data:`CG_RUN` successful CG iterations or a failed line search, one
+  simulated-annealing move perturbs the parameter groups (one per structure, plus the light)
+  chosen at random; a group's move probability rises with its structure's deviation in the
+  stage's lead term and with stalling (lead term improved less than 5 % since the stage
+  start), as in the paper's last paragraph of Sec. 5.  Metropolis acceptance at a temperature
+  that starts at ``0.05 f(x0)`` and cools by 0.7 per move.  Seeded by the caller's
+  ``numpy.random.Generator``.
+
+One **iteration** is one CG step or one annealing move.  The best *feasible* point (lowest
+``(penalty, f)``) is kept, so a stage never returns something worse than its start.  A stage
+has converged when :data:`PATIENCE` iterations in a row improve the best ``f`` by less than
+:data:`FTOL`.
+"""
+
+from __future__ import annotations
+
+import copy
+import itertools
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from dvr_perception.optimize._problem import TERMS, public_terms
+
+__all__ = ["run_stage"]
+
+FD_STEP = 1e-2
+PENALTY = 10.0
+CG_RUN = 4
+PATIENCE = 4
+FTOL = 1e-4
+SIGMA = 0.4  # annealing step (logit units)
+STEP = 0.5  # first line-search step: largest parameter change in logit units
+ACTIVE = 5e-3  # constraints closer than this to their bound steer the direction
+ETA = 0.1
+
+
+@dataclass
+class _Point:
+    x: np.ndarray
+    f: float
+    pen: float
+    terms: dict
+    params: object
+    smooth: float = 0.0
+    cons: np.ndarray = None
+
+    def key(self) -> tuple[float, float]:
+        return (self.pen if self.pen > 1e-12 else 0.0, self.f)
+
+
+class _Stopped(Exception):
+    pass
+
+
+class _Run:
+    """State of one stage run (the closure over the problem, stage and counters)."""
+
+    def __init__(self, stage, problem, params0, terms0, active, weights, rng, notify):
+        self.stage, self.problem, self.params0, self.active = stage, problem, params0, active
+        self.terms0, self.weights, self.rng, self.notify = terms0, weights, rng, notify
+        self.w = stage.weights(weights)
+        self.nfev = 0
+
+    def point(self, x, params=None, terms=None) -> _Point:
+        if params is None:
+            params = self.stage.decode(self.params0, x, self.active)
+        if terms is None:
+            terms = self.problem.terms(params)
+            self.nfev += 1
+        cons = self.stage.constraints(terms, self.terms0, self.weights)
+        pen = float(np.maximum(cons, 0.0).sum())
+        smooth = float(np.dot(self.w, [terms[t] for t in TERMS]))
+        return _Point(np.array(x, float), smooth + PENALTY * pen, pen, terms, params, smooth, cons)
+
+    def gradient(self, p: _Point) -> tuple[np.ndarray, np.ndarray]:
+        """Forward-difference gradient of the smooth objective and Jacobian of the constraints."""
+        g = np.empty_like(p.x)
+        jac = np.empty((p.cons.size, p.x.size))
+        for i in range(p.x.size):
+            x = p.x.copy()
+            x[i] += FD_STEP
+            q = self.point(x)
+            g[i] = (q.smooth - p.smooth) / FD_STEP
+            jac[:, i] = (q.cons - p.cons) / FD_STEP
+        return g, jac
+
+    def line_search(self, p: _Point, g: np.ndarray, d: np.ndarray) -> _Point | None:
+        slope = float(g @ d)
+        alpha = STEP / max(float(np.max(np.abs(d))), 1e-12)
+        for tries in range(7):
+            q = self.point(p.x + alpha * d)
+            if q.f <= p.f + 1e-4 * alpha * slope and q.f < p.f and q.pen <= p.pen + 1e-12:
+                r = self.point(p.x + 2.0 * alpha * d) if tries == 0 else None
+                return r if r is not None and r.f < q.f and r.pen <= q.pen + 1e-12 else q
+            alpha *= 0.5
+        return None
+
+    def anneal(self, p: _Point, groups, group_structures, temperature, stalled) -> _Point:
+        bad = np.array(
+            [
+                0.0 if s is None else float(p.terms["badness"][self.stage.lead][s])
+                for s in group_structures
+            ]
+        )
+        top = bad.max() if bad.size else 0.0
+        prob = 0.25 + (0.5 * bad / top if top > 0 else 0.25) + (0.2 if stalled else 0.0)
+        prob = np.clip(prob, 0.05, 0.95)
+        chosen = self.rng.random(prob.size) < prob
+        if not chosen.any():
+            chosen[int(np.argmax(prob))] = True
+        step = self.rng.normal(0.0, SIGMA, p.x.size) * chosen[groups]
+        q = self.point(p.x + step)
+        u = self.rng.random()
+        if q.key() <= p.key() or (
+            q.pen <= p.pen + 1e-12 and u < np.exp(-(q.f - p.f) / max(temperature, 1e-12))
+        ):
+            return q
+        return p
+
+
+def _feasible_direction(d0, cons, jac):
+    """Closest direction to ``d0`` that improves every nearly active constraint.
+
+    Constraints with ``c > -ACTIVE`` must satisfy ``a . d <= -ETA |a| |d0|`` (move strictly
+    inwards, so that curvature does not carry the step out); solved by enumerating the active
+    sets of this tiny projection problem.  Returns ``None`` when no such direction exists.
+    """
+    near = cons > -ACTIVE
+    a = jac[near]
+    if a.shape[0] == 0:
+        return d0
+    scale = np.linalg.norm(d0)
+    b = -ETA * np.linalg.norm(a, axis=1) * scale
+    if np.all(a @ d0 <= b):
+        return d0
+    best = None
+    for size in range(1, a.shape[0] + 1):
+        for subset in itertools.combinations(range(a.shape[0]), size):
+            rows = a[list(subset)]
+            gram = rows @ rows.T + 1e-12 * np.eye(size)
+            lam = np.linalg.solve(gram, rows @ d0 - b[list(subset)])
+            if np.any(lam < 0):
+                continue
+            d = d0 - rows.T @ lam
+            if np.all(a @ d <= b + 1e-9 * scale) and (
+                best is None or np.linalg.norm(d - d0) < np.linalg.norm(best - d0)
+            ):
+                best = d
+    if best is None or not np.any(best):
+        return None
+    return best
+
+
+def run_stage(stage, problem, params0, terms0, active, *, weights, rng, max_iter, notify):
+    """Optimise ``stage``'s parameters from ``params0`` (terms ``terms0``).
+
+    ``notify(iteration, current _Point, best _Point)`` is called after every iteration; it may
+    raise ``StopIteration`` to stop.  Returns ``(best, snapshots, info)``: the best feasible
+    point, the earlier best points (oldest first) and a dict with ``iterations``,
+    ``evaluations``, ``seconds``, ``history``, ``converged``, ``stopped``.
+    """
+    t0 = time.perf_counter()
+    run = _Run(stage, problem, params0, terms0, active, weights, rng, notify)
+    x0, groups, group_structures = stage.encode(params0, active)
+    frac = problem.presence_fraction()
+    share = np.array([1.0 if s is None else max(frac[s], 0.01) for s in group_structures])
+    precond = 1.0 / share[groups] if x0.size else np.ones(0)
+    start = run.point(x0, params=params0, terms=terms0)
+    best, snapshots, history = start, [], []
+    info = {"iterations": 0, "converged": x0.size == 0, "stopped": False}
+    if x0.size:
+        cur, d, g_prev, z_prev, mode, run_len, quiet = start, None, None, None, "cg", 0, 0
+        temperature = 0.05 * max(abs(start.f), 1e-2)
+        lead0 = terms0[stage.lead]
+        for it in range(1, max_iter + 1):
+            prev_best = best.f
+            if mode == "cg":
+                g, jac = run.gradient(cur)
+                z = precond * g
+                if d is None or g_prev is None:
+                    d = -z
+                else:
+                    beta = max(0.0, float(z @ (g - g_prev)) / max(float(z_prev @ g_prev), 1e-30))
+                    d = -z + beta * d
+                if float(g @ d) >= 0:
+                    d = -z
+                d = _feasible_direction(d, cur.cons, jac)
+                new = None if d is None else run.line_search(cur, g, d)
+                kind = "cg"
+                if new is None:
+                    mode, d, g_prev = "anneal", None, None
+                else:
+                    cur, g_prev, z_prev, run_len = new, g, z, run_len + 1
+                    if run_len >= CG_RUN:
+                        mode = "anneal"
+            else:
+                stalled = cur.terms[stage.lead] > 0.95 * lead0
+                new = run.anneal(cur, groups, group_structures, temperature, stalled)
+                kind = "anneal" + ("" if new is not cur else " (rejected)")
+                temperature *= 0.7
+                if new is not cur:
+                    mode, d, g_prev, run_len = "cg", None, None, 0
+                cur = new
+            if cur.key() < best.key():
+                if best.pen == 0.0 or best is start:
+                    snapshots.append(best)
+                best = cur
+            quiet = quiet + 1 if prev_best - best.f < FTOL else 0
+            entry = public_terms(cur.terms)
+            entry.update(iteration=it, kind=kind, f=cur.f, penalty=cur.pen, best_f=best.f)
+            history.append(entry)
+            info["iterations"] = it
+            try:
+                notify(it, cur, best)
+            except StopIteration:
+                info["stopped"] = True
+                break
+            if quiet >= PATIENCE:
+                info["converged"] = True
+                break
+    info.update(
+        evaluations=run.nfev,
+        seconds=time.perf_counter() - t0,
+        history=tuple(copy.deepcopy(history)),
+    )
+    return best, snapshots, info

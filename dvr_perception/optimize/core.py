@@ -1,0 +1,301 @@
+"""The front door of the optimiser: :func:`optimize` (paper, Sec. 5-6)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from dvr_perception.errors import DVRInputError
+from dvr_perception.measures import calibrate
+from dvr_perception.optimize._problem import Params, Problem, public_terms
+from dvr_perception.optimize._region import parse_region, parse_targets, resample_mask
+from dvr_perception.optimize._solver import run_stage
+from dvr_perception.optimize.results import (
+    STATUS_MESSAGES,
+    IntermediateResult,
+    OptimizationResult,
+    StageRecord,
+)
+from dvr_perception.optimize.stages import STAGES
+from dvr_perception.rays.camera import Camera
+from dvr_perception.rays.curvature import curvature_volume
+from dvr_perception.rays.engine import analyze
+from dvr_perception.structures.spec import StructureSpec
+from dvr_perception.volume.volume import Volume
+
+__all__ = ["DEFAULT_RESOLUTION", "optimize"]
+
+#: Long side, in pixels, of the camera the optimiser evaluates on (when ``resolution=None``).
+DEFAULT_RESOLUTION = 192
+
+
+def _check(volume, spec, camera, stages, weights, cameras, region, calibration, seed, callback,
+           max_iter, resolution, opacity_floor):  # fmt: skip
+    if not isinstance(volume, Volume):
+        raise DVRInputError(f"volume: expected a Volume, got {type(volume).__name__}")
+    if not isinstance(spec, StructureSpec):
+        raise DVRInputError(f"spec: expected a StructureSpec, got {type(spec).__name__}")
+    if not isinstance(camera, Camera):
+        raise DVRInputError(f"camera: expected a Camera, got {type(camera).__name__}")
+    if isinstance(stages, str) or not isinstance(stages, Sequence) or not stages:
+        raise DVRInputError(f"stages: expected a non-empty sequence of stage names, got {stages!r}")
+    unknown = [s for s in stages if s not in STAGES]
+    if unknown:
+        raise DVRInputError(f"stages: unknown stage(s) {unknown}; known stages: {sorted(STAGES)}")
+    try:
+        w = np.array([float(v) for v in weights])
+    except (TypeError, ValueError):
+        raise DVRInputError(
+            f"weights: expected 3 numbers (w_v, w_s, w_t), got {weights!r}"
+        ) from None
+    if w.shape != (3,) or not np.all(np.isfinite(w)) or np.any(w < 0) or not np.any(w > 0):
+        raise DVRInputError(
+            "weights: expected 3 finite numbers (w_v, w_s, w_t) >= 0, not all zero, "
+            f"got {weights!r}"
+        )
+    if cameras is not None:
+        if isinstance(cameras, Camera) or not isinstance(cameras, Sequence):
+            raise DVRInputError("cameras: expected a list of Camera (further views)")
+        if not all(isinstance(c, Camera) for c in cameras):
+            raise DVRInputError("cameras: every entry must be a Camera")
+        if region is not None and len(cameras):
+            raise DVRInputError("cameras: a region refines one view; give region or cameras")
+    if calibration is not None:
+        try:
+            calibrate(0.5, calibration)
+        except DVRInputError as err:
+            raise DVRInputError(f"calibration: {err}") from None
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise DVRInputError(f"seed: expected an integer >= 0, got {seed!r}")
+    if callback is not None and not callable(callback):
+        raise DVRInputError(f"callback: expected a callable or None, got {callback!r}")
+    for name, value, lo in (("max_iter", max_iter, 1), ("resolution", resolution, 8)):
+        if value is None and name == "resolution":
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
+            raise DVRInputError(f"{name}: expected an integer >= {lo}, got {value!r}")
+    if opacity_floor is not None and not (
+        isinstance(opacity_floor, (int, float)) and 0.0 <= float(opacity_floor) <= 1.0
+    ):
+        raise DVRInputError(f"opacity_floor: expected a number in [0, 1], got {opacity_floor!r}")
+    return w
+
+
+def _reduced(camera: Camera, resolution: int) -> Camera:
+    long = max(camera.width, camera.height)
+    if long <= resolution:
+        return camera
+    s = resolution / long
+    return camera.with_size(max(8, round(camera.width * s)), max(8, round(camera.height * s)))
+
+
+def _report(problem: Problem, params: Params, region: bool) -> dict:
+    terms = problem.terms(params)
+    out = public_terms(terms)
+    whole = problem.terms(params, whole=True) if region else terms
+    out["whole"] = {k: whole[k] for k in ("E_v", "E_s", "E_t", "E")}
+    return out
+
+
+def optimize(
+    volume,
+    spec,
+    camera,
+    *,
+    stages=("opacity", "lighting", "colour"),
+    weights=(1.0, 1.0, 1.0),
+    region=None,
+    targets=None,
+    calibration=None,
+    cameras=None,
+    seed=0,
+    callback=None,
+    max_iter=10,
+    resolution=None,
+    opacity_floor=None,
+    allow_hue=False,
+) -> OptimizationResult:
+    """Optimise opacity, lighting and colour of ``spec`` for a readable rendering (Eq. 12-15).
+
+    The volume is ray-analysed once per view (with the curvature volume); every evaluation
+    then re-composites the cached rays (:func:`~dvr_perception.rays.engine.reevaluate`) and
+    computes the three measures.  The stages run in the given order, each over its own
+    parameters (:mod:`~dvr_perception.optimize.stages`), with conjugate gradients and annealing
+    (:mod:`~dvr_perception.optimize._solver`).  Evaluations use a camera whose long side is
+    ``resolution`` pixels (default :data:`DEFAULT_RESOLUTION`, 192: "sampling the image");
+    every stage's result is then checked at the user's resolution and undone if it breaks the
+    stage's constraints there, so ``final["E"] <= initial["E"]``.
+
+    Parameters
+    ----------
+    volume : Volume
+    spec : StructureSpec
+        Importance, colours and lighting are the initial guess.
+    camera : Camera
+        The view (and the resolution of the reported measures and of ``region``).
+    stages : sequence of str
+        Names in :data:`~dvr_perception.optimize.stages.STAGES`, run in this order.
+    weights : 3 numbers
+        ``(w_v, w_s, w_t)`` of Eq. 12, >= 0 and not all zero.
+    region : ndarray of bool (H, W), ("rect", x0, y0, x1, y1) or ("circle", cx, cy, r), optional
+        The lens: only rays inside drive the objective, and only structures present there
+        change (the light direction stays free).  See :mod:`~dvr_perception.optimize._region`.
+    targets : dict, optional
+        ``{structure: {"visibility": share, "transparency": perceived transparency}}``
+        overriding the assigned share and the expected opacity (``1 - transparency``).
+    calibration : pair of array_like (x, y), optional
+        Transparency calibration curve (:func:`~dvr_perception.measures.calibrate`).
+    cameras : list of Camera, optional
+        Further views: one parameter set is optimised for ``camera`` and these (terms averaged).
+    seed : int
+        Seed of the annealing moves; the same seed gives the same result.
+    callback : callable, optional
+        ``callback(intermediate_result)`` after every iteration with an
+        :class:`~dvr_perception.optimize.results.IntermediateResult`; raise ``StopIteration``
+        to stop (status 1, best parameters so far).
+    max_iter : int
+        Iterations per stage (CG steps and annealing moves).
+    resolution : int, optional
+        Long side of the optimisation camera (never above the user's).
+    opacity_floor : float, optional
+        Minimum mean accumulated opacity over the non-empty rays in the opacity stage
+        (default: its starting value).
+    allow_hue : bool
+        Let the colour stage change hue (default: saturation and value only).
+
+    Returns
+    -------
+    OptimizationResult
+
+    Raises
+    ------
+    DVRInputError
+        Bad weights, stage names, region, targets, calibration or options.
+
+    Examples
+    --------
+    >>> from dvr_perception.volume import make_phantom
+    >>> vol, spec = make_phantom(size=32)
+    >>> cam = Camera.from_view(vol.bounds, width=32, height=32)
+    >>> res = optimize(vol, spec, cam, stages=("opacity",), max_iter=2)
+    >>> res.final["E"] <= res.initial["E"], res.spec.structures[0].opacity is not None
+    (True, True)
+    """
+    t_start = time.perf_counter()
+    w = _check(volume, spec, camera, stages, weights, cameras, region, calibration, seed, callback,
+               max_iter, resolution, opacity_floor)  # fmt: skip
+    goals = parse_targets(targets, spec.names)
+    mask = parse_region(region, camera.height, camera.width)
+    views = [camera, *(cameras or [])]
+    res = DEFAULT_RESOLUTION if resolution is None else int(resolution)
+    curvature, _ = curvature_volume(volume, spec)
+    full_caches, opt_caches, opt_masks = [], [], []
+    for cam in views:
+        small = _reduced(cam, res)
+        full = analyze(volume, spec, cam, curvature=curvature).cache
+        full_caches.append(full)
+        opt_caches.append(
+            full if small is cam else analyze(volume, spec, small, curvature=curvature).cache
+        )
+        opt_masks.append(None if mask is None else resample_mask(mask, small.height, small.width))
+    full_masks = [mask] + [None] * (len(views) - 1)
+    full_problem = Problem(full_caches, full_masks, spec, w, goals, calibration)
+    same = all(a is b for a, b in zip(full_caches, opt_caches, strict=True))
+    problem = full_problem if same else Problem(opt_caches, opt_masks, spec, w, goals, calibration)
+
+    params = Params.from_spec(spec)
+    initial = _report(full_problem, params, mask is not None)
+    active = problem.present()
+    rng = np.random.default_rng(int(seed))
+    records, nit, status = [], 0, 0
+    full_terms = full_problem.terms(params)
+    for name in stages:
+        stage = STAGES[name](allow_hue=allow_hue, opacity_floor=opacity_floor)
+        terms0 = full_terms if same else problem.terms(params)
+
+        def notify(it, cur, best, _name=name):
+            nonlocal nit
+            nit += 1
+            if callback is not None:
+                callback(
+                    IntermediateResult(
+                        stage=_name,
+                        iteration=it,
+                        nit=nit,
+                        nfev=problem.nfev + (0 if same else full_problem.nfev),
+                        terms=public_terms(cur.terms),
+                        best_terms=public_terms(best.terms),
+                        spec=cur.params.to_spec(spec),
+                    )
+                )
+
+        best, snapshots, info = run_stage(
+            stage, problem, params, terms0, active, weights=w, rng=rng, max_iter=int(max_iter),
+            notify=notify,
+        )  # fmt: skip
+        chosen, new_terms = _accept(
+            stage, full_problem, params, full_terms, best, snapshots, w, same
+        )
+        accepted = chosen is not None or best.params is params
+        if chosen is not None:
+            message = "improved"
+        elif accepted:
+            message = "no feasible improvement found; parameters unchanged"
+        else:
+            message = "rejected at the user's resolution (constraints broken); parameters unchanged"
+        if chosen is None:
+            chosen, new_terms = params, full_terms
+        records.append(
+            StageRecord(
+                name=name,
+                params_before=stage.describe(params, spec.names),
+                params_after=stage.describe(chosen, spec.names),
+                terms_before=public_terms(full_terms),
+                terms_after=public_terms(new_terms),
+                iterations=info["iterations"],
+                evaluations=info["evaluations"],
+                seconds=info["seconds"],
+                history=info["history"],
+                converged=info["converged"],
+                accepted=accepted,
+                message=message,
+            )
+        )
+        params, full_terms = chosen, new_terms
+        if info["stopped"]:
+            status = 1
+            break
+        if not info["converged"]:
+            status = 2
+    final = _report(full_problem, params, mask is not None)
+    nfev = problem.nfev + (0 if same else full_problem.nfev)
+    return OptimizationResult(
+        spec=params.to_spec(spec),
+        initial=initial,
+        final=final,
+        stages=tuple(records),
+        nit=nit,
+        nfev=nfev,
+        seconds=time.perf_counter() - t_start,
+        status=status,
+        message=STATUS_MESSAGES[status],
+        success=status == 0,
+    )
+
+
+def _accept(stage, full_problem, params, full_terms, best, snapshots, weights, same):
+    """Pick the newest best point of a stage that also passes at the user's resolution.
+
+    Returns ``(params, terms)`` or ``(None, None)`` when none improves on the start.
+    """
+    base = stage.penalty(full_terms, full_terms, weights)
+    for point in [best, *reversed(snapshots[-3:])]:
+        if point.params is params or point.params.same(params):
+            break
+        terms = point.terms if same else full_problem.terms(point.params)
+        pen = stage.penalty(terms, full_terms, weights)
+        if pen <= base + 1e-12 and terms["E"] <= full_terms["E"] + 1e-12:
+            return point.params, terms
+    return None, None
