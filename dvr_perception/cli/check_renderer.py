@@ -2,8 +2,11 @@
 
 Writes ``<name>_ours.png``, ``<name>_vtk_<mapper>.png`` and ``<name>_diff_<mapper>.png`` (the
 absolute difference, amplified 4x) into ``--out-dir`` and reports SSIM and mean absolute
-difference per mapper.  With ``--mapper all`` a mapper that fails (typically the GPU mapper
-without a usable OpenGL driver) is reported as an entry with ``error`` instead of aborting.
+difference per mapper.  ``--against plotter`` compares with our PyVista display instead
+(:func:`dvr_perception.plotting.render_plotter`, per-structure lighting; same JSON keys, with
+``mapper: "plotter"`` and the screenshot in ``vtk_png``).  With ``--mapper all`` a mapper
+that fails (typically the GPU mapper without a usable OpenGL driver) is reported as an entry
+with ``error`` instead of aborting.
 ``seconds_ours`` is one cold :func:`~dvr_perception.rays.engine.analyze` call (loading the
 numba kernels included) and ``seconds_vtk`` one warm VTK frame; use ``bench`` for timings.
 """
@@ -28,10 +31,12 @@ from dvr_perception.cli._common import (
 __all__ = ["add_parser", "run"]
 
 MAPPERS = ("fixed_point", "gpu")
+AGAINST = ("vtk", "plotter")
 DIFF_GAIN = 4.0
 EXAMPLE = """examples:
   dvr-perception check-renderer phantom --size 96 --json
   dvr-perception check-renderer ../shared/data/engine.nhdr --mapper all --out-dir check
+  dvr-perception check-renderer phantom --size 96 --against plotter --json
 """
 
 
@@ -53,6 +58,12 @@ def add_parser(subparsers, parents) -> None:
         help="VTK mapper to compare with (default fixed_point, the CPU ray caster)",
     )
     p.add_argument(
+        "--against",
+        choices=AGAINST,
+        default="vtk",
+        help="compare with VTK's mappers (default) or with our PyVista plotter display",
+    )
+    p.add_argument(
         "--out-dir",
         default="bench_out/check_renderer",
         metavar="DIR",
@@ -65,22 +76,35 @@ def _stem(source: str) -> str:
     return "phantom" if source == "phantom" else Path(source).name.split(".")[0]
 
 
+def _render_plotter(scene):
+    from dvr_perception.plotting import render_plotter
+
+    t0 = time.perf_counter()
+    image = render_plotter(scene.volume, scene.spec, scene.camera)
+    return image, "plotter", time.perf_counter() - t0
+
+
 def _compare_one(scene, ours_image, mapper: str, out_dir: Path, stem: str) -> dict:
     from dvr_perception.rays.vtk_reference import compare_images, render_vtk
 
-    log.info("rendering with VTK (%s)", mapper)
-    ref = render_vtk(scene.volume, scene.spec, scene.camera, mapper=mapper)
-    scores = compare_images(ours_image, ref.image)
-    vtk_png = write_png(out_dir / f"{stem}_vtk_{mapper}.png", ref.image)
-    diff = np.clip(np.abs(np.asarray(ours_image, float) - ref.image) * DIFF_GAIN, 0.0, 1.0)
+    if mapper == "plotter":
+        log.info("rendering through the PyVista plotter")
+        image, name, seconds = _render_plotter(scene)
+    else:
+        log.info("rendering with VTK (%s)", mapper)
+        ref = render_vtk(scene.volume, scene.spec, scene.camera, mapper=mapper)
+        image, name, seconds = ref.image, ref.mapper, ref.seconds
+    scores = compare_images(ours_image, image)
+    vtk_png = write_png(out_dir / f"{stem}_vtk_{mapper}.png", image)
+    diff = np.clip(np.abs(np.asarray(ours_image, float) - image) * DIFF_GAIN, 0.0, 1.0)
     diff_png = write_png(out_dir / f"{stem}_diff_{mapper}.png", diff)
     return {
-        "mapper": ref.mapper,
+        "mapper": name,
         "ssim": float(scores["ssim"]),
         "mean_abs_diff": float(scores["mean_abs_diff"]),
         "vtk_png": str(vtk_png),
         "diff_png": str(diff_png),
-        "seconds_vtk": float(ref.seconds),
+        "seconds_vtk": float(seconds),
     }
 
 
@@ -102,7 +126,9 @@ def run(args: argparse.Namespace) -> int:
         "ours_png": str(ours_png),
         "seconds_ours": seconds_ours,
     }
-    if args.mapper == "all":
+    if args.against == "plotter":
+        report = {**base, **_compare_one(scene, result.image, "plotter", out_dir, stem)}
+    elif args.mapper == "all":
         entries = []
         for mapper in MAPPERS:
             try:
