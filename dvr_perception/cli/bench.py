@@ -12,6 +12,11 @@ Reported figures (seconds unless stated):
   (what one optimiser step costs); ``reeval_vtk_frames`` = ``reeval_s / vtk_frame_s``.
 * ``samples_per_s`` – ray samples per second of a full frame; ``cache_mb`` – size of the
   re-evaluation cache.
+* ``measure_s`` – median time of the three measures (visibility, shape, transparency) on one
+  analysis; ``measure_total_s`` – median of what ``dvr-perception measure`` pays per view
+  once the curvature volume exists: :func:`~dvr_perception.rays.engine.analyze` without the
+  re-evaluation cache, then the measures; ``measure_vtk_frames`` = ``measure_total_s /
+  vtk_frame_s``.
 """
 
 from __future__ import annotations
@@ -90,6 +95,24 @@ def _samples(stats: dict):
     return None
 
 
+def _measure_times(vol, spec, cam, curv, result, repeat: int) -> tuple[float, float]:
+    """Median seconds of the three measures alone, and of analysis plus measures."""
+    from dvr_perception.measures import shape, transparency, visibility
+    from dvr_perception.rays.engine import analyze
+
+    def measures(analysis):
+        visibility(analysis, spec)
+        shape(analysis, spec)
+        transparency(analysis, spec)
+
+    log.info("%d timed measure runs", repeat)
+    measure_s = _median_time(lambda: measures(result), repeat)
+    total_s = _median_time(
+        lambda: measures(analyze(vol, spec, cam, curvature=curv, build_cache=False)), repeat
+    )
+    return measure_s, total_s
+
+
 def run(args: argparse.Namespace) -> int:
     """Execute ``bench``."""
     from dvr_perception.errors import DVRInputError
@@ -124,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
 
     reeval()  # compiles the re-evaluation kernels
     reeval_s = _median_time(reeval, args.repeat)
+    measure_s, measure_total_s = _measure_times(vol, spec, cam, curv, result, args.repeat)
 
     from dvr_perception.rays.vtk_reference import time_vtk_frames
 
@@ -152,6 +176,9 @@ def run(args: argparse.Namespace) -> int:
         "reeval_s": reeval_s,
         "reeval_vtk_frames": reeval_s / vtk_frame_s if vtk_frame_s else None,
         "cache_mb": _nbytes(result.cache) / 2**20,
+        "measure_s": measure_s,
+        "measure_total_s": measure_total_s,
+        "measure_vtk_frames": measure_total_s / vtk_frame_s if vtk_frame_s else None,
         "repeat": args.repeat,
     }
     if vtk_error is not None:

@@ -25,6 +25,8 @@ __all__ = ["ShapeResult", "TransparencyResult", "VisibilityResult"]
 #: Slack allowed on opacities slightly outside [0, 1] and on ``sum(visible) == accumulated``.
 _OPACITY_SLACK = 1e-5
 _SUM_SLACK = 1e-3
+#: Share of covered pixels with colour above opacity beyond which rgba looks straight-alpha.
+_STRAIGHT_FRACTION = 0.05
 
 
 @dataclass(frozen=True)
@@ -207,6 +209,34 @@ def _names(analysis, spec, k: int) -> tuple[str, ...]:
     return names
 
 
+def _check_premultiplied(rgba: np.ndarray, notes: list[str]) -> None:
+    """Warn if ``rgba`` looks straight (not premultiplied); note a few emissive pixels.
+
+    Shaded renderings add a white specular term, so a highlight may carry more light than its
+    opacity: that is emission, not a straight-alpha image.  Only when more than
+    ``_STRAIGHT_FRACTION`` of the covered pixels have colour above opacity is the image
+    taken to be non-premultiplied (a :class:`DVRWarning`); otherwise a note counts them.
+    """
+    alpha = rgba[..., 3]
+    over = np.any(rgba[..., :3] > alpha[..., None] + _OPACITY_SLACK, axis=-1)
+    n_over = int(np.count_nonzero(over))
+    if n_over == 0:
+        return
+    covered = max(int(np.count_nonzero(alpha > _OPACITY_SLACK)), 1)
+    if n_over > _STRAIGHT_FRACTION * covered:
+        warnings.warn(
+            f"analysis.rgba: colour exceeds opacity on {n_over} of {covered} covered pixels; "
+            "is the image really premultiplied?",
+            DVRWarning,
+            stacklevel=4,
+        )
+    else:
+        notes.append(
+            f"{n_over} pixel(s) carry more light than their opacity (specular highlights); "
+            "composited as emission"
+        )
+
+
 def _image_luminance(analysis, spec, shape: tuple[int, int]) -> tuple[np.ndarray, list[str]]:
     """Linear CIE Y of the rendering composited over the background, clipped to [0, 1].
 
@@ -219,7 +249,11 @@ def _image_luminance(analysis, spec, shape: tuple[int, int]) -> tuple[np.ndarray
     image = getattr(analysis, "image", None)
     if rgba is not None and (spec is not None or image is None):
         background = (0.0, 0.0, 0.0) if spec is None else tuple(spec.background)
-        y = composite_luminance(_field(analysis, "rgba", 3), background=background)
+        arr = _field(analysis, "rgba", 3)
+        with warnings.catch_warnings():  # judged below: a few emissive pixels are expected
+            warnings.simplefilter("ignore", DVRWarning)
+            y = composite_luminance(arr, background=background)
+        _check_premultiplied(arr, notes)
         source = "rgba"
     elif image is not None:
         y = luminance(_field(analysis, "image", 3))

@@ -12,7 +12,10 @@ values (curvature spikes at thin features, silhouette edges) do not flatten the 
 image.  If that percentile is 0 the normalised image is 0.  Gradient magnitudes below
 ``GRADIENT_FLOOR`` (1e-5 luminance per pixel, far below 8-bit display quantisation) are float
 rounding of a flat image and count as 0; otherwise a flat image would be normalised by its
-rounding noise.  The per-pixel deviation (Eq. 3)
+rounding noise.  Likewise curvatures below ``CURVATURE_FLOOR`` (1e-6 per world unit, a radius
+of a million units) are the float rounding of a flat boundary and count as 0: without this
+floor, an image of flat structures would have its rounding noise normalised to 1 and score
+``delta_s`` near 1 everywhere.  The per-pixel deviation (Eq. 3)
 
 .. math:: \delta_s = 1 - \exp(-(v_s - v_i)^2 / s)
 
@@ -43,6 +46,8 @@ __all__ = ["shape"]
 NONEMPTY_OPACITY = 1e-3
 #: Sobel magnitudes of the luminance below this are rounding noise and set to 0.
 GRADIENT_FLOOR = 1e-5
+#: Curvatures (1/world units) below this are rounding noise of flat boundaries and set to 0.
+CURVATURE_FLOOR = 1e-6
 
 
 def _robust_normalise(
@@ -127,6 +132,7 @@ def shape(analysis, spec=None, *, steepness: float = 0.05, percentile: float = 9
     y, notes = _image_luminance(analysis, spec, accumulated.shape)
 
     nonempty = accumulated > NONEMPTY_OPACITY
+    curvature = np.where(curvature < CURVATURE_FLOOR, 0.0, curvature)
     v_s = _robust_normalise(curvature, nonempty, p, "curvature", notes)
     gradient = sobel(y)
     gradient[gradient < GRADIENT_FLOOR] = 0.0

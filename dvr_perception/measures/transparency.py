@@ -40,19 +40,12 @@ Pipeline (all luminances are linear CIE Y of ``rgba`` composited over ``spec.bac
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from dvr_perception.errors import DVRInputError
-from dvr_perception.measures.psychophysics import (
-    blended_transmittance,
-    calibrate,
-    generalized_metelli,
-    luminance_range,
-    metelli_transmittance,
-    tap_transmittance,
-)
+from dvr_perception.measures._scene import DENOMINATOR_EPS as DENOMINATOR_EPS  # re-export
+from dvr_perception.measures._scene import _group_stats, _robust, _Scene
+from dvr_perception.measures.psychophysics import calibrate
 from dvr_perception.measures.regions import layer_footprints, layer_relations, subregions
 from dvr_perception.measures.results import (
     TransparencyResult,
@@ -63,173 +56,6 @@ from dvr_perception.measures.results import (
 )
 
 __all__ = ["transparency"]
-
-#: A Metelli denominator or a TAP background range below this (in luminance) is "~0".
-DENOMINATOR_EPS = 1e-3
-
-
-@dataclass(frozen=True)
-class _Estimate:
-    """A transmittance with its method, or the reason it is undetermined."""
-
-    alpha: float = float("nan")
-    method: str | None = None
-    reason: str | None = None
-
-
-def _bits(layers) -> int:
-    out = 0
-    for k in layers:
-        out |= 1 << int(k)
-    return out
-
-
-class _Scene:
-    """Luminance, layer sets and relations of one image, with cached reference lookups."""
-
-    def __init__(self, y, rmap, relations, names, contrast):
-        self.y, self.layer_set, self.names, self.contrast = y, rmap.layer_set, names, contrast
-        k = len(names)
-        self.encloses = np.zeros((k, k), dtype=bool)  # [e, k]: e encloses k
-        self.kind: dict[tuple[int, int], str] = {}
-        partners: dict[int, list[tuple[int, int]]] = {i: [] for i in range(k)}
-        for (i, j), rel in relations.items():
-            self.kind[(i, j)] = self.kind[(j, i)] = rel.kind
-            if rel.kind == "enclose":
-                self.encloses[rel.encloser, rel.enclosed] = True
-            elif rel.kind == "overlap":
-                partners[i].append((-rel.intersection, j))
-                partners[j].append((-rel.intersection, i))
-        self.partners = {i: [j for _, j in sorted(p)] for i, p in partners.items()}
-        self._masks: dict[int, np.ndarray] = {}
-        self._enclosers: dict[int, _Estimate] = {}
-
-    def label(self, bits: int) -> str:
-        names = [n for k, n in enumerate(self.names) if bits >> k & 1]
-        return "{" + ", ".join(names) + "}"
-
-    def mask(self, bits: int) -> np.ndarray:
-        if bits not in self._masks:
-            self._masks[bits] = self.layer_set == np.uint32(bits)
-        return self._masks[bits]
-
-    def missing(self, sets) -> str | None:
-        absent = [self.label(b) for b in sets if not self.mask(b).any()]
-        if not absent:
-            return None
-        return "no region shows exactly the layer set(s) " + ", ".join(dict.fromkeys(absent))
-
-    def mean(self, bits: int) -> float:
-        return float(self.y[self.mask(bits)].mean())
-
-    def tap(self, lum_p: np.ndarray, lum_a: np.ndarray) -> float:
-        lo, hi = luminance_range(lum_a)
-        if hi - lo < DENOMINATOR_EPS:
-            return float("nan")
-        return tap_transmittance(lum_p, lum_a, contrast=self.contrast)
-
-    def encloser(self, e: int) -> _Estimate:
-        """TAP transmittance of an enclosing layer: enclosed part ``P`` over plain view ``A``."""
-        if e not in self._enclosers:
-            self._enclosers[e] = self._encloser(e)
-        return self._enclosers[e]
-
-    def _encloser(self, e: int) -> _Estimate:
-        plain = _bits([e, *np.flatnonzero(self.encloses[:, e])])
-        inner = np.uint32(_bits(np.flatnonzero(self.encloses[e])))
-        in_e = ((self.layer_set >> np.uint32(e)) & 1).astype(bool)
-        lum_p = self.y[in_e & ((self.layer_set & inner) != 0)]
-        head = f"enclosing layer {self.names[e]}: "
-        why = self.missing([plain])
-        if why is not None:
-            return _Estimate(reason=head + why)
-        if lum_p.size == 0:
-            return _Estimate(reason=head + "no pixel shows it with a layer it encloses")
-        alpha = self.tap(lum_p, self.y[self.mask(plain)])
-        if np.isnan(alpha):
-            return _Estimate(
-                reason=head + f"its plain view {self.label(plain)} has no luminance contrast "
-                "(TAP denominator ~0)"
-            )
-        return _Estimate(alpha=alpha, method="tap")
-
-    def pair(self, i: int, j: int, base: int, region_lum: np.ndarray) -> _Estimate:
-        """Eq. 8 for layer ``i`` over the bipartite background given by layer ``j``."""
-        p, q, a, b = base | 1 << i | 1 << j, base | 1 << i, base | 1 << j, base
-        why = self.missing([p, q, a, b])
-        if why is not None:
-            return _Estimate(reason=f"Eq. 8 with {self.names[j]}: {why}")
-        met = float(
-            metelli_transmittance(
-                self.mean(p), self.mean(q), self.mean(a), self.mean(b), eps=DENOMINATOR_EPS
-            )
-        )
-        tap = self.tap(self.y[self.mask(p)], self.y[self.mask(a)])
-        if np.isnan(met) and np.isnan(tap):
-            return _Estimate(
-                reason=f"Eq. 8 with {self.names[j]}: Metelli denominator I{self.label(a)} - "
-                f"I{self.label(b)} and TAP contrast of {self.label(a)} are ~0"
-            )
-        lo, hi = luminance_range(region_lum)
-        alpha = float(blended_transmittance(met, tap, hi - lo))
-        if np.isnan(tap) or hi - lo == 0.0:
-            method = "metelli"
-        elif np.isnan(met) or hi - lo >= 1.0:
-            method = "tap"
-        else:
-            method = "blend"
-        return _Estimate(alpha=alpha, method=method)
-
-    def generalized(self, i: int, active: list[int], base: int) -> _Estimate:
-        """Eq. 9 for layer ``i`` of three or more overlapping active layers."""
-        every = _bits(active)
-        sets = [base | every, base | 1 << i, base | (every & ~(1 << i)), base]
-        why = self.missing(sets)
-        if why is not None:
-            return _Estimate(reason=f"Eq. 9: {why}")
-        alpha = float(generalized_metelli(*(self.mean(s) for s in sets), eps=DENOMINATOR_EPS))
-        if np.isnan(alpha):
-            return _Estimate(
-                reason=f"Eq. 9: denominator I{self.label(sets[2])} - I{self.label(sets[3])} ~0"
-            )
-        return _Estimate(alpha=alpha, method="generalized")
-
-    def evaluate(self, layers: frozenset, region_lum: np.ndarray, notes: list[str]):
-        """Estimates ``{layer: _Estimate}`` for the layers of one region (Case 1-3)."""
-        enc = {
-            e
-            for e in layers
-            if self.encloses[e].any()
-            and all(self.encloses[e, k] or self.encloses[k, e] for k in layers - {e})
-        }
-        active, base = sorted(layers - enc), _bits(enc)
-        out = {e: self.encloser(e) for e in sorted(enc)}
-        if len(active) == 1:
-            i = active[0]
-            reasons = []
-            for j in self.partners[i]:
-                est = self.pair(i, j, base, region_lum)
-                if est.reason is None:
-                    out[i] = est
-                    break
-                reasons.append(est.reason)
-            else:
-                if reasons:
-                    out[i] = _Estimate(reason="; ".join(reasons))
-        elif len(active) == 2:
-            i, j = active
-            if self.kind.get((i, j)) == "overlap":
-                out[i] = self.pair(i, j, base, region_lum)
-                out[j] = self.pair(j, i, base, region_lum)
-            else:
-                notes.append(
-                    f"layers {self.names[i]} and {self.names[j]} share a region but are "
-                    f"{self.kind.get((i, j), 'unrelated')}; treated as Case 1 there"
-                )
-        elif len(active) >= 3:
-            for i in active:
-                out[i] = self.generalized(i, active, base)
-        return out
 
 
 def _check_options(spec, contrast, calibration):
@@ -303,9 +129,7 @@ def transparency(
     relations = layer_relations(footprints, tolerance=tolerance)
     scene = _Scene(y, rmap, relations, names, contrast)
 
-    flat = rmap.region_id.ravel()
-    counts = np.bincount(flat, minlength=len(rmap.regions))
-    region_lum = np.split(y.ravel()[np.argsort(flat, kind="stable")], np.cumsum(counts)[:-1])
+    _, region_mean, region_std = _group_stats(y.ravel(), rmap.region_id.ravel(), len(rmap.regions))
     regions, undetermined, deltas = [], [], np.zeros(len(rmap.regions))
     sums = {n: [0.0, 0.0] for n in names}  # area-weighted alpha sum, area
     reasons: dict[str, list[str]] = {n: [] for n in names}
@@ -322,7 +146,8 @@ def transparency(
             "undetermined": {},
             "delta_t": 0.0,
         }
-        estimates = scene.evaluate(region.layers, region_lum[region.id], notes)
+        region_range = _robust(region_mean[region.id], region_std[region.id])
+        estimates = scene.evaluate(region.layers, region_range, notes)
         for k, est in estimates.items():
             name = names[k]
             if est.reason is not None:
@@ -334,7 +159,7 @@ def transparency(
             measured = min(max(est.alpha, 0.0), 1.0)
             if measured != est.alpha:
                 entry["clipped"][name] = est.alpha
-            alpha_t = float(calibrate(measured, calibration))
+            alpha_t = measured if calibration is None else float(calibrate(measured, calibration))
             entry["measured"][name] = measured
             entry["transmittance"][name] = alpha_t
             entry["method"][name] = est.method

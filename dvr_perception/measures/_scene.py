@@ -1,0 +1,252 @@
+"""Layer sets of one image and the transmittance rules of Sec. 4.3.2 (used by ``transparency``).
+
+:class:`_Scene` caches, per exact layer set, the pixel count, mean and standard deviation of the
+luminance, so every Metelli (Eq. 5, 9) and TAP (Eq. 6-7) term is computed once per layer set
+(or layer pair), not once per sub-region; only the Eq. 8 weight ``h`` depends on the region.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dvr_perception.measures.psychophysics import (
+    generalized_metelli,
+    luminance_range,
+    metelli_transmittance,
+    tap_transmittance,
+)
+
+#: A Metelli denominator or a TAP background range below this (in luminance) is "~0".
+DENOMINATOR_EPS = 1e-3
+
+
+@dataclass(frozen=True)
+class _Estimate:
+    """A transmittance with its method, or the reason it is undetermined."""
+
+    alpha: float = float("nan")
+    method: str | None = None
+    reason: str | None = None
+
+
+def _group_stats(values: np.ndarray, group: np.ndarray, n: int):
+    """Per-group pixel count, mean and two-pass population std (exactly 0 on uniform groups)."""
+    count = np.bincount(group, minlength=n)
+    safe = np.maximum(count, 1)
+    mean = np.bincount(group, weights=values, minlength=n) / safe
+    dev = values - mean[group]
+    std = np.sqrt(np.bincount(group, weights=dev * dev, minlength=n) / safe)
+    return count, mean, std
+
+
+def _robust(mu: float, sigma: float, i_max: float = 1.0) -> tuple[float, float]:
+    """Robust luminance range from mean and std, as :func:`~.psychophysics.luminance_range`."""
+    return max(0.0, float(mu) - 2.0 * float(sigma)), min(i_max, float(mu) + 2.0 * float(sigma))
+
+
+def _contrast(lo: float, hi: float, kind: str) -> float:
+    if kind == "range":
+        return hi - lo
+    return (hi - lo) / (hi + lo) if hi + lo > 0 else 0.0
+
+
+def _blend(met: float, tap: float, lum_range: float) -> float:
+    """Scalar :func:`~.psychophysics.blended_transmittance` (Eq. 8) without input checks."""
+    if np.isnan(met):
+        return tap
+    if np.isnan(tap):
+        return met
+    h = 1.0 - lum_range
+    return h * met + (1.0 - h) * tap
+
+
+def _bits(layers) -> int:
+    out = 0
+    for k in layers:
+        out |= 1 << int(k)
+    return out
+
+
+class _Scene:
+    """Luminance, layer sets and relations of one image, with cached reference lookups."""
+
+    def __init__(self, y, rmap, relations, names, contrast):
+        self.y, self.layer_set, self.names, self.contrast = y, rmap.layer_set, names, contrast
+        k = len(names)
+        self.encloses = np.zeros((k, k), dtype=bool)  # [e, k]: e encloses k
+        self.kind: dict[tuple[int, int], str] = {}
+        partners: dict[int, list[tuple[int, int]]] = {i: [] for i in range(k)}
+        for (i, j), rel in relations.items():
+            self.kind[(i, j)] = self.kind[(j, i)] = rel.kind
+            if rel.kind == "enclose":
+                self.encloses[rel.encloser, rel.enclosed] = True
+            elif rel.kind == "overlap":
+                partners[i].append((-rel.intersection, j))
+                partners[j].append((-rel.intersection, i))
+        self.partners = {i: [j for _, j in sorted(p)] for i, p in partners.items()}
+        self._masks: dict[int, np.ndarray] = {}
+        self._enclosers: dict[int, _Estimate] = {}
+        self._pairs: dict[tuple[int, int, int], tuple] = {}
+        self._general: dict[tuple[int, int, int], _Estimate] = {}
+        # per layer set: pixel count, mean and (two-pass) population std of the luminance
+        sets, inverse = np.unique(self.layer_set.ravel(), return_inverse=True)
+        count, mean, std = _group_stats(self.y.ravel(), inverse, sets.size)
+        rows = zip(sets.tolist(), count.tolist(), mean.tolist(), std.tolist(), strict=True)
+        self._stats = {b: (n, m, d) for b, n, m, d in rows}
+
+    def label(self, bits: int) -> str:
+        names = [n for k, n in enumerate(self.names) if bits >> k & 1]
+        return "{" + ", ".join(names) + "}"
+
+    def mask(self, bits: int) -> np.ndarray:
+        if bits not in self._masks:
+            self._masks[bits] = self.layer_set == np.uint32(bits)
+        return self._masks[bits]
+
+    def missing(self, sets) -> str | None:
+        absent = [self.label(b) for b in sets if b not in self._stats]
+        if not absent:
+            return None
+        return "no region shows exactly the layer set(s) " + ", ".join(dict.fromkeys(absent))
+
+    def mean(self, bits: int) -> float:
+        return self._stats[bits][1]
+
+    def tap(self, lum_p: np.ndarray, lum_a: np.ndarray) -> float:
+        lo, hi = luminance_range(lum_a)
+        if hi - lo < DENOMINATOR_EPS:
+            return float("nan")
+        return tap_transmittance(lum_p, lum_a, contrast=self.contrast)
+
+    def tap_sets(self, p: int, a: int) -> float:
+        """TAP ``C(P) / C(A)`` of two exact layer sets, from their cached mean and std."""
+        lo_a, hi_a = _robust(*self._stats[a][1:])
+        if hi_a - lo_a < DENOMINATOR_EPS:
+            return float("nan")
+        c_a = _contrast(lo_a, hi_a, self.contrast)
+        if c_a < 1e-6:
+            return float("nan")
+        return _contrast(*_robust(*self._stats[p][1:]), self.contrast) / c_a
+
+    def encloser(self, e: int) -> _Estimate:
+        """TAP transmittance of an enclosing layer: enclosed part ``P`` over plain view ``A``."""
+        if e not in self._enclosers:
+            self._enclosers[e] = self._encloser(e)
+        return self._enclosers[e]
+
+    def _encloser(self, e: int) -> _Estimate:
+        plain = _bits([e, *np.flatnonzero(self.encloses[:, e])])
+        inner = np.uint32(_bits(np.flatnonzero(self.encloses[e])))
+        in_e = ((self.layer_set >> np.uint32(e)) & 1).astype(bool)
+        lum_p = self.y[in_e & ((self.layer_set & inner) != 0)]
+        head = f"enclosing layer {self.names[e]}: "
+        why = self.missing([plain])
+        if why is not None:
+            return _Estimate(reason=head + why)
+        if lum_p.size == 0:
+            return _Estimate(reason=head + "no pixel shows it with a layer it encloses")
+        alpha = self.tap(lum_p, self.y[self.mask(plain)])
+        if np.isnan(alpha):
+            return _Estimate(
+                reason=head + f"its plain view {self.label(plain)} has no luminance contrast "
+                "(TAP denominator ~0)"
+            )
+        return _Estimate(alpha=alpha, method="tap")
+
+    def _pair_terms(self, i: int, j: int, base: int) -> tuple:
+        """``(metelli, tap, reason)`` of Eq. 8 for ``i`` over ``j``; region-independent, cached."""
+        key = (i, j, base)
+        if key not in self._pairs:
+            p, q, a, b = base | 1 << i | 1 << j, base | 1 << i, base | 1 << j, base
+            why = self.missing([p, q, a, b])
+            if why is not None:
+                self._pairs[key] = (None, None, f"Eq. 8 with {self.names[j]}: {why}")
+            else:
+                met = float(
+                    metelli_transmittance(
+                        self.mean(p), self.mean(q), self.mean(a), self.mean(b), eps=DENOMINATOR_EPS
+                    )
+                )
+                tap = self.tap_sets(p, a)
+                why = None
+                if np.isnan(met) and np.isnan(tap):
+                    why = (
+                        f"Eq. 8 with {self.names[j]}: Metelli denominator I{self.label(a)} - "
+                        f"I{self.label(b)} and TAP contrast of {self.label(a)} are ~0"
+                    )
+                self._pairs[key] = (met, tap, why)
+        return self._pairs[key]
+
+    def pair(self, i: int, j: int, base: int, region_range: tuple) -> _Estimate:
+        """Eq. 8 for layer ``i`` over the bipartite background given by layer ``j``."""
+        met, tap, why = self._pair_terms(i, j, base)
+        if why is not None:
+            return _Estimate(reason=why)
+        lo, hi = region_range
+        alpha = _blend(met, tap, hi - lo)
+        if np.isnan(tap) or hi - lo == 0.0:
+            method = "metelli"
+        elif np.isnan(met) or hi - lo >= 1.0:
+            method = "tap"
+        else:
+            method = "blend"
+        return _Estimate(alpha=alpha, method=method)
+
+    def generalized(self, i: int, active: list[int], base: int) -> _Estimate:
+        """Eq. 9 for layer ``i`` of three or more overlapping active layers (cached)."""
+        key = (i, _bits(active), base)
+        if key not in self._general:
+            self._general[key] = self._generalized(i, active, base)
+        return self._general[key]
+
+    def _generalized(self, i: int, active: list[int], base: int) -> _Estimate:
+        every = _bits(active)
+        sets = [base | every, base | 1 << i, base | (every & ~(1 << i)), base]
+        why = self.missing(sets)
+        if why is not None:
+            return _Estimate(reason=f"Eq. 9: {why}")
+        alpha = float(generalized_metelli(*(self.mean(s) for s in sets), eps=DENOMINATOR_EPS))
+        if np.isnan(alpha):
+            return _Estimate(
+                reason=f"Eq. 9: denominator I{self.label(sets[2])} - I{self.label(sets[3])} ~0"
+            )
+        return _Estimate(alpha=alpha, method="generalized")
+
+    def evaluate(self, layers: frozenset, region_range: tuple, notes: list[str]):
+        """Estimates ``{layer: _Estimate}`` for the layers of one region (Case 1-3)."""
+        enc = {
+            e
+            for e in layers
+            if self.encloses[e].any()
+            and all(self.encloses[e, k] or self.encloses[k, e] for k in layers - {e})
+        }
+        active, base = sorted(layers - enc), _bits(enc)
+        out = {e: self.encloser(e) for e in sorted(enc)}
+        if len(active) == 1:
+            i = active[0]
+            reasons = []
+            for j in self.partners[i]:
+                est = self.pair(i, j, base, region_range)
+                if est.reason is None:
+                    out[i] = est
+                    break
+                reasons.append(est.reason)
+            else:
+                if reasons:
+                    out[i] = _Estimate(reason="; ".join(reasons))
+        elif len(active) == 2:
+            i, j = active
+            if self.kind.get((i, j)) == "overlap":
+                out[i] = self.pair(i, j, base, region_range)
+                out[j] = self.pair(j, i, base, region_range)
+            else:
+                notes.append(
+                    f"layers {self.names[i]} and {self.names[j]} share a region but are "
+                    f"{self.kind.get((i, j), 'unrelated')}; treated as Case 1 there"
+                )
+        elif len(active) >= 3:
+            for i in active:
+                out[i] = self.generalized(i, active, base)
+        return out
