@@ -59,8 +59,9 @@ class StructureVolume:
 
     Attributes
     ----------
-    plotter : pyvista.Plotter
-        The plotter the volume lives in.
+    plotter : weakref.proxy of pyvista.Plotter
+        The plotter the volume lives in (a weak proxy: the handle is stored in a
+        ``WeakKeyDictionary`` keyed by the plotter, so it must not keep the plotter alive).
     renderer : pyvista.Renderer
         The renderer (sub-plot) holding the volume and its light.
     volume : Volume
@@ -311,7 +312,9 @@ def add_structures(plotter, volume: Volume, spec: StructureSpec, *, opacities=No
     light.specular_color = (1.0, 1.0, 1.0)
     renderer.add_light(light)
     actor = pv.Volume()
-    handle = StructureVolume(plotter, renderer, volume, spec, actor, light, name=name)
+    handle = StructureVolume(
+        weakref.proxy(plotter), renderer, volume, spec, actor, light, name=name
+    )
     _configure(handle, spec, ops)
     plotter.add_actor(actor, name=name, reset_camera=not renderer.camera_set, render=False)
     _HANDLES.setdefault(plotter, {})[name] = handle
