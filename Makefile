@@ -3,6 +3,7 @@
 #   make demo    set up everything, then render the phantom into demo_out/
 #   make test    set up everything, then ruff check, ruff format --check, pytest
 #   make bench   benchmark JSON for the phantom, engine and cthead at 512x512
+#   make paraview-setup   ParaView, Xvfb and .pvdeps/ for the plugin and `dvr-perception pvbatch`
 #
 # "setup" installs the EGL/Mesa system libraries VTK needs to render off-screen (with apt-get,
 # when run as root and they are missing), creates $(VENV) and installs the package with its
@@ -17,15 +18,23 @@ DATA ?= ../shared/data
 BENCH_SIZE ?= 512
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6
 
+# ParaView (issue 6): Debian's ParaView 5.11 renders only under Xvfb.  Its pvpython gets the
+# core's dependencies from $(PVDEPS) (pip --target with ParaView's numpy 1.24 left in place:
+# --no-deps and the pins of $(PVDEPS_REQ)); never the venv, whose VTK would crash pvpython.
+PVDEPS ?= .pvdeps
+PVDEPS_REQ := plugin/pvdeps-requirements.txt
+PVDEPS_STAMP := $(PVDEPS)/.dvr-perception-installed
+PV_APT_PACKAGES := paraview python3-paraview xvfb xauth
+
 # Render headless through EGL when there is no X display.
 ifeq ($(strip $(DISPLAY)),)
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
 endif
 
-.PHONY: help setup system-deps test lint demo bench clean
+.PHONY: help setup system-deps paraview-setup paraview-system test lint demo bench clean
 
 help:
-	@echo "targets: demo, test, bench, setup, lint, clean"
+	@echo "targets: demo, test, bench, setup, paraview-setup, lint, clean"
 
 setup: system-deps $(STAMP)
 
@@ -59,11 +68,48 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -e '.[dev]'
 	@touch $(STAMP)
 
+paraview-setup: setup paraview-system $(PVDEPS_STAMP)
+
+paraview-system:
+	@missing=""; \
+	command -v pvpython >/dev/null 2>&1 && command -v pvbatch >/dev/null 2>&1 \
+	  || missing=" paraview python3-paraview"; \
+	command -v xvfb-run >/dev/null 2>&1 || missing="$$missing xvfb"; \
+	command -v xauth >/dev/null 2>&1 || missing="$$missing xauth"; \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	  echo "paraview-setup: installing$$missing"; \
+	  export DEBIAN_FRONTEND=noninteractive; \
+	  apt-get update && apt-get install -y $(PV_APT_PACKAGES); \
+	else \
+	  echo "paraview-setup: ParaView is not installed (missing:$$missing); the ParaView" \
+	    "tests will skip and 'dvr-perception pvbatch' will not run." >&2; \
+	  echo "paraview-setup: install it as root: apt-get install -y $(PV_APT_PACKAGES)" >&2; \
+	  case "$${CI:-}" in 1|true|yes) exit 1;; esac; \
+	fi
+
+$(PVDEPS_STAMP): $(PVDEPS_REQ) | $(STAMP) paraview-system
+	@if ! command -v pvpython >/dev/null 2>&1; then \
+	  echo "paraview-setup: no pvpython, so no $(PVDEPS)/"; exit 0; \
+	fi; \
+	set -e; \
+	echo "paraview-setup: pip install --no-deps --target $(PVDEPS) -r $(PVDEPS_REQ)"; \
+	rm -rf $(PVDEPS); \
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check --no-deps \
+	  --target $(PVDEPS) -r $(PVDEPS_REQ); \
+	env -u VTK_DEFAULT_OPENGL_WINDOW PYTHONPATH="$(CURDIR)/plugin/pvsite" \
+	  DVR_PERCEPTION_PVDEPS="$(abspath $(PVDEPS))" pvpython -c \
+	  "import dvr_perception._paraview_compat as c; c.setup(); import dvr_perception.filters, \
+	  numpy, scipy, skimage, numba; print('paraview-setup: pvpython imports numpy', \
+	  numpy.__version__, 'scipy', scipy.__version__, 'scikit-image', skimage.__version__, \
+	  'numba', numba.__version__)"; \
+	touch $(PVDEPS_STAMP)
+
 lint: setup
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
-test: lint
+test: lint paraview-setup
 	$(BIN)/pytest
 
 demo: setup

@@ -1,0 +1,195 @@
+"""``dvr-perception pvbatch``: the Perception Measures of one volume, computed inside ParaView.
+
+Runs ``plugin/batch_measure.py`` under the installed ParaView's ``pvbatch``: the volume goes
+through the plugin's *Perception Measures* filter (``paraview.simple``) and ParaView renders it
+with the spec's transfer functions.  The output directory receives ``screenshot.png`` (ParaView's
+rendering), ``image.png`` and the three deviation maps, and ``result.json`` (``E_v``, ``E_s``,
+``E_t``, per-structure values, camera).  The scene options mean what they mean for ``render``
+and ``measure``.
+
+ParaView's Python must never see this environment's packages (a second VTK crashes it), so the
+command builds a separate environment (:func:`paraview_env`): the repository root, the
+dependency folder ``.pvdeps`` of ``make paraview-setup`` and the start-up shims of
+``plugin/pvsite``.  Without a ``DISPLAY`` a private Xvfb server is started for the run
+(:func:`virtual_display`; Debian's ParaView renders only through X).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+
+from dvr_perception import _paraview_compat
+from dvr_perception.cli._common import PROG, add_scene_args, emit_json, parse_size
+from dvr_perception.errors import DVRInputError
+from dvr_perception.rays.camera import parse_view
+
+__all__ = ["add_parser", "find_paraview", "paraview_env", "run", "virtual_display"]
+
+#: Environment variable naming the directory that holds ``pvpython``/``pvbatch``.
+PARAVIEW_ENV = "DVR_PERCEPTION_PARAVIEW"
+#: Variables of this environment that must not reach ParaView's Python.
+_DROP = ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV", "VTK_DEFAULT_OPENGL_WINDOW", "PV_PLUGIN_PATH")
+
+EXAMPLE = """examples:
+  dvr-perception pvbatch ../shared/data/neghip.nhdr --size 256 --out neghip_pv
+  dvr-perception pvbatch ../shared/data/engine.nhdr --view=30,20 --json --out engine_pv
+"""
+
+
+def add_parser(subparsers, parents) -> None:
+    """Register ``pvbatch``."""
+    p = subparsers.add_parser(
+        "pvbatch",
+        parents=parents,
+        help="measure E_v, E_s, E_t inside ParaView (pvbatch) and save its rendering",
+        description=__doc__.split("\n\n")[1],
+        epilog=EXAMPLE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_scene_args(p)
+    p.add_argument("--sigma", type=float, default=1.0, help="curvature scale (default 1)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.set_defaults(run=run)
+
+
+def find_paraview(program: str = "pvbatch") -> Path:
+    """Return the ParaView executable ``program`` (``$DVR_PERCEPTION_PARAVIEW`` or ``PATH``).
+
+    Raises :class:`~dvr_perception.errors.DVRInputError` when it is not installed.
+    """
+    folder = os.environ.get(PARAVIEW_ENV, "").strip()
+    found = shutil.which(program, path=folder) if folder else shutil.which(program)
+    if found is None:
+        where = f"in {PARAVIEW_ENV}={folder}" if folder else "on PATH"
+        raise DVRInputError(
+            f"ParaView is not installed ({program} not found {where}); install it with "
+            "'make paraview-setup' (as root) or 'apt-get install paraview python3-paraview xvfb'"
+        )
+    return Path(found)
+
+
+def paraview_env(display: str | None = None, base: dict | None = None) -> dict:
+    """Return the environment for ParaView's Python with the core and its dependencies.
+
+    ``PYTHONPATH`` is ``plugin/pvsite`` (start-up shims), the repository root and the
+    dependency folder; variables of this environment that would leak into ParaView are
+    dropped.  Raises :class:`~dvr_perception.errors.DVRInputError` when the dependency
+    folder is missing or unusable.
+    """
+    root = _paraview_compat.repo_root()
+    deps = _paraview_compat.pvdeps_dir(root)
+    why = _paraview_compat.check_pvdeps(deps)
+    if why:
+        raise DVRInputError(f"ParaView dependencies: {why}")
+    site = root / "plugin" / "pvsite"
+    if not (site / "sitecustomize.py").is_file():
+        raise DVRInputError(f"{site}: not found; pvbatch needs a source checkout of the project")
+    env = {k: v for k, v in (os.environ if base is None else base).items() if k not in _DROP}
+    env["PYTHONPATH"] = os.pathsep.join(str(p) for p in (site, root, deps))
+    env[_paraview_compat.PVDEPS_ENV] = str(deps)
+    env["NUMBA_CACHE_DIR"] = str(deps / "numba-cache")
+    if display is not None:
+        env["DISPLAY"] = display
+    return env
+
+
+@contextmanager
+def virtual_display():
+    """Yield an X display for ParaView: ``$DISPLAY``, else a private Xvfb server for the block.
+
+    Xvfb picks a free display number itself (``-displayfd``), so concurrent runs never race
+    for one (``xvfb-run -a`` can).
+    """
+    if os.environ.get("DISPLAY"):
+        yield os.environ["DISPLAY"]
+        return
+    xvfb = shutil.which("Xvfb")
+    if xvfb is None:
+        raise DVRInputError("no DISPLAY and Xvfb is not installed (apt-get install xvfb)")
+    read_fd, write_fd = os.pipe()
+    cmd = [xvfb, "-displayfd", str(write_fd), "-screen", "0", "1280x1024x24", "-nolisten", "tcp"]
+    proc = subprocess.Popen(
+        cmd, pass_fds=(write_fd,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    os.close(write_fd)
+    try:
+        number = b""
+        while not number.endswith(b"\n"):
+            chunk = os.read(read_fd, 16)
+            if not chunk:
+                raise DVRInputError(f"Xvfb exited before opening a display ({' '.join(cmd)})")
+            number += chunk
+        yield f":{number.decode().strip()}"
+    finally:
+        os.close(read_fd)
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _script_args(args: argparse.Namespace) -> list[str]:
+    """Return the command line of ``plugin/batch_measure.py`` for the parsed options."""
+    argv = [str(args.volume)]
+    for opt in ("structures", "camera", "size"):
+        if getattr(args, opt) is not None:
+            argv += [f"--{opt}", str(getattr(args, opt))]
+    if args.view is not None:
+        argv.append(f"--view={args.view}")
+    if args.shade is not None:
+        argv.append("--shade" if args.shade else "--no-shade")
+    return [*argv, "--sigma", repr(float(args.sigma)), "--out", str(args.out)]
+
+
+def _failure(returncode: int, stderr: str) -> Exception:
+    lines = [ln.strip() for ln in stderr.splitlines() if ln.strip()]
+    prefix = f"{PROG}: error: "
+    mine = [ln[len(prefix) :] for ln in lines if ln.startswith(prefix)]
+    if mine:
+        return DVRInputError(mine[-1])
+    last = lines[-1] if lines else "no output"
+    return RuntimeError(f"pvbatch failed with exit code {returncode}: {last} (rerun with -v)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Execute ``pvbatch``."""
+    if args.size is not None:
+        parse_size(args.size)
+    if args.view is not None:
+        parse_view(args.view)
+    if not (args.sigma > 0):
+        raise DVRInputError(f"--sigma: expected a positive number, got {args.sigma}")
+    pvbatch = find_paraview("pvbatch")
+    script = _paraview_compat.repo_root() / "plugin" / "batch_measure.py"
+    env = paraview_env()
+    with virtual_display() as display:
+        env["DISPLAY"] = display
+        proc = subprocess.run(
+            [str(pvbatch), str(script), *_script_args(args)],
+            env=env,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+    if args.verbose and proc.stderr:
+        sys.stderr.write(proc.stderr)
+    if proc.returncode != 0:
+        raise _failure(proc.returncode, proc.stderr)
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    if args.json:
+        emit_json(json.loads((Path(summary["out"]) / "result.json").read_text(encoding="utf-8")))
+    else:
+        print(
+            f"E_v = {summary['E_v']:.4f}  E_s = {summary['E_s']:.4f}  E_t = {summary['E_t']:.4f}"
+            f"  (ParaView pvbatch; images and result.json in {summary['out']})"
+        )
+    return 0

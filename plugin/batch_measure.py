@@ -1,0 +1,243 @@
+"""pvbatch script: Perception Measures of one volume, with a ParaView rendering of it.
+
+Usage (``dvr-perception pvbatch`` runs this with the right environment and Xvfb)::
+
+    pvbatch plugin/batch_measure.py VOLUME [--structures SPEC] [--view A,E[,Z] | --camera CAM]
+            [--size N|WxH] [--shade|--no-shade] [--sigma S] --out DIR
+
+VOLUME, the spec and the camera are resolved exactly as the ``dvr-perception`` commands do
+(``dvr_perception.cli._common.load_scene``: the spec paired with the volume in
+``state_files/``, the spec's view, 512 x 512).  The volume goes into ParaView through a
+``TrivialProducer``; the *Perception Measures* filter of ``dvr_perception_plugin.py`` runs on it
+through ``paraview.simple``.  Written into DIR:
+
+``screenshot.png``
+    ParaView's own volume rendering (CPU ray caster) with the spec's colour and opacity
+    transfer functions, material and background, seen by the same camera.
+``image.png``, ``visibility_deviation.png``, ``shape_deviation.png``, ``transparency_deviation.png``
+    The filter's output: the engine's image over the background and the three per-pixel
+    deviation maps (Viridis; black where the ray met nothing).
+``result.json``
+    ``E_v``, ``E_s``, ``E_t``, per-structure shares, the camera and the files written.
+
+Errors print one line ``dvr-perception: error: ...`` on stderr and exit with status 2.
+"""
+
+import json
+import os
+import sys
+import time
+
+PROG = "dvr-perception"
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+PLUGIN = os.path.join(HERE, "dvr_perception_plugin.py")
+# (output file, point array, colour range or None for "0..max")
+DEVIATION_IMAGES = (
+    ("visibility_deviation.png", "visibility_deviation", (0.0, 2.0)),
+    ("shape_deviation.png", "shape_deviation", (0.0, 1.0)),
+    ("transparency_deviation.png", "transparency_deviation", None),
+)
+PER_STRUCTURE = ("visible_share", "assigned_share", "perceived_transparency", "expected_opacity")
+
+
+class BatchError(Exception):
+    """A problem with the input, reported as one line."""
+
+
+def parse_args(argv):
+    sys.path.insert(0, ROOT)
+    from dvr_perception._paraview_compat import setup
+
+    try:
+        setup()
+    except RuntimeError as exc:
+        raise BatchError(str(exc)) from None
+    from dvr_perception.cli._common import CLIParser, add_scene_args
+
+    parser = CLIParser(prog=f"{PROG} pvbatch", description=__doc__.split("\n")[0])
+    add_scene_args(parser)
+    parser.add_argument("--sigma", type=float, default=1.0, help="curvature scale (default 1)")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    return parser.parse_args(argv)
+
+
+def transfer_function_points(spec):
+    """ParaView's ``RGBPoints`` and ``Points`` lists for the spec's VTK transfer functions."""
+    from dvr_perception.structures.transfer import to_vtk_transfer_functions
+
+    ctf, otf = to_vtk_transfer_functions(spec)
+    rgb, node = [], [0.0] * 6
+    for i in range(ctf.GetSize()):
+        ctf.GetNodeValue(i, node)
+        rgb += node[:4]
+    pts, node = [], [0.0] * 4
+    for i in range(otf.GetSize()):
+        otf.GetNodeValue(i, node)
+        pts += node
+    return rgb, pts
+
+
+def set_camera(view, camera):
+    view.ViewSize = [camera.width, camera.height]
+    view.CameraPosition = list(camera.position)
+    view.CameraFocalPoint = list(camera.focal_point)
+    view.CameraViewUp = list(camera.view_up)
+    view.CameraViewAngle = camera.view_angle
+    view.CameraParallelProjection = int(camera.parallel_projection)
+    view.CameraParallelScale = camera.parallel_scale
+
+
+def screenshot(pvs, source, array, scene, path):
+    """Volume-render ``source`` with the spec's transfer functions and save ``path``."""
+    spec, camera = scene.spec, scene.camera
+    view = pvs.CreateView("RenderView")
+    view.OrientationAxesVisibility = 0
+    view.UseColorPaletteForBackground = 0
+    view.Background = [float(c) for c in spec.background]
+    display = pvs.Show(source, view)
+    display.SetRepresentationType("Volume")
+    pvs.ColorBy(display, ("POINTS", array))
+    rgb, pts = transfer_function_points(spec)
+    lut = pvs.GetColorTransferFunction(array)
+    lut.AutomaticRescaleRangeMode = "Never"
+    lut.ColorSpace = "RGB"
+    lut.RGBPoints = rgb
+    pwf = pvs.GetOpacityTransferFunction(array)
+    pwf.Points = pts
+    display.LookupTable = lut
+    display.ScalarOpacityFunction = pwf
+    display.VolumeRenderingMode = "Ray Cast Only"
+    rs = spec.rendering
+    unit = rs.opacity_unit_distance
+    display.ScalarOpacityUnitDistance = float(min(scene.volume.spacing) if unit is None else unit)
+    display.Shade = int(bool(rs.shade))
+    light = spec.structures[0].lighting
+    display.Ambient, display.Diffuse = light.ambient, light.diffuse
+    display.Specular, display.SpecularPower = light.specular, light.specular_power
+    set_camera(view, camera)
+    pvs.Render(view)
+    pvs.SaveScreenshot(path, view, ImageResolution=[camera.width, camera.height])
+    if not os.path.isfile(path):
+        raise BatchError(f"output file {path}: ParaView did not write the screenshot")
+
+
+def measure_images(pvs, output, background, out_dir):
+    """Write the filter's image and deviation maps; return the paths."""
+    import numpy as np
+    from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+
+    from dvr_perception._files import write_png
+
+    w, h, _ = output.GetDimensions()
+    pd = output.GetPointData()
+
+    def image(name):  # VTK point order (bottom row first) -> rows from the top
+        a = vtk_to_numpy(pd.GetArray(name))
+        return a.reshape(h, w, -1)[::-1]
+
+    rgba = image("rgba").astype(np.float64)
+    hit = rgba[..., 3] > 0
+    files = [os.path.join(out_dir, "image.png")]
+    over = rgba[..., :3] + (1.0 - rgba[..., 3:]) * np.asarray(background, float)
+    write_png(files[0], np.clip(over, 0.0, 1.0))
+    lut = pvs.GetColorTransferFunction("dvr_perception_deviation")
+    lut.ApplyPreset("Viridis (matplotlib)", True)
+    mapper = lut.GetClientSideObject()
+    for name, array, limits in DEVIATION_IMAGES:
+        values = image(array)[..., 0].astype(np.float64)
+        lo, hi = limits or (0.0, max(1e-3, float(values.max(initial=0.0))))
+        lut.RescaleTransferFunction(lo, hi)
+        mapper.Build()
+        mapped = mapper.MapScalars(numpy_to_vtk(values.ravel(), deep=True), 1, -1)
+        colours = vtk_to_numpy(mapped).reshape(h, w, -1)[..., :3].copy()
+        colours[~hit] = 0
+        path = os.path.join(out_dir, name)
+        write_png(path, colours)
+        files.append(path)
+    return files
+
+
+def field_values(output):
+    fd = output.GetFieldData()
+    if fd.GetArray("E_v") is None:
+        raise BatchError("Perception Measures failed (see the ParaView error above)")
+    result = {k: fd.GetArray(k).GetValue(0) for k in ("E_v", "E_s", "E_t")}
+    names_arr = fd.GetAbstractArray("structure_names")
+    names = [names_arr.GetValue(i) for i in range(names_arr.GetNumberOfValues())]
+    result["structures"] = {
+        n: {k: fd.GetArray(k).GetValue(i) for k in PER_STRUCTURE} for i, n in enumerate(names)
+    }
+    return result
+
+
+def run(args):
+    t0 = time.perf_counter()
+    from dvr_perception._files import write_json
+    from dvr_perception.cli._common import load_scene, make_output_dir
+    from dvr_perception.structures.io import spec_to_dict
+    from dvr_perception.volume.convert import to_vtk_image
+
+    scene = load_scene(args)
+    out_dir = str(make_output_dir(args.out))
+    from paraview import simple as pvs
+
+    pvs.LoadPlugin(PLUGIN)  # adds the filters to paraview.simple
+    source = pvs.TrivialProducer(registrationName=os.path.basename(str(args.volume)))
+    image = to_vtk_image(scene.volume)
+    source.GetClientSideObject().SetOutput(image)
+    source.UpdatePipeline()
+    array = image.GetPointData().GetScalars().GetName()
+    measures = pvs.PerceptionMeasures(
+        Input=source,
+        ScalarArray=array,
+        SpecJSON=json.dumps(spec_to_dict(scene.spec)),
+        CameraJSON=json.dumps(scene.camera.to_dict()),
+        Sigma=args.sigma,
+    )
+    measures.UpdatePipeline()
+    output = pvs.servermanager.Fetch(measures)
+    result = field_values(output)
+    shot = os.path.join(out_dir, "screenshot.png")
+    screenshot(pvs, source, array, scene, shot)
+    files = [shot, *measure_images(pvs, output, scene.spec.background, out_dir)]
+    from paraview import servermanager
+
+    result.update(
+        volume=str(scene.volume_source),
+        spec=scene.spec_source,
+        camera=scene.camera.to_dict(),
+        sigma=args.sigma,
+        paraview_version=servermanager.vtkSMProxyManager.GetParaViewSourceVersion(),
+        seconds=round(time.perf_counter() - t0, 3),
+    )
+    result["files"] = [os.path.basename(f) for f in [*files, "result.json"]]
+    write_json(os.path.join(out_dir, "result.json"), result)
+    print(json.dumps({k: result[k] for k in ("E_v", "E_s", "E_t")} | {"out": out_dir}))
+    return 0
+
+
+def main(argv=None):
+    argv = sys.argv[1:] if argv is None else argv
+    try:
+        return run(parse_args(argv))
+    except Exception as exc:
+        from dvr_perception.errors import DVRInputError
+
+        if not isinstance(exc, (BatchError, DVRInputError, OSError)):
+            raise
+        if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+            exc = f"{exc.filename}: {exc.strerror}"
+        sys.stderr.write(f"{PROG}: error: {' '.join(str(exc).split())}\n")
+        return 2
+
+
+if __name__ == "__main__":
+    status = main()
+    if status:
+        # sys.exit() inside pvbatch tears the OpenGL context down in the wrong order (an X
+        # "GLXBadContext" abort), so a failure leaves without interpreter teardown; success
+        # returns normally and pvbatch exits with 0.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)

@@ -1,0 +1,226 @@
+"""ParaView plugin: the dvr_perception filters under the menu "Filters > DVR Perception".
+
+Load it with *Tools > Manage Plugins > Load New...*, ``LoadPlugin(path, ns=globals())`` in
+pvpython, or put this folder on ``PV_PLUGIN_PATH``.  ParaView 5.11 with Python >= 3.11 also
+needs ``plugin/pvsite`` on ``PYTHONPATH`` (see ``plugin/README.md``).
+
+The two proxies are shells: they declare the properties ParaView shows and hand every pipeline
+pass to the library's VTK filter (:mod:`dvr_perception.filters`), which is imported only when
+the filter first executes.  Parameter values are validated by the library when the filter
+runs, so a bad value (e.g. a negative sigma typed in Python) becomes an error message in
+*Output Messages*, never an exception inside ParaView.
+"""
+
+import os
+import sys
+
+from paraview.util.vtkAlgorithm import VTKPythonAlgorithmBase, smdomain, smhint, smproperty, smproxy
+
+paraview_plugin_name = "DVRPerception"
+paraview_plugin_version = "0.1.0"
+
+_CATEGORY = '<ShowInMenu category="DVR Perception" />'
+_IMAGE_INPUT = '<InputArrayDomain name="input_array" attribute_type="point" />'
+_ARRAY_LIST = (
+    '<ArrayListDomain name="array_list" attribute_type="Scalars" input_domain_name="input_array">'
+    '<RequiredProperties><Property name="Input" function="Input" /></RequiredProperties>'
+    "</ArrayListDomain>"
+)
+_MULTI_LINE = '<Widget type="multi_line" />'
+
+
+def _setup_paths():
+    """Make ``dvr_perception`` and its dependencies importable; apply the compat shims."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    if root not in sys.path:
+        sys.path.insert(0, root)
+    from dvr_perception import _paraview_compat
+
+    _paraview_compat.setup()
+
+
+_setup_paths()
+
+
+class _LibraryShell(VTKPythonAlgorithmBase):
+    """Forwards the pipeline passes to a lazily created ``dvr_perception.filters`` filter."""
+
+    _filter_name = ""
+
+    def __init__(self):
+        VTKPythonAlgorithmBase.__init__(
+            self, nInputPorts=1, inputType="vtkImageData", nOutputPorts=1, outputType="vtkImageData"
+        )
+        self._values = {}
+        self._impl = None
+        self._last_error = None
+
+    def _set(self, name, value):
+        if self._values.get(name, object()) != value:
+            self._values[name] = value
+            self.Modified()
+
+    def _library_filter(self):
+        """Create the library filter (first call only) and push the current values into it."""
+        if self._impl is None:
+            from dvr_perception import filters
+
+            self._impl = getattr(filters, self._filter_name)()
+            self._impl.AddObserver("ProgressEvent", self._forward_progress)
+        impl = self._impl
+        from dvr_perception.errors import DVRInputError
+
+        try:
+            for name, value in self._parameters().items():
+                setattr(impl, name, value)
+        except DVRInputError as exc:
+            # one message per property change, not one per pipeline pass
+            key = (self.GetMTime(), str(exc))
+            if key != self._last_error:
+                self._last_error = key
+                impl.report_error(str(exc))
+            return None
+        return impl
+
+    def _forward_progress(self, obj, event):
+        self.UpdateProgress(obj.GetProgress())
+
+    def _parameters(self):
+        """The library attribute values for the current property values."""
+        raise NotImplementedError
+
+    def RequestInformation(self, request, in_info, out_info):
+        impl = self._library_filter()
+        return 0 if impl is None else impl.RequestInformation(request, in_info, out_info)
+
+    def RequestUpdateExtent(self, request, in_info, out_info):
+        impl = self._library_filter()
+        return 0 if impl is None else impl.RequestUpdateExtent(request, in_info, out_info)
+
+    def RequestData(self, request, in_info, out_info):
+        impl = self._library_filter()
+        return 0 if impl is None else impl.RequestData(request, in_info, out_info)
+
+
+# -- properties shared by both filters (a decorated method may be bound in several classes)
+@smproperty.stringvector(name="ScalarArray", default_values="")
+@smdomain.xml(_ARRAY_LIST)
+def SetScalarArray(self, value):
+    self._set("input_array", value)
+
+
+@smproperty.stringvector(name="SpecFile", default_values="")
+@smdomain.filelist()
+@smhint.filechooser(extensions="json", file_description="Structure spec (JSON)")
+def SetSpecFile(self, value):
+    self._set("spec_file", value)
+
+
+@smproperty.stringvector(name="SpecJSON", default_values="")
+@smhint.xml(_MULTI_LINE)
+def SetSpecJSON(self, value):
+    self._set("spec_json", value)
+
+
+@smproperty.doublevector(name="Sigma", default_values=1.0)
+@smdomain.doublerange(min=0.1, max=10.0)
+def SetSigma(self, value):
+    self._set("sigma", value)
+
+
+@smproxy.filter(name="DVRStructuralLayers", label="Structural Layers")
+@smhint.xml(_CATEGORY)
+@smproperty.input(name="Input", port_index=0)
+@smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
+@smdomain.xml(_IMAGE_INPUT)
+class StructuralLayers(_LibraryShell):
+    """Adds ``structure_id``, ``boundary`` and ``curvature`` point arrays to a volume."""
+
+    _filter_name = "StructuralLayers"
+
+    def __init__(self):
+        _LibraryShell.__init__(self)
+        self._values = {"input_array": "", "spec_file": "", "spec_json": "", "sigma": 1.0}
+
+    def _parameters(self):
+        return dict(self._values)
+
+    # the properties both filters share (the module-level functions above)
+    SetScalarArray = SetScalarArray
+    SetSpecFile = SetSpecFile
+    SetSpecJSON = SetSpecJSON
+    SetSigma = SetSigma
+
+
+@smproxy.filter(name="DVRPerceptionMeasures", label="Perception Measures")
+@smhint.xml(_CATEGORY)
+@smproperty.input(name="Input", port_index=0)
+@smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
+@smdomain.xml(_IMAGE_INPUT)
+class PerceptionMeasures(_LibraryShell):
+    """Renders the volume; outputs the image, per-pixel deviations and E_v, E_s, E_t."""
+
+    _filter_name = "PerceptionMeasures"
+
+    def __init__(self):
+        _LibraryShell.__init__(self)
+        self._values = {
+            "input_array": "",
+            "spec_file": "",
+            "spec_json": "",
+            "sigma": 1.0,
+            "camera_json": "",
+            "use_spec_view": 1,
+            "azimuth": 0.0,
+            "elevation": 0.0,
+            "zoom": 1.0,
+            "width": 512,
+            "height": 512,
+        }
+
+    def _parameters(self):
+        v = dict(self._values)
+        view = (v.pop("azimuth"), v.pop("elevation"), v.pop("zoom"))
+        v["view"] = None if v.pop("use_spec_view") else view
+        return v
+
+    # the properties both filters share (the module-level functions above)
+    SetScalarArray = SetScalarArray
+    SetSpecFile = SetSpecFile
+    SetSpecJSON = SetSpecJSON
+    SetSigma = SetSigma
+
+    @smproperty.stringvector(name="CameraJSON", default_values="")
+    @smhint.xml(_MULTI_LINE)
+    def SetCameraJSON(self, value):
+        self._set("camera_json", value)
+
+    @smproperty.intvector(name="UseSpecView", default_values=1)
+    @smdomain.xml('<BooleanDomain name="bool" />')
+    def SetUseSpecView(self, value):
+        self._set("use_spec_view", int(value))
+
+    @smproperty.doublevector(name="Azimuth", default_values=0.0)
+    @smdomain.doublerange(min=-180.0, max=180.0)
+    def SetAzimuth(self, value):
+        self._set("azimuth", value)
+
+    @smproperty.doublevector(name="Elevation", default_values=0.0)
+    @smdomain.doublerange(min=-90.0, max=90.0)
+    def SetElevation(self, value):
+        self._set("elevation", value)
+
+    @smproperty.doublevector(name="Zoom", default_values=1.0)
+    @smdomain.doublerange(min=0.1, max=10.0)
+    def SetZoom(self, value):
+        self._set("zoom", value)
+
+    @smproperty.intvector(name="Width", default_values=512)
+    @smdomain.intrange(min=16, max=4096)
+    def SetWidth(self, value):
+        self._set("width", value)
+
+    @smproperty.intvector(name="Height", default_values=512)
+    @smdomain.intrange(min=16, max=4096)
+    def SetHeight(self, value):
+        self._set("height", value)

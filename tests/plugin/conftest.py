@@ -1,0 +1,73 @@
+"""Fixtures for the ParaView plugin tests.
+
+``paraview`` finds the installed ParaView (``pvpython``, ``pvbatch``) and the environment its
+Python needs (:func:`dvr_perception.cli.pvbatch.paraview_env`).  Like ``shared_data`` and
+``vtk_can_render`` in ``tests/conftest.py`` it skips on a developer machine without ParaView
+(or without ``make paraview-setup``'s ``.pvdeps``) but FAILS under ``CI=true``, where
+``make test`` installs both.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+MARK = "@@RESULT@@ "  # must match test_paraview.MARK
+
+
+def _missing(reason: str) -> None:
+    if IN_CI:
+        pytest.fail(f"required under CI=true: {reason}")
+    pytest.skip(reason)
+
+
+@dataclass
+class ParaView:
+    """The installed ParaView and the environment for its Python."""
+
+    pvpython: Path
+    pvbatch: Path
+    env: dict
+
+    def run(self, code: str, tmp_path: Path, *, env: dict | None = None, timeout: float = 300):
+        """Run ``code`` in pvpython; return the CompletedProcess (stderr merged into stdout)."""
+        script = tmp_path / "pv_script.py"
+        script.write_text(code, encoding="utf-8")
+        return subprocess.run(
+            [str(self.pvpython), str(script)],
+            env=env or self.env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            timeout=timeout,
+            check=False,
+            cwd=tmp_path,
+        )
+
+    @staticmethod
+    def result(proc) -> dict:
+        """The JSON object the script printed after :data:`MARK` (fails with the output)."""
+        lines = [ln for ln in proc.stdout.splitlines() if ln.startswith(MARK)]
+        assert proc.returncode == 0, f"pvpython failed ({proc.returncode}):\n{proc.stdout}"
+        assert lines, f"pvpython printed no result:\n{proc.stdout}"
+        return json.loads(lines[-1][len(MARK) :])
+
+
+@pytest.fixture(scope="session")
+def paraview() -> ParaView:
+    """The ParaView installation; skips locally / fails under CI when it is missing."""
+    from dvr_perception.cli.pvbatch import find_paraview, paraview_env
+    from dvr_perception.errors import DVRInputError
+
+    try:
+        pvpython, pvbatch = find_paraview("pvpython"), find_paraview("pvbatch")
+        env = paraview_env()
+    except DVRInputError as exc:
+        _missing(str(exc))
+    return ParaView(pvpython, pvbatch, env)

@@ -1,0 +1,132 @@
+"""ParaView compatibility shims, the ParaView environment and ``pvbatch``'s errors (no ParaView).
+
+These run everywhere: they check what the plugin and ``dvr-perception pvbatch`` do *before*
+ParaView starts.
+"""
+
+from __future__ import annotations
+
+import inspect
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dvr_perception import _paraview_compat as compat
+from dvr_perception.cli import main
+from dvr_perception.cli.pvbatch import _script_args, find_paraview, paraview_env
+from dvr_perception.errors import DVRInputError
+
+
+def test_shims_restore_getargspec_and_in1d(monkeypatch):
+    monkeypatch.delattr(inspect, "getargspec", raising=False)
+    monkeypatch.delattr(np, "in1d", raising=False)
+    compat.apply_shims()
+    assert inspect.getargspec is inspect.getfullargspec
+    # in1d flattens its first argument (isin keeps the shape)
+    in1d = np.in1d  # noqa: NPY201  (the name ParaView 5.11's VTK calls)
+    assert in1d(np.array([[1, 5], [3, 7]]), [3, 5]).tolist() == [False, True, True, False]
+    assert in1d([1, 2], [2], invert=True).tolist() == [True, False]
+
+
+def test_shims_keep_an_existing_in1d(monkeypatch):
+    def marker(*a, **k):
+        return "original"
+
+    monkeypatch.setattr(np, "in1d", marker, raising=False)
+    compat.apply_shims()
+    assert np.in1d is marker  # noqa: NPY201
+
+
+def test_pvdeps_folder_with_a_second_vtk_is_refused(tmp_path, monkeypatch):
+    deps = tmp_path / "deps"
+    (deps / "vtkmodules").mkdir(parents=True)
+    monkeypatch.setenv(compat.PVDEPS_ENV, str(deps))
+    assert compat.pvdeps_dir() == deps.resolve()
+    assert "vtkmodules" in compat.check_pvdeps(deps)
+    with pytest.raises(RuntimeError, match="second VTK crashes pvpython"):
+        compat.add_paths()
+    with pytest.raises(DVRInputError, match="vtkmodules"):
+        paraview_env()
+
+
+def test_add_paths_puts_repo_and_deps_first(tmp_path, monkeypatch):
+    deps = tmp_path / "deps"
+    deps.mkdir()
+    monkeypatch.setenv(compat.PVDEPS_ENV, str(deps))
+    monkeypatch.setenv("NUMBA_CACHE_DIR", "")  # recorded, so the test's value is undone
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    monkeypatch.setattr("sys.path", ["x", str(deps)])
+    added = compat.add_paths(Path("/repo"))
+    import sys
+
+    assert sys.path == ["/repo", str(deps.resolve()), "x"]
+    assert added == ["/repo", str(deps.resolve())]
+    assert os.environ["NUMBA_CACHE_DIR"] == str(deps.resolve() / "numba-cache")
+
+
+def test_paraview_env_isolates_paraview_from_this_venv(tmp_path, monkeypatch):
+    deps = tmp_path / "deps"
+    deps.mkdir()
+    monkeypatch.setenv(compat.PVDEPS_ENV, str(deps))
+    base = {
+        "PATH": "/usr/bin",
+        "PYTHONPATH": "/venv/site-packages",
+        "VIRTUAL_ENV": "/venv",
+        "VTK_DEFAULT_OPENGL_WINDOW": "vtkEGLRenderWindow",
+    }
+    env = paraview_env(display=":7", base=base)
+    root = compat.repo_root()
+    parts = env["PYTHONPATH"].split(os.pathsep)
+    assert parts == [str(root / "plugin" / "pvsite"), str(root), str(deps.resolve())]
+    assert "VIRTUAL_ENV" not in env
+    assert "VTK_DEFAULT_OPENGL_WINDOW" not in env
+    assert (env["DISPLAY"], env["PATH"]) == (":7", "/usr/bin")
+    assert env[compat.PVDEPS_ENV] == str(deps.resolve())
+
+
+def test_script_args_forward_the_scene_options():
+    from argparse import Namespace
+
+    args = Namespace(
+        volume="v.nhdr",
+        structures="s.json",
+        camera=None,
+        size="64x32",
+        view="-30,10",
+        shade=False,
+        sigma=2,
+        out="o",
+    )
+    assert _script_args(args) == [
+        "v.nhdr",
+        "--structures",
+        "s.json",
+        "--size",
+        "64x32",
+        "--view=-30,10",
+        "--no-shade",
+        "--sigma",
+        "2.0",
+        "--out",
+        "o",
+    ]
+
+
+def test_pvbatch_without_paraview_is_a_one_line_error(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("DVR_PERCEPTION_PARAVIEW", str(tmp_path / "no-paraview"))
+    with pytest.raises(DVRInputError, match="ParaView is not installed"):
+        find_paraview("pvpython")
+    assert main(["pvbatch", "phantom", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert err[0].startswith("dvr-perception: error: ParaView is not installed (pvbatch not")
+    assert not (tmp_path / "o").exists()
+
+
+def test_pvbatch_checks_options_before_starting_paraview(tmp_path, capsys):
+    assert main(["pvbatch", "phantom", "--size", "0", "--out", str(tmp_path / "o")]) == 2
+    assert "--size" in capsys.readouterr().err
+    assert main(["pvbatch", "phantom", "--sigma", "-1", "--out", str(tmp_path / "o")]) == 2
+    assert "--sigma: expected a positive number" in capsys.readouterr().err
