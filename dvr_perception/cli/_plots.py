@@ -1,4 +1,4 @@
-"""Figures of the ``measure`` command: deviation maps, visibility histograms and the region map.
+"""Figures of the CLI: deviation maps, visibility histograms, region map, convergence plot.
 
 Every helper builds a :class:`matplotlib.figure.Figure` on an explicit Agg canvas (no pyplot, no
 global backend switch) and writes it through :func:`dvr_perception._files.atomic_path`, so a
@@ -14,7 +14,15 @@ import numpy as np
 
 from dvr_perception._files import atomic_path
 
-__all__ = ["save_deviation_map", "save_region_map", "save_visibility_histograms"]
+__all__ = [
+    "MEASURE_FIGURES",
+    "save_convergence",
+    "save_deviation_map",
+    "save_measure_figures",
+    "save_region_map",
+    "save_side_by_side",
+    "save_visibility_histograms",
+]
 
 #: Colour of pixels outside the measured area (empty rays) in the deviation maps.
 EMPTY_COLOUR = "#d0d0d0"
@@ -225,4 +233,142 @@ def save_region_map(path, region_id, regions: list, *, title: str, empty_colour=
         label += f"  ({n} region{'s' if n != 1 else ''}, {g['area']:.2%})"
         handles.append(Patch(facecolor=colours[key], edgecolor="0.5", label=label))
     fig.legend(handles=handles, loc="outside right center", fontsize=7, frameon=False)
+    return _save(fig, path)
+
+
+#: Terms drawn by :func:`save_convergence`, with their colours.
+CONVERGENCE_TERMS = (
+    ("E_v", "#4c72b0"),
+    ("E_s", "#dd8452"),
+    ("E_t", "#55a868"),
+    ("E", "#222222"),
+)
+
+
+def save_convergence(path, stages, *, title: str) -> Path:
+    """Write the optimiser's terms per iteration across its stages, stage boundaries marked.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output PNG.
+    stages : sequence of dict
+        One entry per stage, in order: ``name``; ``history``, a sequence of term dicts (keys
+        ``E_v``, ``E_s``, ``E_t``, ``E``; one per iteration, at the optimisation resolution);
+        optionally ``before`` and ``after``, term dicts at the user's resolution, drawn as
+        markers of ``E`` at the stage boundaries.
+    title : str
+        Figure title.
+
+    Returns
+    -------
+    pathlib.Path
+        The written path.
+    """
+    fig = _figure(7.5, 4.2)
+    ax = fig.add_subplot()
+    start = 0
+    marked = False
+    for k, stage in enumerate(stages):
+        history = list(stage.get("history") or ())
+        x = np.arange(start + 1, start + len(history) + 1)
+        before = stage.get("before")
+        first = [before] if before is not None else []
+        xs = np.concatenate([[start], x]) if first else x
+        for term, colour in CONVERGENCE_TERMS:
+            ys = [float(h[term]) for h in [*first, *history]]
+            if ys:
+                ax.plot(xs, ys, color=colour, lw=2.0 if term == "E" else 1.3,
+                        label=term if k == 0 else None)  # fmt: skip
+        for at, terms in ((start, before), (start + len(history), stage.get("after"))):
+            if terms is not None:
+                ax.plot([at], [float(terms["E"])], "o", mfc="white", mec="#222222",
+                        label=None if marked else "E at the user's resolution")  # fmt: skip
+                marked = True
+        if k:
+            ax.axvline(start, color="0.6", ls="--", lw=1.0)
+        ax.text(start + max(len(history), 1) / 2, 1.01, stage["name"], ha="center",
+                va="bottom", fontsize=8, transform=ax.get_xaxis_transform())  # fmt: skip
+        start += len(history)
+    ax.set_xlim(0, max(start, 1))
+    ax.set_ylim(bottom=0.0)
+    ax.set_xlabel("iteration (all stages)", fontsize=9)
+    ax.set_ylabel("deviation (lower is better)", fontsize=9)
+    ax.tick_params(labelsize=8)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="upper right")
+    ax.set_title(title, fontsize=10, pad=16)
+    return _save(fig, path)
+
+
+#: Files of :func:`save_measure_figures` (after its prefix).
+MEASURE_FIGURES = (
+    "visibility_deviation.png",
+    "shape_deviation.png",
+    "transparency_deviation.png",
+    "visibility_histograms.png",
+    "regions.png",
+)
+
+
+def save_measure_figures(out_dir, prefix: str, measures) -> list[Path]:
+    """Write the ``measure`` figures of ``(visibility, shape, transparency)`` results.
+
+    The files are :data:`MEASURE_FIGURES` in ``out_dir``, each name prefixed ``{prefix}_``.
+
+    Returns
+    -------
+    list of pathlib.Path
+        The written paths.
+    """
+    out_dir = Path(out_dir)
+    vis, shp, trn = measures
+    t_max = max(1e-3, float(np.max(trn.deviation, initial=0.0)))
+    maps = (
+        (vis.deviation, f"δ_v (E_v = {vis.E_v:.4f})", 2.0, vis.nonempty, "δ_v"),
+        (shp.deviation, f"δ_s (E_s = {shp.E_s:.4f})", 1.0, shp.nonempty, "δ_s"),
+        (trn.deviation, f"δ_t (E_t = {trn.E_t:.4f})", t_max, np.asarray(trn.layer_set) != 0, "δ_t"),
+    )
+    files = []
+    for name, (dev, title, vmax, mask, label) in zip(MEASURE_FIGURES[:3], maps, strict=True):
+        files.append(
+            save_deviation_map(
+                out_dir / f"{prefix}_{name}",
+                dev,
+                title=f"{prefix}: {title}",
+                vmin=0.0,
+                vmax=vmax,
+                mask=mask,
+                label=label,
+            )
+        )
+    files.append(
+        save_visibility_histograms(
+            out_dir / f"{prefix}_{MEASURE_FIGURES[3]}",
+            vis.per_structure,
+            vis.bin_edges,
+            title=f"{prefix}: assigned vs visible share per ray (E_v = {vis.E_v:.4f})",
+        )
+    )
+    files.append(
+        save_region_map(
+            out_dir / f"{prefix}_{MEASURE_FIGURES[4]}",
+            trn.region_id,
+            trn.regions,
+            title=f"{prefix}: sub-regions by layer set ({len(trn.regions)} regions)",
+        )
+    )
+    return files
+
+
+def save_side_by_side(path, images, titles) -> Path:
+    """Write two RGB images (floats in [0, 1], row 0 at the top) side by side with titles."""
+    h, w = np.asarray(images[0]).shape[:2]
+    scale = 4.5 / max(h, w)
+    fig = _figure(2 * w * scale + 0.4, h * scale + 0.7)
+    for i, (image, title) in enumerate(zip(images, titles, strict=True)):
+        ax = fig.add_subplot(1, 2, i + 1)
+        ax.imshow(np.clip(image, 0.0, 1.0), interpolation="nearest")
+        ax.set_axis_off()
+        ax.set_title(title, fontsize=9)
     return _save(fig, path)

@@ -1,9 +1,9 @@
 """``dvr-perception demo``: render the built-in phantom and write its outputs.
 
 The demo is a list of *stages*; each takes the :class:`DemoState` and adds results and output
-files to it.  Today there is one stage (:func:`stage_render`); the optimiser demo appends its
-stages (measure, optimise, render the optimised spec) to :data:`STAGES` without touching the
-rest.
+files to it: :func:`stage_render` renders the phantom with its own spec, :func:`stage_optimize`
+runs ``dvr-perception optimize`` on it (all three stages) into the same folder and adds the
+before/after terms to the summary.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from dvr_perception.cli._common import (
     save_buffers,
 )
 
-__all__ = ["DemoState", "add_parser", "run", "stage_render", "write_share_grid"]
+__all__ = ["DemoState", "add_parser", "run", "stage_optimize", "stage_render", "write_share_grid"]
 
 
 def add_parser(subparsers, parents) -> None:
@@ -33,12 +33,13 @@ def add_parser(subparsers, parents) -> None:
     p = subparsers.add_parser(
         "demo",
         parents=parents,
-        help="render the built-in phantom and write images, buffers and spec",
+        help="render the built-in phantom, optimise it and write images, figures and specs",
         description="Render the phantom and write phantom.png, phantom_buffers.npz, "
-        "phantom_spec.json and visible_share.png into --out.",
+        "phantom_spec.json and visible_share.png into --out; then optimise its opacity, "
+        "lighting and colour and write the outputs of 'optimize' there too.",
     )
     p.add_argument("--out", default="demo_out", metavar="DIR", help="output folder (demo_out)")
-    p.add_argument("--size", default="512", metavar="N|WxH", help="image size (default 512)")
+    p.add_argument("--size", default="256", metavar="N|WxH", help="image size (default 256)")
     p.set_defaults(run=run)
 
 
@@ -131,7 +132,30 @@ def stage_render(state: DemoState) -> None:
     }
 
 
-STAGES = [stage_render]
+def stage_optimize(state: DemoState) -> None:
+    """Optimise the phantom's spec (``dvr-perception optimize``) and write its outputs."""
+    from dvr_perception.cli.optimize import Progress, optimize_scene, stop_on_interrupt
+
+    t0 = time.perf_counter()
+    stages = ("opacity", "lighting", "colour")
+    progress = Progress(len(stages) * 10)
+    with stop_on_interrupt(progress):
+        report = optimize_scene(
+            state.volume, state.spec, state.camera, state.out_dir, stages=stages,
+            progress=progress,
+        )  # fmt: skip
+    state.seconds["optimize"] = time.perf_counter() - t0
+    state.files.extend(Path(f) for f in report["files"])
+    keys = ("E_v", "E_s", "E_t", "E")
+    state.summary["optimize"] = {
+        "initial": {k: report["initial"][k] for k in keys},
+        "final": {k: report["final"][k] for k in keys},
+        "status": report["status"],
+        "message": report["message"],
+    }
+
+
+STAGES = [stage_render, stage_optimize]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -157,7 +181,15 @@ def run(args: argparse.Namespace) -> int:
     print(f"  accumulated coverage: {report['coverage']:.1%} of pixels")
     for name, share in report["visible_share_mean"].items():
         print(f"  mean visible share of {name} (covered pixels): {share:.3f}")
-    print(f"  seconds: render {state.seconds['render']:.2f}, total {state.seconds['total']:.2f}")
+    opt = report.get("optimize")
+    if opt is not None:
+        a, b = opt["initial"], opt["final"]
+        print("  optimised (opacity, lighting, colour): before -> after")
+        for k in ("E_v", "E_s", "E_t", "E"):
+            print(f"    {k:<3} {a[k]:.4f} -> {b[k]:.4f}")
+        print(f"    status {opt['status']}: {opt['message']}")
+    times = ", ".join(f"{k} {v:.2f}" for k, v in state.seconds.items() if k != "phantom")
+    print(f"  seconds: {times}")
     for f in state.files:
         print(f"  wrote {f}")
     return 0

@@ -103,11 +103,14 @@ def test_camera_looking_away_warns_and_renders_black(capsys, tmp_path):
 
 def test_demo_writes_outputs(capsys, tmp_path):
     out_dir = tmp_path / "demo"
-    code, out, err = _run(capsys, ["demo", "--out", str(out_dir), "--size", "48"])
+    code, out, err = _run(capsys, ["demo", "--out", str(out_dir), "--size", "32"])
     assert code == 0, err
     names = {p.name for p in out_dir.iterdir()}
-    assert names == {"phantom.png", "phantom_buffers.npz", "phantom_spec.json", "visible_share.png"}
-    assert read_png(out_dir / "phantom.png").shape == (48, 48, 3)
+    render = {"phantom.png", "phantom_buffers.npz", "phantom_spec.json", "visible_share.png"}
+    optimized = {"before_after.png", "convergence.png", "optimized_spec.json", "result.json"}
+    assert render | optimized <= names
+    assert read_png(out_dir / "phantom.png").shape == (32, 32, 3)
+    assert "before -> after" in out
     grid = read_png(out_dir / "visible_share.png")
     assert min(grid.shape[:2]) > 100
     spec = json.loads((out_dir / "phantom_spec.json").read_text())

@@ -1,0 +1,405 @@
+"""``dvr-perception optimize``: optimise opacity, lighting and colour for a readable rendering.
+
+The command loads the scene (as ``render`` does), runs
+:func:`~dvr_perception.optimize.optimize` (Eq. 12-15 of the paper; stages ``opacity``,
+``lighting``, ``colour``) with a plain-text progress bar on stderr, then renders and measures
+the spec before and after at the user's resolution and writes into ``--out``:
+
+* ``before.png``, ``after.png`` and ``before_after.png`` (side by side, E values in the titles);
+* the measure figures of ``measure`` for both, prefixed ``before_`` and ``after_``;
+* ``convergence.png``: ``E_v``, ``E_s``, ``E_t`` and ``E`` per iteration across the stages;
+* ``optimized_spec.json`` (a spec for ``render``/``measure --structures``),
+  ``paraview_preset.json``, ``slicer.vp.json`` and ``result.json`` (what ``--json`` prints).
+
+Ctrl-C stops the optimiser after the current iteration (the progress callback raises
+``StopIteration``); the best parameters so far are written and the exit status is 0 (``status``
+1 in the JSON).  A second Ctrl-C aborts.  With ``--views N`` one parameter set is optimised
+for N views: the given one and orbits of it about the view-up axis by +20, -20, +40, ... degrees;
+the images and measures are those of the given view, the optimiser's terms (``optimizer``) are
+averaged over the views.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import signal
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from dvr_perception._files import write_json, write_png
+from dvr_perception.cli._common import (
+    add_scene_args,
+    coverage,
+    emit_json,
+    load_scene,
+    log,
+    make_output_dir,
+)
+from dvr_perception.cli.measure import _positive_int
+from dvr_perception.errors import DVRInputError
+
+__all__ = ["VIEW_STEP", "add_parser", "optimize_scene", "run"]
+
+EXAMPLE = """examples:
+  dvr-perception optimize phantom --size 256 --out phantom_opt
+  dvr-perception optimize ../shared/data/engine.nhdr --view=30,20 --stages opacity,lighting \\
+      --weights 1,0.5,1 --region 100,80,300,260 --out engine_opt --json
+"""
+
+#: Azimuth step (degrees) between the views of ``--views``.
+VIEW_STEP = 20.0
+TERMS = ("E_v", "E_s", "E_t")
+
+
+def add_parser(subparsers, parents) -> None:
+    """Register the ``optimize`` sub-command."""
+    p = subparsers.add_parser(
+        "optimize",
+        parents=parents,
+        help="optimise opacity, lighting and colour against the perceptual measures",
+        description="Optimise the rendering parameters of VOLUME's structures so that the "
+        "rendering shows them as intended (E = w_v E_v + w_s E_s + w_t E_t, lower is better) "
+        "and write before/after images, figures, the optimised spec and presets into --out.",
+        epilog=EXAMPLE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_scene_args(p)
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    p.add_argument(
+        "--stages",
+        default="opacity,lighting,colour",
+        metavar="S1,S2,..",
+        help="stages in order (default opacity,lighting,colour)",
+    )
+    p.add_argument(
+        "--weights", default="1,1,1", metavar="V,S,T", help="w_v,w_s,w_t >= 0 (default 1,1,1)"
+    )
+    p.add_argument(
+        "--region",
+        metavar="X0,Y0,X1,Y1",
+        help="optimise for this image rectangle (pixels, y down; the lens of Sec. 6)",
+    )
+    p.add_argument(
+        "--views",
+        type=_positive_int,
+        default=1,
+        metavar="N",
+        help=f"optimise for N views {VIEW_STEP:g} degree azimuth steps apart (default 1)",
+    )
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="annealing seed (0)")
+    p.add_argument(
+        "--max-iter", type=_positive_int, default=10, metavar="N", help="iterations per stage"
+    )
+    p.add_argument(
+        "--resolution",
+        type=_positive_int,
+        metavar="N",
+        help="long side of the optimisation camera in pixels (default 192)",
+    )
+    p.set_defaults(run=run)
+
+
+# -- option parsing ------------------------------------------------------------------------------
+def _numbers(text: str, option: str, count: int, what: str) -> list[float]:
+    try:
+        values = [float(v) for v in str(text).split(",")]
+    except ValueError:
+        values = []
+    if len(values) != count or not all(math.isfinite(v) for v in values):
+        raise DVRInputError(f"{option}: expected {what}, got {text!r}")
+    return values
+
+
+def parse_stages(text: str) -> tuple[str, ...]:
+    """Parse ``--stages`` (comma-separated names of the optimiser's stage registry)."""
+    from dvr_perception.optimize import STAGES
+
+    names = tuple(s.strip() for s in str(text).split(","))
+    if not all(names):
+        raise DVRInputError(f"--stages: expected comma-separated stage names, got {text!r}")
+    unknown = [s for s in names if s not in STAGES]
+    if unknown:
+        raise DVRInputError(
+            f"--stages: unknown stage(s) {', '.join(unknown)}; known: {', '.join(STAGES)}"
+        )
+    return names
+
+
+def parse_weights(text: str) -> tuple[float, float, float]:
+    """Parse ``--weights`` (three numbers >= 0, not all zero)."""
+    w = _numbers(text, "--weights", 3, "three numbers w_v,w_s,w_t")
+    if min(w) < 0 or max(w) <= 0:
+        raise DVRInputError(f"--weights: expected numbers >= 0, not all zero, got {text!r}")
+    return w[0], w[1], w[2]
+
+
+def parse_rect(text: str, width: int, height: int) -> tuple[float, float, float, float]:
+    """Parse ``--region`` and check that it holds pixels of the ``width x height`` image."""
+    x0, y0, x1, y1 = _numbers(text, "--region", 4, "four numbers x0,y0,x1,y1")
+    if not (x0 < x1 and y0 < y1):
+        raise DVRInputError(f"--region: expected x0 < x1 and y0 < y1, got {text!r}")
+    cols = np.arange(width) + 0.5
+    rows = np.arange(height) + 0.5
+    if not (np.any((cols > x0) & (cols < x1)) and np.any((rows > y0) & (rows < y1))):
+        raise DVRInputError(
+            f"--region: {text!r} holds no pixel (centre) of the {width}x{height} image"
+        )
+    return x0, y0, x1, y1
+
+
+def orbit(camera, degrees: float):
+    """Return ``camera`` rotated by ``degrees`` about its view-up axis through the focal point."""
+    from dataclasses import replace
+
+    f = np.asarray(camera.focal_point, float)
+    k = np.asarray(camera.view_up, float)
+    k = k / np.linalg.norm(k)
+    v = np.asarray(camera.position, float) - f
+    a = math.radians(degrees)
+    rot = v * math.cos(a) + np.cross(k, v) * math.sin(a) + k * np.dot(k, v) * (1 - math.cos(a))
+    return replace(camera, position=tuple(f + rot))
+
+
+def view_offsets(n: int) -> list[float]:
+    """Azimuth offsets of the ``n - 1`` further views: +20, -20, +40, -40, ... degrees."""
+    return [VIEW_STEP * (i // 2 + 1) * (1 if i % 2 == 0 else -1) for i in range(n - 1)]
+
+
+# -- progress and Ctrl-C -------------------------------------------------------------------------
+class Progress:
+    """The optimiser callback: a plain-text progress bar on ``stream``; stops on request.
+
+    Parameters
+    ----------
+    total : int
+        Expected iterations (stages x max_iter; stages may converge earlier).
+    stream : file, optional
+        Where the bar goes (default ``sys.stderr``).
+    """
+
+    width = 24
+
+    def __init__(self, total: int, stream=None) -> None:
+        self.total = max(1, int(total))
+        self.stream = stream if stream is not None else sys.stderr
+        self.stop = False
+        self.drawn = False
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+
+    def __call__(self, info) -> None:
+        self.draw(info)
+        if self.stop:
+            raise StopIteration
+
+    def draw(self, info) -> None:
+        """Write one progress line for an ``IntermediateResult``."""
+        n = min(info.nit, self.total)
+        fill = round(self.width * n / self.total)
+        bar = "#" * fill + "-" * (self.width - fill)
+        t = info.terms
+        text = (
+            f"{info.stage:<8} [{bar}] {info.nit:>3}/{self.total}  E {t['E']:.4f} "
+            f"(E_v {t['E_v']:.3f}, E_s {t['E_s']:.3f}, E_t {t['E_t']:.3f})"
+        )
+        self.stream.write(("\r" + text) if self.tty else (text + "\n"))
+        self.stream.flush()
+        self.drawn = True
+
+    def close(self) -> None:
+        """End the bar's line."""
+        if self.drawn and self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+@contextmanager
+def stop_on_interrupt(progress: Progress):
+    """While active, the first Ctrl-C asks ``progress`` to stop; a second one aborts."""
+
+    def handler(signum, frame):
+        if progress.stop:
+            raise KeyboardInterrupt
+        progress.stop = True
+        progress.stream.write("\ninterrupted: stopping after this iteration (Ctrl-C to abort)\n")
+
+    try:
+        old = signal.signal(signal.SIGINT, handler)
+    except ValueError:  # not the main thread: no signal handling
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+# -- measuring and writing -----------------------------------------------------------------------
+def _measure(volume, spec, camera, curvature, weights):
+    from dvr_perception.cli.measure import _structures
+    from dvr_perception.measures import shape, transparency, visibility
+    from dvr_perception.rays.engine import analyze
+
+    result = analyze(volume, spec, camera, curvature=curvature, build_cache=False)
+    vis, shp, trn = visibility(result, spec), shape(result, spec), transparency(result, spec)
+    terms = {"E_v": float(vis.E_v), "E_s": float(shp.E_s), "E_t": float(trn.E_t)}
+    terms["E"] = float(sum(w * terms[k] for w, k in zip(weights, TERMS, strict=True)))
+    keep = ("visible_share", "assigned_share", "perceived_transparency", "expected_opacity")
+    per = _structures(vis, trn, result.names)
+    terms["coverage"] = coverage(result)
+    terms["structures"] = {n: {k: e[k] for k in keep} for n, e in per.items()}
+    return result, (vis, shp, trn), terms
+
+
+def _terms(d: dict) -> dict:
+    return {k: float(d[k]) for k in (*TERMS, "E")}
+
+
+def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lighting", "colour"),
+                   weights=(1.0, 1.0, 1.0), region=None, views=1, seed=0, max_iter=10,
+                   resolution=None, progress=None) -> dict:  # fmt: skip
+    """Optimise ``spec`` for ``camera``, write every output into ``out_dir``, return the report.
+
+    ``region`` is ``(x0, y0, x1, y1)`` in pixels or ``None``; ``progress`` a :class:`Progress`
+    (or any callback).  See the module docstring for the files and the report.
+    """
+    from dvr_perception.cli import _plots
+    from dvr_perception.export import save_paraview_preset, save_slicer_vp
+    from dvr_perception.optimize import optimize
+    from dvr_perception.rays.curvature import curvature_volume
+    from dvr_perception.structures.io import save_spec
+
+    t_start = time.perf_counter()
+    cameras = [orbit(camera, d) for d in view_offsets(views)]
+    log.info("optimising %s at %dx%d", ",".join(stages), camera.width, camera.height)
+    res = optimize(
+        volume,
+        spec,
+        camera,
+        stages=tuple(stages),
+        weights=tuple(weights),
+        region=None if region is None else ("rect", *region),
+        cameras=cameras or None,
+        seed=seed,
+        callback=progress,
+        max_iter=max_iter,
+        resolution=resolution,
+    )
+    if isinstance(progress, Progress):
+        progress.close()
+    log.info("measuring before and after")
+    curvature, _ = curvature_volume(volume, spec)
+    before, m_before, initial = _measure(volume, spec, camera, curvature, weights)
+    after, m_after, final = _measure(volume, res.spec, camera, curvature, weights)
+    d = Path(out_dir)
+    files = [write_png(d / "before.png", before.image), write_png(d / "after.png", after.image)]
+    titles = [
+        f"{label}: E {t['E']:.4f} (E_v {t['E_v']:.3f}, E_s {t['E_s']:.3f}, E_t {t['E_t']:.3f})"
+        for label, t in (("before", initial), ("after", final))
+    ]
+    files.append(
+        _plots.save_side_by_side(d / "before_after.png", [before.image, after.image], titles)
+    )
+    files += _plots.save_measure_figures(d, "before", m_before)
+    files += _plots.save_measure_figures(d, "after", m_after)
+    records = [
+        {"name": s.name, "history": s.history, "before": s.terms_before, "after": s.terms_after}
+        for s in res.stages
+    ]
+    title = f"optimisation ({res.nit} iterations, {res.message})"
+    files.append(_plots.save_convergence(d / "convergence.png", records, title=title))
+    save_spec(res.spec, d / "optimized_spec.json")
+    files.append(d / "optimized_spec.json")
+    notes = []
+    for name, save in (
+        ("paraview_preset.json", lambda p: save_paraview_preset(res.spec, p)),
+        ("slicer.vp.json", lambda p: save_slicer_vp(res.spec, p, volume)),
+    ):
+        try:
+            files.append(save(d / name))
+        except DVRInputError as exc:  # e.g. label structures: no intensity transfer function
+            notes.append(f"{name} not written: {exc}")
+    stages_out = [
+        {"name": s.name, "before": _terms(s.terms_before), "after": _terms(s.terms_after),
+         "iterations": s.iterations, "evaluations": s.evaluations, "seconds": s.seconds,
+         "converged": s.converged, "accepted": s.accepted, "message": s.message,
+         "params_after": s.params_after}
+        for s in res.stages
+    ]  # fmt: skip
+    files.append(d / "result.json")
+    report = {
+        "size": [camera.width, camera.height],
+        "weights": list(weights),
+        "stages_requested": list(stages),
+        "views": views,
+        "region": None if region is None else list(region),
+        "seed": seed,
+        "initial": initial,
+        "final": final,
+        "optimizer": {"initial": _terms(res.initial), "final": _terms(res.final)},
+        "stages": stages_out,
+        "nit": res.nit,
+        "nfev": res.nfev,
+        "seconds_optimize": res.seconds,
+        "seconds": None,
+        "status": res.status,
+        "message": res.message,
+        "notes": notes,
+        "out_dir": str(d),
+        "files": [str(f) for f in files],
+        "camera": camera.to_dict(),
+    }
+    report["seconds"] = time.perf_counter() - t_start
+    write_json(d / "result.json", report)
+    return report
+
+
+def run(args: argparse.Namespace) -> int:
+    """Execute ``optimize``."""
+    stages = parse_stages(args.stages)
+    weights = parse_weights(args.weights)
+    if args.seed < 0:
+        raise DVRInputError(f"--seed: expected an integer >= 0, got {args.seed}")
+    if args.region is not None and args.views > 1:
+        raise DVRInputError("--region refines one view; use it without --views")
+    scene = load_scene(args)
+    cam = scene.camera
+    region = None if args.region is None else parse_rect(args.region, cam.width, cam.height)
+    out_dir = make_output_dir(args.out)
+    progress = Progress(len(stages) * args.max_iter)
+    with stop_on_interrupt(progress):
+        report = optimize_scene(scene.volume, scene.spec, cam, out_dir, stages=stages,
+                                weights=weights, region=region, views=args.views, seed=args.seed,
+                                max_iter=args.max_iter, resolution=args.resolution,
+                                progress=progress)  # fmt: skip
+    report = {"volume": scene.volume_source, "spec": scene.spec_source, **report}
+    write_json(out_dir / "result.json", report)
+    if args.json:
+        emit_json(report)
+    else:
+        print_summary(report)
+    return 0
+
+
+def print_summary(report: dict, *, indent: str = "  ") -> None:
+    """Print the before/after terms, the stages and the output folder on stdout."""
+    a, b = report["initial"], report["final"]
+    w, h = report["size"]
+    print(f"optimised {report.get('volume', 'scene')} ({w}x{h}, weights {report['weights']})")
+    print(f"{indent}{'':8}{'E_v':>9}{'E_s':>9}{'E_t':>9}{'E':>9}")
+    for label, t in (("before", a), ("after", b)):
+        print(f"{indent}{label:8}" + "".join(f"{t[k]:9.4f}" for k in (*TERMS, "E")))
+    for s in report["stages"]:
+        print(
+            f"{indent}stage {s['name']:<9} E {s['before']['E']:.4f} -> {s['after']['E']:.4f}"
+            f"  ({s['iterations']} it, {s['seconds']:.1f} s; {s['message']})"
+        )
+    print(f"{indent}status {report['status']}: {report['message']}")
+    for note in report["notes"]:
+        print(f"{indent}note: {note}")
+    print(f"{indent}seconds {report['seconds']:.1f}; wrote {len(report['files'])} files into "
+          f"{report['out_dir']}/")  # fmt: skip

@@ -1,0 +1,222 @@
+"""``TransferFunctionOptimizer``: optimise a volume's rendering parameters inside a VTK pipeline.
+
+One 3-D ``vtkImageData`` in; one 2-D ``vtkImageData`` out: the rendering of the **optimised**
+spec, with exactly the point and field data of
+:class:`~dvr_perception.filters.PerceptionMeasures` (``rgba``, ``luminance``, the three
+deviation maps, ``layer_set``, ``region_id``; ``E_v``, ``E_s``, ``E_t``, ``structure_names``,
+``visible_share``, ``assigned_share``, ``perceived_transparency``, ``expected_opacity``).  The
+filter runs :func:`~dvr_perception.optimize.optimize` and then measures the optimised spec
+with the library measures at the output resolution; without a region and with one view the
+``E_*`` arrays equal the optimiser's ``final`` terms.
+
+The optimised parameters are **field-data arrays** of the same output (one port keeps the
+filter a plain image filter in ParaView; a ``vtkTable`` can be made from them with
+*Field Data to Table*).  Ordered like ``structure_names``, one tuple per structure:
+
+``opacity``
+    the optimised rendering opacity;
+``color`` (3 components)
+    RGB in [0, 1];
+``ambient``, ``diffuse``, ``specular``, ``specular_power``
+    the material.
+
+One tuple each: ``light_direction`` (3 components, camera coordinates), ``E`` (the weighted
+sum of Eq. 12 with ``weights``), ``initial_E_v``, ``initial_E_s``, ``initial_E_t``,
+``initial_E`` (the optimiser's terms before), ``status`` (0 converged, 1 stopped, 2 a stage hit
+``max_iter``; see :data:`~dvr_perception.optimize.STATUS_MESSAGES`), ``iterations``; and the
+strings ``optimized_spec_json`` (the optimised spec as JSON, the format of
+:func:`~dvr_perception.structures.io.spec_to_dict`) and ``status_message``.
+
+Progress is reported with ``UpdateProgress`` from the optimiser's callback (0.05 to 0.9 over
+the expected iterations); ``AbortExecute`` (ParaView's *Abort*) stops the optimiser after the
+current iteration with the best parameters so far.  Errors are reported through VTK's error
+mechanism (see :mod:`dvr_perception.filters._base`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+from dvr_perception.errors import DVRInputError
+from dvr_perception.filters._base import (
+    Parameter,
+    as_positive_int,
+    double_array,
+    point_array,
+    string_array,
+)
+from dvr_perception.filters.perception_measures import PerceptionMeasures, _nan, _rows_up
+from dvr_perception.measures import composite_luminance, shape, transparency, visibility
+from dvr_perception.rays.curvature import curvature_volume
+from dvr_perception.rays.engine import analyze
+from dvr_perception.structures.io import check_spec_for_volume, spec_to_dict
+
+__all__ = ["TransferFunctionOptimizer"]
+
+_TERMS = ("E_v", "E_s", "E_t")
+
+
+def as_stages(value, name: str) -> tuple[str, ...]:
+    """Accept a comma-separated string or a sequence of stage names of the registry."""
+    from dvr_perception.optimize import STAGES
+
+    items = value.split(",") if isinstance(value, str) else value
+    try:
+        stages = tuple(str(s).strip() for s in items)
+    except TypeError:
+        raise DVRInputError(f"{name}: expected stage names, got {value!r}") from None
+    unknown = [s for s in stages if s not in STAGES]
+    if not stages or unknown:
+        raise DVRInputError(
+            f"{name}: unknown or missing stage(s) {unknown or value!r}; known: {', '.join(STAGES)}"
+        )
+    return stages
+
+
+def as_weights(value, name: str) -> tuple[float, float, float]:
+    """Accept three finite numbers >= 0, not all zero (``w_v, w_s, w_t``)."""
+    try:
+        w = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        w = ()
+    if len(w) != 3 or not all(math.isfinite(v) and v >= 0 for v in w) or max(w) <= 0:
+        raise DVRInputError(
+            f"{name}: expected three numbers (w_v, w_s, w_t) >= 0, not all zero, got {value!r}"
+        )
+    return w
+
+
+def as_seed(value, name: str) -> int:
+    """Accept an integer >= 0."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        try:
+            ok = int(value) == value and int(value) >= 0 and not isinstance(value, bool)
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise DVRInputError(f"{name}: expected an integer >= 0, got {value!r}")
+    return int(value)
+
+
+def as_resolution(value, name: str) -> int:
+    """Accept 0 (the optimiser's default) or an integer >= 8."""
+    if value in (0, None):
+        return 0
+    v = as_positive_int(value, name)
+    if v < 8:
+        raise DVRInputError(f"{name}: expected 0 (default) or an integer >= 8, got {value!r}")
+    return v
+
+
+class TransferFunctionOptimizer(PerceptionMeasures):
+    """VTK filter: optimise opacity, lighting and colour of a spec; output the optimised image.
+
+    Has every parameter of :class:`~dvr_perception.filters.PerceptionMeasures` (``spec_file``
+    / ``spec_json``, ``camera_json``, ``view``, ``width``, ``height``, ``input_array``; ``sigma``
+    is not used: the optimiser's curvature uses the default scale) plus the ones below, each
+    also settable ParaView-style (``SetStages("opacity,lighting")``, ``SetWeights(1, 0, 1)``).
+
+    Attributes
+    ----------
+    stages : tuple of str
+        Stages in order (default ``("opacity", "lighting", "colour")``); a comma-separated
+        string is accepted.
+    weights : tuple of float
+        ``(w_v, w_s, w_t)`` of Eq. 12 (default ``(1, 1, 1)``).
+    seed : int
+        Seed of the annealing moves (default 0).
+    max_iter : int
+        Iterations per stage (default 10).
+    resolution : int
+        Long side of the optimisation camera; 0 (default) uses the optimiser's default.
+    result : OptimizationResult or None
+        The last optimisation's result (``None`` before the first successful update).
+    """
+
+    stages = Parameter(("opacity", "lighting", "colour"), as_stages)
+    weights = Parameter((1.0, 1.0, 1.0), as_weights)
+    seed = Parameter(0, as_seed)
+    max_iter = Parameter(10, as_positive_int)
+    resolution = Parameter(0, as_resolution)
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.result = None
+
+    def _callback(self, total: int):
+        def callback(info) -> None:
+            self.UpdateProgress(0.05 + 0.85 * min(1.0, info.nit / total))
+            if self.GetAbortExecute():
+                raise StopIteration
+
+        return callback
+
+    def execute(self, image, output) -> None:
+        """Optimise, render and measure the optimised spec, and fill the output."""
+        from dvr_perception.optimize import optimize
+
+        self.UpdateProgress(0.0)
+        self.result = None
+        volume = self.load_input(image)
+        spec = self.load_spec_parameters()
+        check_spec_for_volume(spec, volume)
+        camera = self.make_camera(volume, spec)
+        stages, weights = self.stages, self.weights
+        res = optimize(volume, spec, camera, stages=stages, weights=weights, seed=self.seed,
+                       callback=self._callback(len(stages) * self.max_iter),
+                       max_iter=self.max_iter, resolution=self.resolution or None)  # fmt: skip
+        self.UpdateProgress(0.9)
+        opt = res.spec
+        curvature, _ = curvature_volume(volume, opt)
+        result = analyze(volume, opt, camera, curvature=curvature, build_cache=False)
+        vis, shp, trn = visibility(result, opt), shape(result, opt), transparency(result, opt)
+        lum = composite_luminance(result.rgba, background=opt.background)
+        self.UpdateProgress(0.97)
+
+        w, h = camera.width, camera.height
+        output.SetExtent(0, w - 1, 0, h - 1, 0, 0)
+        output.SetSpacing(1.0, 1.0, 1.0)
+        output.SetOrigin(0.0, 0.0, 0.0)
+        pd = output.GetPointData()
+        pd.SetScalars(point_array(_rows_up(result.rgba, "float32"), "rgba"))
+        for name, values, dtype in (
+            ("luminance", lum, "float32"),
+            ("visibility_deviation", vis.deviation, "float32"),
+            ("shape_deviation", shp.deviation, "float32"),
+            ("transparency_deviation", trn.deviation, "float32"),
+            ("layer_set", trn.layer_set, "uint32"),
+            ("region_id", trn.region_id, "int32"),
+        ):
+            pd.AddArray(point_array(_rows_up(values, dtype), name))
+
+        fd = output.GetFieldData()
+        names = list(result.names)
+        final = {"E_v": vis.E_v, "E_s": shp.E_s, "E_t": trn.E_t}
+        for term in _TERMS:
+            fd.AddArray(double_array([final[term]], term))
+        total = sum(a * final[t] for a, t in zip(weights, _TERMS, strict=True))
+        fd.AddArray(double_array([total], "E"))
+        for term in (*_TERMS, "E"):
+            fd.AddArray(double_array([res.initial[term]], f"initial_{term}"))
+        fd.AddArray(string_array(names, "structure_names"))
+        pv, pt = vis.per_structure, trn.per_structure
+        for key, values in (
+            ("visible_share", [pv[n]["visible_share"] for n in names]),
+            ("assigned_share", [pv[n]["assigned_share"] for n in names]),
+            ("perceived_transparency", [_nan(pt[n]["perceived_transparency"]) for n in names]),
+            ("expected_opacity", [pt[n]["expected_opacity"] for n in names]),
+        ):
+            fd.AddArray(double_array(values, key))
+        structures = {s.name: s for s in opt.structures}
+        ordered = [structures[n] for n in names]
+        fd.AddArray(double_array([s.render_opacity for s in ordered], "opacity"))
+        fd.AddArray(point_array([list(s.color) for s in ordered], "color"))
+        for key in ("ambient", "diffuse", "specular", "specular_power"):
+            fd.AddArray(double_array([getattr(s.lighting, key) for s in ordered], key))
+        fd.AddArray(point_array([list(opt.rendering.light_direction)], "light_direction"))
+        fd.AddArray(double_array([res.status], "status"))
+        fd.AddArray(double_array([res.nit], "iterations"))
+        fd.AddArray(string_array([res.message], "status_message"))
+        fd.AddArray(string_array([json.dumps(spec_to_dict(opt))], "optimized_spec_json"))
+        self.result = res

@@ -1,0 +1,170 @@
+"""``dvr-perception optimize`` on the phantom: files, JSON, presets, Ctrl-C and bad input."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import signal
+
+import pytest
+
+from dvr_perception._files import read_png
+from dvr_perception.cli import main
+from dvr_perception.cli import optimize as optimize_cmd
+from dvr_perception.cli._plots import MEASURE_FIGURES
+
+FILES = {
+    "before.png",
+    "after.png",
+    "before_after.png",
+    "convergence.png",
+    "optimized_spec.json",
+    "paraview_preset.json",
+    "slicer.vp.json",
+    "result.json",
+    *(f"{p}_{f}" for p in ("before", "after") for f in MEASURE_FIGURES),
+}
+TERM_KEYS = {"E_v", "E_s", "E_t", "E"}
+STRUCTURE_KEYS = {"visible_share", "assigned_share", "perceived_transparency", "expected_opacity"}
+
+
+def _run(capsys, argv):
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _one_json(out: str) -> dict:
+    assert out.count("\n") == 1, out
+    return json.loads(out)
+
+
+def _check_report(report, out_dir, stages):
+    for key in ("initial", "final", "stages", "seconds", "status", "files"):
+        assert key in report
+    for key in ("initial", "final"):
+        assert set(report[key]) >= TERM_KEYS
+        assert report[key]["structures"]
+        for entry in report[key]["structures"].values():
+            assert set(entry) >= STRUCTURE_KEYS
+    assert [s["name"] for s in report["stages"]] == list(stages)
+    for s in report["stages"]:
+        assert {"name", "before", "after", "iterations", "seconds"} <= set(s)
+        assert set(s["before"]) >= TERM_KEYS
+        assert set(s["after"]) >= TERM_KEYS
+    assert report["final"]["E"] <= report["initial"]["E"] + 1e-9
+    assert {p.name for p in out_dir.iterdir()} == FILES
+    assert sorted(report["files"]) == sorted(str(out_dir / f) for f in FILES)
+    assert json.loads((out_dir / "result.json").read_text())["final"] == report["final"]
+
+
+@pytest.fixture(scope="module")
+def opacity_run(tmp_path_factory):
+    """One ``--stages opacity`` run at 48 px (shared by the tests below)."""
+    out_dir = tmp_path_factory.mktemp("opt") / "out"
+    stdout, stderr = io.StringIO(), io.StringIO()
+    argv = ["optimize", "phantom", "--size", "48", "--stages", "opacity", "--max-iter", "3"]
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        code = main([*argv, "--out", str(out_dir), "--json"])
+    return code, stdout.getvalue(), stderr.getvalue(), out_dir
+
+
+def test_opacity_stage_json_and_files(opacity_run):
+    code, out, err, out_dir = opacity_run
+    assert code == 0, err
+    report = _one_json(out)
+    _check_report(report, out_dir, ["opacity"])
+    assert read_png(out_dir / "before.png").shape == (48, 48, 3)
+    assert read_png(out_dir / "after.png").shape == (48, 48, 3)
+    assert "opacity" in err
+    assert "[" in err
+
+
+def test_optimized_spec_renders_and_presets_parse(capsys, opacity_run, tmp_path):
+    _, _, _, out_dir = opacity_run
+    spec = out_dir / "optimized_spec.json"
+    png = tmp_path / "r.png"
+    code, out, err = _run(
+        capsys, ["render", "phantom", "--structures", str(spec), "--size", "48", "--out", str(png)]
+    )
+    assert code == 0, err
+    after = read_png(out_dir / "after.png")
+    assert (read_png(png) == after).all()
+    code, out, err = _run(
+        capsys, ["measure", "phantom", "--structures", str(spec), "--size", "48", "--json"]
+    )
+    assert code == 0, err
+    report = json.loads((out_dir / "result.json").read_text())
+    assert _one_json(out)["E_v"] == pytest.approx(report["final"]["E_v"], abs=1e-9)
+    preset = json.loads((out_dir / "paraview_preset.json").read_text())
+    assert preset  # a list (ParaView) or an object
+    vp = json.loads((out_dir / "slicer.vp.json").read_text())
+    assert "volumeProperties" in vp
+
+
+def test_three_stages(capsys, tmp_path):
+    out_dir = tmp_path / "full"
+    code, out, err = _run(
+        capsys, ["optimize", "phantom", "--size", "48", "--out", str(out_dir), "--json"]
+    )
+    assert code == 0, err
+    _check_report(_one_json(out), out_dir, ["opacity", "lighting", "colour"])
+
+
+def test_text_summary_views_and_region(capsys, tmp_path):
+    argv = ["optimize", "phantom", "--size", "40", "--stages", "opacity", "--max-iter", "2"]
+    code, out, err = _run(capsys, [*argv, "--views", "2", "--out", str(tmp_path / "v")])
+    assert code == 0, err
+    assert "before" in out
+    assert "after" in out
+    assert "status" in out
+    code, out, err = _run(capsys, [*argv, "--region", "5,5,30,30", "--out", str(tmp_path / "r")])
+    assert code == 0, err
+    assert json.loads((tmp_path / "r" / "result.json").read_text())["region"] == [5, 5, 30, 30]
+
+
+def test_ctrl_c_saves_best_so_far(capsys, tmp_path, monkeypatch):
+    draw = optimize_cmd.Progress.draw
+
+    def interrupting_draw(self, info):
+        draw(self, info)
+        if info.nit == 1:
+            signal.raise_signal(signal.SIGINT)  # what Ctrl-C does
+
+    monkeypatch.setattr(optimize_cmd.Progress, "draw", interrupting_draw)
+    handler = signal.getsignal(signal.SIGINT)
+    out_dir = tmp_path / "stopped"
+    argv = ["optimize", "phantom", "--size", "40", "--stages", "opacity,lighting"]
+    code, out, err = _run(capsys, [*argv, "--out", str(out_dir), "--json"])
+    assert code == 0, err
+    report = _one_json(out)
+    assert report["status"] == 1
+    assert len(report["stages"]) == 1
+    assert (out_dir / "optimized_spec.json").is_file()
+    assert signal.getsignal(signal.SIGINT) is handler  # restored
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (["--weights", "0,0,0"], "--weights"),
+        (["--weights", "1,-1,1"], "--weights"),
+        (["--weights", "1,1"], "--weights"),
+        (["--stages", "opacity,shine"], "unknown stage"),
+        (["--region", "100,100,200,200"], "--region"),
+        (["--region", "10,10,10,20"], "--region"),
+        (["--region", "1,2,3"], "--region"),
+        (["--region", "5,5,20,20", "--views", "2"], "--region"),
+        (["--views", "0"], "--views"),
+        (["--seed", "-1"], "seed"),
+    ],
+)
+def test_bad_input_exits_2(capsys, tmp_path, option, message):
+    argv = ["optimize", "phantom", "--size", "32", "--out", str(tmp_path / "o"), *option]
+    code, out, err = _run(capsys, argv)
+    assert code == 2
+    assert out == ""
+    assert err.count("\n") == 1
+    assert err.startswith("dvr-perception: error:")
+    assert message in err
