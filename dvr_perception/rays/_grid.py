@@ -6,8 +6,9 @@ Everything here is plain numpy and is shared by the numba and the numpy back end
   the near plane anchors the sample phase (``docs/vtk_conventions.md`` facts 9-10).
 * :func:`ray_segments` - per pixel ray: voxel-space origin and direction, position of the first
   sample and number of samples, exactly where ``vtkFixedPointVolumeRayCastMapper`` samples.
-* :func:`index_volume`, :func:`voxel_normals`, :func:`block_range` - per-volume arrays (table
-  index per voxel, quantised two-sided-ready normals, min/max table index per 8^3 block), cached
+* :func:`index_volume`, :func:`normal_codes`, :func:`voxel_records`, :func:`block_range` -
+  per-volume arrays (table index per voxel, VTK-encoded normals, both packed in one uint32 per
+  voxel, min/max table index per 4^3 block), cached
   on the :class:`~dvr_perception.volume.volume.Volume` object for as long as it lives.
 """
 
@@ -20,19 +21,22 @@ import numpy as np
 
 __all__ = [
     "BLOCK",
+    "ZERO_CODE",
     "block_flags",
     "block_range",
     "camera_pack",
     "clipping_range",
+    "code_directions",
     "index_volume",
+    "normal_codes",
     "ray_segments",
     "scalar_range",
-    "voxel_normals",
+    "voxel_records",
 ]
 
 #: Cells per empty-space block along each axis (a power of two; the kernels shift by 3).
-BLOCK = 8
-_BLOCK_SHIFT = 3
+BLOCK = 4
+_BLOCK_SHIFT = 2
 #: VTK clips rays against the box of voxel centres moved in by this many voxels.
 _INSET = 0.01
 _STORE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -163,19 +167,25 @@ def index_volume(volume, lo: float, scale: float, size: int) -> np.ndarray:
     return memo[key]
 
 
-def voxel_normals(volume) -> np.ndarray:
-    """Return unit normals (negative gradient, VTK's central differences), int8 ``[z, y, x, 3]``.
+#: Code of a zero gradient in VTK's spherical direction encoding (``255 * 256``).
+ZERO_CODE = 255 * 256
 
-    Components are quantised to ``round(127 * n)``; voxels with zero gradient get (0, 0, 0).
-    Border voxels use the voxel itself as the missing neighbour (VTK's ``ComputeCS1CGradients``).
+
+def normal_codes(volume) -> np.ndarray:
+    """Return encoded unit normals (negative gradient, central differences), uint16 ``[z, y, x]``.
+
+    VTK's ``vtkSphericalDirectionEncoder`` (65536 codes, ``docs/vtk_conventions.md`` fact 19):
+    ``lo = round(theta * 255 / 359)``, ``hi = round((phi + 90) * 254 / 180)``, code
+    ``lo + 256 hi``; zero gradient -> :data:`ZERO_CODE`.  Border voxels use the voxel itself as
+    the missing neighbour (``ComputeCS1CGradients``).
     """
     memo = _store(volume)
-    if "normals" not in memo:
+    if "normal_codes" not in memo:
         data = volume.data
         spacing = np.asarray(volume.spacing, float)
         aspect = (2.0 * spacing / spacing.mean()).astype(np.float32)
         nz = data.shape[0]
-        out = np.empty((*data.shape, 3), np.int8)
+        out = np.empty(data.shape, np.uint16)
         for z0 in range(0, nz, 16):
             z1 = min(z0 + 16, nz)
             lo, hi = max(z0 - 1, 0), min(z1 + 1, nz)
@@ -184,20 +194,51 @@ def voxel_normals(volume) -> np.ndarray:
                 [v[:1]] * (z0 == 0) + [v] + [v[-1:]] * (z1 == nz), axis=0
             )  # edge-replicate in z only at the volume border
             c = zpad[1:-1]
-            gx = (c[:, 1:-1, :-2] - c[:, 1:-1, 2:]) / aspect[0]
-            gy = (c[:, :-2, 1:-1] - c[:, 2:, 1:-1]) / aspect[1]
-            gz = (zpad[:-2, 1:-1, 1:-1] - zpad[2:, 1:-1, 1:-1]) / aspect[2]
-            g = np.stack([gx, gy, gz], axis=-1)
-            mag = np.sqrt((g * g).sum(axis=-1, keepdims=True))
-            with np.errstate(invalid="ignore", divide="ignore"):
-                unit = np.where(mag > 0, g / mag, 0.0)
-            out[z0:z1] = np.rint(unit * 127.0).astype(np.int8)
-        memo["normals"] = out
-    return memo["normals"]
+            gx = ((c[:, 1:-1, :-2] - c[:, 1:-1, 2:]) / aspect[0]).astype(np.float64)
+            gy = ((c[:, :-2, 1:-1] - c[:, 2:, 1:-1]) / aspect[1]).astype(np.float64)
+            gz = ((zpad[:-2, 1:-1, 1:-1] - zpad[2:, 1:-1, 1:-1]) / aspect[2]).astype(np.float64)
+            mag = np.sqrt(gx * gx + gy * gy + gz * gz)
+            zero = mag == 0
+            mag[zero] = 1.0
+            theta = np.degrees(np.arctan2(gy, gx))
+            theta[theta < 0] += 360.0
+            phi = np.degrees(np.arcsin(np.clip(gz / mag, -1.0, 1.0)))
+            lo_ = np.clip(np.floor(theta * (255.0 / 359.0) + 0.5), 0, 255)
+            hi_ = np.clip(np.floor((phi + 90.0) * (254.0 / 180.0) + 0.5), 0, 254)
+            code = (lo_ + 256.0 * hi_).astype(np.uint16)
+            code[zero] = ZERO_CODE
+            out[z0:z1] = code
+        memo["normal_codes"] = out
+    return memo["normal_codes"]
+
+
+def code_directions() -> np.ndarray:
+    """Return the decoded unit direction of every code (float64 (65536, 3); unused: zero)."""
+    code = np.arange(65536)
+    lo, hi = code % 256, code // 256
+    phi = np.radians(-89.5 + hi * (179.0 / 254.0))
+    theta = np.radians(lo * (359.0 / 255.0))
+    d = np.stack([np.cos(phi) * np.cos(theta), np.cos(phi) * np.sin(theta), np.sin(phi)], axis=-1)
+    d[hi == 255] = 0.0
+    return d
+
+
+def voxel_records(volume, index: np.ndarray) -> np.ndarray:
+    """Per voxel ``index | code << 16`` (uint32 ``[z, y, x]``): one fetch per cell corner."""
+    key = ("records", id(index))
+    memo = _store(volume)
+    if key not in memo:
+        codes = normal_codes(volume)
+        out = np.empty(index.shape, np.uint32)
+        for z0 in range(0, index.shape[0], 16):
+            out[z0 : z0 + 16] = codes[z0 : z0 + 16].astype(np.uint32) << np.uint32(16)
+            out[z0 : z0 + 16] |= index[z0 : z0 + 16]
+        memo[key] = out
+    return memo[key]
 
 
 def _window_reduce(arr: np.ndarray, axis: int, fn) -> np.ndarray:
-    """Reduce voxels ``[8b - 1, 8b + 9]`` along ``axis`` for every block ``b``."""
+    """Reduce voxels ``[B b - 1, B b + B + 1]`` (B = BLOCK) along ``axis`` for every block ``b``."""
     n = arr.shape[axis]
     nb = ((n - 2) >> _BLOCK_SHIFT) + 1
     parts = []
@@ -210,7 +251,7 @@ def _window_reduce(arr: np.ndarray, axis: int, fn) -> np.ndarray:
 
 
 def block_range(volume, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Min and max table index per block of 8^3 cells (with a 1-voxel apron)."""
+    """Min and max table index per block of 4^3 cells (with a 1-voxel apron)."""
     key = ("blocks", id(index))
     memo = _store(volume)
     if key not in memo:

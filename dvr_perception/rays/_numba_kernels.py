@@ -2,22 +2,26 @@
 
 Kernels, parallel over chunks of interleaved image rows:
 
-* :func:`walk` marches every ray through the table-index volume at VTK's sample positions,
-  jumping whole boxes of empty 8^3 blocks at once (:func:`_grid.block_distance`,
-  tested only when the ray enters another block).  It always accumulates ``present`` and
+* :func:`walk` marches every ray through the voxel records (table index, and VTK's encoded
+  normal when shading) at VTK's sample positions, jumping whole boxes of empty 4^3 blocks at
+  once (:func:`_grid.block_distance`, tested only when the ray enters another block), and
+  composites it until early ray termination.  It always accumulates ``present`` and
   ``assigned`` over the whole ray (table-index lookups only).  With ``build`` it packs one cache
-  entry per sample with membership > 0 (table index and sample index; normal and curvature
-  marked "not yet computed") into its chunk's region and composites the ray from those fresh
-  entries right away (:func:`_composite_ray`); without ``build`` it composites during the walk.
+  entry per sample with membership > 0 (table index, sample index, shading and curvature) into
+  its chunk's region.
+* Shading (:func:`_shade_at`) is VTK's: the shading-table entries of the 8 corners' normal codes
+  are interpolated trilinearly (lit diffuse cosine and specular power term, stored per entry as
+  uint16 ``round(x * 65534)``; materials, colours and opacities are applied at compositing).
 * :func:`composite` re-composites from cache entries (no volume access except below).
-* Normals and curvature of an entry are computed lazily (:func:`_fill`) the first time
-  compositing reaches it with non-zero opacity and stored in the cache, so entries behind
-  early ray termination cost nothing until a re-evaluation with lower opacities reaches them.
+* Shading and curvature of entries the walk's compositing did not reach (behind early ray
+  termination) are marked unset (65535, curvature -1) and computed lazily (:func:`_fill`)
+  the first time a re-evaluation reaches them; :func:`invalidate` marks all shading so after
+  a change of light.
   Sample positions are recomputed bit-identically from the sample index (no fp contraction).
 * :func:`segments` sets up every pixel's ray; :func:`compact` packs the chunks' entries.
 
-Both compositing paths use :func:`_shade` and the same update, so an analysis composited from
-the cache equals one composited during the walk.
+Both compositing paths use the same quantised shading and the same update, so an
+analysis composited from the cache equals one composited during the walk.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["compact", "composite", "segments", "walk"]
+__all__ = ["compact", "composite", "invalidate", "segments", "walk"]
 
 # VTK's fixed-point trilinear weights sum to 32765/32768 and the index is rounded up.
 _W_SCALE = 32765.0 / 32768.0
@@ -33,10 +37,15 @@ _W_BIAS = 32767.0 / 32768.0
 #: fastmath without contraction or reassociation: sample positions are bit-identical wherever
 #: they are recomputed (walk, lazy normal fill), so cached and fresh results agree exactly.
 _FM = {"nnan", "ninf", "nsz", "arcp", "afn"}
-#: Marks a cache entry whose normal (and curvature) has not been computed yet.
-_UNSET = -128
 _U1 = np.uint64(1)
-_U2 = np.uint64(2)
+_U16 = np.uint32(16)
+_MASK = np.uint32(0xFFFF)
+#: Empty-space block: ``_BW`` = 2 ** ``_BS`` cells per axis (= ``_grid.BLOCK``, tested).
+_BS = 2
+_BW = 4
+#: Shading factors are stored as uint16 ``round(x * 65534)``; ``_UNSET`` = not yet computed.
+_IQS = 1.0 / 65534.0
+_UNSET = 65535
 
 
 @njit(parallel=True, cache=True)
@@ -107,108 +116,100 @@ def segments(cam, a, b, t_first, nsteps):
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
-def _shade(q0, q1, q2, s, lx, ly, lz, hx, hy, hz, ka, kd, stab):
-    """Diffuse factor and specular term for a quantised normal (two-sided flip already done).
+def _shade_at(volf, o, isy, isz, fx, fy, fz, tab, s):
+    """VTK's shading of a sample: the 8 corners' table entries, trilinearly mixed.
 
-    ``stab[s]`` tabulates ``ks I x ** p`` at ``x = i / (len - 1)``; linear interpolation.
+    ``volf`` holds ``index | code << 16`` per voxel, ``o`` is the cell's first corner and
+    ``tab`` is :func:`dvr_perception.rays._tables.shading_table`.  Returns the lit diffuse
+    cosine and the specular power term, both tabulated and returned as ``round(x * 65534)``
+    (uint16, as stored in the cache; 65535 marks "not yet computed").
     """
-    n0 = q0 / 127.0
-    n1 = q1 / 127.0
-    n2 = q2 / 127.0
-    ndl = n0 * lx + n1 * ly + n2 * lz
-    dfac = ka[s]
-    spec = 0.0
-    if ndl > 0.0:
-        dfac += kd[s] * ndl
-        ndh = n0 * hx + n1 * hy + n2 * hz
-        if ndh > 0.001:
-            u = min(ndh, 1.0) * (stab.shape[1] - 1)
-            i = min(int(u), stab.shape[1] - 2)
-            spec = stab[s, i] + (u - i) * (stab[s, i + 1] - stab[s, i])
-    return dfac, spec
+    gx = 1.0 - fx
+    gy = 1.0 - fy
+    gz = 1.0 - fz
+    o1 = o + isy
+    o2 = o + isz
+    o3 = o2 + isy
+    c0 = volf[o] >> _U16
+    c1 = volf[o + _U1] >> _U16
+    c2 = volf[o1] >> _U16
+    c3 = volf[o1 + _U1] >> _U16
+    c4 = volf[o2] >> _U16
+    c5 = volf[o2 + _U1] >> _U16
+    c6 = volf[o3] >> _U16
+    c7 = volf[o3 + _U1] >> _U16
+    w0 = gz * gy * gx
+    w1 = gz * gy * fx
+    w2 = gz * fy * gx
+    w3 = gz * fy * fx
+    w4 = fz * gy * gx
+    w5 = fz * gy * fx
+    w6 = fz * fy * gx
+    w7 = fz * fy * fx
+    dl = (
+        w0 * tab[s, c0, 0] + w1 * tab[s, c1, 0] + w2 * tab[s, c2, 0] + w3 * tab[s, c3, 0]
+        + w4 * tab[s, c4, 0] + w5 * tab[s, c5, 0] + w6 * tab[s, c6, 0] + w7 * tab[s, c7, 0]
+    )  # fmt: skip
+    sp = (
+        w0 * tab[s, c0, 1] + w1 * tab[s, c1, 1] + w2 * tab[s, c2, 1] + w3 * tab[s, c3, 1]
+        + w4 * tab[s, c4, 1] + w5 * tab[s, c5, 1] + w6 * tab[s, c6, 1] + w7 * tab[s, c7, 1]
+    )  # fmt: skip
+    return np.uint16(min(int(dl + 0.5), 65534)), np.uint16(min(int(sp + 0.5), 65534))
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
-def _normal(nrm, x, y, z, fx, fy, fz, vx, vy, vz):
-    """Trilinear mix of the 8 corner normals, each flipped to face the viewer; int8-quantised."""
-    f = nrm.reshape(nrm.size)
-    sy = nrm.shape[2] * 3
-    sz = nrm.shape[1] * sy
-    o = z * sz + y * sy + x * 3
-    s0 = 0.0
-    s1 = 0.0
-    s2 = 0.0
-    for c in range(8):
-        dx = c & 1
-        dy = (c >> 1) & 1
-        dz = c >> 2
-        w = (fx if dx else 1.0 - fx) * (fy if dy else 1.0 - fy) * (fz if dz else 1.0 - fz)
-        p = np.uint64(o + dz * sz + dy * sy + dx * 3)
-        m0 = float(f[p])
-        m1 = float(f[p + _U1])
-        m2 = float(f[p + _U2])
-        w = -w if m0 * vx + m1 * vy + m2 * vz > 0.0 else w
-        s0 += w * m0
-        s1 += w * m1
-        s2 += w * m2
-    return np.int8(np.rint(s0)), np.int8(np.rint(s1)), np.int8(np.rint(s2))
-
-
-@njit(cache=True, fastmath=_FM)
 def _skip_to(j, t_first, step, dist, x, y, z, ax, ay, az, bx, by, bz):
     """First sample index past the empty box of blocks around the cell ``(x, y, z)``, or -1.
 
     ``dist`` is :func:`dvr_perception.rays._grid.block_distance`: every block within Chebyshev
     distance ``d - 1`` of a block with distance ``d`` is empty.
     """
-    d = dist[z >> 3, y >> 3, x >> 3]
+    d = dist[z >> _BS, y >> _BS, x >> _BS]
     if d == 0:
         return -1
     dm = int(d) - 1
     te = 1e300
     if bx > 0.0:
-        te = min(te, (((x >> 3) + dm + 1) * 8 - ax) / bx)
+        te = min(te, (((x >> _BS) + dm + 1) * _BW - ax) / bx)
     elif bx < 0.0:
-        te = min(te, (((x >> 3) - dm) * 8 - ax) / bx)
+        te = min(te, (((x >> _BS) - dm) * _BW - ax) / bx)
     if by > 0.0:
-        te = min(te, (((y >> 3) + dm + 1) * 8 - ay) / by)
+        te = min(te, (((y >> _BS) + dm + 1) * _BW - ay) / by)
     elif by < 0.0:
-        te = min(te, (((y >> 3) - dm) * 8 - ay) / by)
+        te = min(te, (((y >> _BS) - dm) * _BW - ay) / by)
     if bz > 0.0:
-        te = min(te, (((z >> 3) + dm + 1) * 8 - az) / bz)
+        te = min(te, (((z >> _BS) + dm + 1) * _BW - az) / bz)
     elif bz < 0.0:
-        te = min(te, (((z >> 3) - dm) * 8 - az) / bz)
+        te = min(te, (((z >> _BS) - dm) * _BW - az) / bz)
     jn = int(np.ceil((te - t_first) / step))
     return jn if jn > j else j + 1
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
 def _walk_ray(
-    r, idx, nrm, curv, dist, a, b, t_first, n, step, ids, memb, alpha_r, alpha_w, col, light, stab,
+    r, vol, curv, dist, a, b, t_first, n, step, ids, memb, alpha_r, alpha_w, col, light, tab,
     shade, has_curv, build, base, ert, rgba, vis, asg, present, cimg, out,
 ):  # fmt: skip
-    """Walk one ray.
+    """Walk one ray, compositing until early ray termination.
 
-    ``build``: write cache entries (table index, sample index and the "not yet computed" marks
-    of normal and curvature) and composite nothing; otherwise composite until early ray
-    termination with normals computed on the fly.
+    ``vol`` holds the table index per voxel (low 16 bits) and, when shading, the normal code
+    (high 16 bits).  ``build``: also write one cache entry per sample with membership
+    (table index, sample index, shading and curvature; the last two marked "not yet computed"
+    (-1) for samples that compositing did not reach).
     """
-    c_lut, c_j, c_nrm, c_curv = out
-    nz, ny, nx = idx.shape
-    idxf = idx.reshape(idx.size)
+    c_lut, c_j, c_sh, c_curv = out
+    nz, ny, nx = vol.shape
+    volf = vol.reshape(vol.size)
     isy = np.uint64(nx)
     nxy = nx * ny
     isz = np.uint64(nxy)
-    ka, kd = light[0], light[1]
-    lx, ly, lz = light[4, 0], light[4, 1], light[4, 2]
-    hx, hy, hz = light[5, 0], light[5, 1], light[5, 2]
-    vx, vy, vz = light[6, 0], light[6, 1], light[6, 2]
+    ka, kd, ks = light[0], light[1], light[2]
     ax, ay, az = a[r, 0], a[r, 1], a[r, 2]
     bx, by, bz = b[r, 0], b[r, 1], b[r, 2]
     bits = np.uint32(0)
     cnt = 0
     walked = 0
-    alive = not build
+    alive = True
     tr = 1.0
     cr = 0.0
     cg = 0.0
@@ -225,7 +226,7 @@ def _walk_ray(
         x = min(max(int(px), 0), nx - 2)
         y = min(max(int(py), 0), ny - 2)
         z = min(max(int(pz), 0), nz - 2)
-        blk = ((z >> 3) << 42) + ((y >> 3) << 21) + (x >> 3)
+        blk = ((z >> _BS) << 42) + ((y >> _BS) << 21) + (x >> _BS)
         if blk != last_blk:
             jn = _skip_to(j, t_first, step, dist, x, y, z, ax, ay, az, bx, by, bz)
             if jn >= 0:
@@ -244,10 +245,10 @@ def _walk_ray(
         o2 = o + isz
         o3 = o2 + isy
         f = (
-            gz * (gy * (gx * idxf[o] + fx * idxf[o + _U1])
-                  + fy * (gx * idxf[o1] + fx * idxf[o1 + _U1]))
-            + fz * (gy * (gx * idxf[o2] + fx * idxf[o2 + _U1])
-                    + fy * (gx * idxf[o3] + fx * idxf[o3 + _U1]))
+            gz * (gy * (gx * (volf[o] & _MASK) + fx * (volf[o + _U1] & _MASK))
+                  + fy * (gx * (volf[o1] & _MASK) + fx * (volf[o1 + _U1] & _MASK)))
+            + fz * (gy * (gx * (volf[o2] & _MASK) + fx * (volf[o2 + _U1] & _MASK))
+                    + fy * (gx * (volf[o3] & _MASK) + fx * (volf[o3 + _U1] & _MASK)))
         )  # fmt: skip
         k = min(int(f * _W_SCALE + _W_BIAS), len(ids) - 1)
         if memb[k] <= 0.0:
@@ -256,31 +257,34 @@ def _walk_ray(
         s = ids[k]
         bits |= np.uint32(1) << np.uint32(s)
         asg[s, r] += alpha_w[k]
+        e = base + cnt
         if build:
-            e = base + cnt
             c_lut[e] = k
             c_j[e] = j
-            if shade:
-                c_nrm[e, 0] = _UNSET
-            if has_curv:
-                c_curv[e] = -1.0
             cnt += 1
-            j += 1
-            continue
         j += 1
-        if not alive:
-            continue
         al = alpha_r[k]
-        if al <= 0.0:
+        if not alive or al <= 0.0:
+            if build:
+                if shade:
+                    c_sh[e, 0] = _UNSET
+                if has_curv:
+                    c_curv[e] = -1.0
             continue
         dfac = 1.0
         spec = 0.0
         if shade:
-            q0, q1, q2 = _normal(nrm, x, y, z, fx, fy, fz, vx, vy, vz)
-            dfac, spec = _shade(q0, q1, q2, s, lx, ly, lz, hx, hy, hz, ka, kd, stab)
+            dl, sp = _shade_at(volf, o, isy, isz, fx, fy, fz, tab, s)
+            if build:
+                c_sh[e, 0] = dl
+                c_sh[e, 1] = sp
+            dfac = ka[s] + kd[s] * (dl * _IQS)
+            spec = ks[s] * (sp * _IQS)
         hc = 0.0
         if has_curv:
             hc = curv[int(pz + 0.5), int(py + 0.5), int(px + 0.5)]
+            if build:
+                c_curv[e] = hc
         w = al * tr
         vis[s, r] += w
         cr += w * (col[s, 0] * dfac + spec)
@@ -293,52 +297,49 @@ def _walk_ray(
         if tr < ert:
             alive = False
     present[r] = bits
-    if not build:
-        rgba[r, 0] = min(cr, 1.0)
-        rgba[r, 1] = min(cg, 1.0)
-        rgba[r, 2] = min(cb, 1.0)
-        rgba[r, 3] = 1.0 - tr
-        cimg[r] = num / den if den > 0.0 else 0.0
+    rgba[r, 0] = min(cr, 1.0)
+    rgba[r, 1] = min(cg, 1.0)
+    rgba[r, 2] = min(cb, 1.0)
+    rgba[r, 3] = 1.0 - tr
+    cimg[r] = num / den if den > 0.0 else 0.0
     return cnt, walked
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
-def _fill(e, j, ax, ay, az, bx, by, bz, t_first, step, nrm, curv, vx, vy, vz, shade, has_curv,
-          c_nrm, c_curv):  # fmt: skip
-    """Compute entry ``e``'s normal and curvature from its sample index, as the walk would."""
-    nz, ny, nx = nrm.shape[0], nrm.shape[1], nrm.shape[2]
+def _fill(e, j, ax, ay, az, bx, by, bz, t_first, step, vol, curv, tab, s, shade, has_curv,
+          c_sh, c_curv):  # fmt: skip
+    """Compute entry ``e``'s shading and curvature from its sample index, as the walk would."""
+    nz, ny, nx = vol.shape
     t = t_first + j * step
     px = ax + t * bx
     py = ay + t * by
     pz = az + t * bz
     if shade:
+        volf = vol.reshape(vol.size)
         x = min(max(int(px), 0), nx - 2)
         y = min(max(int(py), 0), ny - 2)
         z = min(max(int(pz), 0), nz - 2)
         fx = min(max(px - x, 0.0), 1.0)
         fy = min(max(py - y, 0.0), 1.0)
         fz = min(max(pz - z, 0.0), 1.0)
-        q0, q1, q2 = _normal(nrm, x, y, z, fx, fy, fz, vx, vy, vz)
-        c_nrm[e, 0] = q0
-        c_nrm[e, 1] = q1
-        c_nrm[e, 2] = q2
+        o = np.uint64(z * (nx * ny) + y * nx + x)
+        dl, sp = _shade_at(volf, o, np.uint64(nx), np.uint64(nx * ny), fx, fy, fz, tab, s)
+        c_sh[e, 0] = dl
+        c_sh[e, 1] = sp
     if has_curv:
         c_curv[e] = curv[int(pz + 0.5), int(py + 0.5), int(px + 0.5)]
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
 def _composite_ray(
-    r, e0, cnt, c_lut, c_j, c_nrm, c_curv, a, b, t_first, step, nrm, curv, ids, alpha_r, col,
-    light, stab, shade, has_curv, ert, rgba, vis, cimg,
+    r, e0, cnt, c_lut, c_j, c_sh, c_curv, a, b, t_first, step, vol, curv, ids, alpha_r, col,
+    light, tab, shade, has_curv, ert, rgba, vis, cimg,
 ):  # fmt: skip
     """Front-to-back compositing of ray ``r``'s entries with early ray termination.
 
-    Normals and curvature of entries reached for the first time are computed and stored.
+    Shading and curvature of entries reached for the first time are computed and stored.
     """
-    ka, kd = light[0], light[1]
-    lx, ly, lz = light[4, 0], light[4, 1], light[4, 2]
-    hx, hy, hz = light[5, 0], light[5, 1], light[5, 2]
-    vx, vy, vz = light[6, 0], light[6, 1], light[6, 2]
+    ka, kd, ks = light[0], light[1], light[2]
     tr = 1.0
     cr = 0.0
     cg = 0.0
@@ -351,22 +352,21 @@ def _composite_ray(
         if al <= 0.0:
             continue
         s = ids[k]
-        if (shade and c_nrm[e, 0] == _UNSET) or (has_curv and c_curv[e] < 0.0):
+        if (shade and c_sh[e, 0] == _UNSET) or (has_curv and c_curv[e] < 0.0):
             _fill(e, c_j[e], a[r, 0], a[r, 1], a[r, 2], b[r, 0], b[r, 1], b[r, 2], t_first[r],
-                  step, nrm, curv, vx, vy, vz, shade, has_curv, c_nrm, c_curv)  # fmt: skip
+                  step, vol, curv, tab, s, shade, has_curv, c_sh, c_curv)  # fmt: skip
         dfac = 1.0
         spec = 0.0
         if shade:
-            dfac, spec = _shade(
-                c_nrm[e, 0], c_nrm[e, 1], c_nrm[e, 2], s, lx, ly, lz, hx, hy, hz, ka, kd, stab
-            )
+            dfac = ka[s] + kd[s] * (c_sh[e, 0] * _IQS)
+            spec = ks[s] * (c_sh[e, 1] * _IQS)
         w = al * tr
         vis[s, r] += w
         cr += w * (col[s, 0] * dfac + spec)
         cg += w * (col[s, 1] * dfac + spec)
         cb += w * (col[s, 2] * dfac + spec)
         if has_curv:
-            hc = float(c_curv[e])
+            hc = c_curv[e]
             if hc > 0.0:
                 num += w * hc
                 den += w
@@ -382,15 +382,14 @@ def _composite_ray(
 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def walk(
-    idx, nrm, curv, dist, a, b, t_first, nsteps, step, height, width, nchunk, ids, memb, alpha_r,
-    alpha_w, col, light, stab, shade, has_curv, build, chunk_base, ert, rgba, vis, asg, present,
-    cimg, c_lut, c_j, c_nrm, c_curv, start, count, chunk_end, walked,
+    vol, curv, dist, a, b, t_first, nsteps, step, height, width, nchunk, ids, memb, alpha_r,
+    alpha_w, col, light, tab, shade, has_curv, build, chunk_base, ert, rgba, vis, asg, present,
+    cimg, c_lut, c_j, c_sh, c_curv, start, count, chunk_end, walked,
 ):  # fmt: skip
-    """March all rays; see the module docstring.  Outputs are flat per ray (row-major).
+    """March and composite all rays; see the module docstring.  Outputs are flat per ray.
 
     Chunk ``c`` (rows ``c, c + nchunk, ...``) packs its rays' entries from ``chunk_base[c]``
-    on and records its end in ``chunk_end[c]``; with ``build`` each ray is composited from its
-    fresh entries right after its walk.
+    on and records its end in ``chunk_end[c]``.
     """
     for c in prange(nchunk):
         e = chunk_base[c]
@@ -399,18 +398,23 @@ def walk(
                 r = row * width + col_
                 start[r] = e
                 count[r] = 0
+                for s in range(vis.shape[0]):
+                    vis[s, r] = 0.0
+                    asg[s, r] = 0.0
                 if nsteps[r] == 0:
+                    rgba[r, 0] = 0.0
+                    rgba[r, 1] = 0.0
+                    rgba[r, 2] = 0.0
+                    rgba[r, 3] = 0.0
+                    cimg[r] = 0.0
+                    present[r] = 0
+                    walked[r] = 0
                     continue
                 cnt, wk = _walk_ray(
-                    r, idx, nrm, curv, dist, a, b, t_first[r], nsteps[r], step, ids, memb,
-                    alpha_r, alpha_w, col, light, stab, shade, has_curv, build, e, ert,
-                    rgba, vis, asg, present, cimg, (c_lut, c_j, c_nrm, c_curv),
+                    r, vol, curv, dist, a, b, t_first[r], nsteps[r], step, ids, memb,
+                    alpha_r, alpha_w, col, light, tab, shade, has_curv, build, e, ert,
+                    rgba, vis, asg, present, cimg, (c_lut, c_j, c_sh, c_curv),
                 )  # fmt: skip
-                if build:
-                    _composite_ray(
-                        r, e, cnt, c_lut, c_j, c_nrm, c_curv, a, b, t_first, step, nrm, curv,
-                        ids, alpha_r, col, light, stab, shade, has_curv, ert, rgba, vis, cimg,
-                    )  # fmt: skip
                 count[r] = cnt
                 walked[r] = wk
                 e += cnt
@@ -418,8 +422,8 @@ def walk(
 
 
 @njit(parallel=True, cache=True)
-def compact(height, width, nchunk, chunk_base, chunk_end, dest, start, src_lut, src_j, src_nrm,
-            src_curv, lut, j_, nrm, curv, shade, has_curv):  # fmt: skip
+def compact(height, width, nchunk, chunk_base, chunk_end, dest, start, src_lut, src_j, src_sh,
+            src_curv, lut, j_, sh, curv, shade, has_curv):  # fmt: skip
     """Move each chunk's packed entries to ``dest[c]`` and shift its rays' ``start``."""
     for c in prange(nchunk):
         s0 = chunk_base[c]
@@ -428,9 +432,8 @@ def compact(height, width, nchunk, chunk_base, chunk_end, dest, start, src_lut, 
             lut[d0 + i] = src_lut[s0 + i]
             j_[d0 + i] = src_j[s0 + i]
             if shade:
-                nrm[d0 + i, 0] = src_nrm[s0 + i, 0]
-                nrm[d0 + i, 1] = src_nrm[s0 + i, 1]
-                nrm[d0 + i, 2] = src_nrm[s0 + i, 2]
+                sh[d0 + i, 0] = src_sh[s0 + i, 0]
+                sh[d0 + i, 1] = src_sh[s0 + i, 1]
             if has_curv:
                 curv[d0 + i] = src_curv[s0 + i]
         for row in range(c, height, nchunk):
@@ -440,21 +443,33 @@ def compact(height, width, nchunk, chunk_base, chunk_end, dest, start, src_lut, 
 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def composite(
-    start, count, c_lut, c_j, c_nrm, c_curv, a, b, t_first, step, nrm, curv, height, width,
-    nchunk, ids, alpha_r, col, light, stab, shade, has_curv, ert, rgba, vis, cimg,
+    start, count, c_lut, c_j, c_sh, c_curv, a, b, t_first, step, vol, curv, height, width,
+    nchunk, ids, alpha_r, col, light, tab, shade, has_curv, ert, rgba, vis, cimg,
 ):  # fmt: skip
     """Front-to-back compositing of cached entries with early ray termination.
 
-    No volume access except for normals and curvature of entries never reached before.
+    No volume access except for shading and curvature of entries never reached before;
+    zeroes each ray's ``vis`` itself.
     """
     for c in prange(nchunk):
         for row in range(c, height, nchunk):
             for col_ in range(width):
                 r = row * width + col_
+                for s in range(vis.shape[0]):
+                    vis[s, r] = 0.0
                 _composite_ray(
-                    r, start[r], count[r], c_lut, c_j, c_nrm, c_curv, a, b, t_first, step, nrm,
-                    curv, ids, alpha_r, col, light, stab, shade, has_curv, ert, rgba, vis, cimg,
+                    r, start[r], count[r], c_lut, c_j, c_sh, c_curv, a, b, t_first, step, vol,
+                    curv, ids, alpha_r, col, light, tab, shade, has_curv, ert, rgba, vis, cimg,
                 )  # fmt: skip
+
+
+@njit(parallel=True, cache=True)
+def invalidate(c_sh):
+    """Mark every entry's shading as "not yet computed" (after a change of light)."""
+    n = c_sh.shape[0]
+    for ch in prange(64):
+        for i in range(ch * n // 64, (ch + 1) * n // 64):
+            c_sh[i, 0] = _UNSET
 
 
 @njit(parallel=True, cache=True)

@@ -1,6 +1,6 @@
 """Pure-numpy back end of the ray-analysis engine (used when numba is unavailable).
 
-Same sample positions, table lookups, normal quantisation and compositing as
+Same sample positions, table lookups, shading and compositing as
 :mod:`dvr_perception.rays._numba_kernels`, vectorised over all rays that are still inside the
 volume at each step.  It does no empty-space skipping (skipping never changes results) and
 always builds the cache entries, then composites them with :func:`composite`.
@@ -14,27 +14,48 @@ __all__ = ["composite", "walk"]
 
 _W_SCALE = 32765.0 / 32768.0
 _W_BIAS = 32767.0 / 32768.0
+_IQS = 1.0 / 65534.0
 _CORNERS = [((c & 1), (c >> 1) & 1, c >> 2) for c in range(8)]
 
 
-def _shade(q, s, light, stab) -> tuple[np.ndarray, np.ndarray]:
-    """Diffuse factor and specular term per entry (see the numba ``_shade``)."""
-    n = q.astype(np.float64) / 127.0
-    ndl = n[:, 0] * light[4, 0] + n[:, 1] * light[4, 1] + n[:, 2] * light[4, 2]
-    ndh = n[:, 0] * light[5, 0] + n[:, 1] * light[5, 1] + n[:, 2] * light[5, 2]
-    lit = ndl > 0.0
-    dfac = light[0, s] + np.where(lit, light[1, s] * ndl, 0.0)
-    u = np.clip(ndh, 0.0, 1.0) * (stab.shape[1] - 1)
-    i = np.minimum(u.astype(np.int64), stab.shape[1] - 2)
-    spec = stab[s, i] + (u - i) * (stab[s, i + 1] - stab[s, i])
-    spec = np.where(lit & (ndh > 0.001), spec, 0.0)
-    return dfac, spec
+def shade_entries(vol, seg, step, start, count, steps, s, tab, shade) -> np.ndarray:
+    """VTK shading of every entry (see the numba ``_shade_at``): uint16 (E, 2), or (0, 2).
+
+    Positions are recomputed from the sample index ``steps`` exactly as the numba kernels do.
+    """
+    if not shade:
+        return np.zeros((0, 2), np.uint16)
+    a, b, t_first = seg["a"], seg["b"], seg["t"]
+    nz, ny, nx = vol.shape
+    flat = vol.reshape(-1)
+    ray = np.repeat(np.arange(len(start)), count)
+    out = np.empty((len(ray), 2), np.uint16)
+    for e0 in range(0, len(ray), 1 << 20):
+        sl = slice(e0, e0 + (1 << 20))
+        rr, ss = ray[sl], s[sl].astype(np.int64)
+        t = t_first[rr] + steps[sl] * step
+        p = a[rr] + t[:, None] * b[rr]
+        cell = np.minimum(np.maximum(p.astype(np.int64), 0), np.array([nx, ny, nz]) - 2)
+        f = np.clip(p - cell, 0.0, 1.0)
+        g = 1.0 - f
+        o = cell[:, 2] * (nx * ny) + cell[:, 1] * nx + cell[:, 0]
+        dl = np.zeros(len(rr))
+        sp = np.zeros(len(rr))
+        for dx, dy, dz in _CORNERS:
+            w = (f[:, 2] if dz else g[:, 2]) * (f[:, 1] if dy else g[:, 1])
+            w = w * (f[:, 0] if dx else g[:, 0])
+            code = (flat[o + dz * nx * ny + dy * nx + dx] >> 16).astype(np.int64)
+            dl = dl + w * tab[ss, code, 0].astype(np.float64)
+            sp = sp + w * tab[ss, code, 1].astype(np.float64)  # table units (x 65534)
+        out[sl, 0] = np.minimum(np.floor(dl + 0.5), 65534)
+        out[sl, 1] = np.minimum(np.floor(sp + 0.5), 65534)
+    return out
 
 
-def walk(idx, nrm, curv, seg, step, ids, memb, alpha_w, light, shade, has_curv, k_count):
+def walk(idx, curv, seg, step, ids, memb, alpha_w, has_curv, k_count):
     """March all rays; return cache entries in ray order plus ``present`` and ``assigned``.
 
-    Returns a dict with ``off`` (R+1 int64), ``lut`` (uint16), ``nrm`` (int8 (E, 3)),
+    Returns a dict with ``off`` (R+1 int64), ``lut`` (uint16), ``steps`` (int32 sample index),
     ``curv`` (float32), ``present`` (uint32 R), ``assigned`` (float64 (K, R)).
     """
     a, b, t_first, n = seg["a"], seg["b"], seg["t"], seg["n"]
@@ -44,8 +65,7 @@ def walk(idx, nrm, curv, seg, step, ids, memb, alpha_w, light, shade, has_curv, 
     assigned = np.zeros((k_count, nrays))
     order = np.argsort(-n.astype(np.int64), kind="stable")
     neg = -n[order].astype(np.int64)
-    parts: dict[str, list] = {"ray": [], "lut": [], "nrm": [], "curv": []}
-    view = light[6, :3]
+    parts: dict[str, list] = {"ray": [], "lut": [], "steps": [], "curv": []}
     for j in range(int(-neg[0]) if nrays else 0):
         rr = order[: np.searchsorted(neg, -j, side="left")]
         t = t_first[rr] + j * step
@@ -53,7 +73,6 @@ def walk(idx, nrm, curv, seg, step, ids, memb, alpha_w, light, shade, has_curv, 
         cell = np.minimum(np.maximum(p.astype(np.int64), 0), np.array([nx, ny, nz]) - 2)
         frac = np.clip(p - cell, 0.0, 1.0)
         x, y, z = cell[:, 0], cell[:, 1], cell[:, 2]
-        weights = []
         f = np.zeros(len(rr))
         for dx, dy, dz in _CORNERS:
             w = (
@@ -61,7 +80,6 @@ def walk(idx, nrm, curv, seg, step, ids, memb, alpha_w, light, shade, has_curv, 
                 * (frac[:, 1] if dy else 1.0 - frac[:, 1])
                 * (frac[:, 2] if dz else 1.0 - frac[:, 2])
             )
-            weights.append(w)
             f += w * idx[z + dz, y + dy, x + dx]
         k = np.minimum((f * _W_SCALE + _W_BIAS).astype(np.int64), len(ids) - 1)
         hit = memb[k] > 0.0
@@ -72,13 +90,7 @@ def walk(idx, nrm, curv, seg, step, ids, memb, alpha_w, light, shade, has_curv, 
         np.add.at(assigned, (s, rr), alpha_w[k])
         parts["ray"].append(rr)
         parts["lut"].append(k.astype(np.uint16))
-        if shade:
-            acc = np.zeros((len(rr), 3))
-            for w, (dx, dy, dz) in zip(weights, _CORNERS, strict=True):
-                m = nrm[z[hit] + dz, y[hit] + dy, x[hit] + dx].astype(np.float64)
-                sign = np.where(m @ view > 0.0, -1.0, 1.0)
-                acc += (w[hit] * sign)[:, None] * m
-            parts["nrm"].append(np.rint(acc).astype(np.int8))
+        parts["steps"].append(np.full(len(rr), j, np.int32))
         if has_curv:
             q = np.floor(p[hit] + 0.5).astype(np.int64)
             parts["curv"].append(curv[q[:, 2], q[:, 1], q[:, 0]].astype(np.float32))
@@ -86,19 +98,19 @@ def walk(idx, nrm, curv, seg, step, ids, memb, alpha_w, light, shade, has_curv, 
         ray = np.concatenate(parts["ray"])
         srt = np.argsort(ray, kind="stable")
         lut = np.concatenate(parts["lut"])[srt]
-        nrm_e = np.concatenate(parts["nrm"])[srt] if shade else np.zeros((0, 3), np.int8)
+        steps = np.concatenate(parts["steps"])[srt]
         curv_e = np.concatenate(parts["curv"])[srt] if has_curv else np.zeros(0, np.float32)
         counts = np.bincount(ray, minlength=nrays)
     else:
         lut = np.zeros(0, np.uint16)
-        nrm_e = np.zeros((0, 3), np.int8)
+        steps = np.zeros(0, np.int32)
         curv_e = np.zeros(0, np.float32)
         counts = np.zeros(nrays, np.int64)
     off = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     return {
         "off": off,
         "lut": lut,
-        "nrm": nrm_e,
+        "steps": steps,
         "curv": curv_e,
         "present": present,
         "assigned": assigned,
@@ -109,13 +121,13 @@ def composite(
     start,
     counts,
     c_lut,
-    c_nrm,
+    c_sh,
     c_curv,
     ids,
     alpha_r,
     col,
     light,
-    stab,
+    tab,
     shade,
     has_curv,
     ert,
@@ -143,7 +155,9 @@ def composite(
         dfac = np.ones(len(rr))
         spec = np.zeros(len(rr))
         if shade:
-            dfac, spec = _shade(c_nrm[ent], s, light, stab)
+            sh = c_sh[ent].astype(np.float64)
+            dfac = light[0, s] + light[1, s] * (sh[:, 0] * _IQS)
+            spec = light[2, s] * (sh[:, 1] * _IQS)
         w = al * tr[rr]
         np.add.at(vis, (s, rr), w)
         rgb[rr] += w[:, None] * (col[s] * dfac[:, None] + spec[:, None])

@@ -17,8 +17,10 @@ class RayCache:
     """Per-ray compact sample lists of one :func:`analyze` call, for :func:`reevaluate`.
 
     Ray ``r`` (row-major pixel) owns entries ``start[r] : start[r] + count[r]`` of ``lut``
-    (uint16 table index: structure id and membership), ``normals`` (int8 (E, 3), empty when
-    unshaded) and ``curvature`` (float32, empty without a curvature volume).
+    (uint16 table index: structure id and membership), ``shading`` (uint16 (E, 2): VTK's
+    interpolated lit diffuse cosine and specular power term as ``round(x * 65534)``, 65535 in
+    column 0 while not yet computed; empty when unshaded) and ``curvature`` (float32, -1 while
+    not yet computed; empty without a curvature volume).
     """
 
     spec: StructureSpec
@@ -29,23 +31,25 @@ class RayCache:
     start: np.ndarray
     count: np.ndarray
     lut: np.ndarray
-    normals: np.ndarray
+    shading: np.ndarray
     curvature: np.ndarray
     assigned: np.ndarray
     present: np.ndarray
     backend: str
     stats: dict
-    #: numba backend only: per-entry sample index (``steps``), the rays (``a``, ``b``, ``t``,
-    #: ``step``) and the normal and curvature volumes, so that normals and curvature of an entry
-    #: are computed when compositing first reaches it (``normals[e, 0] == -128`` until then).
-    #: The volumes are referenced, not copied (a non-negative float32 curvature array passed to
-    #: ``analyze`` is used as is: do not modify it while the cache is in use).
+    #: Per-entry sample index (``steps``), the rays (``a``, ``b``, ``t``, ``step``), the voxel
+    #: records (``volume``: table index | normal code << 16) and curvature volume, and the
+    #: ``shading_key`` of the light the ``shading`` column was computed for, so that shading
+    #: and curvature of an entry are computed when compositing first reaches it (numba) or
+    #: again after a change of light.  The volumes are referenced, not copied (a non-negative
+    #: float32 curvature array passed to ``analyze`` is used as is: do not modify it while the
+    #: cache is in use).
     lazy: dict | None = None
 
     @property
     def nbytes(self) -> int:
         """Bytes held by the per-ray sample lists and the per-pixel arrays."""
-        arrays = (self.start, self.count, self.lut, self.normals, self.curvature)
+        arrays = (self.start, self.count, self.lut, self.shading, self.curvature)
         if self.lazy is not None:
             arrays += (self.lazy["steps"], self.lazy["a"], self.lazy["b"], self.lazy["t"])
         return int(sum(a.nbytes for a in arrays) + self.assigned.nbytes + self.present.nbytes)

@@ -21,7 +21,8 @@ __all__ = [
     "check_opacities",
     "light_array",
     "material",
-    "specular_table",
+    "shading_key",
+    "shading_table",
     "step_and_unit",
 ]
 
@@ -126,15 +127,51 @@ def light_array(camera, mats, direction, intensity: float) -> np.ndarray:
     return out
 
 
-#: Samples of the tabulated specular curve ``x ** p`` on [0, 1].
-SPECULAR_SAMPLES = 2049
+_DIRECTIONS: list = []
+#: Shading values are stored as ``round(x * _SHADE_SCALE)`` (uint16; 65535 is kept free).
+_SHADE_SCALE = 65534.0
+#: Recent shading tables by :func:`shading_key` (a few MB each at most; read-only).
+_SHADING_MEMO: dict = {}
 
 
-def specular_table(mats, intensity: float) -> np.ndarray:
-    """``ks * I * x ** p`` per structure at ``x = i / 2048`` (float64 (K, 2049)).
+def shading_table(light: np.ndarray, k: int) -> np.ndarray:
+    """Per structure and normal code: lit diffuse cosine and specular power (uint16 (K, 65536, 2)).
 
-    The kernels interpolate it linearly instead of calling ``pow`` per sample.
+    VTK's ``BuildShadingTable`` for the decoded directions of
+    :func:`dvr_perception.rays._grid.code_directions` with two-sided lighting (a normal facing
+    away from the viewer is flipped): ``[max(n.L, 0), (n.H) ** p]``, the specular entry only
+    where ``n.L > 0`` and ``n.H > 0.001``.  The kernels interpolate the 8 corners' entries and
+    shade with ``ka I + kd I diffuse`` and ``ks I specular`` (so only the light, the view and
+    the specular powers enter the table).  Values are stored as ``round(x * 65534)`` (like
+    VTK's 15-bit tables, half the cache footprint of float32).
     """
-    x = np.linspace(0.0, 1.0, SPECULAR_SAMPLES)
-    rows = [m.specular * float(intensity) * np.power(x, m.specular_power) for m in mats]
-    return np.ascontiguousarray(np.array(rows, dtype=np.float64))
+    key = shading_key(light, k)
+    hit = _SHADING_MEMO.get(key)
+    if hit is not None:
+        return hit
+    if not _DIRECTIONS:
+        from dvr_perception.rays._grid import code_directions
+
+        _DIRECTIONS.append(code_directions())
+    d = _DIRECTIONS[0]
+    sign = np.where(d @ light[6, :3] > 0.0, -1.0, 1.0)
+    ndl = sign * (d @ light[4, :3])
+    ndh = sign * (d @ light[5, :3])
+    lit = ndl > 0.0
+    out = np.zeros((k, len(d), 2), np.uint16)
+    out[:, :, 0] = np.floor(np.where(lit, ndl, 0.0) * _SHADE_SCALE + 0.5)
+    on = lit & (ndh > 0.001)
+    x = np.where(on, ndh, 0.0)
+    for s in range(k):
+        spec = np.where(on, np.power(x, light[3, s]), 0.0)
+        out[s, :, 1] = np.floor(np.minimum(spec, 1.0) * _SHADE_SCALE + 0.5)
+    out.flags.writeable = False
+    if len(_SHADING_MEMO) >= 8:
+        _SHADING_MEMO.pop(next(iter(_SHADING_MEMO)), None)
+    _SHADING_MEMO[key] = out
+    return out
+
+
+def shading_key(light: np.ndarray, k: int) -> bytes:
+    """Return what :func:`shading_table` depends on (light, half vector, view, powers)."""
+    return np.concatenate([[k], light[3, :k], light[4:7, :3].ravel()]).tobytes()

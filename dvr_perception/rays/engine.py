@@ -20,12 +20,16 @@ Conventions matched to ``vtkFixedPointVolumeRayCastMapper`` (``docs/vtk_conventi
   trilinearly, then rounded up as VTK's fixed point does (``int(f * 32765/32768 + 32767/32768)``).
 * Compositing front to back with premultiplied colour; early ray termination when the
   transmittance falls below 255/32767; final colour clamped to 1.
-* Shading: VTK's central-difference normals (negative gradient, border voxel as its own
-  neighbour), each corner normal flipped towards the viewer (two-sided lighting), trilinearly
-  mixed and quantised to int8; ``colour = c (ka I + kd I max(n.L, 0)) + ks I (n.H) ** p`` with a
-  white specular term (only where ``n.L > 0`` and ``n.H > 0.001``), directional light
-  ``L = x right + y up - z forward``.  VTK interpolates the shading of the 8 corner normals
-  instead; for a headlight the diffuse term is identical, the specular term differs slightly.
+* Shading as VTK: central-difference normals (negative gradient, border voxel as its own
+  neighbour) quantised with VTK's spherical direction encoding (65536 codes, one uint32 per voxel
+  with the table index); per structure a shading table over the codes for the current light,
+  two-sided (a normal facing away from the viewer is flipped): ``max(n.L, 0)`` and ``(n.H) ** p``
+  (only where ``n.L > 0`` and ``n.H > 0.001``); both are trilinearly interpolated from the 8 cell
+  corners' codes, and ``colour = c (ka I + kd I diffuse) + ks I specular`` (white specular),
+  directional light ``L = x right + y up - z forward``, ``H = normalise(L - forward)``.
+  The cache keeps the interpolated pair per entry (uint16, ``round(x * 65534)``), so new
+  opacities, colours or ka/kd/ks re-composite only; a new light direction or specular power
+  recomputes it.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ import os
 import threading
 import time
 import warnings
+import weakref
 
 import numpy as np
 
@@ -92,13 +97,33 @@ def _check_curvature(curvature, volume) -> np.ndarray | None:
     nk = _numba_kernels()
     if nk is not None:
         c = np.ascontiguousarray(c)
-        state = nk.check_curvature(c.reshape(-1))
+        state = _checked_curvature(nk, c)
         if state == 2:
             raise DVRInputError("curvature: values must be finite")
         return c if state == 0 else np.abs(c)  # already |H|: used as is, not copied
     if not np.all(np.isfinite(c)):
         raise DVRInputError("curvature: values must be finite")
     return np.ascontiguousarray(np.abs(c))
+
+
+_CURV_CHECKED: dict = {}
+
+
+def _checked_curvature(nk, c: np.ndarray) -> int:
+    """``nk.check_curvature`` of ``c``, remembered for the same (live, read-only use) array.
+
+    The same curvature array is passed frame after frame; a full pass over it costs several
+    ms.  Like the cache, the engine assumes a curvature array is not modified in place.
+    """
+    key = (id(c), c.ctypes.data, c.shape)
+    hit = _CURV_CHECKED.get(key)
+    if hit is not None and hit[0]() is c:
+        return hit[1]
+    state = int(nk.check_curvature(c.reshape(-1)))
+    for k in [k for k, v in _CURV_CHECKED.items() if v[0]() is None]:
+        _CURV_CHECKED.pop(k, None)
+    _CURV_CHECKED[key] = (weakref.ref(c), state)
+    return state
 
 
 def _pick_backend(backend: str):
@@ -237,70 +262,81 @@ def analyze(
             stacklevel=2,
         )
     idx = _grid.index_volume(volume, lut.lo, lut.scale, lut.size)
-    nrm = _grid.voxel_normals(volume) if shade else np.zeros((2, 2, 2, 3), np.int8)
+    vol = _grid.voxel_records(volume, idx) if shade else idx
     cv = curv if has_curv else np.zeros((2, 2, 2), np.float32)
     ids = np.ascontiguousarray(lut.ids)
     memb = np.ascontiguousarray(lut.membership)
-    stab = _tables.specular_table(mats, rs.light_intensity)
-    args = (ids, alpha_r, cols, light, stab, shade, has_curv, _tables.ERT)
+    tab = _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16)
+    args = (ids, alpha_r, cols, light, tab, shade, has_curv, _tables.ERT)
     walked = int(seg["n"].sum())
     lazy = None
-    if nk is None:
-        out = _npk.walk(idx, nrm, cv, seg, step, ids, memb, alpha_w, light, shade, has_curv, k)
-        start, count = out["off"][:-1], np.diff(out["off"])
-        c_lut, c_nrm, c_curv = out["lut"], out["nrm"], out["curv"]
-        rgba, vis, cimg = _npk.composite(start, count, c_lut, c_nrm, c_curv, *args, k)
-        present, asg = out["present"], out["assigned"]
-    else:
-        res = _walk_numba(nk, volume, lut, idx, nrm, cv, seg, step, memb, alpha_w, args, k,
-                          camera, build_cache)  # fmt: skip
-        rgba, vis, asg, present, cimg, start, count, entries, walked = res
-        if entries is not None:
-            c_lut, c_nrm, c_curv = entries["lut"], entries["normals"], entries["curvature"]
+    # float64 accumulators come from reused scratch (fresh memory costs page faults); the
+    # lock is held until _finish has copied them out
+    locked = nk is not None and _SCRATCH_LOCK.acquire(blocking=False)
+    try:
+        if nk is None:
+            out = _npk.walk(idx, cv, seg, step, ids, memb, alpha_w, has_curv, k)
+            start, count = out["off"][:-1], np.diff(out["off"])
+            c_lut, c_j, c_curv = out["lut"], out["steps"], out["curv"]
+            c_sh = _npk.shade_entries(vol, seg, step, start, count, c_j, ids[c_lut], tab, shade)
+            rgba, vis, cimg = _npk.composite(start, count, c_lut, c_sh, c_curv, *args, k)
+            present, asg = out["present"], out["assigned"]
+        else:
+            res = _walk_numba(nk, volume, lut, idx, vol, cv, seg, step, memb, alpha_w, args, k,
+                              camera, build_cache, locked)  # fmt: skip
+            rgba, vis, asg, present, cimg, start, count, entries, walked = res
+            if entries is not None:
+                c_lut, c_j = entries["lut"], entries["steps"]
+                c_sh, c_curv = entries["shading"], entries["curvature"]
+        if build_cache:
             lazy = {
-                "steps": entries["steps"],
+                "steps": c_j,
                 "a": seg["a"],
                 "b": seg["b"],
                 "t": seg["t"],
                 "step": float(step),
-                "normal_volume": nrm,
+                "volume": vol,
                 "curvature_volume": cv,
+                "shading_key": _tables.shading_key(light, k) if shade else b"",
             }
-    seconds = time.perf_counter() - t_start
-    samples = int(seg["n"].sum())
-    stats = {
-        "rays": nrays,
-        "rays_hit": int(np.count_nonzero(seg["n"])),
-        "samples": samples,
-        "samples_walked": walked,
-        "samples_per_second": samples / seconds if seconds > 0 else 0.0,
-        "seconds": seconds,
-        "backend": "numpy" if nk is None else "numba",
-        "sample_distance": step,
-    }
-    cache = None
-    if build_cache:
-        h, w = camera.height, camera.width
-        cache = RayCache(
-            spec=spec.with_opacities(ops),
-            camera=camera,
-            ids=ids,
-            membership=memb,
-            ratio=ratio,
-            start=np.ascontiguousarray(start, np.int64),
-            count=np.ascontiguousarray(count, np.int64),
-            lut=c_lut,
-            normals=c_nrm,
-            curvature=c_curv,
-            assigned=np.asarray(asg, np.float32).reshape(k, h, w),
-            present=np.asarray(present, np.uint32).reshape(h, w),
-            backend=stats["backend"],
-            stats=dict(stats),
-            lazy=lazy,
-        )
-        stats["cache_entries"] = len(c_lut)
-        stats["cache_bytes"] = cache.nbytes
-    return _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache)
+        seconds = time.perf_counter() - t_start
+        samples = int(seg["n"].sum())
+        stats = {
+            "rays": nrays,
+            "rays_hit": int(np.count_nonzero(seg["n"])),
+            "samples": samples,
+            "samples_walked": walked,
+            "samples_per_second": samples / seconds if seconds > 0 else 0.0,
+            "seconds": seconds,
+            "backend": "numpy" if nk is None else "numba",
+            "sample_distance": step,
+        }
+        cache = None
+        if build_cache:
+            h, w = camera.height, camera.width
+            cache = RayCache(
+                spec=spec.with_opacities(ops),
+                camera=camera,
+                ids=ids,
+                membership=memb,
+                ratio=ratio,
+                start=np.ascontiguousarray(start, np.int64),
+                count=np.ascontiguousarray(count, np.int64),
+                lut=c_lut,
+                shading=c_sh,
+                curvature=c_curv,
+                assigned=np.asarray(asg, np.float32).reshape(k, h, w),
+                present=np.asarray(present, np.uint32).reshape(h, w),
+                backend=stats["backend"],
+                stats=dict(stats),
+                lazy=lazy,
+            )
+            stats["cache_entries"] = len(c_lut)
+            stats["cache_bytes"] = cache.nbytes
+        return _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache)
+    finally:
+        if locked:
+            _SCRATCH_LOCK.release()
 
 
 _SCRATCH: dict = {}
@@ -318,7 +354,8 @@ def _block_distance(volume, idx, memb) -> np.ndarray:
     return memo[key]
 
 
-def _walk_numba(nk, volume, lut, idx, nrm, cv, seg, step, memb, alpha_w, args, k, camera, build):
+def _walk_numba(nk, volume, lut, idx, vol, cv, seg, step, memb, alpha_w, args, k, camera, build,
+                locked):  # fmt: skip
     """Run the numba walk (with the cache: fused build and compositing, then compaction)."""
     shade, has_curv = args[5], args[6]
     h, w = camera.height, camera.width
@@ -326,14 +363,15 @@ def _walk_numba(nk, volume, lut, idx, nrm, cv, seg, step, memb, alpha_w, args, k
     n = seg["n"]
     dist = _block_distance(volume, idx, memb)
     nchunk = max(min(h, 64), 1)
-    rgba = np.zeros((nrays, 4))
-    vis = np.zeros((k, nrays))
-    asg = np.zeros((k, nrays))
-    present = np.zeros(nrays, np.uint32)
-    cimg = np.zeros(nrays)
-    start = np.empty(nrays, np.int64)
-    count = np.empty(nrays, np.int64)
-    walked = np.zeros(nrays, np.int64)
+    # every ray's outputs are written by the kernel: no zeroing needed
+    rgba = _scratch("rgba", nrays, (4,), np.float64, locked)
+    vis = _scratch("vis", k * nrays, (), np.float64, locked).reshape(k, nrays)
+    asg = _scratch("asg", k * nrays, (), np.float64, locked).reshape(k, nrays)
+    present = np.empty(nrays, np.uint32)
+    cimg = _scratch("cimg", nrays, (), np.float64, locked)
+    start = np.empty(nrays, np.int64) if build else _scratch("start", nrays, (), np.int64, locked)
+    count = np.empty(nrays, np.int64) if build else _scratch("count", nrays, (), np.int64, locked)
+    walked = _scratch("walked", nrays, (), np.int64, locked)
     per_chunk = n.reshape(h, w).sum(axis=1, dtype=np.int64)
     per_chunk = np.bincount(np.arange(h) % nchunk, weights=per_chunk, minlength=nchunk)
     chunk_base = np.concatenate([[0], np.cumsum(per_chunk.astype(np.int64))])
@@ -341,18 +379,13 @@ def _walk_numba(nk, volume, lut, idx, nrm, cv, seg, step, memb, alpha_w, args, k
     chunk_base = np.ascontiguousarray(chunk_base[:-1])
     chunk_end = np.zeros(nchunk, np.int64)
     cap = max(total, 1)
-    locked = _SCRATCH_LOCK.acquire(blocking=False)
-    try:
-        src_lut = _scratch("lut", cap, (), np.uint16, locked)
-        src_j = _scratch("j", cap if build else 1, (), np.int32, locked)
-        src_nrm = _scratch("nrm", cap if build and shade else 1, (3,), np.int8, locked)
-        src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked)
-        return _walk_compact(nk, idx, nrm, cv, dist, seg, step, h, w, nchunk, memb, alpha_w,
-                             args, build, chunk_base, rgba, vis, asg, present, cimg, src_lut,
-                             src_j, src_nrm, src_curv, start, count, chunk_end, walked)  # fmt: skip
-    finally:
-        if locked:
-            _SCRATCH_LOCK.release()
+    src_lut = _scratch("lut", cap, (), np.uint16, locked)
+    src_j = _scratch("j", cap if build else 1, (), np.int32, locked)
+    src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked)
+    src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked)
+    return _walk_compact(nk, vol, cv, dist, seg, step, h, w, nchunk, memb, alpha_w,
+                         args, build, chunk_base, rgba, vis, asg, present, cimg, src_lut,
+                         src_j, src_sh, src_curv, start, count, chunk_end, walked)  # fmt: skip
 
 
 def _scratch(name, n, tail, dtype, shared):
@@ -370,15 +403,15 @@ def _scratch(name, n, tail, dtype, shared):
     return a[:n]
 
 
-def _walk_compact(nk, idx, nrm, cv, dist, seg, step, h, w, nchunk, memb, alpha_w, args, build,
-                  chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j, src_nrm, src_curv,
+def _walk_compact(nk, vol, cv, dist, seg, step, h, w, nchunk, memb, alpha_w, args, build,
+                  chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j, src_sh, src_curv,
                   start, count, chunk_end, walked):  # fmt: skip
-    ids, alpha_r, cols, light, stab, shade, has_curv, ert = args
+    ids, alpha_r, cols, light, tab, shade, has_curv, ert = args
     n = seg["n"]
     nk.walk(
-        idx, nrm, cv, dist, seg["a"], seg["b"], seg["t"], n, step, h, w, nchunk, ids, memb,
-        alpha_r, alpha_w, cols, light, stab, shade, has_curv, build, chunk_base, ert, rgba, vis,
-        asg, present, cimg, src_lut, src_j, src_nrm, src_curv, start, count, chunk_end, walked,
+        vol, cv, dist, seg["a"], seg["b"], seg["t"], n, step, h, w, nchunk, ids, memb,
+        alpha_r, alpha_w, cols, light, tab, shade, has_curv, build, chunk_base, ert, rgba, vis,
+        asg, present, cimg, src_lut, src_j, src_sh, src_curv, start, count, chunk_end, walked,
     )  # fmt: skip
     entries = None
     if build:
@@ -388,12 +421,12 @@ def _walk_compact(nk, idx, nrm, cv, dist, seg, step, h, w, nchunk, memb, alpha_w
         entries = {
             "lut": np.empty(e, np.uint16),
             "steps": np.empty(e, np.int32),
-            "normals": np.empty((e if shade else 0, 3), np.int8),
+            "shading": np.empty((e if shade else 0, 2), np.uint16),
             "curvature": np.empty(e if has_curv else 0, np.float32),
         }
         nk.compact(
-            h, w, nchunk, chunk_base, chunk_end, dest, start, src_lut, src_j, src_nrm, src_curv,
-            entries["lut"], entries["steps"], entries["normals"], entries["curvature"], shade,
+            h, w, nchunk, chunk_base, chunk_end, dest, start, src_lut, src_j, src_sh, src_curv,
+            entries["lut"], entries["steps"], entries["shading"], entries["curvature"], shade,
             has_curv,
         )  # fmt: skip
     return rgba, vis, asg, present, cimg, start, count, entries, int(walked.sum())
@@ -411,8 +444,9 @@ def reevaluate(
     """Re-composite a cached analysis with new opacities, materials, light or background.
 
     Only the cached per-ray sample lists are walked (with early ray termination at the new
-    opacities); the volume is not sampled again (numba backend: normals and curvature of
-    entries that no earlier compositing reached are computed once, on first use).
+    opacities); the volume is not sampled again, except for the shading and curvature of
+    entries that no earlier compositing reached (numba backend: computed once, on first use)
+    and for the shading of all entries after a change of light direction or specular power.
     ``assigned`` and ``present`` do not depend on these parameters and are taken from the
     cache.  Unspecified parameters keep the values of
     the :func:`analyze` call that built the cache.
@@ -460,28 +494,37 @@ def reevaluate(
     alpha_r = _tables.alpha_table(cache.ids, cache.membership, ops, cache.ratio)
     shade = bool(rs.shade)
     has_curv = cache.curvature.size > 0
-    stab = _tables.specular_table(mats, rs.light_intensity)
-    args = (cache.ids, alpha_r, cols, light, stab, shade, has_curv, _tables.ERT)
+    z = cache.lazy
+    tab = _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16)
+    args = (cache.ids, alpha_r, cols, light, tab, shade, has_curv, _tables.ERT)
     h, w = camera.height, camera.width
     nk = _numba_kernels() if cache.backend == "numba" else None
+    key = _tables.shading_key(light, k) if shade else b""
+    if key != z["shading_key"]:  # new light or specular powers: shading tables changed
+        if nk is None:
+            seg = {"a": z["a"], "b": z["b"], "t": z["t"]}
+            cache.shading[:] = _npk.shade_entries(
+                z["volume"], seg, z["step"], cache.start, cache.count, z["steps"],
+                cache.ids[cache.lut], tab, shade,
+            )  # fmt: skip
+        else:
+            nk.invalidate(cache.shading)
+        z["shading_key"] = key
     if nk is None:
         rgba, vis, cimg = _npk.composite(
-            cache.start, cache.count, cache.lut, cache.normals, cache.curvature, *args, k
+            cache.start, cache.count, cache.lut, cache.shading, cache.curvature, *args, k
         )
     else:
         locked = _SCRATCH_LOCK.acquire(blocking=False)
         try:  # float64 accumulators in reused scratch; _finish copies them out as float32
             rgba = _scratch("rgba", h * w, (4,), np.float64, locked)
             vis = _scratch("vis", k * h * w, (), np.float64, locked).reshape(k, h * w)
-            vis.fill(0.0)
             cimg = _scratch("cimg", h * w, (), np.float64, locked)
-            z = cache.lazy
-            ids, alpha_r, cols, light, stab, shade, has_curv, ert = args
             nk.composite(
-                cache.start, cache.count, cache.lut, z["steps"], cache.normals, cache.curvature,
-                z["a"], z["b"], z["t"], z["step"], z["normal_volume"], z["curvature_volume"], h,
-                w, max(min(h, 64), 1), ids, alpha_r, cols, light, stab, shade, has_curv, ert, rgba,
-                vis, cimg,
+                cache.start, cache.count, cache.lut, z["steps"], cache.shading, cache.curvature,
+                z["a"], z["b"], z["t"], z["step"], z["volume"], z["curvature_volume"], h,
+                w, max(min(h, 64), 1), cache.ids, alpha_r, cols, light, tab, shade, has_curv,
+                _tables.ERT, rgba, vis, cimg,
             )  # fmt: skip
             stats = {"backend": cache.backend, "rays": h * w, "reevaluated": True}
             stats["cache_entries"] = len(cache.lut)
