@@ -1,0 +1,251 @@
+"""ParaView Python state: neghip with the dvr_perception Perception Measures filter.
+
+Written by plugin/make_state_files.py (ParaView 5.11.0); the body below is ParaView's own
+Python state.  Run it in pvpython (``PYTHONPATH=plugin/pvsite``), with ``exec``/``runpy`` and a
+global ``data_directory``, or load it in the GUI (*File > Load State*, Python state).  The
+volume is looked up in ``data_directory``, else ``$DVR_SHARED_DATA``, else
+``<repo>/../shared/data``.
+"""
+
+import os
+
+import paraview
+from paraview.simple import *
+
+paraview.compatibility.major = 5
+paraview.compatibility.minor = 11
+
+try:
+    _repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+except NameError:  # run without a file name (e.g. pasted into the Python shell)
+    _repo = os.getcwd()
+data_directory = (
+    globals().get("data_directory")
+    or os.environ.get("DVR_SHARED_DATA")
+    or os.path.join(os.path.dirname(_repo), "shared", "data")
+)
+if "PerceptionMeasures" not in globals():
+    LoadPlugin(os.path.join(_repo, "plugin", "dvr_perception_plugin.py"), ns=globals())
+
+#### disable automatic camera reset on 'Show'
+paraview.simple._DisableFirstRenderCameraReset()
+
+# Create a new 'Render View'
+renderView1 = CreateView('RenderView')
+renderView1.ViewSize = [256, 256]
+renderView1.AxesGrid = 'GridAxes3DActor'
+renderView1.OrientationAxesVisibility = 0
+renderView1.StereoType = 0
+renderView1.CameraPosition = [31.5, 31.5, 242.30210854192762]
+renderView1.CameraFocalPoint = [31.5, 31.5, 31.5]
+renderView1.CameraFocalDisk = 1.0
+renderView1.CameraParallelScale = 1.0
+renderView1.UseColorPaletteForBackground = 0
+renderView1.Background = [0.0, 0.0, 0.0]
+
+# Create a new 'Render View'
+renderView2 = CreateView('RenderView')
+renderView2.InteractionMode = '2D'
+renderView2.AxesGrid = 'GridAxes3DActor'
+renderView2.OrientationAxesVisibility = 0
+renderView2.StereoType = 0
+renderView2.CameraPosition = [127.5, 127.5, 696.6729559300638]
+renderView2.CameraFocalPoint = [127.5, 127.5, 0.0]
+renderView2.CameraFocalDisk = 1.0
+renderView2.CameraParallelScale = 180.31222920256963
+
+# Create a new 'SpreadSheet View'
+spreadSheetView1 = CreateView('SpreadSheetView')
+spreadSheetView1.ColumnToSort = ''
+spreadSheetView1.BlockSize = 1024
+spreadSheetView1.FieldAssociation = 'Field Data'
+
+SetActiveView(None)
+
+# ----------------------------------------------------------------
+# setup view layouts
+# ----------------------------------------------------------------
+
+# create new layout object 'neghip'
+neghip = CreateLayout(name='neghip')
+neghip.SplitHorizontal(0, 0.500000)
+neghip.AssignView(1, renderView1)
+neghip.SplitVertical(2, 0.600000)
+neghip.AssignView(5, renderView2)
+neghip.AssignView(6, spreadSheetView1)
+neghip.SetSize(657, 801)
+
+# ----------------------------------------------------------------
+# restore active view
+SetActiveView(renderView1)
+# ----------------------------------------------------------------
+
+# ----------------------------------------------------------------
+# setup the data processing pipelines
+# ----------------------------------------------------------------
+
+# create a new 'Nrrd Reader'
+neghipnhdr = NrrdReader(registrationName='neghip.nhdr', FileName=os.path.join(data_directory, 'neghip.nhdr'))
+
+# create a new 'Perception Measures'
+perceptionMeasures = PerceptionMeasures(registrationName='Perception Measures', Input=neghipnhdr,
+    SpecFile='')
+perceptionMeasures.Height = 256
+perceptionMeasures.ScalarArray = 'ImageFile'
+perceptionMeasures.SpecJSON = '{"version":1,"background":[0.0,0.0,0.0],"structures":[{"name":"diffuse lobes","range":[40.0,120.0],"importance":0.2,"color":[0.3,0.5,0.9],"edge":0.1,"lighting":{"ambient":0.2,"diffuse":0.8,"specular":0.2,"specular_power":16.0}},{"name":"inner lobes","range":[120.0,200.0],"importance":0.5,"color":[0.3,0.8,0.4],"edge":0.1,"lighting":{"ambient":0.2,"diffuse":0.8,"specular":0.2,"specular_power":16.0}},{"name":"peaks","range":[200.0,255.0],"importance":0.9,"color":[0.95,0.35,0.2],"edge":0.1,"lighting":{"ambient":0.2,"diffuse":0.8,"specular":0.2,"specular_power":16.0}}],"rendering":{"shade":true,"light_direction":[0.0,0.0,1.0],"light_intensity":1.0}}'
+perceptionMeasures.Width = 256
+
+# ----------------------------------------------------------------
+# setup the visualization in view 'renderView1'
+# ----------------------------------------------------------------
+
+# show data from neghipnhdr
+neghipnhdrDisplay = Show(neghipnhdr, renderView1, 'UniformGridRepresentation')
+
+# get 2D transfer function for 'ImageFile'
+imageFileTF2D = GetTransferFunction2D('ImageFile')
+imageFileTF2D.ScalarRangeInitialized = 1
+imageFileTF2D.Range = [0.0, 255.0, 0.0, 1.0]
+
+# get color transfer function/color map for 'ImageFile'
+imageFileLUT = GetColorTransferFunction('ImageFile')
+imageFileLUT.AutomaticRescaleRangeMode = 'Never'
+imageFileLUT.TransferFunction2D = imageFileTF2D
+imageFileLUT.RGBPoints = [40.008, 0.3, 0.5, 0.9, 119.992, 0.3, 0.5, 0.9, 120.008, 0.3, 0.8, 0.4, 199.992, 0.3, 0.8, 0.4, 200.0055, 0.95, 0.35, 0.2, 254.9945, 0.95, 0.35, 0.2]
+imageFileLUT.ColorSpace = 'RGB'
+imageFileLUT.ScalarRangeInitialized = 1.0
+
+# get opacity transfer function/opacity map for 'ImageFile'
+imageFilePWF = GetOpacityTransferFunction('ImageFile')
+imageFilePWF.Points = [40.0, 0.0, 0.5, 0.0, 48.0, 0.2, 0.5, 0.0, 112.0, 0.2, 0.5, 0.0, 120.0, 0.0, 0.5, 0.0, 128.0, 0.5, 0.5, 0.0, 192.0, 0.5, 0.5, 0.0, 200.0, 0.0, 0.5, 0.0, 205.5, 0.9, 0.5, 0.0, 249.5, 0.9, 0.5, 0.0, 255.0, 0.0, 0.5, 0.0]
+imageFilePWF.ScalarRangeInitialized = 1
+
+# trace defaults for the display properties.
+neghipnhdrDisplay.Representation = 'Volume'
+neghipnhdrDisplay.ColorArrayName = ['POINTS', 'ImageFile']
+neghipnhdrDisplay.LookupTable = imageFileLUT
+neghipnhdrDisplay.Specular = 0.2
+neghipnhdrDisplay.SpecularPower = 16.0
+neghipnhdrDisplay.Ambient = 0.2
+neghipnhdrDisplay.Diffuse = 0.8
+neghipnhdrDisplay.SelectTCoordArray = 'None'
+neghipnhdrDisplay.SelectNormalArray = 'None'
+neghipnhdrDisplay.SelectTangentArray = 'None'
+neghipnhdrDisplay.OSPRayScaleArray = 'ImageFile'
+neghipnhdrDisplay.OSPRayScaleFunction = 'PiecewiseFunction'
+neghipnhdrDisplay.SelectOrientationVectors = 'None'
+neghipnhdrDisplay.ScaleFactor = 6.300000000000001
+neghipnhdrDisplay.SelectScaleArray = 'ImageFile'
+neghipnhdrDisplay.GlyphType = 'Arrow'
+neghipnhdrDisplay.GlyphTableIndexArray = 'ImageFile'
+neghipnhdrDisplay.GaussianRadius = 0.315
+neghipnhdrDisplay.SetScaleArray = ['POINTS', 'ImageFile']
+neghipnhdrDisplay.ScaleTransferFunction = 'PiecewiseFunction'
+neghipnhdrDisplay.OpacityArray = ['POINTS', 'ImageFile']
+neghipnhdrDisplay.OpacityTransferFunction = 'PiecewiseFunction'
+neghipnhdrDisplay.DataAxesGrid = 'GridAxesRepresentation'
+neghipnhdrDisplay.PolarAxes = 'PolarAxesRepresentation'
+neghipnhdrDisplay.ScalarOpacityFunction = imageFilePWF
+neghipnhdrDisplay.TransferFunction2D = imageFileTF2D
+neghipnhdrDisplay.OpacityArrayName = ['POINTS', 'ImageFile']
+neghipnhdrDisplay.ColorArray2Name = ['POINTS', 'ImageFile']
+neghipnhdrDisplay.VolumeRenderingMode = 'Ray Cast Only'
+neghipnhdrDisplay.Shade = 1
+neghipnhdrDisplay.IsosurfaceValues = [127.5]
+neghipnhdrDisplay.SliceFunction = 'Plane'
+neghipnhdrDisplay.Slice = 31
+neghipnhdrDisplay.SelectInputVectors = [None, '']
+neghipnhdrDisplay.WriteLog = ''
+
+# init the 'PiecewiseFunction' selected for 'ScaleTransferFunction'
+neghipnhdrDisplay.ScaleTransferFunction.Points = [0.0, 0.0, 0.5, 0.0, 255.0, 1.0, 0.5, 0.0]
+
+# init the 'PiecewiseFunction' selected for 'OpacityTransferFunction'
+neghipnhdrDisplay.OpacityTransferFunction.Points = [0.0, 0.0, 0.5, 0.0, 255.0, 1.0, 0.5, 0.0]
+
+# init the 'Plane' selected for 'SliceFunction'
+neghipnhdrDisplay.SliceFunction.Origin = [31.5, 31.5, 31.5]
+
+# ----------------------------------------------------------------
+# setup the visualization in view 'renderView2'
+# ----------------------------------------------------------------
+
+# show data from perceptionMeasures
+perceptionMeasuresDisplay = Show(perceptionMeasures, renderView2, 'UniformGridRepresentation')
+
+# get 2D transfer function for 'rgba'
+rgbaTF2D = GetTransferFunction2D('rgba')
+rgbaTF2D.ScalarRangeInitialized = 1
+rgbaTF2D.Range = [0.0, 1.5816149784506854, 0.0, 1.0]
+
+# get color transfer function/color map for 'rgba'
+rgbaLUT = GetColorTransferFunction('rgba')
+rgbaLUT.TransferFunction2D = rgbaTF2D
+rgbaLUT.RGBPoints = [0.0, 0.231373, 0.298039, 0.752941, 0.7908074892253427, 0.865003, 0.865003, 0.865003, 1.5816149784506854, 0.705882, 0.0156863, 0.14902]
+rgbaLUT.ScalarRangeInitialized = 1.0
+
+# get opacity transfer function/opacity map for 'rgba'
+rgbaPWF = GetOpacityTransferFunction('rgba')
+rgbaPWF.Points = [0.0, 0.0, 0.5, 0.0, 1.5816149784506854, 1.0, 0.5, 0.0]
+rgbaPWF.ScalarRangeInitialized = 1
+
+# trace defaults for the display properties.
+perceptionMeasuresDisplay.Representation = 'Slice'
+perceptionMeasuresDisplay.ColorArrayName = ['POINTS', 'rgba']
+perceptionMeasuresDisplay.LookupTable = rgbaLUT
+perceptionMeasuresDisplay.MapScalars = 0
+perceptionMeasuresDisplay.SelectTCoordArray = 'None'
+perceptionMeasuresDisplay.SelectNormalArray = 'None'
+perceptionMeasuresDisplay.SelectTangentArray = 'None'
+perceptionMeasuresDisplay.OSPRayScaleArray = 'rgba'
+perceptionMeasuresDisplay.OSPRayScaleFunction = 'PiecewiseFunction'
+perceptionMeasuresDisplay.SelectOrientationVectors = 'None'
+perceptionMeasuresDisplay.ScaleFactor = 25.5
+perceptionMeasuresDisplay.SelectScaleArray = 'None'
+perceptionMeasuresDisplay.GlyphType = 'Arrow'
+perceptionMeasuresDisplay.GlyphTableIndexArray = 'rgba'
+perceptionMeasuresDisplay.GaussianRadius = 1.2750000000000001
+perceptionMeasuresDisplay.SetScaleArray = ['POINTS', 'rgba']
+perceptionMeasuresDisplay.ScaleTransferFunction = 'PiecewiseFunction'
+perceptionMeasuresDisplay.OpacityArray = ['POINTS', 'rgba']
+perceptionMeasuresDisplay.OpacityTransferFunction = 'PiecewiseFunction'
+perceptionMeasuresDisplay.DataAxesGrid = 'GridAxesRepresentation'
+perceptionMeasuresDisplay.PolarAxes = 'PolarAxesRepresentation'
+perceptionMeasuresDisplay.ScalarOpacityUnitDistance = 8.967988815980597
+perceptionMeasuresDisplay.ScalarOpacityFunction = rgbaPWF
+perceptionMeasuresDisplay.TransferFunction2D = rgbaTF2D
+perceptionMeasuresDisplay.OpacityArrayName = ['POINTS', 'rgba']
+perceptionMeasuresDisplay.ColorArray2Name = ['POINTS', 'rgba']
+perceptionMeasuresDisplay.IsosurfaceValues = [0.3975493609905243]
+perceptionMeasuresDisplay.SliceFunction = 'Plane'
+perceptionMeasuresDisplay.SelectInputVectors = [None, '']
+perceptionMeasuresDisplay.WriteLog = ''
+
+# init the 'PiecewiseFunction' selected for 'ScaleTransferFunction'
+perceptionMeasuresDisplay.ScaleTransferFunction.Points = [0.0, 0.0, 0.5, 0.0, 0.7950987219810486, 1.0, 0.5, 0.0]
+
+# init the 'PiecewiseFunction' selected for 'OpacityTransferFunction'
+perceptionMeasuresDisplay.OpacityTransferFunction.Points = [0.0, 0.0, 0.5, 0.0, 0.7950987219810486, 1.0, 0.5, 0.0]
+
+# init the 'Plane' selected for 'SliceFunction'
+perceptionMeasuresDisplay.SliceFunction.Origin = [127.5, 127.5, 0.0]
+
+# ----------------------------------------------------------------
+# setup the visualization in view 'spreadSheetView1'
+# ----------------------------------------------------------------
+
+# show data from perceptionMeasures
+perceptionMeasuresDisplay_1 = Show(perceptionMeasures, spreadSheetView1, 'SpreadSheetRepresentation')
+
+# trace defaults for the display properties.
+perceptionMeasuresDisplay_1.Assembly = ''
+
+# ----------------------------------------------------------------
+# setup color maps and opacity mapes used in the visualization
+# note: the Get..() functions create a new object, if needed
+# ----------------------------------------------------------------
+
+# ----------------------------------------------------------------
+# restore active source
+SetActiveSource(perceptionMeasures)
+# ----------------------------------------------------------------
