@@ -10,7 +10,14 @@ sampled again).  With a region mask, only the masked rays count:
 * ``E_t``: the area-weighted mean ``delta_t`` over the non-empty sub-regions that intersect the
   mask, each weighted by its area *inside* the mask;
 * ``coverage``: mean accumulated opacity over the masked rays that carry assigned opacity (a
-  set that does not depend on the parameters), used to forbid "winning by fading".
+  set that does not depend on the parameters), used to forbid "winning by fading";
+* ``luminance``: (K,) mean image luminance over each structure's **footprint**, weighted by
+  its visible opacity (``sum visible_i Y / sum visible_i``), used to forbid "winning by
+  darkening" in the lighting stage.
+
+``terms(params, need=("E_v",))`` computes only the named measures (``E_v``, ``coverage`` and
+``luminance`` always, they are cheap; the others are ``nan``): the stages' cheap objectives
+for the finite-difference gradients.  The transparency measure is by far the most expensive term.
 
 A visibility target ``t`` of structure ``s`` replaces its assigned share by ``t`` on the rays
 where it is present; the other structures' shares are rescaled to fill ``1 - t`` (and all are
@@ -27,6 +34,7 @@ import numpy as np
 
 from dvr_perception.errors import DVRWarning
 from dvr_perception.measures import shape, transparency
+from dvr_perception.measures.luminance import LUMA_WEIGHTS
 from dvr_perception.rays.engine import reevaluate
 from dvr_perception.structures.spec import Lighting, StructureSpec
 
@@ -132,6 +140,7 @@ class Problem:
             ),
         )
         self.nfev = 0
+        self._fixed = {}  # (view, whole) -> what does not depend on the parameters
 
     def present(self) -> np.ndarray:
         """(K,) bool: structures met by some masked ray of some view."""
@@ -162,26 +171,41 @@ class Problem:
             light_direction=params.light,
         )
 
-    def terms(self, params: Params, *, whole: bool = False) -> dict:
-        """Terms ``{E_v, E_s, E_t, E, coverage, visible_share, badness}`` averaged over views.
+    def terms(self, params: Params, *, whole=False, need=TERMS, analyses=None) -> dict:
+        """Terms ``{E_v, E_s, E_t, E, coverage, luminance, visible_share, badness}``.
 
-        ``badness`` maps each term to a (K,) array of per-structure deviations (used by the
-        annealing moves).  ``whole=True`` ignores the region masks.
+        Averaged over the views.  ``badness`` maps each term to a (K,) array of per-structure
+        deviations (used by the annealing moves).  ``whole=True`` ignores the region masks;
+        ``need`` names the measures to compute (the others, and ``E`` unless all three are
+        computed, are ``nan``); ``analyses`` (one per view) are renderings of ``params``
+        already at hand (e.g. from :func:`~dvr_perception.rays.engine.analyze`).
         """
         self.nfev += 1
-        per_view = []
+        per_view, analyses_used = [], []
         for v, mask in enumerate(self.masks):
-            analysis = self.render(params, v)
+            analysis = self.render(params, v) if analyses is None else analyses[v]
+            analyses_used.append(analysis)
             with warnings.catch_warnings():  # float32 rounding notes, once per evaluation
                 warnings.simplefilter("ignore", DVRWarning)
-                per_view.append(self._view_terms(analysis, None if whole else mask))
+                fixed = self._fixed_parts(v, analysis, None if whole else mask, whole)
+                per_view.append(self._view_terms(analysis, fixed, set(need)))
         out = {key: float(np.mean([t[key] for t in per_view])) for key in (*TERMS, "coverage")}
         out["E"] = float(np.dot(self.weights, [out[t] for t in TERMS]))
+        out["luminance"] = np.mean([t["luminance"] for t in per_view], axis=0)
+        if set(need) != set(TERMS):  # keep the renderings: complete() adds the other terms
+            out["_analyses"], out["_whole"] = analyses_used, whole
         out["visible_share"] = {
             n: float(np.mean([t["visible_share"][n] for t in per_view])) for n in self.names
         }
         out["badness"] = {t: np.mean([p["badness"][t] for p in per_view], axis=0) for t in TERMS}
         return out
+
+    def complete(self, params: Params, terms: dict) -> dict:
+        """Return ``terms`` with every measure (from the kept renderings of a partial one)."""
+        if "_analyses" not in terms:
+            return terms
+        self.nfev -= 1  # not a new rendering
+        return self.terms(params, whole=terms["_whole"], analyses=terms["_analyses"])
 
     # -- one view ---------------------------------------------------------------------------
     def _assigned_share(self, analysis) -> np.ndarray:
@@ -203,25 +227,65 @@ class Problem:
         total = out.sum(axis=0)
         return np.where(total > 0, out / np.where(total > 0, total, 1.0), a)
 
-    def _view_terms(self, analysis, mask) -> dict:
-        k = len(self.names)
-        m = np.ones(analysis.accumulated.shape, bool) if mask is None else mask
-        # Eq. 2 exactly as measures.visibility computes it, with the targets' shares
-        v_share = np.clip(np.asarray(analysis.visible_share, float), 0.0, 1.0)
-        a_share = np.clip(self._assigned_share(analysis), 0.0, 1.0)
-        dev_v = np.abs(a_share - v_share).sum(axis=0)
-        rays = (np.asarray(analysis.assigned, float).sum(axis=0) > 0) & m
-        e_v = float(dev_v[rays].mean()) if rays.any() else 0.0
-        acc = np.asarray(analysis.accumulated, float)
-        coverage = float(acc[rays].mean()) if rays.any() else 0.0
-        bits = np.asarray(analysis.present, np.uint64)
-        present = (bits[None] >> np.arange(k, dtype=np.uint64)[:, None, None]) & 1 > 0
-        bad_v = np.zeros(k)
-        for i in range(k):
-            sel = present[i] & rays
-            if sel.any():
-                bad_v[i] = np.abs(a_share[i] - v_share[i])[sel].mean()
+    def _fixed_parts(self, v, analysis, mask, whole) -> dict:
+        """Mask, assigned shares, counted rays and presence of view ``v``, computed once."""
+        key = (v, bool(whole))
+        if key not in self._fixed:
+            k = len(self.names)
+            m = np.ones(analysis.accumulated.shape, bool) if mask is None else mask
+            rays = (np.asarray(analysis.assigned, float).sum(axis=0) > 0) & m
+            bits = np.asarray(analysis.present, np.uint64)[rays]
+            present = (bits[None] >> np.arange(k, dtype=np.uint64)[:, None]) & 1 > 0
+            a_share = np.clip(self._assigned_share(analysis), 0.0, 1.0)
+            self._fixed[key] = {"m": m, "rays": rays, "present": present,
+                                "a_share": a_share[:, rays]}  # fmt: skip
+        return self._fixed[key]
 
+    def _view_terms(self, analysis, fixed, need) -> dict:
+        k = len(self.names)
+        m, rays = fixed["m"], fixed["rays"]
+        # Eq. 2 exactly as measures.visibility computes it, with the targets' shares
+        acc = np.asarray(analysis.accumulated, float)
+        visible = np.asarray(analysis.visible, float)
+        acc_r = acc[rays]
+        v_r = np.clip(
+            np.divide(visible[:, rays], acc_r, out=np.zeros((k, acc_r.size)), where=acc_r > 0),
+            0.0,
+            1.0,
+        ).astype(np.float32)  # as RayAnalysis.visible_share
+        dev = np.abs(fixed["a_share"] - v_r)
+        e_v = float(dev.sum(axis=0).mean()) if acc_r.size else 0.0
+        coverage = float(acc_r.mean()) if acc_r.size else 0.0
+        present = fixed["present"]
+        cnt = present.sum(axis=1)
+        bad_v = np.where(cnt > 0, (dev * present).sum(axis=1) / np.maximum(cnt, 1), 0.0)
+        if "E_s" in need:
+            v_share = np.clip(np.asarray(analysis.visible_share, float), 0.0, 1.0)
+            e_s, bad_s = self._shape(analysis, m, v_share)
+        else:
+            e_s, bad_s = np.nan, np.full(k, np.nan)
+        e_t, bad_t = (self._transparency(analysis, m) if "E_t" in need
+                      else (np.nan, np.full(k, np.nan)))  # fmt: skip
+        acc_sum = float(acc[m].sum())
+        shares = {
+            n: (float(visible[i][m].sum()) / acc_sum if acc_sum > 0 else 0.0)
+            for i, n in enumerate(self.names)
+        }
+        lum = np.asarray(analysis.image, float) @ np.asarray(LUMA_WEIGHTS)
+        vm = visible[:, m]
+        vsum = vm.sum(axis=1)
+        luminance = np.where(vsum > 0, (vm * lum[m]).sum(axis=1) / np.maximum(vsum, 1e-30), 0.0)
+        return {
+            "E_v": e_v,
+            "E_s": e_s,
+            "E_t": float(e_t),
+            "coverage": coverage,
+            "luminance": luminance,
+            "visible_share": shares,
+            "badness": {"E_v": bad_v, "E_s": bad_s, "E_t": bad_t},
+        }
+
+    def _shape(self, analysis, m, v_share):
         sh = shape(analysis, self.eval_spec)
         pix = sh.nonempty & m
         e_s = float(sh.deviation[pix].mean()) if pix.any() else 0.0
@@ -231,7 +295,10 @@ class Problem:
             (wts * sh.deviation[pix]).sum(axis=1) / np.maximum(wts.sum(axis=1), 1e-12),
             0.0,
         )
+        return e_s, bad_s
 
+    def _transparency(self, analysis, m):
+        k = len(self.names)
         tr = transparency(analysis, self.eval_spec, calibration=self.calibration)
         counts = np.bincount(tr.region_id[m].ravel(), minlength=len(tr.regions))
         num = den = 0.0
@@ -250,25 +317,13 @@ class Problem:
                 s_den[i] += area
         e_t = num / den if den > 0 else 0.0
         bad_t = np.where(s_den > 0, s_num / np.maximum(s_den, 1e-12), 0.0)
-
-        acc_sum = float(acc[m].sum())
-        visible = np.asarray(analysis.visible, float)
-        shares = {
-            n: (float(visible[i][m].sum()) / acc_sum if acc_sum > 0 else 0.0)
-            for i, n in enumerate(self.names)
-        }
-        return {
-            "E_v": e_v,
-            "E_s": e_s,
-            "E_t": float(e_t),
-            "coverage": coverage,
-            "visible_share": shares,
-            "badness": {"E_v": bad_v, "E_s": bad_s, "E_t": bad_t},
-        }
+        return e_t, bad_t
 
 
-def public_terms(terms: dict) -> dict:
-    """Return a copy of ``terms`` without the internal ``badness`` arrays."""
-    out = {k: v for k, v in terms.items() if k not in ("badness", "visible_share")}
+def public_terms(terms: dict, names) -> dict:
+    """Return a copy of ``terms`` without the ``badness`` arrays (``luminance`` by name)."""
+    skip = ("badness", "visible_share", "luminance")
+    out = {k: v for k, v in terms.items() if k not in skip and not k.startswith("_")}
     out["visible_share"] = dict(terms["visible_share"])
+    out["luminance"] = {n: float(v) for n, v in zip(names, terms["luminance"], strict=True)}
     return out

@@ -3,16 +3,23 @@
 The stage objective ``f(x) = w' . (E_v, E_s, E_t) + PENALTY * penalty(x)`` is minimised over the
 stage's unbounded vector ``x`` (see :mod:`~dvr_perception.optimize.stages`):
 
-* **gradient**: forward finite differences with step :data:`FD_STEP` (0.01 in logit units);
+* **gradient**: forward finite differences with step :data:`FD_STEP` (0.01 in logit units)
+  of the stage's cheap objective (only the measures in ``Stage.fast``; the others are held at
+  the current point's values).  With more than :data:`FULL_FD` parameters, one difference
+  per parameter **group** (a structure's parameters, the light) along a seeded random
+  +-1 direction within the group (simultaneous perturbation), so a gradient costs one
+  evaluation per group instead of one per parameter;
 * **direction**: Polak-Ribiere+ conjugate direction, preconditioned by the inverse fraction of
   rays on which each parameter's structure is present (small structures have small gradients),
   reset to steepest descent when it is not a descent direction, then bent so that every nearly
   active constraint improves (:func:`_feasible_direction`);
 * **line search**: bounded backtracking (Armijo, ``c = 1e-4``) from a step that moves the largest
   entry by :data:`STEP` logit units, halved at most 6 times, doubled once if the first step
-  already works;
+  already works; trial steps are judged on the cheap objective and only a passing one gets
+  the remaining (expensive) measures, from the same rendering, before it is accepted;
 * **annealing**: after :data:`CG_RUN` successful CG iterations or a failed line search, one
-  simulated-annealing move perturbs the parameter groups (one per structure, plus the light)
+  simulated-annealing move (CG resumes after it unless it was rejected after a failed line
+  search) perturbs the parameter groups (one per structure, plus the light)
   chosen at random; a group's move probability rises with its structure's deviation in the
   stage's lead term and with stalling (lead term improved less than 5 % since the stage
   start), as in the paper's last paragraph of Sec. 5.  Metropolis acceptance at a temperature
@@ -22,7 +29,7 @@ stage's unbounded vector ``x`` (see :mod:`~dvr_perception.optimize.stages`):
 One **iteration** is one CG step or one annealing move.  The best *feasible* point (lowest
 ``(penalty, f)``) is kept, so a stage never returns something worse than its start.  A stage
 has converged when :data:`PATIENCE` iterations in a row improve the best ``f`` by less than
-:data:`FTOL`.
+:data:`FTOL` (relative).
 """
 
 from __future__ import annotations
@@ -39,10 +46,11 @@ from dvr_perception.optimize._problem import TERMS, public_terms
 __all__ = ["run_stage"]
 
 FD_STEP = 1e-2
+FULL_FD = 4  # up to this many parameters: one difference per parameter
 PENALTY = 10.0
 CG_RUN = 4
-PATIENCE = 4
-FTOL = 1e-4
+PATIENCE = 3
+FTOL = 1e-3
 SIGMA = 0.4  # annealing step (logit units)
 STEP = 0.5  # first line-search step: largest parameter change in logit units
 ACTIVE = 5e-3  # constraints closer than this to their bound steer the direction
@@ -76,37 +84,66 @@ class _Run:
         self.w = stage.weights(weights)
         self.nfev = 0
 
-    def point(self, x, params=None, terms=None) -> _Point:
+    def point(self, x, params=None, terms=None, ref=None) -> _Point:
+        """Evaluate ``x``; with ``ref`` only ``stage.fast`` (the rest taken from ``ref``)."""
         if params is None:
             params = self.stage.decode(self.params0, x, self.active)
         if terms is None:
-            terms = self.problem.terms(params)
+            need = TERMS if ref is None else self.stage.fast
+            terms = self.problem.terms(params, need=need)
             self.nfev += 1
+            if ref is not None:
+                for t in TERMS:
+                    if t not in need:
+                        terms[t] = ref.terms[t]
         cons = self.stage.constraints(terms, self.terms0, self.weights)
         pen = float(np.maximum(cons, 0.0).sum())
         smooth = float(np.dot(self.w, [terms[t] for t in TERMS]))
         return _Point(np.array(x, float), smooth + PENALTY * pen, pen, terms, params, smooth, cons)
 
-    def gradient(self, p: _Point) -> tuple[np.ndarray, np.ndarray]:
-        """Forward-difference gradient of the smooth objective and Jacobian of the constraints."""
-        g = np.empty_like(p.x)
-        jac = np.empty((p.cons.size, p.x.size))
-        for i in range(p.x.size):
-            x = p.x.copy()
-            x[i] += FD_STEP
-            q = self.point(x)
-            g[i] = (q.smooth - p.smooth) / FD_STEP
-            jac[:, i] = (q.cons - p.cons) / FD_STEP
+    def gradient(self, p: _Point, groups) -> tuple[np.ndarray, np.ndarray]:
+        """Forward-difference gradient of the smooth objective and Jacobian of the constraints.
+
+        One difference per parameter, or per group along a random +-1 direction when there
+        are more than :data:`FULL_FD` parameters (see the module docstring).
+        """
+        g = np.zeros_like(p.x)
+        jac = np.zeros((p.cons.size, p.x.size))
+        if p.x.size <= FULL_FD:
+            dirs = list(np.eye(p.x.size))
+        else:
+            sign = self.rng.choice([-1.0, 1.0], p.x.size)
+            dirs = [np.where(groups == k, sign, 0.0) for k in np.unique(groups)]
+        for v in dirs:
+            q = self.point(p.x + FD_STEP * v, ref=p)
+            g += v * (q.smooth - p.smooth) / FD_STEP
+            jac += np.outer((q.cons - p.cons) / FD_STEP, v)
         return g, jac
 
+    def full(self, q: _Point) -> _Point:
+        """``q`` with every measure (``q`` itself when it has them)."""
+        if "_analyses" not in q.terms:
+            return q
+        return self.point(q.x, params=q.params, terms=self.problem.complete(q.params, q.terms))
+
     def line_search(self, p: _Point, g: np.ndarray, d: np.ndarray) -> _Point | None:
+        """Backtracking on the cheap objective; a passing step is then checked on all terms."""
         slope = float(g @ d)
         alpha = STEP / max(float(np.max(np.abs(d))), 1e-12)
+
+        def ok(q, a):
+            return q.f <= p.f + 1e-4 * a * slope and q.f < p.f and q.pen <= p.pen + 1e-12
+
         for tries in range(7):
-            q = self.point(p.x + alpha * d)
-            if q.f <= p.f + 1e-4 * alpha * slope and q.f < p.f and q.pen <= p.pen + 1e-12:
-                r = self.point(p.x + 2.0 * alpha * d) if tries == 0 else None
-                return r if r is not None and r.f < q.f and r.pen <= q.pen + 1e-12 else q
+            q = self.point(p.x + alpha * d, ref=p)
+            if ok(q, alpha) and ok(q := self.full(q), alpha):
+                if tries == 0:
+                    r = self.point(p.x + 2.0 * alpha * d, ref=p)
+                    if r.f < q.f and r.pen <= q.pen + 1e-12:
+                        r = self.full(r)
+                        if r.f < q.f and r.pen <= q.pen + 1e-12:
+                            return r
+                return q
             alpha *= 0.5
         return None
 
@@ -185,12 +222,13 @@ def run_stage(stage, problem, params0, terms0, active, *, weights, rng, max_iter
     info = {"iterations": 0, "converged": x0.size == 0, "stopped": False}
     if x0.size:
         cur, d, g_prev, z_prev, mode, run_len, quiet = start, None, None, None, "cg", 0, 0
+        stuck = False  # the line search failed at ``cur``: only annealing can move on
         temperature = 0.05 * max(abs(start.f), 1e-2)
         lead0 = terms0[stage.lead]
         for it in range(1, max_iter + 1):
             prev_best = best.f
             if mode == "cg":
-                g, jac = run.gradient(cur)
+                g, jac = run.gradient(cur, groups)
                 z = precond * g
                 if d is None or g_prev is None:
                     d = -z
@@ -203,7 +241,7 @@ def run_stage(stage, problem, params0, terms0, active, *, weights, rng, max_iter
                 new = None if d is None else run.line_search(cur, g, d)
                 kind = "cg"
                 if new is None:
-                    mode, d, g_prev = "anneal", None, None
+                    mode, d, g_prev, stuck = "anneal", None, None, True
                 else:
                     cur, g_prev, z_prev, run_len = new, g, z, run_len + 1
                     if run_len >= CG_RUN:
@@ -213,15 +251,15 @@ def run_stage(stage, problem, params0, terms0, active, *, weights, rng, max_iter
                 new = run.anneal(cur, groups, group_structures, temperature, stalled)
                 kind = "anneal" + ("" if new is not cur else " (rejected)")
                 temperature *= 0.7
-                if new is not cur:
-                    mode, d, g_prev, run_len = "cg", None, None, 0
+                if new is not cur or not stuck:
+                    mode, d, g_prev, run_len, stuck = "cg", None, None, 0, False
                 cur = new
             if cur.key() < best.key():
                 if best.pen == 0.0 or best is start:
                     snapshots.append(best)
                 best = cur
-            quiet = quiet + 1 if prev_best - best.f < FTOL else 0
-            entry = public_terms(cur.terms)
+            quiet = quiet + 1 if prev_best - best.f < FTOL * max(abs(prev_best), 1e-3) else 0
+            entry = public_terms(cur.terms, problem.names)
             entry.update(iteration=it, kind=kind, f=cur.f, penalty=cur.pen, best_f=best.f)
             history.append(entry)
             info["iterations"] = it

@@ -27,8 +27,12 @@ from dvr_perception.volume.volume import Volume
 
 __all__ = ["DEFAULT_RESOLUTION", "optimize"]
 
+#: Slack of the re-check of the stages' guards at the user's resolution (the optimisation
+#: resolution's coverage differs from the user's by this order).
+GUARD_SLACK = 0.01
+
 #: Long side, in pixels, of the camera the optimiser evaluates on (when ``resolution=None``).
-DEFAULT_RESOLUTION = 192
+DEFAULT_RESOLUTION = 96
 
 
 def _check(volume, spec, camera, stages, weights, cameras, region, calibration, seed, callback,
@@ -91,9 +95,8 @@ def _reduced(camera: Camera, resolution: int) -> Camera:
     return camera.with_size(max(8, round(camera.width * s)), max(8, round(camera.height * s)))
 
 
-def _report(problem: Problem, params: Params, region: bool) -> dict:
-    terms = problem.terms(params)
-    out = public_terms(terms)
+def _report(problem: Problem, params: Params, region: bool, terms: dict) -> dict:
+    out = public_terms(terms, problem.names)
     whole = problem.terms(params, whole=True) if region else terms
     out["whole"] = {k: whole[k] for k in ("E_v", "E_s", "E_t", "E")}
     return out
@@ -112,10 +115,11 @@ def optimize(
     cameras=None,
     seed=0,
     callback=None,
-    max_iter=10,
+    max_iter=5,
     resolution=None,
     opacity_floor=None,
     allow_hue=False,
+    curvature=None,
 ) -> OptimizationResult:
     """Optimise opacity, lighting and colour of ``spec`` for a readable rendering (Eq. 12-15).
 
@@ -124,9 +128,12 @@ def optimize(
     computes the three measures.  The stages run in the given order, each over its own
     parameters (:mod:`~dvr_perception.optimize.stages`), with conjugate gradients and annealing
     (:mod:`~dvr_perception.optimize._solver`).  Evaluations use a camera whose long side is
-    ``resolution`` pixels (default :data:`DEFAULT_RESOLUTION`, 192: "sampling the image");
-    every stage's result is then checked at the user's resolution and undone if it breaks the
-    stage's constraints there, so ``final["E"] <= initial["E"]``.
+    ``resolution`` pixels (default :data:`DEFAULT_RESOLUTION`, 96: "sampling the image"; an
+    evaluation there costs a few hundredths of a second).  The result is then checked at the
+    user's resolution: the last stages are undone until ``E`` has not risen and the re-checked
+    guards (the opacity stage's coverage, within :data:`GUARD_SLACK`) hold, so
+    ``final["E"] <= initial["E"]``.  Only the initial and final terms are computed at the
+    user's resolution (the stage records hold the optimisation resolution's terms).
 
     Parameters
     ----------
@@ -161,9 +168,14 @@ def optimize(
         Long side of the optimisation camera (never above the user's).
     opacity_floor : float, optional
         Minimum mean accumulated opacity over the non-empty rays in the opacity stage
-        (default: its starting value).
+        (default: 80 % of its starting value; pass the starting ``coverage`` to forbid any
+        loss).
     allow_hue : bool
         Let the colour stage change hue (default: saturation and value only).
+    curvature : ndarray, optional
+        The curvature volume of ``volume`` and ``spec``
+        (:func:`~dvr_perception.rays.curvature.curvature_volume`), when already computed
+        (it does not depend on the optimised parameters; computed when not given).
 
     Returns
     -------
@@ -190,30 +202,38 @@ def optimize(
     mask = parse_region(region, camera.height, camera.width)
     views = [camera, *(cameras or [])]
     res = DEFAULT_RESOLUTION if resolution is None else int(resolution)
-    curvature, _ = curvature_volume(volume, spec)
-    full_caches, opt_caches, opt_masks = [], [], []
+    if curvature is None:
+        curvature, _ = curvature_volume(volume, spec)
+    full_analyses, opt_analyses, opt_masks = [], [], []
     for cam in views:
         small = _reduced(cam, res)
-        full = analyze(volume, spec, cam, curvature=curvature).cache
-        full_caches.append(full)
-        opt_caches.append(
-            full if small is cam else analyze(volume, spec, small, curvature=curvature).cache
-        )
+        full = analyze(volume, spec, cam, curvature=curvature)
+        full_analyses.append(full)
+        opt_analyses.append(full if small is cam else analyze(volume, spec, small,
+                                                              curvature=curvature))  # fmt: skip
         opt_masks.append(None if mask is None else resample_mask(mask, small.height, small.width))
     full_masks = [mask] + [None] * (len(views) - 1)
-    full_problem = Problem(full_caches, full_masks, spec, w, goals, calibration)
-    same = all(a is b for a, b in zip(full_caches, opt_caches, strict=True))
-    problem = full_problem if same else Problem(opt_caches, opt_masks, spec, w, goals, calibration)
+    full_problem = Problem([a.cache for a in full_analyses], full_masks, spec, w, goals,
+                           calibration)  # fmt: skip
+    same = all(a is b for a, b in zip(full_analyses, opt_analyses, strict=True))
+    problem = full_problem
+    if not same:
+        caches = [a.cache for a in opt_analyses]
+        problem = Problem(caches, opt_masks, spec, w, goals, calibration)
 
     params = Params.from_spec(spec)
-    initial = _report(full_problem, params, mask is not None)
+    names = spec.names
+    full0 = full_problem.terms(params, analyses=full_analyses)
+    initial = _report(full_problem, params, mask is not None, full0)
+    terms = full0 if same else problem.terms(params, analyses=opt_analyses)
     active = problem.present()
     rng = np.random.default_rng(int(seed))
-    records, nit, status = [], 0, 0
-    full_terms = full_problem.terms(params)
+    done, nit, status, lum_ref = [], 0, 0, None
     for name in stages:
         stage = STAGES[name](allow_hue=allow_hue, opacity_floor=opacity_floor)
-        terms0 = full_terms if same else problem.terms(params)
+        if stage.brightened:
+            lum_ref = terms if lum_ref is None else lum_ref
+            stage.reference = lum_ref
 
         def notify(it, cur, best, _name=name):
             nonlocal nit
@@ -225,51 +245,41 @@ def optimize(
                         iteration=it,
                         nit=nit,
                         nfev=problem.nfev + (0 if same else full_problem.nfev),
-                        terms=public_terms(cur.terms),
-                        best_terms=public_terms(best.terms),
+                        terms=public_terms(cur.terms, names),
+                        best_terms=public_terms(best.terms, names),
                         spec=cur.params.to_spec(spec),
                     )
                 )
 
         best, snapshots, info = run_stage(
-            stage, problem, params, terms0, active, weights=w, rng=rng, max_iter=int(max_iter),
+            stage, problem, params, terms, active, weights=w, rng=rng, max_iter=int(max_iter),
             notify=notify,
         )  # fmt: skip
-        chosen, new_terms = _accept(
-            stage, full_problem, params, full_terms, best, snapshots, w, same
-        )
-        accepted = chosen is not None or best.params is params
-        if chosen is not None:
-            message = "improved"
-        elif accepted:
-            message = "no feasible improvement found; parameters unchanged"
-        else:
-            message = "rejected at the user's resolution (constraints broken); parameters unchanged"
-        if chosen is None:
-            chosen, new_terms = params, full_terms
-        records.append(
-            StageRecord(
-                name=name,
-                params_before=stage.describe(params, spec.names),
-                params_after=stage.describe(chosen, spec.names),
-                terms_before=public_terms(full_terms),
-                terms_after=public_terms(new_terms),
-                iterations=info["iterations"],
-                evaluations=info["evaluations"],
-                seconds=info["seconds"],
-                history=info["history"],
-                converged=info["converged"],
-                accepted=accepted,
-                message=message,
-            )
-        )
-        params, full_terms = chosen, new_terms
+        chosen = _pick(params, terms, best, snapshots)
+        after = terms if chosen is None else chosen.terms
+        done.append((stage, info, params, terms, chosen, after))
+        params, terms = (params, terms) if chosen is None else (chosen.params, chosen.terms)
         if info["stopped"]:
             status = 1
             break
         if not info["converged"]:
             status = 2
-    final = _report(full_problem, params, mask is not None)
+    # the hard check at the user's resolution: undo the last stages until E and guards hold
+    kept, final_terms = len(done), full0
+    while kept:
+        stage, _, _, _, chosen, after = done[kept - 1]
+        if chosen is not None:
+            t = after if same else full_problem.terms(chosen.params)
+            if t["E"] <= full0["E"] + 1e-12 and all(
+                np.all(st.guards(t, full0) <= GUARD_SLACK) for st, *_ in done[:kept] if st.recheck
+            ):
+                params, final_terms = chosen.params, t
+                break
+        kept -= 1
+    else:
+        params = Params.from_spec(spec)
+    records = [_record(d, names, spec, i < kept) for i, d in enumerate(done)]
+    final = _report(full_problem, params, mask is not None, final_terms)
     nfev = problem.nfev + (0 if same else full_problem.nfev)
     return OptimizationResult(
         spec=params.to_spec(spec),
@@ -285,17 +295,35 @@ def optimize(
     )
 
 
-def _accept(stage, full_problem, params, full_terms, best, snapshots, weights, same):
-    """Pick the newest best point of a stage that also passes at the user's resolution.
-
-    Returns ``(params, terms)`` or ``(None, None)`` when none improves on the start.
-    """
-    base = stage.penalty(full_terms, full_terms, weights)
+def _pick(params, terms, best, snapshots):
+    """Return the newest best point of a stage whose weighted ``E`` has not risen (or None)."""
     for point in [best, *reversed(snapshots[-3:])]:
         if point.params is params or point.params.same(params):
-            break
-        terms = point.terms if same else full_problem.terms(point.params)
-        pen = stage.penalty(terms, full_terms, weights)
-        if pen <= base + 1e-12 and terms["E"] <= full_terms["E"] + 1e-12:
-            return point.params, terms
-    return None, None
+            return None
+        if point.terms["E"] <= terms["E"] + 1e-12:
+            return point
+    return None
+
+
+def _record(entry, names, spec, kept) -> StageRecord:
+    stage, info, before, t_before, chosen, t_after = entry
+    if chosen is None:
+        message = "no feasible improvement found; parameters unchanged"
+    elif kept:
+        message = "improved"
+    else:
+        message = "undone: E or a guard broken at the user's resolution"
+    return StageRecord(
+        name=stage.name,
+        params_before=stage.describe(before, names),
+        params_after=stage.describe(chosen.params if chosen is not None else before, names),
+        terms_before=public_terms(t_before, names),
+        terms_after=public_terms(t_after, names),
+        iterations=info["iterations"],
+        evaluations=info["evaluations"],
+        seconds=info["seconds"],
+        history=info["history"],
+        converged=info["converged"],
+        accepted=chosen is None or kept,
+        message=message,
+    )

@@ -62,7 +62,9 @@ class StageRecord:
     params_before, params_after : dict
         The stage's parameters (see ``Stage.describe``) before and after.
     terms_before, terms_after : dict
-        Terms at the user's resolution before and after the stage.
+        Terms before and after the stage at the optimisation resolution (the user's when it
+        is not above ``resolution``); also ``luminance`` (``{structure: mean footprint
+        luminance}``).
     iterations, evaluations : int
         Iterations (CG steps and annealing moves) and objective evaluations.
     seconds : float
@@ -74,8 +76,8 @@ class StageRecord:
     converged : bool
         Whether the stage converged (rather than hitting ``max_iter`` or being stopped).
     accepted : bool
-        False when the stage's result failed the check at the user's resolution and the stage
-        was undone (its parameters are then unchanged).
+        False when the result failed the final check at the user's resolution and this stage
+        was undone (``params_after`` is then what the stage had found, not what was kept).
     message : str
     """
 

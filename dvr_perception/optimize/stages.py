@@ -8,11 +8,14 @@ of Eq. 12:
 stage         parameters (bounds)                                          leads
 ============  ===========================================================  =========
 ``opacity``   rendering opacity per structure ([0.01, 1])                  ``E_v``
-``lighting``  ambient, diffuse, specular ([0, 1]) and specular power       ``E_s``
-              ([1, 128], log scale) per structure; light azimuth and
-              elevation in camera coordinates ([-75, 75] degrees each)
-``colour``    HSV saturation ([0, 1]) and value ([0.05, 1]) per            ``E_t``
-              structure; hue too with ``allow_hue`` (periodic)
+``lighting``  per structure: ambient ([0.05, 0.4]; diffuse = start         ``E_s``
+              ambient+diffuse - ambient, in [0.4, 1]), specular
+              ([0, 0.8]), specular power ([2, 96], log scale); one light
+              direction within ~39 degrees of the headlight; brightness
+              guard (see :class:`LightingStage`)
+``colour``    HSV saturation (>= 50 % of its start) and value              ``E_t``
+              (>= 60 % of its start, >= 0.05) per structure; hue
+              too with ``allow_hue`` (periodic)
 ============  ===========================================================  =========
 
 Inside a stage the solver minimises ``w_v E_v + w_s E_s + w_t E_t`` with the **lead** term's
@@ -23,13 +26,15 @@ parameter set is **feasible** for the stage when, compared with the stage's star
 * every other term with a non-zero weight has risen by at most :attr:`Stage.tolerance` (0.05
   absolute; the measures are region-based and jump by a few hundredths under small changes,
   so 0.02 blocked nearly every step on the phantom), and
-* (``opacity`` only) the mean accumulated opacity over the non-empty rays (``coverage``) is at
-  least its starting value, or ``opacity_floor`` when given: no winning by fading.
+* the stage's :meth:`Stage.guards` hold: (``opacity``) the mean accumulated opacity over the
+  non-empty rays (``coverage``) is at least 80 % of its starting value, or ``opacity_floor``
+  when given: no winning by fading; (``lighting``, ``colour``) every structure's footprint
+  luminance keeps >= 80 % of its value before the first of them: no winning by darkening.
 
 Infeasibility is a penalty inside the search and a hard rule for the kept result; in addition
-:func:`~dvr_perception.optimize.optimize` keeps a stage's result only if the user-weighted ``E``
-has not risen at the user's resolution (else it falls back to an earlier best point or undoes
-the stage).  New stages
+:func:`~dvr_perception.optimize.optimize` keeps the result only if, at the user's resolution,
+the user-weighted ``E`` has not risen and every stage's guards hold (else it undoes the last
+stages).  :attr:`Stage.fast` names the measures the gradient evaluations compute.  New stages
 subclass :class:`Stage` and are added with :func:`register_stage`.
 """
 
@@ -73,13 +78,25 @@ class Stage:
     allow_hue : bool
         Whether colour stages may change hue.
     opacity_floor : float or None
-        Lowest allowed coverage for stages that change opacity (``None``: the starting value).
+        Lowest allowed coverage for stages that change opacity (``None``: 80 % of the
+        starting value, see :meth:`OpacityStage.guards`).
     """
 
     name = "stage"
     lead = "E_v"
     boost = 3.0
     tolerance = 0.05
+    #: Measures computed by the finite-difference gradient evaluations (the others are taken
+    #: as constant there); line-search and annealing points compute all three.
+    fast = ("E_v", "E_s", "E_t")
+    #: Whether :meth:`guards` are re-checked on the final result at the user's resolution,
+    #: relative to the start of the whole optimisation (valid only for guards that no other
+    #: stage affects, such as the opacity stage's coverage).
+    recheck = False
+    #: Whether the stage keeps the brightness guard (:meth:`brightness_guards`), its share.
+    brightened = False
+    BRIGHTNESS = 0.8
+    reference = None
 
     def __init__(self, *, allow_hue: bool = False, opacity_floor: float | None = None) -> None:
         self.allow_hue = bool(allow_hue)
@@ -119,6 +136,24 @@ class Stage:
                 out.append(terms[t] - start[t] - self.tolerance)
         return np.array(out, float)
 
+    def guards(self, terms: dict, start: dict) -> np.ndarray:
+        """Hard rules of the stage relative to ``start`` (feasible where all <= 0; none here)."""
+        return np.zeros(0)
+
+    def brightness_guards(self, terms: dict, start: dict) -> np.ndarray:
+        """No winning by darkening: ``(cutoff - luminance) / reference`` per lit structure.
+
+        ``cutoff = min(BRIGHTNESS * reference, start)`` with ``reference`` the footprint
+        luminance in :attr:`reference` (the terms before the first brightness-guarded stage,
+        set by :func:`~dvr_perception.optimize.optimize`; ``start`` when unset), so the
+        lighting and colour stages together keep >= :attr:`BRIGHTNESS` of it.
+        """
+        ref = np.asarray((start if self.reference is None else self.reference)["luminance"])
+        lum0 = np.asarray(start["luminance"], float)
+        on = (ref > 1e-3) & (lum0 > 1e-3)
+        cutoff = np.minimum(self.BRIGHTNESS * ref[on], lum0[on])
+        return (cutoff - np.asarray(terms["luminance"], float)[on]) / ref[on]
+
     def penalty(self, terms: dict, start: dict, weights: np.ndarray) -> float:
         """Sum of the constraint violations (0 = feasible)."""
         return float(np.maximum(self.constraints(terms, start, weights), 0.0).sum())
@@ -129,6 +164,9 @@ class OpacityStage(Stage):
 
     name, lead = "opacity", "E_v"
     bounds = (0.01, 1.0)
+    fast = ("E_v", "E_s")  # cheap; E_t (transparency, expensive) checked at line-search points
+    recheck = True
+    COVERAGE_KEEP = 0.8
 
     def encode(self, params, active):  # noqa: D102 (see Stage)
         idx = np.flatnonzero(active)
@@ -142,37 +180,80 @@ class OpacityStage(Stage):
     def describe(self, params, names):  # noqa: D102
         return {"opacity": {n: float(o) for n, o in zip(names, params.opacities, strict=True)}}
 
+    def guards(self, terms, start):
+        """``floor - coverage`` (no winning by fading).
+
+        The default floor is :attr:`COVERAGE_KEEP` (80 %) of the starting coverage, not all
+        of it: making an outer structure semi-transparent to show an inner one (what the
+        visibility measure asks for) lowers the accumulated opacity on the rays that meet only
+        the outer structure; at 100 % a two-structure skin/bone head cannot move at all.
+        """
+        keep = self.COVERAGE_KEEP * start["coverage"]
+        floor = keep if self.opacity_floor is None else self.opacity_floor
+        return np.array([floor - terms["coverage"]])
+
     def constraints(self, terms, start, weights):
-        """Return the base constraints plus ``floor - coverage`` (no winning by fading)."""
-        floor = start["coverage"] if self.opacity_floor is None else self.opacity_floor
-        return np.append(super().constraints(terms, start, weights), floor - terms["coverage"])
+        """Return the base constraints plus :meth:`guards`."""
+        return np.append(super().constraints(terms, start, weights), self.guards(terms, start))
 
 
 class LightingStage(Stage):
-    """Stage 2: per-structure Phong material and the light direction; leads the shape ``E_s``."""
+    """Stage 2: per-structure Phong material and the light direction; leads the shape ``E_s``.
+
+    The shape measure alone rewards flat or dark images (little shading contrast means
+    little deviation from the curvature-predicted cues), so the stage's space is restricted
+    to renderings that keep shading cues and brightness (an earlier free parameterisation
+    raised ambient to 0.6-0.8 on the engine and drove a tumour's ambient to 0.02):
+
+    * **ambient/diffuse split** (one parameter per structure): ``ambient`` in
+      [:attr:`AMBIENT`] and ``diffuse = total - ambient`` clipped to [:attr:`DIFFUSE`], with
+      ``total`` the structure's starting ``ambient + diffuse`` (clipped to [0.45, 1.4]), so
+      the overall reflectance stays, only the amount of directional shading changes;
+    * **specular** in [0, 0.8] and **specular power** in [2, 96] (log scale): the paper's
+      shape cue "a large specular highlight (small specular exponent) on a large smooth
+      surface" stays reachable, a mirror-like pin-point highlight (power 128) does not;
+    * **one shared light direction** within a cone around the headlight: azimuth and elevation
+      in camera coordinates in [-28, 28] degrees each (at most ~39 degrees off the view axis),
+      so the lit side always faces the viewer;
+    * a **brightness guard** (constraint, :meth:`Stage.brightness_guards`, shared with the
+      colour stage): the mean luminance of each structure's footprint (``Problem``
+      ``luminance``) must stay >= :attr:`BRIGHTNESS` (80 %) of its value before lighting.
+
+    That is ``3 K + 2`` parameters (``4 K + 2`` before).  Lighting does not change
+    visibility, so ``E_v`` is constant here; the gradient evaluations compute ``E_s`` only
+    (:attr:`fast`), the transparency term is checked at the line-search points.
+    """
 
     name, lead = "lighting", "E_s"
-    _lo = np.array([0.0, 0.0, 0.0, math.log(1.0)])
-    _hi = np.array([1.0, 1.0, 1.0, math.log(128.0)])
+    fast = ("E_s",)
+    brightened = True
+    AMBIENT = (0.05, 0.4)
+    DIFFUSE = (0.4, 1.0)
+    ANGLE = 28.0
+    _lo = np.array([AMBIENT[0], 0.0, math.log(2.0)])
+    _hi = np.array([AMBIENT[1], 0.8, math.log(96.0)])
 
     def encode(self, params, active):  # noqa: D102 (see Stage)
         idx = np.flatnonzero(active)
-        mat = params.lighting[idx].copy()
-        mat[:, 3] = np.log(np.clip(mat[:, 3], 1.0, 128.0))
+        mat = params.lighting[idx][:, [0, 2, 3]].copy()
+        mat[:, 2] = np.log(np.clip(mat[:, 2], 2.0, 96.0))
         x_mat = _encode(mat, self._lo, self._hi).ravel()
         d = params.light
         angles = np.degrees([math.atan2(d[0], d[2]), math.asin(np.clip(d[1], -1.0, 1.0))])
-        x = np.concatenate([x_mat, _encode(angles, -_ANGLE, _ANGLE)])
-        groups = np.concatenate([np.repeat(np.arange(idx.size), 4), [idx.size, idx.size]])
+        x = np.concatenate([x_mat, _encode(angles, -self.ANGLE, self.ANGLE)])
+        groups = np.concatenate([np.repeat(np.arange(idx.size), 3), [idx.size, idx.size]])
         return x, groups, [*idx, None]
 
     def decode(self, params, x, active):  # noqa: D102
         idx = np.flatnonzero(active)
-        mat = _decode(np.reshape(x[: 4 * idx.size], (idx.size, 4)), self._lo, self._hi)
-        mat[:, 3] = np.exp(mat[:, 3])
+        mat = _decode(np.reshape(x[: 3 * idx.size], (idx.size, 3)), self._lo, self._hi)
+        total = np.clip(params.lighting[idx, 0] + params.lighting[idx, 1], 0.45, 1.4)
         lighting = params.lighting.copy()
-        lighting[idx] = mat
-        az, el = np.radians(_decode(x[4 * idx.size :], -_ANGLE, _ANGLE))
+        lighting[idx, 0] = mat[:, 0]
+        lighting[idx, 1] = np.clip(total - mat[:, 0], *self.DIFFUSE)
+        lighting[idx, 2] = mat[:, 1]
+        lighting[idx, 3] = np.exp(mat[:, 2])
+        az, el = np.radians(_decode(x[3 * idx.size :], -self.ANGLE, self.ANGLE))
         light = np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
         return params.replace(lighting=lighting, light=light)
 
@@ -186,14 +267,36 @@ class LightingStage(Stage):
             "light_direction": [float(v) for v in params.light],
         }
 
+    guards = Stage.brightness_guards
+
+    def constraints(self, terms, start, weights):
+        """Return the base constraints plus the brightness guard."""
+        return np.append(super().constraints(terms, start, weights), self.guards(terms, start))
+
 
 class ColourStage(Stage):
-    """Stage 3: per-structure HSV saturation and value (hue with ``allow_hue``); leads ``E_t``."""
+    """Stage 3: per-structure HSV saturation and value (hue with ``allow_hue``); leads ``E_t``.
+
+    Saturation in [``SATURATION_KEEP`` (50 %) of its start, 1] and value in [``VALUE_KEEP``
+    (60 %) of its start (at least 0.05), 1], so structures keep their colour identity: with
+    [0, 1] and [0.05, 1] the engine's red inserts turned grey and lidc_chest's heart and aorta
+    almost black (value 0.29; its footprint luminance, dominated by the layers in front,
+    hardly changed).  Plus the brightness guard of :class:`LightingStage`.
+    """
 
     name, lead = "colour", "E_t"
-    _lo = np.array([0.0, 0.05])
-    _hi = np.array([1.0, 1.0])
+    brightened = True
+    guards = Stage.brightness_guards
+    VALUE_KEEP = 0.6
+    SATURATION_KEEP = 0.5
     _HUE_SCALE = 2.0  # x = 2 * hue: a gradient step of 0.01 moves the hue by 0.005
+
+    def _bounds(self, hsv0):
+        """(lo, hi), shape (n, 2) each, of (saturation, value) given the starting HSV."""
+        lo = np.zeros((len(hsv0), 2))
+        lo[:, 0] = np.minimum(self.SATURATION_KEEP * hsv0[:, 1], 0.95)
+        lo[:, 1] = np.minimum(np.maximum(0.05, self.VALUE_KEEP * hsv0[:, 2]), 0.95)
+        return lo, np.ones((len(hsv0), 2))
 
     def _hsv(self, params, idx):
         return np.array([colorsys.rgb_to_hsv(*np.clip(params.colors[i], 0, 1)) for i in idx])
@@ -201,7 +304,7 @@ class ColourStage(Stage):
     def encode(self, params, active):  # noqa: D102 (see Stage)
         idx = np.flatnonzero(active)
         hsv = self._hsv(params, idx).reshape(idx.size, 3)
-        parts = [_encode(hsv[:, 1:], self._lo, self._hi)]
+        parts = [_encode(hsv[:, 1:], *self._bounds(hsv))]
         if self.allow_hue:
             parts.append(hsv[:, :1] * self._HUE_SCALE)
         x = np.concatenate(parts, axis=1)
@@ -212,13 +315,17 @@ class ColourStage(Stage):
         idx = np.flatnonzero(active)
         hsv = self._hsv(params, idx).reshape(idx.size, 3)
         x = np.reshape(x, (idx.size, 3 if self.allow_hue else 2))
-        hsv[:, 1:] = _decode(x[:, :2], self._lo, self._hi)
+        hsv[:, 1:] = _decode(x[:, :2], *self._bounds(hsv))
         if self.allow_hue:
             hsv[:, 0] = np.mod(x[:, 2] / self._HUE_SCALE, 1.0)
         colors = params.colors.copy()
         for row, i in zip(hsv, idx, strict=True):
             colors[i] = np.clip(colorsys.hsv_to_rgb(*row), 0.0, 1.0)
         return params.replace(colors=colors)
+
+    def constraints(self, terms, start, weights):
+        """Return the base constraints plus the brightness guard."""
+        return np.append(super().constraints(terms, start, weights), self.guards(terms, start))
 
     def describe(self, params, names):  # noqa: D102
         return {

@@ -7,7 +7,15 @@ import pytest
 
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures import shape, transparency, visibility
-from dvr_perception.optimize import STAGES, OpacityStage, optimize, register_stage
+from dvr_perception.optimize import (
+    STAGES,
+    ColourStage,
+    LightingStage,
+    OpacityStage,
+    optimize,
+    register_stage,
+)
+from dvr_perception.optimize._problem import Params, Problem
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
@@ -40,7 +48,8 @@ def test_stage1_lowers_visibility_without_fading(phantom, stage1):
     vol, spec, cam = phantom
     r = stage1
     assert r.final["E_v"] <= 0.7 * r.initial["E_v"]
-    assert r.final["coverage"] >= r.initial["coverage"]
+    keep = OpacityStage.COVERAGE_KEEP
+    assert r.final["coverage"] >= keep * r.initial["coverage"]
     assert r.final["E"] <= r.initial["E"]
     # the reported terms are the measures of the returned spec, and no fading in the image
     a0, ev0, _, _ = _measure(vol, spec, cam)
@@ -50,7 +59,7 @@ def test_stage1_lowers_visibility_without_fading(phantom, stage1):
         (r.final["E_v"], r.final["E_s"], r.final["E_t"]), abs=1e-6
     )
     rays = a0.assigned.sum(axis=0) > 0
-    assert a1.accumulated[rays].mean() >= a0.accumulated[rays].mean()
+    assert a1.accumulated[rays].mean() >= keep * a0.accumulated[rays].mean()
     rec = r.stages[0]
     assert rec.name == "opacity"
     assert rec.accepted
@@ -72,12 +81,54 @@ def test_lighting_stage_does_not_raise_E(phantom, stage1):
     assert r.final["E_v"] == pytest.approx(r.initial["E_v"], abs=1e-9)  # opacity untouched
     rec = r.stages[0]
     assert set(rec.params_after) == {"lighting", "light_direction"}
-    if rec.message == "improved":
-        assert r.final["E_s"] < r.initial["E_s"]
-        for s in r.spec.structures:
-            assert 0 <= s.lighting.ambient <= 1
-            assert 1 <= s.lighting.specular_power <= 128
-        assert np.linalg.norm(r.spec.rendering.light_direction) == pytest.approx(1.0)
+    assert rec.message == "improved"
+    assert r.final["E_s"] < r.initial["E_s"]
+    assert np.linalg.norm(r.spec.rendering.light_direction) == pytest.approx(1.0)
+
+
+def test_lighting_stage_keeps_shape_cues_and_brightness(phantom, stage1):
+    """Ambient/diffuse split, specular and power bounds, light cone, brightness guard."""
+    vol, _, cam = phantom
+    r = optimize(vol, stage1.spec, cam, stages=("lighting",), max_iter=4, seed=5)
+    assert r.stages[0].message == "improved"
+    for before, after in zip(stage1.spec.structures, r.spec.structures, strict=True):
+        lit = after.lighting
+        assert 0.05 - 1e-9 <= lit.ambient <= 0.4 + 1e-9
+        assert 0.4 - 1e-9 <= lit.diffuse <= 1.0 + 1e-9
+        assert 0.0 <= lit.specular <= 0.8 + 1e-9
+        assert 2.0 - 1e-6 <= lit.specular_power <= 96.0 + 1e-6
+        total = before.lighting.ambient + before.lighting.diffuse
+        assert lit.ambient + lit.diffuse == pytest.approx(total, abs=1e-6)  # split, not level
+    light = np.asarray(r.spec.rendering.light_direction)
+    assert np.degrees(np.arccos(light[2] / np.linalg.norm(light))) <= 40.0  # headlight cone
+    lum0, lum1 = r.initial["luminance"], r.final["luminance"]
+    for name, value in lum0.items():
+        assert lum1[name] >= LightingStage.BRIGHTNESS * value - 1e-9, name
+    # and in a rendering of the returned spec: no structure's footprint goes dark
+    a0, *_ = _measure(vol, stage1.spec, cam)
+    a1, *_ = _measure(vol, r.spec, cam)
+    y0, y1 = a0.image @ [0.2126, 0.7152, 0.0722], a1.image @ [0.2126, 0.7152, 0.0722]
+    for k in range(len(r.spec.structures)):
+        w0, w1 = a0.visible[k], a1.visible[k]
+        if w0.sum() > 0 and (w0 * y0).sum() / w0.sum() > 1e-3:
+            ratio = ((w1 * y1).sum() / w1.sum()) / ((w0 * y0).sum() / w0.sum())
+            assert ratio >= LightingStage.BRIGHTNESS - 1e-6
+
+
+def test_partial_terms_complete_to_the_full_terms(phantom):
+    vol, spec, cam = phantom
+    curv, _ = curvature_volume(vol, spec)
+    problem = Problem([analyze(vol, spec, cam, curvature=curv).cache], [None], spec,
+                      np.ones(3), {}, None)  # fmt: skip
+    params = Params.from_spec(spec).replace(opacities=[0.5] * 6)
+    fast = problem.terms(params, need=("E_v",))
+    assert np.isnan(fast["E_t"])
+    assert np.isnan(fast["E"])
+    assert not np.isnan(fast["E_v"])
+    done, ref = problem.complete(params, fast), problem.terms(params)
+    for key in ("E_v", "E_s", "E_t", "E", "coverage"):
+        assert done[key] == pytest.approx(ref[key], abs=1e-12)
+    assert np.allclose(done["luminance"], ref["luminance"])
 
 
 def test_colour_stage_keeps_hue_and_does_not_raise_E_t(phantom, stage1):
@@ -88,9 +139,13 @@ def test_colour_stage_keeps_hue_and_does_not_raise_E_t(phantom, stage1):
     assert r.final["E_t"] <= r.initial["E_t"] + 1e-12
     assert r.final["E"] <= r.initial["E"] + 1e-12
     for before, after in zip(stage1.spec.structures, r.spec.structures, strict=True):
-        h0 = colorsys.rgb_to_hsv(*before.color)[0]
-        h1 = colorsys.rgb_to_hsv(*after.color)[0]
+        h0, s0, v0 = colorsys.rgb_to_hsv(*before.color)
+        h1, s1, v1 = colorsys.rgb_to_hsv(*after.color)
+        assert s1 >= ColourStage.SATURATION_KEEP * s0 - 1e-6  # keeps its colour identity
         assert h1 == pytest.approx(h0, abs=1e-6)
+        assert v1 >= max(0.05, ColourStage.VALUE_KEEP * v0) - 1e-6  # no darkening to black
+    for name, value in r.initial["luminance"].items():  # the brightness guard
+        assert r.final["luminance"][name] >= ColourStage.BRIGHTNESS * value - 1e-9
 
 
 def test_same_seed_same_result(phantom):
@@ -123,7 +178,16 @@ def test_callback_gets_copies_and_stopiteration_returns_best(phantom):
     assert seen[1].nfev >= seen[0].nfev
     assert r.final["E"] >= 0
     assert r.final["E_v"] <= r.initial["E_v"]
-    assert r.final["coverage"] >= r.initial["coverage"]
+    assert r.final["coverage"] >= OpacityStage.COVERAGE_KEEP * r.initial["coverage"]
+
+
+def test_opacity_floor_at_start_forbids_any_fading(phantom):
+    vol, spec, cam = phantom
+    r0 = optimize(vol, spec, cam, stages=("opacity",), max_iter=1)
+    floor = r0.initial["coverage"]
+    r = optimize(vol, spec, cam, stages=("opacity",), max_iter=4, opacity_floor=floor)
+    assert r.final["coverage"] >= floor - 1e-12
+    assert r.final["E_v"] <= r.initial["E_v"]
 
 
 def test_region_changes_inside_more_than_outside(phantom):
