@@ -17,6 +17,9 @@ STAMP := $(VENV)/.dvr-perception-installed
 DATA ?= ../shared/data
 BENCH_SIZE ?= 512
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6
+# Web app (issue 7): its browser tests drive Debian's Chromium with playwright (never
+# `playwright install`, which downloads a browser).
+BROWSER_APT_PACKAGES := chromium
 
 # ParaView (issue 6): Debian's ParaView 5.11 renders only under Xvfb.  Its pvpython gets the
 # core's dependencies from $(PVDEPS) (pip --target with ParaView's numpy 1.24 left in place:
@@ -31,7 +34,7 @@ ifeq ($(strip $(DISPLAY)),)
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
 endif
 
-.PHONY: help setup system-deps paraview-setup paraview-system test lint demo bench clean
+.PHONY: help setup system-deps browser-deps paraview-setup paraview-system test lint demo bench clean
 
 help:
 	@echo "targets: demo, test, bench, setup, paraview-setup, lint, clean"
@@ -61,6 +64,18 @@ system-deps:
 	  echo "setup: missing system packages:$$missing" >&2; \
 	  echo "setup: install them as root, e.g. sudo apt-get install -y --no-install-recommends$$missing" >&2; \
 	  exit 1; \
+	fi
+
+browser-deps:
+	@if command -v chromium >/dev/null 2>&1 || [ -x /usr/bin/chromium ]; then exit 0; fi; \
+	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	  echo "setup: installing $(BROWSER_APT_PACKAGES) (browser tests of the web app)"; \
+	  export DEBIAN_FRONTEND=noninteractive; \
+	  apt-get update && apt-get install -y $(BROWSER_APT_PACKAGES); \
+	else \
+	  echo "setup: chromium is not installed; the web-app browser tests will skip" \
+	    "(install it as root: apt-get install -y $(BROWSER_APT_PACKAGES))" >&2; \
+	  case "$${CI:-}" in 1|true|yes) exit 1;; esac; \
 	fi
 
 $(STAMP): pyproject.toml
@@ -109,7 +124,7 @@ lint: setup
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
-test: lint paraview-setup
+test: lint browser-deps paraview-setup
 	$(BIN)/pytest
 
 demo: setup

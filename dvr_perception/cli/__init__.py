@@ -16,13 +16,22 @@ import traceback
 import warnings
 from contextlib import contextmanager
 
-from dvr_perception.cli import bench, check_renderer, demo, measure, optimize, pvbatch, render
+from dvr_perception.cli import (
+    app,
+    bench,
+    check_renderer,
+    demo,
+    measure,
+    optimize,
+    pvbatch,
+    render,
+)
 from dvr_perception.cli._common import PROG, CLIParser, common_parent
 from dvr_perception.errors import DVRInputError, DVRWarning
 
 __all__ = ["build_parser", "main"]
 
-COMMANDS = (render, check_renderer, bench, demo, measure, optimize, pvbatch)
+COMMANDS = (render, check_renderer, bench, demo, measure, optimize, pvbatch, app)
 
 
 def build_parser() -> CLIParser:

@@ -1,0 +1,35 @@
+"""The trame web app (issue 7): make a volume rendering readable in the browser.
+
+:class:`~dvr_perception.app.core.DVRApp` serves one page: choose a volume and its
+structures, rotate the server-rendered view, read the image-quality numbers and map, optimise
+opacity (or all stages) for the current view with live progress, cancel, undo, and export.
+Start it with ``dvr-perception app`` (:func:`serve`).  Needs the ``app`` extra (trame,
+trame-vuetify, trame-vtk, pyvista).
+
+This package and :mod:`dvr_perception.plotting` are the only ones importing pyvista/trame;
+importing this package does not import trame (the app class is loaded on first use).
+"""
+
+from __future__ import annotations
+
+import os
+
+__all__ = ["DVRApp", "serve"]
+
+
+def __getattr__(name):
+    if name == "DVRApp":
+        from dvr_perception.app.core import DVRApp
+
+        return DVRApp
+    raise AttributeError(name)
+
+
+def serve(app, *, port: int = 8080, host: str = "127.0.0.1") -> None:
+    """Serve ``app`` on ``host:port`` until interrupted (blocking; no browser is opened).
+
+    trame would otherwise parse ``sys.argv`` for its own options; ``TRAME_ARGS`` is set to
+    nothing so that only ``port`` and ``host`` apply, and the idle auto-shutdown is off.
+    """
+    os.environ["TRAME_ARGS"] = ""
+    app.server.start(port=int(port), host=host, open_browser=False, timeout=0)

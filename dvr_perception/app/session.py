@@ -1,0 +1,285 @@
+"""What the web app works on, without any web framework: scene, undo stack, files, measures.
+
+:class:`Session` holds the volume, the structure spec shown, an undo stack of specs and the
+two folders the app may touch: the *data folder* (volumes and spec JSON files are read from,
+and specs saved to, this folder only) and the *export folder*.  Every method calls the library
+(:mod:`dvr_perception.volume`, :mod:`~dvr_perception.structures`,
+:mod:`~dvr_perception.measures`, :mod:`~dvr_perception.export`) and raises
+:class:`~dvr_perception.errors.DVRInputError` with a one-line message for bad input, which the
+app shows in the page.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from dvr_perception.errors import DVRInputError
+
+__all__ = [
+    "MEASURE_SIZE",
+    "PHANTOM",
+    "VOLUME_SUFFIXES",
+    "Measures",
+    "Session",
+    "hex_to_rgb",
+    "measure_camera",
+    "rgb_to_hex",
+]
+
+#: Name of the built-in phantom in the volume list.
+PHANTOM = "phantom"
+#: File suffixes listed as volumes in the data folder.
+VOLUME_SUFFIXES = (".nhdr", ".nrrd", ".mha", ".mhd", ".vti", ".nii", ".nii.gz")
+#: Long side, in pixels, of the camera the measures and the optimiser are evaluated on.
+MEASURE_SIZE = 256
+#: Most specs kept for undo.
+UNDO_DEPTH = 50
+
+
+def rgb_to_hex(color) -> str:
+    """Return ``#rrggbb`` for a colour with components in [0, 1].
+
+    Examples
+    --------
+    >>> rgb_to_hex((1.0, 0.5, 0.0))
+    '#ff8000'
+    """
+    return "#" + "".join(f"{round(min(max(float(c), 0.0), 1.0) * 255):02x}" for c in color)
+
+
+def hex_to_rgb(text: str) -> tuple[float, float, float]:
+    """Parse ``#rrggbb`` into a colour with components in [0, 1].
+
+    Examples
+    --------
+    >>> hex_to_rgb("#ff8000")
+    (1.0, 0.5019607843137255, 0.0)
+    """
+    s = str(text).strip().lstrip("#")
+    if len(s) != 6:
+        raise DVRInputError(f"colour: expected #rrggbb, got {text!r}")
+    try:
+        r, g, b = (int(s[i : i + 2], 16) / 255.0 for i in (0, 2, 4))
+    except ValueError:
+        raise DVRInputError(f"colour: expected #rrggbb, got {text!r}") from None
+    return (r, g, b)
+
+
+def measure_camera(camera, size: int = MEASURE_SIZE):
+    """Return ``camera`` with its long side reduced to at most ``size`` pixels (same view).
+
+    Examples
+    --------
+    >>> from dvr_perception.rays import Camera
+    >>> cam = measure_camera(Camera(width=1024, height=512), 256)
+    >>> (cam.width, cam.height)
+    (256, 128)
+    """
+    long = max(camera.width, camera.height)
+    if long <= size:
+        return camera
+    s = size / long
+    return camera.with_size(max(8, round(camera.width * s)), max(8, round(camera.height * s)))
+
+
+@dataclass(frozen=True)
+class Measures:
+    """The three measures of one view: the errors and their per-pixel deviation images."""
+
+    E_v: float
+    E_s: float
+    E_t: float
+    images: dict
+
+    def as_state(self) -> dict:
+        """Numbers for the page (three significant digits)."""
+        return {k: float(f"{getattr(self, k):.3g}") for k in ("E_v", "E_s", "E_t")}
+
+
+class Session:
+    """Volume, spec, undo stack and the folders of one app instance.
+
+    Parameters
+    ----------
+    data_dir : str or Path, optional
+        Folder of volumes and spec files; ``None`` offers the phantom only and disables
+        loading and saving specs.
+    export_dir : str or Path
+        Folder the exports are written to (created on the first export).
+    phantom_size : int
+        Edge length of the built-in phantom.
+    """
+
+    def __init__(self, data_dir=None, export_dir="dvr_exports", *, phantom_size: int = 96):
+        self.data_dir = Path(data_dir).resolve() if data_dir is not None else None
+        if self.data_dir is not None and not self.data_dir.is_dir():
+            raise DVRInputError(f"--data-dir {data_dir}: not a directory")
+        self.export_dir = Path(export_dir).resolve()
+        self.phantom_size = int(phantom_size)
+        self.volume = None
+        self.volume_name = ""
+        self.spec = None
+        self.spec_source = ""
+        self.undo_stack: list = []
+
+    # -- files -------------------------------------------------------------------------------
+    def volume_choices(self) -> list[str]:
+        """List the phantom and the volume files of the data folder (names relative to it)."""
+        names = [PHANTOM]
+        if self.data_dir is not None:
+            files = sorted(p for p in self.data_dir.iterdir() if p.is_file())
+            names += [p.name for p in files if p.name.lower().endswith(VOLUME_SUFFIXES)]
+        return names
+
+    def data_path(self, text: str, *, must_exist: bool = True) -> Path:
+        """Resolve ``text`` inside the data folder; refuse anything outside it."""
+        if self.data_dir is None:
+            raise DVRInputError("no data folder: start the app with --data-dir DIR to use files")
+        if not str(text or "").strip():
+            raise DVRInputError("file name: expected a file name in the data folder, got nothing")
+        path = (self.data_dir / str(text).strip()).resolve()
+        if not path.is_relative_to(self.data_dir):
+            raise DVRInputError(
+                f"{text}: outside the data folder {self.data_dir}; only files in it are allowed"
+            )
+        if must_exist and not path.is_file():
+            raise DVRInputError(f"{text}: no such file in the data folder {self.data_dir}")
+        return path
+
+    def load_volume(self, name: str):
+        """Load the phantom or a data-folder volume with its paired spec (else a proposal)."""
+        from dvr_perception.structures import check_spec_for_volume, load_spec
+        from dvr_perception.structures import propose_structures as propose
+        from dvr_perception.volume import load_volume, make_phantom
+
+        if name == PHANTOM:
+            volume, spec = make_phantom(size=self.phantom_size)
+            source = "built-in phantom spec"
+        else:
+            path = self.data_path(name)
+            volume = load_volume(path)
+            spec, source = None, ""
+            from dvr_perception.cli._common import state_files_dir
+
+            paired = state_files_dir() / f"{path.name.split('.')[0]}.json"
+            if paired.is_file():
+                spec, source = load_spec(paired), f"preset {paired.name}"
+            else:
+                spec, source = propose(volume), "automatic proposal"
+        check_spec_for_volume(spec, volume)
+        self.volume, self.volume_name = volume, name
+        self.spec, self.spec_source = spec, source
+        self.undo_stack.clear()
+        return volume, spec
+
+    def load_spec_file(self, text: str):
+        """Read a spec JSON from the data folder and check it against the volume."""
+        from dvr_perception.structures import check_spec_for_volume, load_spec
+
+        spec = load_spec(self.data_path(text))
+        check_spec_for_volume(spec, self.volume)
+        self.push_undo()
+        self.spec, self.spec_source = spec, str(text)
+        return spec
+
+    def save_spec_file(self, text: str) -> Path:
+        """Write the current spec as JSON into the data folder."""
+        from dvr_perception.structures.io import save_spec
+
+        path = self.data_path(text, must_exist=False)
+        if not path.name.endswith(".json"):
+            raise DVRInputError(f"{text}: expected a file name ending in .json")
+        save_spec(self.spec, path)
+        return path
+
+    def export(self, plotter=None) -> list[Path]:
+        """Write view PNG, spec JSON, ParaView preset and Slicer ``.vp.json`` to the export dir."""
+        from dvr_perception.export import save_paraview_preset, save_slicer_vp
+        from dvr_perception.structures.io import save_spec
+
+        self.export_dir.mkdir(parents=True, exist_ok=True)
+        stem = self.export_dir / (self.volume.name or "volume")
+        out = []
+        if plotter is not None:
+            png = stem.with_name(stem.name + "_view.png")
+            plotter.screenshot(str(png))
+            out.append(png)
+        spec_path = stem.with_name(stem.name + "_spec.json")
+        save_spec(self.spec, spec_path)
+        out.append(spec_path)
+        out.append(save_paraview_preset(self.spec, stem.with_name(stem.name + "_paraview.json")))
+        out.append(save_slicer_vp(self.spec, stem.with_name(stem.name + ".vp.json"), self.volume))
+        return [Path(p) for p in out]
+
+    # -- editing -----------------------------------------------------------------------------
+    def push_undo(self) -> None:
+        """Remember the current spec (before a change)."""
+        if self.spec is not None:
+            self.undo_stack.append(self.spec)
+            del self.undo_stack[:-UNDO_DEPTH]
+
+    def undo(self):
+        """Restore the previous spec; return it (``None`` when there is nothing to undo)."""
+        if not self.undo_stack:
+            return None
+        self.spec = self.undo_stack.pop()
+        return self.spec
+
+    def set_structure(self, index: int, *, importance=None, color=None):
+        """Change one structure's importance (its opacity then follows it) or colour."""
+        k = int(index)
+        if not 0 <= k < len(self.spec.structures):
+            raise DVRInputError(f"structure {index}: no such structure")
+        s = self.spec.structures[k]
+        if importance is not None:
+            v = float(importance)
+            if not (math.isfinite(v) and 0.0 <= v <= 1.0):
+                raise DVRInputError(f"importance of {s.name}: expected 0 to 1, got {importance}")
+            s = replace(s, importance=v, opacity=None)
+        if color is not None:
+            s = replace(s, color=hex_to_rgb(color))
+        if s == self.spec.structures[k]:
+            return self.spec
+        self.push_undo()
+        structures = list(self.spec.structures)
+        structures[k] = s
+        self.spec = replace(self.spec, structures=tuple(structures))
+        return self.spec
+
+    def structure_rows(self) -> list[dict]:
+        """One JSON-ready row per structure for the page's table."""
+        return [
+            {
+                "index": k,
+                "name": s.name,
+                "importance": round(float(s.importance), 3),
+                "opacity": round(float(s.render_opacity), 3),
+                "color": rgb_to_hex(s.color),
+                "range": [round(float(v), 1) for v in s.range] if s.range else None,
+            }
+            for k, s in enumerate(self.spec.structures)
+        ]
+
+    # -- measures ----------------------------------------------------------------------------
+    def measure(self, camera) -> Measures:
+        """Analyse the current spec from ``camera`` (reduced) and compute E_v, E_s, E_t."""
+        from dvr_perception.measures import shape, transparency, visibility
+        from dvr_perception.rays.curvature import curvature_volume
+        from dvr_perception.rays.engine import analyze
+
+        cam = measure_camera(camera)
+        curvature, _ = curvature_volume(self.volume, self.spec)
+        analysis = analyze(self.volume, self.spec, cam, curvature=curvature, build_cache=False)
+        v = visibility(analysis, self.spec)
+        s = shape(analysis, self.spec)
+        t = transparency(analysis, self.spec)
+        empty = ~v.nonempty  # no map where nothing is rendered: the background stays visible
+        images = {
+            name: np.where(empty, np.nan, np.asarray(r.deviation, dtype=np.float32))
+            for name, r in (("visibility", v), ("shape", s), ("transparency", t))
+        }
+        return Measures(float(v.E_v), float(s.E_s), float(t.E_t), images)

@@ -1,0 +1,105 @@
+"""``dvr-perception app``: serve the web app (:mod:`dvr_perception.app`) on the loopback address.
+
+The app needs the ``app`` extra (``pip install 'dvr-perception[app]'``).  It listens on
+127.0.0.1 by default; ``--host 0.0.0.0`` exposes it to the network (there is no login).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from dvr_perception.cli._common import log
+from dvr_perception.errors import DVRInputError
+
+__all__ = ["add_parser", "default_data_dir", "run"]
+
+
+def default_data_dir() -> Path | None:
+    """``$DVR_SHARED_DATA`` or ``../shared/data`` (from the working folder), if present."""
+    for text in (os.environ.get("DVR_SHARED_DATA"), "../shared/data"):
+        if text and Path(text).is_dir():
+            return Path(text)
+    return None
+
+
+def add_parser(subparsers, parents) -> None:
+    """Register the ``app`` sub-command."""
+    p = subparsers.add_parser(
+        "app",
+        parents=parents,
+        help="serve the interactive web app (needs the 'app' extra)",
+        description="Serve the web app: choose a volume, edit structures, see the image "
+        "quality, optimise the current view, export.  Open the printed address in a browser.",
+    )
+    p.add_argument(
+        "volume",
+        nargs="?",
+        default="phantom",
+        metavar="VOLUME",
+        help="'phantom' (default), a file name in --data-dir, or (without --data-dir) a "
+        "volume file whose folder becomes the data folder",
+    )
+    p.add_argument("--port", type=int, default=8080, help="port to listen on (default 8080)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (127.0.0.1)")
+    p.add_argument(
+        "--data-dir",
+        metavar="DIR",
+        help="folder of volumes and spec files (default $DVR_SHARED_DATA or ../shared/data)",
+    )
+    p.add_argument(
+        "--export-dir",
+        default="dvr_exports",
+        metavar="DIR",
+        help="folder the exports are written to (default dvr_exports)",
+    )
+    p.add_argument(
+        "--phantom-size",
+        type=int,
+        default=96,
+        metavar="N",
+        help="edge length of the built-in phantom (default 96)",
+    )
+    p.set_defaults(run=run)
+
+
+def _resolve(args) -> tuple[Path | None, str]:
+    data_dir = Path(args.data_dir) if args.data_dir else None
+    if data_dir is not None and not data_dir.is_dir():
+        raise DVRInputError(f"--data-dir {data_dir}: not a directory")
+    volume = args.volume
+    if volume == "phantom":
+        return data_dir or default_data_dir(), volume
+    path = Path(volume)
+    if data_dir is None:
+        if not path.is_file():
+            raise DVRInputError(f"{volume}: no such volume file")
+        return path.parent, path.name
+    if not (data_dir / volume).is_file():
+        raise DVRInputError(f"{volume}: no such file in --data-dir {data_dir}")
+    return data_dir, volume
+
+
+def run(args) -> int:
+    """Start the server and serve until interrupted."""
+    if not 0 <= args.port <= 65535:
+        raise DVRInputError(f"--port: expected 0 to 65535, got {args.port}")
+    if not 16 <= args.phantom_size <= 512:
+        raise DVRInputError(f"--phantom-size: expected 16 to 512, got {args.phantom_size}")
+    data_dir, volume = _resolve(args)
+    try:
+        from dvr_perception.app import serve
+        from dvr_perception.app.core import DVRApp
+    except ImportError as exc:
+        raise DVRInputError(
+            f"the web app needs the 'app' extra: pip install 'dvr-perception[app]' ({exc})"
+        ) from None
+    log.info("data folder: %s", data_dir)
+    app = DVRApp(
+        data_dir=data_dir,
+        volume=volume,
+        export_dir=args.export_dir,
+        phantom_size=args.phantom_size,
+    )
+    serve(app, port=args.port, host=args.host)
+    return 0
