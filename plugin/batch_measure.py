@@ -88,8 +88,10 @@ def set_camera(view, camera):
     view.CameraParallelScale = camera.parallel_scale
 
 
-def screenshot(pvs, source, array, scene, path):
-    """Volume-render ``source`` with the spec's transfer functions and save ``path``."""
+def show_volume(pvs, source, array, scene):
+    """A render view with ``source`` as a ray-cast volume coloured by ``array``, seen by the
+    scene's camera, with the spec's background, opacity unit distance and shading; returns
+    ``(view, display)`` (the transfer functions and the material are still ParaView's)."""
     spec, camera = scene.spec, scene.camera
     view = pvs.CreateView("RenderView")
     view.OrientationAxesVisibility = 0
@@ -98,6 +100,26 @@ def screenshot(pvs, source, array, scene, path):
     display = pvs.Show(source, view)
     display.SetRepresentationType("Volume")
     pvs.ColorBy(display, ("POINTS", array))
+    display.VolumeRenderingMode = "Ray Cast Only"
+    rs = spec.rendering
+    unit = rs.opacity_unit_distance
+    display.ScalarOpacityUnitDistance = float(min(scene.volume.spacing) if unit is None else unit)
+    display.Shade = int(bool(rs.shade))
+    set_camera(view, camera)
+    return view, display
+
+
+def save_screenshot(pvs, view, camera, path):
+    pvs.Render(view)
+    pvs.SaveScreenshot(path, view, ImageResolution=[camera.width, camera.height])
+    if not os.path.isfile(path):
+        raise BatchError(f"output file {path}: ParaView did not write the screenshot")
+
+
+def screenshot(pvs, source, array, scene, path):
+    """Volume-render ``source`` with the spec's transfer functions and save ``path``."""
+    spec = scene.spec
+    view, display = show_volume(pvs, source, array, scene)
     rgb, pts = transfer_function_points(spec)
     lut = pvs.GetColorTransferFunction(array)
     lut.AutomaticRescaleRangeMode = "Never"
@@ -107,19 +129,10 @@ def screenshot(pvs, source, array, scene, path):
     pwf.Points = pts
     display.LookupTable = lut
     display.ScalarOpacityFunction = pwf
-    display.VolumeRenderingMode = "Ray Cast Only"
-    rs = spec.rendering
-    unit = rs.opacity_unit_distance
-    display.ScalarOpacityUnitDistance = float(min(scene.volume.spacing) if unit is None else unit)
-    display.Shade = int(bool(rs.shade))
     light = spec.structures[0].lighting
     display.Ambient, display.Diffuse = light.ambient, light.diffuse
     display.Specular, display.SpecularPower = light.specular, light.specular_power
-    set_camera(view, camera)
-    pvs.Render(view)
-    pvs.SaveScreenshot(path, view, ImageResolution=[camera.width, camera.height])
-    if not os.path.isfile(path):
-        raise BatchError(f"output file {path}: ParaView did not write the screenshot")
+    save_screenshot(pvs, view, scene.camera, path)
 
 
 def measure_images(pvs, output, background, out_dir):
@@ -217,10 +230,11 @@ def run(args):
     return 0
 
 
-def main(argv=None):
+def main(argv=None, *, parse=parse_args, execute=run):
+    """Run ``execute(parse(argv))``; input errors become one line on stderr and status 2."""
     argv = sys.argv[1:] if argv is None else argv
     try:
-        return run(parse_args(argv))
+        return execute(parse(argv))
     except Exception as exc:
         from dvr_perception.errors import DVRInputError
 

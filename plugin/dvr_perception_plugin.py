@@ -4,7 +4,7 @@ Load it with *Tools > Manage Plugins > Load New...*, ``LoadPlugin(path, ns=globa
 pvpython, or put this folder on ``PV_PLUGIN_PATH``.  ParaView 5.11 with Python >= 3.11 also
 needs ``plugin/pvsite`` on ``PYTHONPATH`` (see ``plugin/README.md``).
 
-The two proxies are shells: they declare the properties ParaView shows and hand every pipeline
+The three proxies are shells: they declare the properties ParaView shows and hand every pipeline
 pass to the library's VTK filter (:mod:`dvr_perception.filters`), which is imported only when
 the filter first executes.  Parameter values are validated by the library when the filter
 runs, so a bad value (e.g. a negative sigma typed in Python) becomes an error message in
@@ -224,3 +224,87 @@ class PerceptionMeasures(_LibraryShell):
     @smdomain.intrange(min=16, max=4096)
     def SetHeight(self, value):
         self._set("height", value)
+
+
+@smproxy.filter(name="DVROptimizeTransferFunction", label="Optimize Transfer Function")
+@smhint.xml(_CATEGORY)
+@smproperty.input(name="Input", port_index=0)
+@smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
+@smdomain.xml(_IMAGE_INPUT)
+class OptimizeTransferFunction(_LibraryShell):
+    """Optimises opacity, lighting and colour; outputs the optimised image and parameters.
+
+    A shell over ``dvr_perception.filters.TransferFunctionOptimizer``: the output has the point
+    and field data of *Perception Measures* for the optimised spec, plus the optimised
+    per-structure ``opacity``, ``color``, ``ambient``, ``diffuse``, ``specular``,
+    ``specular_power``, ``initial_E*`` and the string ``optimized_spec_json`` (apply it to a
+    volume display with ``plugin/apply_result.py``).
+    """
+
+    _filter_name = "TransferFunctionOptimizer"
+
+    def __init__(self):
+        _LibraryShell.__init__(self)
+        self._values = {
+            "input_array": "",
+            "spec_file": "",
+            "spec_json": "",
+            "camera_json": "",
+            "use_spec_view": 1,
+            "azimuth": 0.0,
+            "elevation": 0.0,
+            "zoom": 1.0,
+            "width": 256,
+            "height": 256,
+            "stages": "opacity,lighting,colour",
+            "weights": (1.0, 1.0, 1.0),
+            "seed": 0,
+            "max_iter": 10,
+            "resolution": 0,
+        }
+
+    _parameters = PerceptionMeasures._parameters
+
+    # the spec and view properties of the other filters (Sigma is not used by the optimiser)
+    SetScalarArray = SetScalarArray
+    SetSpecFile = SetSpecFile
+    SetSpecJSON = SetSpecJSON
+    SetCameraJSON = PerceptionMeasures.SetCameraJSON
+    SetUseSpecView = PerceptionMeasures.SetUseSpecView
+    SetAzimuth = PerceptionMeasures.SetAzimuth
+    SetElevation = PerceptionMeasures.SetElevation
+    SetZoom = PerceptionMeasures.SetZoom
+
+    @smproperty.intvector(name="Width", default_values=256)
+    @smdomain.intrange(min=16, max=4096)
+    def SetWidth(self, value):
+        self._set("width", value)
+
+    @smproperty.intvector(name="Height", default_values=256)
+    @smdomain.intrange(min=16, max=4096)
+    def SetHeight(self, value):
+        self._set("height", value)
+
+    @smproperty.stringvector(name="Stages", default_values="opacity,lighting,colour")
+    def SetStages(self, value):
+        self._set("stages", value)
+
+    @smproperty.doublevector(name="Weights", default_values=[1.0, 1.0, 1.0])
+    @smdomain.doublerange(min=0.0, max=100.0)
+    def SetWeights(self, w_v, w_s, w_t):
+        self._set("weights", (w_v, w_s, w_t))
+
+    @smproperty.intvector(name="Seed", default_values=0)
+    @smdomain.intrange(min=0, max=1000000)
+    def SetSeed(self, value):
+        self._set("seed", value)
+
+    @smproperty.intvector(name="MaxIterations", default_values=10)
+    @smdomain.intrange(min=1, max=1000)
+    def SetMaxIterations(self, value):
+        self._set("max_iter", value)
+
+    @smproperty.intvector(name="Resolution", default_values=0)
+    @smdomain.intrange(min=0, max=1024)
+    def SetResolution(self, value):
+        self._set("resolution", value)

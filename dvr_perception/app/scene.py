@@ -30,13 +30,11 @@ def new_plotter(size=(800, 600)):
 def show_spec(plotter, handle, volume, spec):
     """Show ``spec`` in ``plotter`` without rendering; return the (possibly new) handle.
 
-    :func:`~dvr_perception.plotting.apply` is used while the number of material groups stays
-    the same; when it changes (the lighting stage) or ``handle`` is ``None`` the volume is
-    added anew, because re-using the mapper with another number of components crashed VTK 9.7
-    here (segmentation fault in the next render).
+    :func:`~dvr_perception.plotting.apply` updates ``handle`` in place (also when the number of
+    material groups changes); without a handle the volume is added.
     """
-    from dvr_perception.plotting import add_structures, apply, material_groups
+    from dvr_perception.plotting import add_structures, apply
 
-    if handle is not None and len(material_groups(spec)[0]) == len(handle.groups):
+    if handle is not None:
         return apply(handle, spec, render=False)
     return add_structures(plotter, volume, spec)

@@ -242,15 +242,29 @@ def _configure(handle: StructureVolume, spec: StructureSpec, ops: np.ndarray) ->
     sd = _distance(spec.rendering.sample_distance, volume, "sample_distance")
     mapper = handle.actor.GetMapper()
     if mapper is None or len(groups) != len(handle.groups):
-        if mapper is None:
-            from dvr_perception import _vtk
+        # A new component count needs a new mapper *and* a new vtkVolume: both cache
+        # per-component state (tables, gradients, transfer-function arrays) that VTK 9.7 does
+        # not resize when the input's component count changes (heap corruption, then a
+        # segmentation fault in a later render or free).  The new actor replaces the old one
+        # under the same name; lights and camera stay.
+        from dvr_perception import _vtk
 
-            mapper = _vtk.rendering().vtkFixedPointVolumeRayCastMapper()
-            mapper.SetImageSampleDistance(1.0)
-            mapper.SetAutoAdjustSampleDistances(0)
-            handle.actor.SetMapper(mapper)
+        mapper = _vtk.rendering().vtkFixedPointVolumeRayCastMapper()
+        mapper.SetImageSampleDistance(1.0)
+        mapper.SetAutoAdjustSampleDistances(0)
         img, keep = _image(volume, len(groups))
         mapper.SetInputData(img)
+        old = handle.actor
+        if old.GetMapper() is not None:
+            actor = pv.Volume()
+            actor.SetVisibility(old.GetVisibility())
+            actor.SetPickable(old.GetPickable())
+            actor.SetUserMatrix(old.GetUserMatrix())
+            actor.SetMapper(mapper)
+            handle.renderer.add_actor(actor, name=handle.name, reset_camera=False, render=False)
+            handle.actor = actor
+        else:
+            old.SetMapper(mapper)
         handle._arrays[:] = keep
     mapper.SetSampleDistance(sd)
     handle.actor.SetProperty(_property(spec, volume, ops, groups, lightings))

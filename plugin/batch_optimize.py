@@ -1,0 +1,151 @@
+"""pvbatch script: Optimize Transfer Function on one volume, with before/after renderings.
+
+Usage (with the environment of ``dvr-perception pvbatch``: ``PYTHONPATH=plugin/pvsite``, the
+repository root and ``.pvdeps``, and an X display)::
+
+    pvbatch plugin/batch_optimize.py VOLUME [--structures SPEC] [--view A,E[,Z] | --camera CAM]
+            [--size N|WxH] [--shade|--no-shade] [--stages S] [--weights WV,WS,WT] [--seed N]
+            [--max-iter N] [--resolution N] --out DIR
+
+The scene options are resolved as in ``batch_measure.py``.  The plugin's *Optimize Transfer
+Function* filter runs on the volume; written into DIR:
+
+``before.png``
+    ParaView's volume rendering with the spec's transfer functions and material;
+``after.png``
+    the same view after ``apply_optimized`` (``apply_result.py``) applied the optimised spec;
+``optimized_preset.json``
+    the optimised transfer functions as a ParaView preset;
+``result.json``
+    ``initial`` and ``final`` (``E_v``, ``E_s``, ``E_t``, ``E``, from the filter's field data),
+    ``status``, ``iterations``, ``optimized_spec``, the camera and the files written.
+
+Errors print one line ``dvr-perception: error: ...`` on stderr and exit with status 2.
+"""
+
+import json
+import os
+import sys
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+
+import batch_measure as bm  # noqa: E402
+
+TERMS = ("E_v", "E_s", "E_t", "E")
+
+
+def parse_args(argv):
+    sys.path.insert(0, bm.ROOT)
+    from dvr_perception._paraview_compat import setup
+
+    try:
+        setup()
+    except RuntimeError as exc:
+        raise bm.BatchError(str(exc)) from None
+    from dvr_perception.cli._common import CLIParser, add_scene_args
+
+    parser = CLIParser(prog=f"{bm.PROG} pvbatch-optimize", description=__doc__.split("\n")[0])
+    add_scene_args(parser)
+    parser.add_argument("--stages", default="opacity,lighting,colour", help="stages in order")
+    parser.add_argument("--weights", default="1,1,1", metavar="WV,WS,WT", help="w_v, w_s, w_t")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the annealing (default 0)")
+    parser.add_argument("--max-iter", type=int, default=10, help="iterations per stage")
+    parser.add_argument("--resolution", type=int, default=0, help="0: the optimiser's default")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    args = parser.parse_args(argv)
+    try:
+        args.weights = [float(w) for w in args.weights.split(",")]
+    except ValueError:
+        args.weights = []
+    if len(args.weights) != 3:
+        parser.error(f"--weights: expected three numbers WV,WS,WT, got {args.weights!r}")
+    return args
+
+
+def optimizer_values(output):
+    fd = output.GetFieldData()
+    if fd.GetArray("E") is None or fd.GetAbstractArray("optimized_spec_json") is None:
+        raise bm.BatchError("Optimize Transfer Function failed (see the ParaView error above)")
+    return {
+        "initial": {k: fd.GetArray(f"initial_{k}").GetValue(0) for k in TERMS},
+        "final": {k: fd.GetArray(k).GetValue(0) for k in TERMS},
+        "status": int(fd.GetArray("status").GetValue(0)),
+        "status_message": fd.GetAbstractArray("status_message").GetValue(0),
+        "iterations": int(fd.GetArray("iterations").GetValue(0)),
+        "optimized_spec": json.loads(fd.GetAbstractArray("optimized_spec_json").GetValue(0)),
+    }
+
+
+def run(args):
+    t0 = time.perf_counter()
+    from dvr_perception._files import write_json
+    from dvr_perception.cli._common import load_scene, make_output_dir
+    from dvr_perception.structures.io import spec_to_dict
+    from dvr_perception.volume.convert import to_vtk_image
+
+    scene = load_scene(args)
+    out_dir = str(make_output_dir(args.out))
+    from apply_result import apply_optimized
+    from paraview import servermanager
+    from paraview import simple as pvs
+
+    pvs.LoadPlugin(bm.PLUGIN)
+    source = pvs.TrivialProducer(registrationName=os.path.basename(str(args.volume)))
+    image = to_vtk_image(scene.volume)
+    source.GetClientSideObject().SetOutput(image)
+    source.UpdatePipeline()
+    array = image.GetPointData().GetScalars().GetName()
+    opt = pvs.OptimizeTransferFunction(
+        Input=source,
+        ScalarArray=array,
+        SpecJSON=json.dumps(spec_to_dict(scene.spec)),
+        CameraJSON=json.dumps(scene.camera.to_dict()),
+        Stages=args.stages,
+        Weights=args.weights,
+        Seed=args.seed,
+        MaxIterations=args.max_iter,
+        Resolution=args.resolution,
+    )
+    opt.UpdatePipeline()
+    output = servermanager.Fetch(opt)
+    result = optimizer_values(output)
+    before = os.path.join(out_dir, "before.png")
+    bm.screenshot(pvs, source, array, scene, before)
+    after = os.path.join(out_dir, "after.png")
+    view, display = bm.show_volume(pvs, source, array, scene)
+    preset = os.path.join(out_dir, "optimized_preset.json")
+    apply_optimized(output, display, preset_path=preset)
+    bm.save_screenshot(pvs, view, scene.camera, after)
+    result.update(
+        volume=str(scene.volume_source),
+        spec=scene.spec_source,
+        camera=scene.camera.to_dict(),
+        stages=args.stages,
+        weights=args.weights,
+        seed=args.seed,
+        max_iter=args.max_iter,
+        paraview_version=servermanager.vtkSMProxyManager.GetParaViewSourceVersion(),
+        seconds=round(time.perf_counter() - t0, 3),
+    )
+    files = (before, after, preset, "result.json")
+    result["files"] = [os.path.basename(f) for f in files]
+    write_json(os.path.join(out_dir, "result.json"), result)
+    summary = {"initial_E": result["initial"]["E"], "E": result["final"]["E"], "out": out_dir}
+    print(json.dumps(summary))
+    return 0
+
+
+def main(argv=None):
+    argv = sys.argv[1:] if argv is None else argv
+    return bm.main(argv, parse=parse_args, execute=run)
+
+
+if __name__ == "__main__":
+    status = main()
+    if status:
+        # see batch_measure.py: leave without interpreter teardown after a failure
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)

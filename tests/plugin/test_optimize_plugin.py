@@ -1,0 +1,160 @@
+"""The plugin's Optimize Transfer Function filter, ``apply_result.py`` and ``batch_optimize.py``.
+
+Run in ParaView's own pvpython/pvbatch (environment of ``dvr-perception pvbatch``, a private
+Xvfb when there is no display) at small sizes with one iteration per stage.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dvr_perception._files import read_png
+from dvr_perception.cli.pvbatch import virtual_display
+from dvr_perception.structures.io import spec_from_dict
+from dvr_perception.structures.transfer import to_vtk_transfer_functions
+
+REPO = Path(__file__).resolve().parents[2]
+PLUGIN_DIR = REPO / "plugin"
+MARK = "@@RESULT@@ "  # must match conftest.MARK
+SIZE = 40
+VIEW = (30.0, 20.0, 1.2)
+SPEC = REPO / "state_files" / "neghip.json"
+
+
+@pytest.fixture(scope="module")
+def neghip(shared_data):
+    return shared_data / "neghip.nhdr"
+
+
+def _with_display(paraview):
+    """A context manager yielding the ParaView environment with an X display."""
+    from contextlib import contextmanager
+
+    @contextmanager
+    def cm():
+        with virtual_display() as display:
+            yield dict(paraview.env, DISPLAY=display)
+
+    return cm()
+
+
+def _nodes(fn, node_size):
+    """Flat ``[x, v..]`` node list of a VTK transfer function (4 values of each node)."""
+    out, node = [], [0.0] * node_size
+    for i in range(fn.GetSize()):
+        fn.GetNodeValue(i, node)
+        out += node[:4]
+    return out
+
+
+def test_optimize_filter_runs_and_apply_optimized_sets_the_luts(paraview, tmp_path, neghip):
+    az, el, zoom = VIEW
+    preset = tmp_path / "preset.json"
+    code = f"""
+import json, sys
+sys.path.insert(0, {str(PLUGIN_DIR)!r})
+from paraview.simple import *
+LoadPlugin({str(PLUGIN_DIR / "dvr_perception_plugin.py")!r}, ns=globals())
+from apply_result import apply_optimized
+reader = OpenDataFile({str(neghip)!r})
+opt = OptimizeTransferFunction(Input=reader)
+hints = opt.SMProxy.GetHints()
+menu = hints.FindNestedElementByName("ShowInMenu") if hints else None
+defaults = {{}}
+for p in ("Stages", "Weights", "Seed", "MaxIterations", "Resolution", "Width", "UseSpecView"):
+    v = opt.GetPropertyValue(p)
+    defaults[p] = list(v) if not isinstance(v, (str, int, float)) else v
+rng = opt.GetProperty("MaxIterations").SMProperty.FindDomain("vtkSMIntRangeDomain")
+opt.SpecFile = {str(SPEC)!r}
+opt.UseSpecView, opt.Azimuth, opt.Elevation, opt.Zoom = 0, {az}, {el}, {zoom}
+opt.Width, opt.Height, opt.MaxIterations = {SIZE}, {SIZE}, 1
+opt.UpdatePipeline()
+fd = servermanager.Fetch(opt).GetFieldData()
+view = CreateView("RenderView")
+display = Show(reader, view)
+display.SetRepresentationType("Volume")
+ColorBy(display, ("POINTS", reader.PointData.keys()[0]))
+apply_optimized(opt, display, preset_path={str(preset)!r})
+print({MARK!r} + json.dumps({{
+    "label": opt.SMProxy.GetXMLLabel(),
+    "menu": menu.GetAttribute("category") if menu else None,
+    "defaults": defaults,
+    "max_iter_range": [rng.GetMinimum(0), rng.GetMaximum(0)] if rng else None,
+    "initial_E": fd.GetArray("initial_E").GetValue(0),
+    "E": fd.GetArray("E").GetValue(0),
+    "dims": list(servermanager.Fetch(opt).GetDimensions()),
+    "spec": fd.GetAbstractArray("optimized_spec_json").GetValue(0),
+    "rgb": list(display.LookupTable.RGBPoints),
+    "points": list(display.ScalarOpacityFunction.Points),
+    "material": [display.Ambient, display.Diffuse, display.Specular, display.SpecularPower],
+}}), flush=True)
+"""
+    with _with_display(paraview) as env:
+        got = paraview.result(paraview.run(code, tmp_path, env=env))
+    assert got["label"] == "Optimize Transfer Function"
+    assert got["menu"] == "DVR Perception"
+    d = got["defaults"]
+    assert d["Stages"] == "opacity,lighting,colour"
+    assert d["Weights"] == [1.0, 1.0, 1.0]
+    assert (d["Seed"], d["MaxIterations"], d["Resolution"], d["UseSpecView"]) == (0, 10, 0, 1)
+    assert got["max_iter_range"][0] == 1
+    assert got["dims"] == [SIZE, SIZE, 1]
+    # the optimiser never returns something worse than its start
+    assert got["E"] <= got["initial_E"] + 1e-9
+    # apply_optimized: ParaView's LUT/opacity nodes are the optimised spec's VTK functions
+    spec = spec_from_dict(json.loads(got["spec"]))
+    ctf, otf = to_vtk_transfer_functions(spec)
+    np.testing.assert_allclose(got["rgb"], _nodes(ctf, 6), atol=1e-9)
+    np.testing.assert_allclose(got["points"], _nodes(otf, 4), atol=1e-9)
+    # a few values through the piecewise-linear opacity (midpoint 0.5, sharpness 0)
+    ops = [otf.GetValue(x) for x in np.linspace(0, 255, 7)]
+    pts = np.asarray(got["points"]).reshape(-1, 4)
+    np.testing.assert_allclose(ops, np.interp(np.linspace(0, 255, 7), pts[:, 0], pts[:, 1]))
+    top = max(spec.structures, key=lambda s: s.importance).lighting
+    expected = [top.ambient, top.diffuse, top.specular, top.specular_power]
+    assert got["material"] == pytest.approx(expected)
+    exported = json.loads(preset.read_text())[0]
+    assert exported["RGBPoints"] == pytest.approx(got["rgb"])
+    assert exported["Points"] == pytest.approx(got["points"])
+
+
+def test_batch_optimize_writes_before_after_screenshots_and_json(paraview, tmp_path, neghip):
+    out = tmp_path / "opt_out"
+    view = ",".join(str(v) for v in VIEW)
+    argv = [str(neghip), "--structures", str(SPEC), f"--view={view}", "--size", str(SIZE)]
+    argv += ["--max-iter", "1", "--out", str(out)]
+    with _with_display(paraview) as env:
+        proc = subprocess.run(
+            [str(paraview.pvbatch), str(PLUGIN_DIR / "batch_optimize.py"), *argv],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+            check=False,
+        )
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((out / "result.json").read_text())
+    assert set(result["files"]) == {
+        "before.png",
+        "after.png",
+        "optimized_preset.json",
+        "result.json",
+    }
+    for key in ("E_v", "E_s", "E_t", "E"):
+        assert np.isfinite(result["initial"][key])
+        assert np.isfinite(result["final"][key])
+    assert result["final"]["E"] <= result["initial"]["E"] + 1e-9
+    assert {s["name"] for s in result["optimized_spec"]["structures"]} == {
+        "diffuse lobes",
+        "inner lobes",
+        "peaks",
+    }
+    before, after = read_png(out / "before.png"), read_png(out / "after.png")
+    assert before.shape[:2] == after.shape[:2] == (SIZE, SIZE)
+    assert before[..., :3].max() > 8  # not blank
+    assert after[..., :3].max() > 8
