@@ -391,6 +391,12 @@ def apply(plotter_or_handle, result_or_spec, *, opacities=None, name=None, rende
             f"result_or_spec: the spec has {len(spec.structures)} structures but the plotter "
             f"shows {len(handle.spec.structures)}; add it with add_structures instead"
         )
+    if spec.names != handle.spec.names:
+        raise DVRInputError(
+            f"result_or_spec: its structures {list(spec.names)} are not the ones shown "
+            f"{list(handle.spec.names)} (a result for a different volume or spec?); add it "
+            "with add_structures instead"
+        )
     ops = _check(handle.volume, spec, opacities)
     _configure(handle, spec, ops)
     if render:

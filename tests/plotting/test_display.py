@@ -183,6 +183,11 @@ def test_bad_input_errors(phantom):
         fewer = replace(spec, structures=spec.structures[:2])
         with pytest.raises(DVRInputError, match="result_or_spec: the spec has 2 structures"):
             apply(handle, fewer)
+        renamed = replace(
+            spec, structures=tuple(replace(s, name=f"other {s.name}") for s in spec.structures)
+        )
+        with pytest.raises(DVRInputError, match="result_or_spec: its structures"):
+            apply(handle, renamed)  # e.g. an optimisation result for another volume
         with pytest.raises(DVRInputError, match="result_or_spec: expected a StructureSpec"):
             apply(handle, 42)
         add_structures(pl, vol, spec, name="second")
