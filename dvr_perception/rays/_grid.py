@@ -69,7 +69,7 @@ def clipping_range(camera, bounds) -> tuple[float, float]:
     dist = (corners - np.asarray(camera.position)) @ fwd
     near, far = float(dist.min()), float(dist.max())
     if camera.parallel_projection:
-        min_gap = 0.1 * camera.parallel_scale
+        min_gap = 0.2 * camera.parallel_scale
     else:
         min_gap = 0.2 * math.tan(math.radians(camera.view_angle) / 2.0) * far
     if far - near < min_gap:

@@ -24,6 +24,7 @@ import numpy as np
 
 from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError
+from dvr_perception.rays._grid import clipping_range
 from dvr_perception.rays.camera import Camera
 from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.structures.transfer import to_vtk_property
@@ -82,26 +83,7 @@ def vtk_clipping_range(volume: Volume, camera: Camera) -> tuple[float, float]:
     >>> [round(x, 6) for x in vtk_clipping_range(vol, cam)]
     [34.6, 58.2]
     """
-    fwd, _, _ = camera.basis()
-    b = volume.bounds
-    corners = np.array([[x, y, z] for x in b[0:2] for y in b[2:4] for z in b[4:6]])
-    dist = (corners - np.asarray(camera.position)) @ fwd
-    near, far = float(dist.min()), float(dist.max())
-    if camera.parallel_projection:
-        min_gap = 0.2 * camera.parallel_scale
-    else:
-        min_gap = 0.2 * math.tan(math.radians(camera.view_angle) / 2.0) * far
-    if far - near < min_gap:
-        extra = min_gap - far + near
-        far += extra / 2.0
-        near -= extra / 2.0
-    near = max(near, 0.0)
-    near = 0.99 * near - (far - near) * 0.5
-    far = 1.01 * far + (far - near) * 0.5
-    if near >= far:
-        near = 0.01 * far
-    near = max(near, 0.001 * far)
-    return near, far
+    return clipping_range(camera, volume.bounds)
 
 
 @functools.cache
