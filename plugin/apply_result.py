@@ -93,22 +93,14 @@ def apply_optimized(source_or_spec_json, volume_display, *, preset_path=None):
 
     Returns the applied ``StructureSpec``.
     """
-    from batch_measure import transfer_function_points
+    from batch_measure import set_transfer_functions
     from paraview import simple as pvs
 
     spec = optimized_spec(source_or_spec_json)
     array = volume_display.ColorArrayName[1]
     if not array:
         raise ValueError("the volume display is not coloured by an array (use ColorBy first)")
-    rgb, pts = transfer_function_points(spec)
-    lut = pvs.GetColorTransferFunction(array)
-    lut.AutomaticRescaleRangeMode = "Never"
-    lut.ColorSpace = "RGB"
-    lut.RGBPoints = rgb
-    pwf = pvs.GetOpacityTransferFunction(array)
-    pwf.Points = pts
-    volume_display.LookupTable = lut
-    volume_display.ScalarOpacityFunction = pwf
+    set_transfer_functions(pvs, volume_display, array, spec)
     light = lighting_structure(spec).lighting
     volume_display.Ambient, volume_display.Diffuse = light.ambient, light.diffuse
     volume_display.Specular = light.specular

@@ -116,10 +116,8 @@ def save_screenshot(pvs, view, camera, path):
         raise BatchError(f"output file {path}: ParaView did not write the screenshot")
 
 
-def screenshot(pvs, source, array, scene, path):
-    """Volume-render ``source`` with the spec's transfer functions and save ``path``."""
-    spec = scene.spec
-    view, display = show_volume(pvs, source, array, scene)
+def set_transfer_functions(pvs, display, array, spec):
+    """Give ``display`` the spec's colour LUT and opacity function for ``array`` (fixed range)."""
     rgb, pts = transfer_function_points(spec)
     lut = pvs.GetColorTransferFunction(array)
     lut.AutomaticRescaleRangeMode = "Never"
@@ -129,6 +127,13 @@ def screenshot(pvs, source, array, scene, path):
     pwf.Points = pts
     display.LookupTable = lut
     display.ScalarOpacityFunction = pwf
+
+
+def screenshot(pvs, source, array, scene, path):
+    """Volume-render ``source`` with the spec's transfer functions and save ``path``."""
+    spec = scene.spec
+    view, display = show_volume(pvs, source, array, scene)
+    set_transfer_functions(pvs, display, array, spec)
     light = spec.structures[0].lighting
     display.Ambient, display.Diffuse = light.ambient, light.diffuse
     display.Specular, display.SpecularPower = light.specular, light.specular_power

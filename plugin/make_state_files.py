@@ -74,7 +74,7 @@ def build(pvs, name, data_dir):
     """Build the pipeline and views of preset ``name`` reading ``data_dir/name.nhdr``."""
     import argparse
 
-    from batch_measure import set_camera, transfer_function_points
+    from batch_measure import set_camera, set_transfer_functions
 
     from dvr_perception.cli._common import load_scene
 
@@ -110,15 +110,7 @@ def build(pvs, name, data_dir):
     display = pvs.Show(reader, view)
     display.SetRepresentationType("Volume")
     pvs.ColorBy(display, ("POINTS", array))
-    rgb, pts = transfer_function_points(spec)
-    lut = pvs.GetColorTransferFunction(array)
-    lut.AutomaticRescaleRangeMode = "Never"
-    lut.ColorSpace = "RGB"
-    lut.RGBPoints = rgb
-    pwf = pvs.GetOpacityTransferFunction(array)
-    pwf.Points = pts
-    display.LookupTable = lut
-    display.ScalarOpacityFunction = pwf
+    set_transfer_functions(pvs, display, array, spec)
     display.VolumeRenderingMode = "Ray Cast Only"
     unit = spec.rendering.opacity_unit_distance
     display.ScalarOpacityUnitDistance = float(min(scene.volume.spacing) if unit is None else unit)
