@@ -6,10 +6,11 @@ Everything here is plain numpy and is shared by the numba and the numpy back end
   the near plane anchors the sample phase (``docs/vtk_conventions.md`` facts 9-10).
 * :func:`ray_segments` - per pixel ray: voxel-space origin and direction, position of the first
   sample and number of samples, exactly where ``vtkFixedPointVolumeRayCastMapper`` samples.
-* :func:`index_volume`, :func:`normal_codes`, :func:`voxel_records`, :func:`block_range` -
-  per-volume arrays (table index per voxel, VTK-encoded normals, both packed in one uint32 per
-  voxel, min/max table index per 4^3 block), cached
-  on the :class:`~dvr_perception.volume.volume.Volume` object for as long as it lives.
+* :func:`index_volume`, :func:`compact_index`, :func:`normal_codes`, :func:`voxel_records`,
+  :func:`cell_map` - per-volume arrays (table index per voxel, also as uint8 when it fits,
+  VTK-encoded normals, both packed in one uint32 per voxel, class and empty-space distance per
+  cell), cached on the :class:`~dvr_perception.volume.volume.Volume` object for as long as it
+  lives.
 """
 
 from __future__ import annotations
@@ -20,13 +21,15 @@ import weakref
 import numpy as np
 
 __all__ = [
-    "BLOCK",
+    "CELL_EMPTY",
+    "CELL_MAX_DISTANCE",
+    "CELL_MIXED",
     "ZERO_CODE",
-    "block_flags",
-    "block_range",
     "camera_pack",
+    "cell_map",
     "clipping_range",
     "code_directions",
+    "compact_index",
     "index_volume",
     "normal_codes",
     "ray_segments",
@@ -34,12 +37,14 @@ __all__ = [
     "voxel_records",
 ]
 
-#: Cells per empty-space block along each axis (a power of two; the kernels shift by 3).
-BLOCK = 4
-_BLOCK_SHIFT = 2
 #: VTK clips rays against the box of voxel centres moved in by this many voxels.
 _INSET = 0.01
 _STORE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+#: VTK's fixed-point trilinear weights sum to 32765/32768 and the index is rounded up.
+_W_SCALE = 32765.0 / 32768.0
+_W_BIAS = 32767.0 / 32768.0
 
 
 def _store(volume) -> dict:
@@ -167,6 +172,84 @@ def index_volume(volume, lo: float, scale: float, size: int) -> np.ndarray:
     return memo[key]
 
 
+def compact_index(volume, index: np.ndarray) -> np.ndarray:
+    """``index`` as uint8 when every entry fits (memoised), else ``index`` itself.
+
+    What the walk reads after early ray termination, where only the table index matters.
+    """
+    key = ("index8", id(index))
+    memo = _store(volume)
+    if key not in memo:
+        small = int(index.max(initial=0)) <= 255
+        memo[key] = index.astype(np.uint8) if small else index
+    return memo[key]
+
+
+#: Cell classes of :func:`cell_map` (low byte): no sample in the cell belongs to a structure,
+#: or its samples need the trilinear table index; ``1 + s``: all are on structure ``s``'s plateau.
+CELL_EMPTY = 0
+CELL_MIXED = 255
+#: Largest empty-space distance stored in :func:`cell_map` (high byte).
+CELL_MAX_DISTANCE = 255
+
+
+def cell_map(volume, index: np.ndarray, ids: np.ndarray, membership: np.ndarray) -> np.ndarray:
+    """Class and empty-space distance of every cell (uint16 ``[z, y, x]`` of its first corner).
+
+    A sample's table index is interpolated from the cell's 8 corners, so it lies between their
+    smallest and largest index (widened by one entry each way for VTK's fixed-point rounding
+    and float error).  Low byte, the class: when every table entry in that interval is outside
+    all structures the cell is :data:`CELL_EMPTY`; when every entry is on the plateau
+    (membership 1) of one structure ``s`` it is ``1 + s`` (the sample's structure and opacity
+    are then known without interpolating); otherwise :data:`CELL_MIXED`.  High byte, for empty
+    cells: the chessboard distance ``d`` (at most :data:`CELL_MAX_DISTANCE`) to the nearest
+    non-empty cell, so every cell within ``d - 1`` cells on each axis is empty too and a ray
+    may advance ``d - 1`` voxels along every axis without missing a sample.  The last plane of
+    each axis is never sampled (cells are clamped to ``n - 2``) and counts as empty.
+    """
+    ids = np.asarray(ids)
+    memb = np.asarray(membership)
+    key = ("cells", id(index), ids.tobytes(), (memb > 0).tobytes(), (memb == 1).tobytes())
+    memo = _store(volume)
+    if key in memo:
+        return memo[key]
+    from scipy import ndimage
+
+    n = len(ids)
+    cat = np.where(memb <= 0, CELL_EMPTY, np.where(memb == 1, 1 + ids.astype(np.int64), CELL_MIXED))
+    run = np.concatenate([[0], np.cumsum(cat[1:] != cat[:-1])])
+    out = np.zeros(index.shape, np.uint16)
+    nz = index.shape[0]
+    for z0 in range(0, nz - 1, 16):
+        z1 = min(z0 + 17, nz)
+        blk = index[z0:z1]
+        lo = np.minimum(blk[:-1], blk[1:])
+        hi = np.maximum(blk[:-1], blk[1:])
+        for axis in (1, 2):
+            a = [slice(None)] * 3
+            b = [slice(None)] * 3
+            a[axis] = slice(0, -1)
+            b[axis] = slice(1, None)
+            lo = np.minimum(lo[tuple(a)], lo[tuple(b)])
+            hi = np.maximum(hi[tuple(a)], hi[tuple(b)])
+        klo = np.floor(lo * _W_SCALE + _W_BIAS).astype(np.int64) - 2
+        khi = np.floor(hi * _W_SCALE + _W_BIAS).astype(np.int64) + 1
+        np.clip(klo, 0, n - 1, out=klo)
+        np.clip(khi, 0, n - 1, out=khi)
+        cls = np.where(run[klo] == run[khi], cat[klo], CELL_MIXED)
+        out[z0 : z0 + lo.shape[0], :-1, :-1] = cls
+    cells = out[:-1, :-1, :-1]
+    empty = cells == CELL_EMPTY
+    if empty.all():
+        dist = np.full(cells.shape, CELL_MAX_DISTANCE, np.int64)
+    else:
+        dist = ndimage.distance_transform_cdt(empty, metric="chessboard")
+    np.minimum(dist, CELL_MAX_DISTANCE, out=dist)
+    cells |= (dist.astype(np.uint16) << np.uint16(8)) * empty.astype(np.uint16)
+    memo[key] = out
+    return out
+
+
 #: Code of a zero gradient in VTK's spherical direction encoding (``255 * 256``).
 ZERO_CODE = 255 * 256
 
@@ -235,70 +318,3 @@ def voxel_records(volume, index: np.ndarray) -> np.ndarray:
             out[z0 : z0 + 16] |= index[z0 : z0 + 16]
         memo[key] = out
     return memo[key]
-
-
-def _window_reduce(arr: np.ndarray, axis: int, fn) -> np.ndarray:
-    """Reduce voxels ``[B b - 1, B b + B + 1]`` (B = BLOCK) along ``axis`` for every block ``b``."""
-    n = arr.shape[axis]
-    nb = ((n - 2) >> _BLOCK_SHIFT) + 1
-    parts = []
-    for bi in range(nb):
-        lo, hi = max(bi * BLOCK - 1, 0), min(bi * BLOCK + BLOCK + 2, n)
-        sl = [slice(None)] * arr.ndim
-        sl[axis] = slice(lo, hi)
-        parts.append(fn(arr[tuple(sl)], axis=axis))
-    return np.stack(parts, axis=axis)
-
-
-def block_range(volume, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Min and max table index per block of 4^3 cells (with a 1-voxel apron)."""
-    key = ("blocks", id(index))
-    memo = _store(volume)
-    if key not in memo:
-        lo, hi = index, index
-        for axis in range(3):
-            lo = _window_reduce(lo, axis, np.min)
-            hi = _window_reduce(hi, axis, np.max)
-        memo[key] = (lo, hi)
-    return memo[key]
-
-
-def block_flags(bmin: np.ndarray, bmax: np.ndarray, member: np.ndarray) -> np.ndarray:
-    """uint8 flag per block: 1 if any table entry in ``[min - 1, max]`` has ``member`` True."""
-    cum = np.concatenate([[0], np.cumsum(member.astype(np.int64))])
-    lo = np.maximum(bmin.astype(np.int64) - 1, 0)
-    hi = np.minimum(bmax.astype(np.int64), len(member) - 1)
-    return np.ascontiguousarray((cum[hi + 1] - cum[lo]) > 0, dtype=np.uint8)
-
-
-def block_distance(flags: np.ndarray) -> np.ndarray:
-    """Empty-space distance per block (uint8), for skipping empty space.
-
-    0 where ``flags`` is set, else the largest ``d`` such that every block within Chebyshev
-    distance ``d - 1`` is empty (blocks outside the grid count as empty).
-
-    Lets a ray jump the whole empty box of blocks around its position in one step.
-
-    Examples
-    --------
-    >>> f = np.zeros((1, 1, 7), np.uint8); f[0, 0, 3] = 1
-    >>> block_distance(f)[0, 0].tolist()
-    [3, 2, 1, 0, 1, 2, 3]
-    """
-    cur = flags == 0
-    dist = np.zeros(flags.shape, np.uint8)
-    d = 0
-    while d < 255 and cur.any():
-        dist += cur
-        d += 1
-        for axis in range(3):
-            p = np.pad(
-                cur, [(1, 1) if i == axis else (0, 0) for i in range(3)], constant_values=True
-            )
-            sl = [slice(None)] * 3
-            parts = []
-            for o in range(3):
-                sl[axis] = slice(o, o + cur.shape[axis])
-                parts.append(p[tuple(sl)])
-            cur = parts[0] & parts[1] & parts[2]
-    return dist

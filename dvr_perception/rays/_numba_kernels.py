@@ -3,12 +3,13 @@
 Kernels, parallel over chunks of interleaved image rows:
 
 * :func:`walk` marches every ray through the voxel records (table index, and VTK's encoded
-  normal when shading) at VTK's sample positions, jumping whole boxes of empty 4^3 blocks at
-  once (:func:`_grid.block_distance`, tested only when the ray enters another block), and
-  composites it until early ray termination.  It always accumulates ``present`` and
-  ``assigned`` over the whole ray (table-index lookups only).  With ``build`` it packs one cache
-  entry per sample with membership > 0 (table index, sample index, shading and curvature) into
-  its chunk's region.
+  normal when shading) at VTK's sample positions and composites it until early ray
+  termination; :func:`_tail` goes on to the end of the ray reading only the compact table
+  index, since ``present`` and the occlusion-free ``assigned`` need every sample.  Both look
+  up each sample's cell in :func:`_grid.cell_map` first: an empty cell makes the ray jump as
+  far as its empty-space distance allows, a plateau cell gives the table entry without
+  interpolating the 8 corners.  With ``build`` the walk packs one cache entry per sample with
+  membership > 0 (table index, sample index, shading and curvature) into its chunk's region.
 * Shading (:func:`_shade_at`) is VTK's: the shading-table entries of the 8 corners' normal codes
   are interpolated trilinearly (lit diffuse cosine and specular power term, stored per entry as
   uint16 ``round(x * 65534)``; materials, colours and opacities are applied at compositing).
@@ -40,11 +41,22 @@ _FM = {"nnan", "ninf", "nsz", "arcp", "afn"}
 _U1 = np.uint64(1)
 _U16 = np.uint32(16)
 _MASK = np.uint32(0xFFFF)
-#: Empty-space block: ``_BW`` = 2 ** ``_BS`` cells per axis (= ``_grid.BLOCK``, tested).
-_BS = 2
-_BW = 4
 #: Shading factors are stored as uint16 ``round(x * 65534)``; ``_UNSET`` = not yet computed.
 _IQS = 1.0 / 65534.0
+#: Cell classes (= ``_grid.CELL_EMPTY`` / ``CELL_MIXED``, tested); ``1 + s`` is ``s``'s plateau.
+_CELL_EMPTY = 0
+_CELL_MIXED = 255
+_LOW = np.uint16(0xFF)
+_HIGH = np.uint16(8)
+
+
+@njit(cache=True, fastmath=_FM, inline="always")
+def _jump_scale(bx, by, bz, step):
+    """Return the samples per voxel of advance along the ray's fastest axis (empty-space jumps)."""
+    m = max(abs(bx), abs(by), abs(bz)) * step
+    return 1.0 / m if m > 0.0 else 1e9
+
+
 _UNSET = 65535
 
 
@@ -158,37 +170,74 @@ def _shade_at(volf, o, isy, isz, fx, fy, fz, tab, s):
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
-def _skip_to(j, t_first, step, dist, x, y, z, ax, ay, az, bx, by, bz):
-    """First sample index past the empty box of blocks around the cell ``(x, y, z)``, or -1.
+def _tail(r, tix, cells, rep, ax, ay, az, bx, by, bz, t_first, j, n, step, ids, memb, alpha_w,
+          shade, has_curv, build, base, cnt, walked, bits, asg, out):  # fmt: skip
+    """Walk the rest of a ray after early ray termination: only each sample's table index.
 
-    ``dist`` is :func:`dvr_perception.rays._grid.block_distance`: every block within Chebyshev
-    distance ``d - 1`` of a block with distance ``d`` is empty.
+    Accumulates the occlusion-free ``asg`` and the ``present`` bits and, with ``build``, writes
+    cache entries whose shading and curvature are left unset.  ``tix`` is the compact table
+    index volume (uint8 when the table has at most 256 entries): a quarter of the memory
+    traffic of the voxel records.
     """
-    d = dist[z >> _BS, y >> _BS, x >> _BS]
-    if d == 0:
-        return -1
-    dm = int(d) - 1
-    te = 1e300
-    if bx > 0.0:
-        te = min(te, (((x >> _BS) + dm + 1) * _BW - ax) / bx)
-    elif bx < 0.0:
-        te = min(te, (((x >> _BS) - dm) * _BW - ax) / bx)
-    if by > 0.0:
-        te = min(te, (((y >> _BS) + dm + 1) * _BW - ay) / by)
-    elif by < 0.0:
-        te = min(te, (((y >> _BS) - dm) * _BW - ay) / by)
-    if bz > 0.0:
-        te = min(te, (((z >> _BS) + dm + 1) * _BW - az) / bz)
-    elif bz < 0.0:
-        te = min(te, (((z >> _BS) - dm) * _BW - az) / bz)
-    jn = int(np.ceil((te - t_first) / step))
-    return jn if jn > j else j + 1
+    c_lut, c_j, c_sh, c_curv = out
+    nz, ny, nx = tix.shape
+    tf = tix.reshape(tix.size)
+    cf = cells.reshape(cells.size)
+    nxy = nx * ny
+    inv = _jump_scale(bx, by, bz, step)
+    while j < n:
+        t = t_first + j * step
+        px = ax + t * bx
+        py = ay + t * by
+        pz = az + t * bz
+        x = min(max(int(px), 0), nx - 2)
+        y = min(max(int(py), 0), ny - 2)
+        z = min(max(int(pz), 0), nz - 2)
+        o = z * nxy + y * nx + x
+        cl = cf[o]
+        walked += 1
+        if cl & _LOW == _CELL_EMPTY:
+            j += max(int(((cl >> _HIGH) - 1) * inv), 1)
+            continue
+        cl &= _LOW
+        if cl != _CELL_MIXED:
+            k = rep[cl - 1]
+        else:
+            fx = min(max(px - x, 0.0), 1.0)
+            fy = min(max(py - y, 0.0), 1.0)
+            fz = min(max(pz - z, 0.0), 1.0)
+            gx = 1.0 - fx
+            gy = 1.0 - fy
+            o1 = o + nx
+            o2 = o + nxy
+            o3 = o2 + nx
+            f = (
+                (1.0 - fz) * (gy * (gx * tf[o] + fx * tf[o + 1])
+                              + fy * (gx * tf[o1] + fx * tf[o1 + 1]))
+                + fz * (gy * (gx * tf[o2] + fx * tf[o2 + 1]) + fy * (gx * tf[o3] + fx * tf[o3 + 1]))
+            )  # fmt: skip
+            k = min(int(f * _W_SCALE + _W_BIAS), len(ids) - 1)
+        if memb[k] > 0.0:
+            s = ids[k]
+            bits |= np.uint32(1) << np.uint32(s)
+            asg[s, r] += alpha_w[k]
+            if build:
+                e = base + cnt
+                c_lut[e] = k
+                c_j[e] = j
+                if shade:
+                    c_sh[e, 0] = _UNSET
+                if has_curv:
+                    c_curv[e] = -1.0
+                cnt += 1
+        j += 1
+    return cnt, walked, bits
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
 def _walk_ray(
-    r, vol, curv, dist, a, b, t_first, n, step, ids, memb, alpha_r, alpha_w, col, light, tab,
-    shade, has_curv, build, base, ert, rgba, vis, asg, present, cimg, out,
+    r, vol, tix, cells, rep, curv, a, b, t_first, n, step, ids, memb, alpha_r, alpha_w, col,
+    light, tab, shade, has_curv, build, base, ert, rgba, vis, asg, present, cimg, out,
 ):  # fmt: skip
     """Walk one ray, compositing until early ray termination.
 
@@ -200,6 +249,7 @@ def _walk_ray(
     c_lut, c_j, c_sh, c_curv = out
     nz, ny, nx = vol.shape
     volf = vol.reshape(vol.size)
+    cf = cells.reshape(cells.size)
     isy = np.uint64(nx)
     nxy = nx * ny
     isz = np.uint64(nxy)
@@ -217,8 +267,8 @@ def _walk_ray(
     num = 0.0
     den = 0.0
     j = 0
-    last_blk = -1
-    while j < n:
+    inv = _jump_scale(bx, by, bz, step)
+    while j < n and alive:
         t = t_first + j * step
         px = ax + t * bx
         py = ay + t * by
@@ -226,31 +276,32 @@ def _walk_ray(
         x = min(max(int(px), 0), nx - 2)
         y = min(max(int(py), 0), ny - 2)
         z = min(max(int(pz), 0), nz - 2)
-        blk = ((z >> _BS) << 42) + ((y >> _BS) << 21) + (x >> _BS)
-        if blk != last_blk:
-            jn = _skip_to(j, t_first, step, dist, x, y, z, ax, ay, az, bx, by, bz)
-            if jn >= 0:
-                j = jn
-                continue
-            last_blk = blk
+        o = np.uint64(z * nxy + y * nx + x)
+        cl = cf[o]
         walked += 1
+        if cl & _LOW == _CELL_EMPTY:
+            j += max(int(((cl >> _HIGH) - 1) * inv), 1)
+            continue
+        cl &= _LOW
         fx = min(max(px - x, 0.0), 1.0)
         fy = min(max(py - y, 0.0), 1.0)
         fz = min(max(pz - z, 0.0), 1.0)
-        gx = 1.0 - fx
-        gy = 1.0 - fy
-        gz = 1.0 - fz
-        o = np.uint64(z * nxy + y * nx + x)
-        o1 = o + isy
-        o2 = o + isz
-        o3 = o2 + isy
-        f = (
-            gz * (gy * (gx * (volf[o] & _MASK) + fx * (volf[o + _U1] & _MASK))
-                  + fy * (gx * (volf[o1] & _MASK) + fx * (volf[o1 + _U1] & _MASK)))
-            + fz * (gy * (gx * (volf[o2] & _MASK) + fx * (volf[o2 + _U1] & _MASK))
-                    + fy * (gx * (volf[o3] & _MASK) + fx * (volf[o3 + _U1] & _MASK)))
-        )  # fmt: skip
-        k = min(int(f * _W_SCALE + _W_BIAS), len(ids) - 1)
+        if cl != _CELL_MIXED:
+            k = rep[cl - 1]
+        else:
+            gx = 1.0 - fx
+            gy = 1.0 - fy
+            gz = 1.0 - fz
+            o1 = o + isy
+            o2 = o + isz
+            o3 = o2 + isy
+            f = (
+                gz * (gy * (gx * (volf[o] & _MASK) + fx * (volf[o + _U1] & _MASK))
+                      + fy * (gx * (volf[o1] & _MASK) + fx * (volf[o1 + _U1] & _MASK)))
+                + fz * (gy * (gx * (volf[o2] & _MASK) + fx * (volf[o2 + _U1] & _MASK))
+                        + fy * (gx * (volf[o3] & _MASK) + fx * (volf[o3 + _U1] & _MASK)))
+            )  # fmt: skip
+            k = min(int(f * _W_SCALE + _W_BIAS), len(ids) - 1)
         if memb[k] <= 0.0:
             j += 1
             continue
@@ -264,7 +315,7 @@ def _walk_ray(
             cnt += 1
         j += 1
         al = alpha_r[k]
-        if not alive or al <= 0.0:
+        if al <= 0.0:
             if build:
                 if shade:
                     c_sh[e, 0] = _UNSET
@@ -296,6 +347,11 @@ def _walk_ray(
         tr *= 1.0 - al
         if tr < ert:
             alive = False
+    if j < n:
+        cnt, walked, bits = _tail(
+            r, tix, cells, rep, ax, ay, az, bx, by, bz, t_first, j, n, step, ids, memb, alpha_w,
+            shade, has_curv, build, base, cnt, walked, bits, asg, out,
+        )  # fmt: skip
     present[r] = bits
     rgba[r, 0] = min(cr, 1.0)
     rgba[r, 1] = min(cg, 1.0)
@@ -382,9 +438,9 @@ def _composite_ray(
 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def walk(
-    vol, curv, dist, a, b, t_first, nsteps, step, height, width, nchunk, ids, memb, alpha_r,
-    alpha_w, col, light, tab, shade, has_curv, build, chunk_base, ert, rgba, vis, asg, present,
-    cimg, c_lut, c_j, c_sh, c_curv, start, count, chunk_end, walked,
+    vol, tix, cells, rep, curv, a, b, t_first, nsteps, step, height, width, nchunk, ids, memb,
+    alpha_r, alpha_w, col, light, tab, shade, has_curv, build, chunk_base, ert, rgba, vis, asg,
+    present, cimg, c_lut, c_j, c_sh, c_curv, start, count, chunk_end, walked,
 ):  # fmt: skip
     """March and composite all rays; see the module docstring.  Outputs are flat per ray.
 
@@ -411,7 +467,7 @@ def walk(
                     walked[r] = 0
                     continue
                 cnt, wk = _walk_ray(
-                    r, vol, curv, dist, a, b, t_first[r], nsteps[r], step, ids, memb,
+                    r, vol, tix, cells, rep, curv, a, b, t_first[r], nsteps[r], step, ids, memb,
                     alpha_r, alpha_w, col, light, tab, shade, has_curv, build, e, ert,
                     rgba, vis, asg, present, cimg, (c_lut, c_j, c_sh, c_curv),
                 )  # fmt: skip

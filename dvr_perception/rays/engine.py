@@ -343,17 +343,6 @@ _SCRATCH: dict = {}
 _SCRATCH_LOCK = threading.Lock()
 
 
-def _block_distance(volume, idx, memb) -> np.ndarray:
-    """Empty-space distance map of the blocks for this table (memoised per volume)."""
-    bmin, bmax = _grid.block_range(volume, idx)
-    flags = _grid.block_flags(bmin, bmax, memb > 0)
-    key = ("block_distance", id(idx), flags.shape, flags.tobytes())
-    memo = _grid._store(volume)
-    if key not in memo:
-        memo[key] = _grid.block_distance(flags)
-    return memo[key]
-
-
 def _walk_numba(nk, volume, lut, idx, vol, cv, seg, step, memb, alpha_w, args, k, camera, build,
                 locked):  # fmt: skip
     """Run the numba walk (with the cache: fused build and compositing, then compaction)."""
@@ -361,7 +350,9 @@ def _walk_numba(nk, volume, lut, idx, vol, cv, seg, step, memb, alpha_w, args, k
     h, w = camera.height, camera.width
     nrays = h * w
     n = seg["n"]
-    dist = _block_distance(volume, idx, memb)
+    tix = _grid.compact_index(volume, idx)
+    cells = _grid.cell_map(volume, idx, lut.ids, memb)
+    rep = _plateau_entries(lut.ids, memb, k)
     nchunk = max(min(h, 64), 1)
     # every ray's outputs are written by the kernel: no zeroing needed
     rgba = _scratch("rgba", nrays, (4,), np.float64, locked)
@@ -383,9 +374,18 @@ def _walk_numba(nk, volume, lut, idx, vol, cv, seg, step, memb, alpha_w, args, k
     src_j = _scratch("j", cap if build else 1, (), np.int32, locked)
     src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked)
     src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked)
-    return _walk_compact(nk, vol, cv, dist, seg, step, h, w, nchunk, memb, alpha_w,
-                         args, build, chunk_base, rgba, vis, asg, present, cimg, src_lut,
-                         src_j, src_sh, src_curv, start, count, chunk_end, walked)  # fmt: skip
+    maps = (tix, cells, rep)
+    return _walk_compact(nk, vol, maps, cv, seg, step, h, w, nchunk, memb, alpha_w, args,
+                         build, chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j,
+                         src_sh, src_curv, start, count, chunk_end, walked)  # fmt: skip
+
+
+def _plateau_entries(ids, memb, k) -> np.ndarray:
+    """Per structure, a table entry on its plateau (membership 1), or -1 (see ``cell_classes``)."""
+    rep = np.full(max(k, 1), -1, np.int64)
+    for e in np.flatnonzero(memb == 1)[::-1]:
+        rep[ids[e]] = e
+    return rep
 
 
 def _scratch(name, n, tail, dtype, shared):
@@ -403,13 +403,13 @@ def _scratch(name, n, tail, dtype, shared):
     return a[:n]
 
 
-def _walk_compact(nk, vol, cv, dist, seg, step, h, w, nchunk, memb, alpha_w, args, build,
+def _walk_compact(nk, vol, maps, cv, seg, step, h, w, nchunk, memb, alpha_w, args, build,
                   chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j, src_sh, src_curv,
                   start, count, chunk_end, walked):  # fmt: skip
     ids, alpha_r, cols, light, tab, shade, has_curv, ert = args
     n = seg["n"]
     nk.walk(
-        vol, cv, dist, seg["a"], seg["b"], seg["t"], n, step, h, w, nchunk, ids, memb,
+        vol, *maps, cv, seg["a"], seg["b"], seg["t"], n, step, h, w, nchunk, ids, memb,
         alpha_r, alpha_w, cols, light, tab, shade, has_curv, build, chunk_base, ert, rgba, vis,
         asg, present, cimg, src_lut, src_j, src_sh, src_curv, start, count, chunk_end, walked,
     )  # fmt: skip

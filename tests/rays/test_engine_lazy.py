@@ -1,11 +1,10 @@
-"""Lazily computed cache entries, empty-space distances and negative curvature input."""
+"""Lazily computed cache entries and negative curvature input."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from dvr_perception.rays._grid import block_distance
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.engine import analyze, reevaluate
 from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
@@ -51,13 +50,3 @@ def test_negative_curvature_input_is_used_as_its_absolute_value():
     b = analyze(vol, spec, cam, curvature=np.abs(curv), backend="numba")
     _assert_same(a, b)
     assert curv.min() < 0  # the caller's array is not modified
-
-
-def test_block_distance_matches_brute_force():
-    rng = np.random.default_rng(3)
-    flags = (rng.random((5, 7, 6)) < 0.04).astype(np.uint8)
-    dist = block_distance(flags)
-    on = np.argwhere(flags)
-    for p in np.ndindex(flags.shape):
-        cheb = np.abs(on - np.array(p)).max(axis=1).min() if len(on) else 10**6
-        assert dist[p] == min(cheb, 255)

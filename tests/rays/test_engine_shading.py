@@ -70,8 +70,3 @@ def test_normal_codes_follow_vtk_spherical_encoding():
     d = _grid.code_directions()
     np.testing.assert_allclose(d[codes[3, 3, 5]], [-1, 0, 0], atol=0.02)
     assert not d[_grid.ZERO_CODE].any()
-
-
-def test_kernel_block_size_matches_grid():
-    nk = pytest.importorskip("dvr_perception.rays._numba_kernels")
-    assert 1 << nk._BS == nk._BW == _grid.BLOCK
