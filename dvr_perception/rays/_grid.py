@@ -201,10 +201,11 @@ def cell_map(volume, index: np.ndarray, ids: np.ndarray, membership: np.ndarray)
     and float error).  Low byte, the class: when every table entry in that interval is outside
     all structures the cell is :data:`CELL_EMPTY`; when every entry is on the plateau
     (membership 1) of one structure ``s`` it is ``1 + s`` (the sample's structure and opacity
-    are then known without interpolating); otherwise :data:`CELL_MIXED`.  High byte, for empty
-    cells: the chessboard distance ``d`` (at most :data:`CELL_MAX_DISTANCE`) to the nearest
-    non-empty cell, so every cell within ``d - 1`` cells on each axis is empty too and a ray
-    may advance ``d - 1`` voxels along every axis without missing a sample.  The last plane of
+    are then known without interpolating); otherwise :data:`CELL_MIXED`.  High byte, for the
+    uniform (empty and plateau) cells: the chessboard distance ``d`` (at most
+    :data:`CELL_MAX_DISTANCE`) to the nearest cell of another class, so every cell within
+    ``d - 1`` cells on each axis has the same class and a ray may advance ``d - 1`` voxels along
+    every axis without meeting another class; 0 for mixed cells.  The last plane of
     each axis is never sampled (cells are clamped to ``n - 2``) and counts as empty.
     """
     ids = np.asarray(ids)
@@ -239,13 +240,18 @@ def cell_map(volume, index: np.ndarray, ids: np.ndarray, membership: np.ndarray)
         cls = np.where(run[klo] == run[khi], cat[klo], CELL_MIXED)
         out[z0 : z0 + lo.shape[0], :-1, :-1] = cls
     cells = out[:-1, :-1, :-1]
-    empty = cells == CELL_EMPTY
-    if empty.all():
-        dist = np.full(cells.shape, CELL_MAX_DISTANCE, np.int64)
+    # cells with a neighbour of another class; a uniform cell at chessboard distance d from the
+    # nearest of them has only cells of its own class within d (d + 1 is the first other one)
+    edge = ndimage.maximum_filter(cells, size=3, mode="nearest") != ndimage.minimum_filter(
+        cells, size=3, mode="nearest"
+    )
+    if edge.any():
+        dist = ndimage.distance_transform_cdt(~edge, metric="chessboard") + 1
     else:
-        dist = ndimage.distance_transform_cdt(empty, metric="chessboard")
+        dist = np.full(cells.shape, CELL_MAX_DISTANCE, np.int64)
     np.minimum(dist, CELL_MAX_DISTANCE, out=dist)
-    cells |= (dist.astype(np.uint16) << np.uint16(8)) * empty.astype(np.uint16)
+    dist[cells == CELL_MIXED] = 0
+    cells |= dist.astype(np.uint16) << np.uint16(8)
     memo[key] = out
     return out
 

@@ -199,24 +199,42 @@ def _tail(r, tix, cells, rep, ax, ay, az, bx, by, bz, t_first, j, n, step, ids, 
         if cl & _LOW == _CELL_EMPTY:
             j += max(int(((cl >> _HIGH) - 1) * inv), 1)
             continue
-        cl &= _LOW
-        if cl != _CELL_MIXED:
-            k = rep[cl - 1]
-        else:
-            fx = min(max(px - x, 0.0), 1.0)
-            fy = min(max(py - y, 0.0), 1.0)
-            fz = min(max(pz - z, 0.0), 1.0)
-            gx = 1.0 - fx
-            gy = 1.0 - fy
-            o1 = o + nx
-            o2 = o + nxy
-            o3 = o2 + nx
-            f = (
-                (1.0 - fz) * (gy * (gx * tf[o] + fx * tf[o + 1])
-                              + fy * (gx * tf[o1] + fx * tf[o1 + 1]))
-                + fz * (gy * (gx * tf[o2] + fx * tf[o2 + 1]) + fy * (gx * tf[o3] + fx * tf[o3 + 1]))
-            )  # fmt: skip
-            k = min(int(f * _W_SCALE + _W_BIAS), len(ids) - 1)
+        if cl & _LOW != _CELL_MIXED:
+            # a box of one structure's plateau: every sample in it has the same table entry
+            m = min(max(int(((cl >> _HIGH) - 1) * inv), 1), n - j)
+            s = (cl & _LOW) - 1
+            k = rep[s]
+            bits |= np.uint32(1) << np.uint32(s)
+            a_k = alpha_w[k]
+            v = asg[s, r]
+            for i in range(m):
+                v += a_k
+                if build:
+                    e = base + cnt
+                    c_lut[e] = k
+                    c_j[e] = j + i
+                    if shade:
+                        c_sh[e, 0] = _UNSET
+                    if has_curv:
+                        c_curv[e] = -1.0
+                    cnt += 1
+            asg[s, r] = v
+            j += m
+            continue
+        fx = min(max(px - x, 0.0), 1.0)
+        fy = min(max(py - y, 0.0), 1.0)
+        fz = min(max(pz - z, 0.0), 1.0)
+        gx = 1.0 - fx
+        gy = 1.0 - fy
+        o1 = o + nx
+        o2 = o + nxy
+        o3 = o2 + nx
+        f = (
+            (1.0 - fz) * (gy * (gx * tf[o] + fx * tf[o + 1])
+                          + fy * (gx * tf[o1] + fx * tf[o1 + 1]))
+            + fz * (gy * (gx * tf[o2] + fx * tf[o2 + 1]) + fy * (gx * tf[o3] + fx * tf[o3 + 1]))
+        )  # fmt: skip
+        k = min(int(f * _W_SCALE + _W_BIAS), len(ids) - 1)
         if memb[k] > 0.0:
             s = ids[k]
             bits |= np.uint32(1) << np.uint32(s)

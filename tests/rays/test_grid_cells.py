@@ -36,7 +36,7 @@ def test_one_bright_voxel_gives_chessboard_distances():
             cheb = np.abs(busy - np.array(p)).max(axis=1).min()
             assert dist[p] == cheb, p
         else:
-            assert dist[p] == 0
+            assert dist[p] == 0  # mixed: no jumps
 
 
 def test_constant_volume_inside_a_plateau_is_classified_without_interpolation():
@@ -48,7 +48,9 @@ def test_constant_volume_inside_a_plateau_is_classified_without_interpolation():
         )
     )
     _, _, cells = _map(vol, spec)
-    assert np.all(cells[:-1, :-1, :-1] == 1 + 1)  # structure 1 ("b"), its plateau
+    inner = cells[:-1, :-1, :-1]
+    assert np.all(inner & 0xFF == 1 + 1)  # structure 1 ("b"), its plateau
+    assert np.all(inner >> 8 == _grid.CELL_MAX_DISTANCE)  # no other class anywhere
 
 
 def test_empty_volume_is_empty_at_the_largest_distance():
@@ -94,6 +96,22 @@ def test_classes_hold_for_every_sample_in_a_noisy_volume(dtype):
         plat = (c != _grid.CELL_EMPTY) & (c != _grid.CELL_MIXED)
         assert np.all(lut.membership[k[plat]] == 1)
         assert np.all(lut.ids[k[plat]] == c[plat] - 1)
+    # a uniform cell's distance d: every cell within d - 1 has its class, one at d does not
+    full = cells[:-1, :-1, :-1]
+    dist = full >> 8
+    for p in zip(*np.nonzero(cls != _grid.CELL_MIXED), strict=True):
+        d = int(dist[p])
+        lo = [max(q - d, 0) for q in p]
+        hi = [q + d + 1 for q in p]
+        box = cls[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
+        inner = cls[
+            max(p[0] - d + 1, 0) : p[0] + d, max(p[1] - d + 1, 0) : p[1] + d,
+            max(p[2] - d + 1, 0) : p[2] + d,
+        ]  # fmt: skip
+        assert np.all(inner == cls[p])
+        assert (
+            d == _grid.CELL_MAX_DISTANCE or np.any(box != cls[p]) or box.shape != (2 * d + 1,) * 3
+        )
 
 
 def test_kernel_cell_codes_match_grid():
