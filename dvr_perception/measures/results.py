@@ -19,6 +19,7 @@ import numpy as np
 
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.measures.luminance import composite_luminance, luminance
+from dvr_perception.rays._results import RayAnalysis
 
 __all__ = ["ShapeResult", "TransparencyResult", "VisibilityResult"]
 
@@ -209,13 +210,16 @@ def _names(analysis, spec, k: int) -> tuple[str, ...]:
     return names
 
 
-def _check_premultiplied(rgba: np.ndarray, notes: list[str]) -> None:
+def _check_premultiplied(rgba: np.ndarray, notes: list[str], *, trusted: bool = False) -> None:
     """Warn if ``rgba`` looks straight (not premultiplied); note a few emissive pixels.
 
     Shaded renderings add a white specular term, so a highlight may carry more light than its
     opacity: that is emission, not a straight-alpha image.  Only when more than
     ``_STRAIGHT_FRACTION`` of the covered pixels have colour above opacity is the image
     taken to be non-premultiplied (a :class:`DVRWarning`); otherwise a note counts them.
+    ``trusted``: the image comes from the ray-analysis engine, which composites premultiplied
+    colour by construction (dim, specular-lit silhouettes may exceed their opacity on many
+    pixels), so only the note is made.
     """
     alpha = rgba[..., 3]
     over = np.any(rgba[..., :3] > alpha[..., None] + _OPACITY_SLACK, axis=-1)
@@ -223,7 +227,7 @@ def _check_premultiplied(rgba: np.ndarray, notes: list[str]) -> None:
     if n_over == 0:
         return
     covered = max(int(np.count_nonzero(alpha > _OPACITY_SLACK)), 1)
-    if n_over > _STRAIGHT_FRACTION * covered:
+    if not trusted and n_over > _STRAIGHT_FRACTION * covered:
         warnings.warn(
             f"analysis.rgba: colour exceeds opacity on {n_over} of {covered} covered pixels; "
             "is the image really premultiplied?",
@@ -253,7 +257,7 @@ def _image_luminance(analysis, spec, shape: tuple[int, int]) -> tuple[np.ndarray
         with warnings.catch_warnings():  # judged below: a few emissive pixels are expected
             warnings.simplefilter("ignore", DVRWarning)
             y = composite_luminance(arr, background=background)
-        _check_premultiplied(arr, notes)
+        _check_premultiplied(arr, notes, trusted=isinstance(analysis, RayAnalysis))
         source = "rgba"
     elif image is not None:
         y = luminance(_field(analysis, "image", 3))
