@@ -175,7 +175,7 @@ def load_scene(args: argparse.Namespace) -> Scene:
     size = parse_size(args.size) if args.size is not None else None
     view = parse_view(args.view) if args.view is not None else None
     camera = _read_camera(args.camera, size) if args.camera is not None else None
-    from dvr_perception.structures.io import check_spec_for_volume, load_spec
+    from dvr_perception.structures.io import attach_labels, check_spec_for_volume, load_spec
 
     given = load_spec(args.structures) if args.structures is not None else None
     t0 = time.perf_counter()
@@ -189,6 +189,7 @@ def load_scene(args: argparse.Namespace) -> Scene:
 
         log.info("no spec given or paired with %s: proposing structures", args.volume)
         spec, spec_source = propose_structures(volume), "proposed"
+    volume = attach_labels(volume, spec)
     check_spec_for_volume(spec, volume)
     if args.shade is not None:
         spec = replace(spec, rendering=replace(spec.rendering, shade=bool(args.shade)))

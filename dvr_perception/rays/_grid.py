@@ -20,6 +20,8 @@ import weakref
 
 import numpy as np
 
+from dvr_perception.errors import DVRInputError
+
 __all__ = [
     "CELL_EMPTY",
     "CELL_MAX_DISTANCE",
@@ -193,7 +195,33 @@ CELL_MIXED = 255
 CELL_MAX_DISTANCE = 255
 
 
-def cell_map(volume, index: np.ndarray, ids: np.ndarray, membership: np.ndarray) -> np.ndarray:
+def label_map(volume, label_ids) -> np.ndarray | None:
+    """uint8 ``[z, y, x]``: ``1 + j`` where ``volume.labels`` equals ``label_ids[j]``, else 0.
+
+    ``None`` when ``label_ids`` is empty.  A sample takes the label of its nearest voxel, and a
+    voxel of a label structure belongs to it whatever its intensity (memoised per volume).
+    """
+    label_ids = tuple(int(v) for v in label_ids)
+    if not label_ids:
+        return None
+    if volume.labels is None:
+        raise DVRInputError(
+            "volume.labels: the spec has label structures but the volume has no label volume "
+            "(give the spec's 'labels' file, or Volume(..., labels=...))"
+        )
+    key = ("labelmap", label_ids)
+    memo = _store(volume)
+    if key not in memo:
+        out = np.zeros(volume.labels.shape, np.uint8)
+        for j, v in enumerate(label_ids):
+            out[volume.labels == v] = 1 + j
+        memo[key] = out
+    return memo[key]
+
+
+def cell_map(
+    volume, index: np.ndarray, ids: np.ndarray, membership: np.ndarray, labels=None
+) -> np.ndarray:
     """Class and empty-space distance of every cell (uint16 ``[z, y, x]`` of its first corner).
 
     A sample's table index is interpolated from the cell's 8 corners, so it lies between their
@@ -207,10 +235,14 @@ def cell_map(volume, index: np.ndarray, ids: np.ndarray, membership: np.ndarray)
     ``d - 1`` cells on each axis has the same class and a ray may advance ``d - 1`` voxels along
     every axis without meeting another class; 0 for mixed cells.  The last plane of
     each axis is never sampled (cells are clamped to ``n - 2``) and counts as empty.
+    ``labels`` (:func:`label_map`): a cell with a labelled corner is mixed (its samples take
+    their nearest voxel's label first).
     """
     ids = np.asarray(ids)
     memb = np.asarray(membership)
-    key = ("cells", id(index), ids.tobytes(), (memb > 0).tobytes(), (memb == 1).tobytes())
+    key = (
+        "cells", id(index), id(labels), ids.tobytes(), (memb > 0).tobytes(), (memb == 1).tobytes()
+    )  # fmt: skip
     memo = _store(volume)
     if key in memo:
         return memo[key]
@@ -238,6 +270,11 @@ def cell_map(volume, index: np.ndarray, ids: np.ndarray, membership: np.ndarray)
         np.clip(klo, 0, n - 1, out=klo)
         np.clip(khi, 0, n - 1, out=khi)
         cls = np.where(run[klo] == run[khi], cat[klo], CELL_MIXED)
+        if labels is not None:
+            lab = labels[z0:z1] > 0
+            lab = lab[:-1] | lab[1:]
+            lab = lab[:, :-1] | lab[:, 1:]
+            cls[lab[:, :, :-1] | lab[:, :, 1:]] = CELL_MIXED
         out[z0 : z0 + lo.shape[0], :-1, :-1] = cls
     cells = out[:-1, :-1, :-1]
     # cells with a neighbour of another class; a uniform cell at chessboard distance d from the

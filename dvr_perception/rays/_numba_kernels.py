@@ -170,8 +170,8 @@ def _shade_at(volf, o, isy, isz, fx, fy, fz, tab, s):
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
-def _tail(r, tix, cells, rep, ax, ay, az, bx, by, bz, t_first, j, n, step, ids, memb, alpha_w,
-          shade, has_curv, build, base, cnt, walked, bits, asg, out):  # fmt: skip
+def _tail(r, tix, cells, rep, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n, step, ids,
+          memb, alpha_w, shade, has_curv, build, base, cnt, walked, bits, asg, out):  # fmt: skip
     """Walk the rest of a ray after early ray termination: only each sample's table index.
 
     Accumulates the occlusion-free ``asg`` and the ``present`` bits and, with ``build``, writes
@@ -180,6 +180,7 @@ def _tail(r, tix, cells, rep, ax, ay, az, bx, by, bz, t_first, j, n, step, ids, 
     traffic of the voxel records.
     """
     c_lut, c_j, c_sh, c_curv = out
+    lab_end = (lab_base if lab_base >= 0 else len(ids)) - 1
     nz, ny, nx = tix.shape
     tf = tix.reshape(tix.size)
     cf = cells.reshape(cells.size)
@@ -221,20 +222,26 @@ def _tail(r, tix, cells, rep, ax, ay, az, bx, by, bz, t_first, j, n, step, ids, 
             asg[s, r] = v
             j += m
             continue
-        fx = min(max(px - x, 0.0), 1.0)
-        fy = min(max(py - y, 0.0), 1.0)
-        fz = min(max(pz - z, 0.0), 1.0)
-        gx = 1.0 - fx
-        gy = 1.0 - fy
-        o1 = o + nx
-        o2 = o + nxy
-        o3 = o2 + nx
-        f = (
-            (1.0 - fz) * (gy * (gx * tf[o] + fx * tf[o + 1])
-                          + fy * (gx * tf[o1] + fx * tf[o1 + 1]))
-            + fz * (gy * (gx * tf[o2] + fx * tf[o2 + 1]) + fy * (gx * tf[o3] + fx * tf[o3 + 1]))
-        )  # fmt: skip
-        k = min(int(f * _W_SCALE + _W_BIAS), len(ids) - 1)
+        lv = 0
+        if lab_base >= 0:
+            lv = lab[int(pz + 0.5), int(py + 0.5), int(px + 0.5)]
+            k = lab_base + lv - 1
+        if lv == 0:
+            fx = min(max(px - x, 0.0), 1.0)
+            fy = min(max(py - y, 0.0), 1.0)
+            fz = min(max(pz - z, 0.0), 1.0)
+            gx = 1.0 - fx
+            gy = 1.0 - fy
+            o1 = o + nx
+            o2 = o + nxy
+            o3 = o2 + nx
+            f = (
+                (1.0 - fz) * (gy * (gx * tf[o] + fx * tf[o + 1])
+                              + fy * (gx * tf[o1] + fx * tf[o1 + 1]))
+                + fz * (gy * (gx * tf[o2] + fx * tf[o2 + 1])
+                        + fy * (gx * tf[o3] + fx * tf[o3 + 1]))
+            )  # fmt: skip
+            k = min(int(f * _W_SCALE + _W_BIAS), lab_end)
         if memb[k] > 0.0:
             s = ids[k]
             bits |= np.uint32(1) << np.uint32(s)
@@ -254,10 +261,13 @@ def _tail(r, tix, cells, rep, ax, ay, az, bx, by, bz, t_first, j, n, step, ids, 
 
 @njit(cache=True, fastmath=_FM, inline="always")
 def _walk_ray(
-    r, vol, tix, cells, rep, curv, a, b, t_first, n, step, ids, memb, alpha_r, alpha_w, col,
-    light, tab, shade, has_curv, build, base, ert, rgba, vis, asg, present, cimg, out,
+    r, vol, maps, curv, a, b, t_first, n, step, ids, memb, alpha_r, alpha_w, col, light, tab,
+    shade, has_curv, build, base, ert, rgba, vis, asg, present, cimg, out,
 ):  # fmt: skip
     """Walk one ray, compositing until early ray termination.
+
+    ``maps`` is ``(tix, cells, rep, lab, lab_base)`` (see :func:`walk`; one tuple because a
+    call with more than 30 arguments becomes ``*args``, which numba cannot inline).
 
     ``vol`` holds the table index per voxel (low 16 bits) and, when shading, the normal code
     (high 16 bits).  ``build``: also write one cache entry per sample with membership
@@ -265,6 +275,8 @@ def _walk_ray(
     (-1) for samples that compositing did not reach).
     """
     c_lut, c_j, c_sh, c_curv = out
+    tix, cells, rep, lab, lab_base = maps
+    lab_end = (lab_base if lab_base >= 0 else len(ids)) - 1
     nz, ny, nx = vol.shape
     volf = vol.reshape(vol.size)
     cf = cells.reshape(cells.size)
@@ -304,9 +316,13 @@ def _walk_ray(
         fx = min(max(px - x, 0.0), 1.0)
         fy = min(max(py - y, 0.0), 1.0)
         fz = min(max(pz - z, 0.0), 1.0)
+        lv = 0
         if cl != _CELL_MIXED:
             k = rep[cl - 1]
-        else:
+        elif lab_base >= 0:
+            lv = lab[int(pz + 0.5), int(py + 0.5), int(px + 0.5)]
+            k = lab_base + lv - 1
+        if cl == _CELL_MIXED and lv == 0:
             gx = 1.0 - fx
             gy = 1.0 - fy
             gz = 1.0 - fz
@@ -319,7 +335,7 @@ def _walk_ray(
                 + fz * (gy * (gx * (volf[o2] & _MASK) + fx * (volf[o2 + _U1] & _MASK))
                         + fy * (gx * (volf[o3] & _MASK) + fx * (volf[o3 + _U1] & _MASK)))
             )  # fmt: skip
-            k = min(int(f * _W_SCALE + _W_BIAS), len(ids) - 1)
+            k = min(int(f * _W_SCALE + _W_BIAS), lab_end)
         if memb[k] <= 0.0:
             j += 1
             continue
@@ -367,8 +383,8 @@ def _walk_ray(
             alive = False
     if j < n:
         cnt, walked, bits = _tail(
-            r, tix, cells, rep, ax, ay, az, bx, by, bz, t_first, j, n, step, ids, memb, alpha_w,
-            shade, has_curv, build, base, cnt, walked, bits, asg, out,
+            r, tix, cells, rep, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n, step, ids,
+            memb, alpha_w, shade, has_curv, build, base, cnt, walked, bits, asg, out,
         )  # fmt: skip
     present[r] = bits
     rgba[r, 0] = min(cr, 1.0)
@@ -456,15 +472,20 @@ def _composite_ray(
 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def walk(
-    vol, tix, cells, rep, curv, a, b, t_first, nsteps, step, height, width, nchunk, ids, memb,
-    alpha_r, alpha_w, col, light, tab, shade, has_curv, build, chunk_base, ert, rgba, vis, asg,
-    present, cimg, c_lut, c_j, c_sh, c_curv, start, count, chunk_end, walked,
+    vol, tix, cells, rep, lab, lab_base, curv, a, b, t_first, nsteps, step, height, width, nchunk,
+    ids, memb, alpha_r, alpha_w, col, light, tab, shade, has_curv, build, chunk_base, ert, rgba,
+    vis, asg, present, cimg, c_lut, c_j, c_sh, c_curv, start, count, chunk_end, walked,
 ):  # fmt: skip
     """March and composite all rays; see the module docstring.  Outputs are flat per ray.
+
+    ``tix`` and ``cells``: :func:`_grid.compact_index` and :func:`_grid.cell_map`; ``rep``: a
+    plateau table entry per structure; ``lab``: :func:`_grid.label_map` whose value ``v > 0``
+    means table entry ``lab_base + v - 1`` (``lab_base`` -1: no label structures).
 
     Chunk ``c`` (rows ``c, c + nchunk, ...``) packs its rays' entries from ``chunk_base[c]``
     on and records its end in ``chunk_end[c]``.
     """
+    maps = (tix, cells, rep, lab, lab_base)
     for c in prange(nchunk):
         e = chunk_base[c]
         for row in range(c, height, nchunk):
@@ -485,7 +506,7 @@ def walk(
                     walked[r] = 0
                     continue
                 cnt, wk = _walk_ray(
-                    r, vol, tix, cells, rep, curv, a, b, t_first[r], nsteps[r], step, ids, memb,
+                    r, vol, maps, curv, a, b, t_first[r], nsteps[r], step, ids, memb,
                     alpha_r, alpha_w, col, light, tab, shade, has_curv, build, e, ert,
                     rgba, vis, asg, present, cimg, (c_lut, c_j, c_sh, c_curv),
                 )  # fmt: skip

@@ -52,8 +52,11 @@ def shade_entries(vol, seg, step, start, count, steps, s, tab, shade) -> np.ndar
     return out
 
 
-def walk(idx, curv, seg, step, ids, memb, alpha_w, has_curv, k_count):
+def walk(idx, lab, lab_base, curv, seg, step, ids, memb, alpha_w, has_curv, k_count):
     """March all rays; return cache entries in ray order plus ``present`` and ``assigned``.
+
+    ``lab`` (uint8 label map) overrides the interpolated table entry with entry
+    ``lab_base + lab - 1`` where a sample's nearest voxel is labelled (``lab_base`` -1: none).
 
     Returns a dict with ``off`` (R+1 int64), ``lut`` (uint16), ``steps`` (int32 sample index),
     ``curv`` (float32), ``present`` (uint32 R), ``assigned`` (float64 (K, R)).
@@ -81,7 +84,13 @@ def walk(idx, curv, seg, step, ids, memb, alpha_w, has_curv, k_count):
                 * (frac[:, 2] if dz else 1.0 - frac[:, 2])
             )
             f += w * idx[z + dz, y + dy, x + dx]
-        k = np.minimum((f * _W_SCALE + _W_BIAS).astype(np.int64), len(ids) - 1)
+        k = np.minimum(
+            (f * _W_SCALE + _W_BIAS).astype(np.int64), (lab_base if lab_base >= 0 else len(ids)) - 1
+        )
+        if lab_base >= 0:
+            q = np.floor(p + 0.5).astype(np.int64)
+            lv = lab[q[:, 2], q[:, 1], q[:, 0]].astype(np.int64)
+            k = np.where(lv > 0, lab_base + lv - 1, k)
         hit = memb[k] > 0.0
         if not hit.any():
             continue

@@ -204,7 +204,9 @@ def analyze(
     volume : Volume
         Scalar volume (any integer or float dtype).
     spec : StructureSpec
-        1 to 32 range structures (label structures are not classified by this engine).
+        1 to 32 structures: intensity ranges, or label ids looked up in ``volume.labels`` at
+        each sample's nearest voxel (a label structure's voxels belong to it whatever their
+        intensity; other voxels are classified by intensity).
     camera : Camera
         View and image size.
     opacities : array_like of float, optional
@@ -249,9 +251,10 @@ def analyze(
     rs = spec.rendering
     light = _tables.light_array(camera, mats, rs.light_direction, rs.light_intensity)
     lut = build_lut(spec, scalar_range=_grid.scalar_range(volume), dtype=volume.data.dtype)
+    labmap, ids, memb = _with_labels(volume, spec, lut)
     ratio = step / unit
-    alpha_w = _tables.alpha_table(lut.ids, lut.membership, imp, ratio)
-    alpha_r = _tables.alpha_table(lut.ids, lut.membership, ops, ratio)
+    alpha_w = _tables.alpha_table(ids, memb, imp, ratio)
+    alpha_r = _tables.alpha_table(ids, memb, ops, ratio)
     seg = _segments(nk, camera, volume, step)
     shade, has_curv = bool(rs.shade), curv is not None
     nrays = camera.width * camera.height
@@ -264,8 +267,7 @@ def analyze(
     idx = _grid.index_volume(volume, lut.lo, lut.scale, lut.size)
     vol = _grid.voxel_records(volume, idx) if shade else idx
     cv = curv if has_curv else np.zeros((2, 2, 2), np.float32)
-    ids = np.ascontiguousarray(lut.ids)
-    memb = np.ascontiguousarray(lut.membership)
+    lab = (labmap, lut.size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8), -1)
     tab = _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16)
     args = (ids, alpha_r, cols, light, tab, shade, has_curv, _tables.ERT)
     walked = int(seg["n"].sum())
@@ -275,14 +277,14 @@ def analyze(
     locked = nk is not None and _SCRATCH_LOCK.acquire(blocking=False)
     try:
         if nk is None:
-            out = _npk.walk(idx, cv, seg, step, ids, memb, alpha_w, has_curv, k)
+            out = _npk.walk(idx, *lab, cv, seg, step, ids, memb, alpha_w, has_curv, k)
             start, count = out["off"][:-1], np.diff(out["off"])
             c_lut, c_j, c_curv = out["lut"], out["steps"], out["curv"]
             c_sh = _npk.shade_entries(vol, seg, step, start, count, c_j, ids[c_lut], tab, shade)
             rgba, vis, cimg = _npk.composite(start, count, c_lut, c_sh, c_curv, *args, k)
             present, asg = out["present"], out["assigned"]
         else:
-            res = _walk_numba(nk, volume, lut, idx, vol, cv, seg, step, memb, alpha_w, args, k,
+            res = _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
                               camera, build_cache, locked)  # fmt: skip
             rgba, vis, asg, present, cimg, start, count, entries, walked = res
             if entries is not None:
@@ -343,16 +345,17 @@ _SCRATCH: dict = {}
 _SCRATCH_LOCK = threading.Lock()
 
 
-def _walk_numba(nk, volume, lut, idx, vol, cv, seg, step, memb, alpha_w, args, k, camera, build,
+def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k, camera, build,
                 locked):  # fmt: skip
     """Run the numba walk (with the cache: fused build and compositing, then compaction)."""
     shade, has_curv = args[5], args[6]
     h, w = camera.height, camera.width
     nrays = h * w
     n = seg["n"]
+    ids = args[0]
     tix = _grid.compact_index(volume, idx)
-    cells = _grid.cell_map(volume, idx, lut.ids, memb)
-    rep = _plateau_entries(lut.ids, memb, k)
+    cells = _grid.cell_map(volume, idx, ids, memb, lab[0] if lab[1] >= 0 else None)
+    rep = _plateau_entries(ids, memb, k)
     nchunk = max(min(h, 64), 1)
     # every ray's outputs are written by the kernel: no zeroing needed
     rgba = _scratch("rgba", nrays, (4,), np.float64, locked)
@@ -374,10 +377,24 @@ def _walk_numba(nk, volume, lut, idx, vol, cv, seg, step, memb, alpha_w, args, k
     src_j = _scratch("j", cap if build else 1, (), np.int32, locked)
     src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked)
     src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked)
-    maps = (tix, cells, rep)
+    maps = (tix, cells, rep, *lab)
     return _walk_compact(nk, vol, maps, cv, seg, step, h, w, nchunk, memb, alpha_w, args,
                          build, chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j,
                          src_sh, src_curv, start, count, chunk_end, walked)  # fmt: skip
+
+
+def _with_labels(volume, spec, lut):
+    """Return the label map and the table extended by one entry per label structure.
+
+    Entry ``lut.size + j`` is label structure ``j`` (membership 1); a sample whose nearest
+    voxel carries that label takes it, whatever its intensity.  Without label structures the
+    map is ``None`` and the table is the intensity table.
+    """
+    lab_s = [i for i, s in enumerate(spec.structures) if s.label is not None]
+    labmap = _grid.label_map(volume, [spec.structures[i].label for i in lab_s])
+    ids = np.concatenate([lut.ids, np.asarray(lab_s, lut.ids.dtype)])
+    memb = np.concatenate([lut.membership, np.ones(len(lab_s), lut.membership.dtype)])
+    return labmap, np.ascontiguousarray(ids), np.ascontiguousarray(memb)
 
 
 def _plateau_entries(ids, memb, k) -> np.ndarray:

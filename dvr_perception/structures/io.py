@@ -34,7 +34,14 @@ import numpy as np
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.structures.spec import StructureSpec, parse_spec_dict
 
-__all__ = ["check_spec_for_volume", "load_spec", "save_spec", "spec_from_dict", "spec_to_dict"]
+__all__ = [
+    "attach_labels",
+    "check_spec_for_volume",
+    "load_spec",
+    "save_spec",
+    "spec_from_dict",
+    "spec_to_dict",
+]
 
 
 def spec_from_dict(d, *, source: str = "spec") -> StructureSpec:
@@ -225,6 +232,48 @@ def save_spec(spec: StructureSpec, path) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def attach_labels(volume, spec: StructureSpec):
+    """Return ``volume`` with the label volume of ``spec.labels_file`` attached.
+
+    Unchanged when the spec names no label file.  The label file must have the volume's dims;
+    integer-valued float labels are accepted.
+
+    Raises
+    ------
+    DVRInputError
+        Naming the label file when it cannot be read, has other dims or non-integer values.
+
+    Examples
+    --------
+    >>> from dvr_perception.volume import Volume
+    >>> vol = Volume(np.zeros((2, 2, 2), np.uint8))
+    >>> spec = spec_from_dict({"version": 1, "structures": [
+    ...     {"name": "air", "range": [0, 10], "importance": 0.5, "color": [1, 1, 1]}]})
+    >>> attach_labels(vol, spec) is vol
+    True
+    """
+    if spec.labels_file is None:
+        return volume
+    from dataclasses import replace
+
+    from dvr_perception.volume.io import load_volume
+
+    path = spec.labels_file
+    lab = load_volume(path)
+    data = lab.data
+    if data.shape != volume.data.shape:
+        raise DVRInputError(
+            f"labels file {path}: dims {lab.dims} do not match the volume's dims {volume.dims}"
+        )
+    if data.dtype.kind == "f":
+        if not np.all(np.isfinite(data)) or np.any(data != np.round(data)):
+            raise DVRInputError(f"labels file {path}: label values must be integers")
+        data = data.astype(np.int64)
+    elif data.dtype.kind not in "ui":
+        raise DVRInputError(f"labels file {path}: expected integer labels, got {data.dtype}")
+    return replace(volume, labels=data)
 
 
 def check_spec_for_volume(spec: StructureSpec, volume) -> list[str]:
