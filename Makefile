@@ -3,6 +3,7 @@
 #   make demo    set up everything, then render the phantom into demo_out/
 #   make test    set up everything, then ruff check, ruff format --check, pytest
 #   make bench   benchmark JSON for the phantom, engine and cthead at 512x512
+#   make report  regenerate benchmarks/REPORT.md (the paper's experiments; REPORT_ARGS=--quick)
 #   make paraview-setup   ParaView, Xvfb and .pvdeps/ for the plugin and `dvr-perception pvbatch`
 #
 # "setup" installs the EGL/Mesa system libraries VTK needs to render off-screen (with apt-get,
@@ -27,17 +28,19 @@ BROWSER_APT_PACKAGES := chromium
 PVDEPS ?= .pvdeps
 PVDEPS_REQ := plugin/pvdeps-requirements.txt
 PVDEPS_STAMP := $(PVDEPS)/.dvr-perception-installed
-PV_APT_PACKAGES := paraview python3-paraview xvfb xauth
+# openmpi-bin: the MPI test (mpiexec -n 2 pvbatch); gcc + libc6-dev: the pvserver test builds
+# a small LD_PRELOAD shim that keeps pvserver on loopback.
+PV_APT_PACKAGES := paraview python3-paraview xvfb xauth openmpi-bin gcc libc6-dev
 
 # Render headless through EGL when there is no X display.
 ifeq ($(strip $(DISPLAY)),)
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
 endif
 
-.PHONY: help setup system-deps browser-deps paraview-setup paraview-system test lint demo bench clean
+.PHONY: help setup system-deps browser-deps paraview-setup paraview-system test lint demo bench report clean
 
 help:
-	@echo "targets: demo, test, bench, setup, paraview-setup, lint, clean"
+	@echo "targets: demo, test, bench, report, setup, paraview-setup, lint, clean"
 
 setup: system-deps $(STAMP)
 
@@ -91,6 +94,9 @@ paraview-system:
 	  || missing=" paraview python3-paraview"; \
 	command -v xvfb-run >/dev/null 2>&1 || missing="$$missing xvfb"; \
 	command -v xauth >/dev/null 2>&1 || missing="$$missing xauth"; \
+	command -v mpiexec >/dev/null 2>&1 || missing="$$missing openmpi-bin"; \
+	command -v cc >/dev/null 2>&1 || missing="$$missing gcc"; \
+	[ -e /usr/include/stdio.h ] || missing="$$missing libc6-dev"; \
 	if [ -z "$$missing" ]; then exit 0; fi; \
 	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
 	  echo "paraview-setup: installing$$missing"; \
@@ -134,6 +140,9 @@ bench: setup
 	$(BIN)/dvr-perception bench phantom --size $(BENCH_SIZE) --json
 	$(BIN)/dvr-perception bench $(DATA)/engine.nhdr --size $(BENCH_SIZE) --json
 	$(BIN)/dvr-perception bench $(DATA)/cthead.nhdr --size $(BENCH_SIZE) --json
+
+report: setup
+	$(BIN)/dvr-perception report --data $(DATA) --out benchmarks -v $(REPORT_ARGS)
 
 clean:
 	rm -rf demo_out bench_out .pytest_cache build

@@ -8,7 +8,8 @@ The three proxies are shells: they declare the properties ParaView shows and han
 pass to the library's VTK filter (:mod:`dvr_perception.filters`), which is imported only when
 the filter first executes.  Parameter values are validated by the library when the filter
 runs, so a bad value (e.g. a negative sigma typed in Python) becomes an error message in
-*Output Messages*, never an exception inside ParaView.
+*Output Messages*, never an exception inside ParaView.  With several MPI ranks every rank reads
+the whole volume and only piece 0 (rank 0) computes; the other pieces are empty.
 """
 
 import os
@@ -95,11 +96,38 @@ class _LibraryShell(VTKPythonAlgorithmBase):
 
     def RequestUpdateExtent(self, request, in_info, out_info):
         impl = self._library_filter()
-        return 0 if impl is None else impl.RequestUpdateExtent(request, in_info, out_info)
+        if impl is None or not impl.RequestUpdateExtent(request, in_info, out_info):
+            return 0
+        # The whole volume, unsplit, on every rank: the library asks for the whole extent, but
+        # a parallel reader (vtkPNrrdReader) turns "piece r of N" back into a slab unless the
+        # request is one piece.  Every rank asks the same, so a reader that reads collectively
+        # (MPI-IO) re-executes on all ranks together; only piece 0 computes (RequestData).
+        from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
+
+        info = in_info[0].GetInformationObject(0)
+        info.Set(sddp.UPDATE_PIECE_NUMBER(), 0)
+        info.Set(sddp.UPDATE_NUMBER_OF_PIECES(), 1)
+        info.Set(sddp.UPDATE_NUMBER_OF_GHOST_LEVELS(), 0)
+        return 1
 
     def RequestData(self, request, in_info, out_info):
+        if _requested_piece(out_info) > 0:
+            # several MPI ranks: piece 0 (rank 0) computes everything, the others stay empty
+            from vtkmodules.vtkCommonDataModel import vtkDataObject
+
+            out_info.GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT()).Initialize()
+            return 1
         impl = self._library_filter()
         return 0 if impl is None else impl.RequestData(request, in_info, out_info)
+
+
+def _requested_piece(out_info):
+    """The piece of the output the pipeline asks for (ParaView: the MPI rank; 0 when serial)."""
+    from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
+
+    info = out_info.GetInformationObject(0)
+    key = sddp.UPDATE_PIECE_NUMBER()
+    return info.Get(key) if info is not None and info.Has(key) else 0
 
 
 # -- properties shared by both filters (a decorated method may be bound in several classes)
@@ -128,7 +156,7 @@ def SetSigma(self, value):
     self._set("sigma", value)
 
 
-@smproxy.filter(name="DVRStructuralLayers", label="Structural Layers")
+@smproxy.filter(name="DVRStructuralLayers", label="Structural Layers", support_reload=False)
 @smhint.xml(_CATEGORY)
 @smproperty.input(name="Input", port_index=0)
 @smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
@@ -152,7 +180,7 @@ class StructuralLayers(_LibraryShell):
     SetSigma = SetSigma
 
 
-@smproxy.filter(name="DVRPerceptionMeasures", label="Perception Measures")
+@smproxy.filter(name="DVRPerceptionMeasures", label="Perception Measures", support_reload=False)
 @smhint.xml(_CATEGORY)
 @smproperty.input(name="Input", port_index=0)
 @smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
@@ -190,7 +218,7 @@ class PerceptionMeasures(_LibraryShell):
     SetSpecJSON = SetSpecJSON
     SetSigma = SetSigma
 
-    @smproperty.stringvector(name="CameraJSON", default_values="")
+    @smproperty.stringvector(name="CameraJSON", default_values="", panel_visibility="advanced")
     @smhint.xml(_MULTI_LINE)
     def SetCameraJSON(self, value):
         self._set("camera_json", value)
@@ -226,7 +254,9 @@ class PerceptionMeasures(_LibraryShell):
         self._set("height", value)
 
 
-@smproxy.filter(name="DVROptimizeTransferFunction", label="Optimize Transfer Function")
+@smproxy.filter(
+    name="DVROptimizeTransferFunction", label="Optimize Transfer Function", support_reload=False
+)
 @smhint.xml(_CATEGORY)
 @smproperty.input(name="Input", port_index=0)
 @smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
@@ -308,3 +338,12 @@ class OptimizeTransferFunction(_LibraryShell):
     @smdomain.intrange(min=0, max=1024)
     def SetResolution(self, value):
         self._set("resolution", value)
+
+    @smproperty.stringvector(name="Region", default_values="")
+    @smdomain.xml(
+        "<Documentation>The lens: only rays inside this part of the output image drive the "
+        "optimisation. Empty = whole image; 'rect,x0,y0,x1,y1' or 'circle,cx,cy,r' in output "
+        "pixels (x right, y down from the top-left corner).</Documentation>"
+    )
+    def SetRegion(self, value):
+        self._set("region", value)

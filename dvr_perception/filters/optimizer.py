@@ -109,6 +109,38 @@ def as_resolution(value, name: str) -> int:
     return v
 
 
+def as_region(value, name: str):
+    """Accept ``""``/``None`` (whole image), ``"rect,x0,y0,x1,y1"`` or ``"circle,cx,cy,r"``.
+
+    Numbers are output-image pixels (x right, y down from the top-left corner, as
+    :func:`dvr_perception.optimize.optimize`'s ``region``); a sequence such as
+    ``("rect", 0, 0, 10, 10)`` is accepted too.  Whether the shape covers any pixel is checked
+    when the filter runs (it depends on ``width`` and ``height``).
+
+    Examples
+    --------
+    >>> as_region("circle, 32, 32, 10", "region")
+    ('circle', 32.0, 32.0, 10.0)
+    >>> as_region("", "region") is None
+    True
+    """
+    if value is None or (isinstance(value, str) and not value.strip()):
+        return None
+    items = [v.strip() for v in value.split(",")] if isinstance(value, str) else list(value)
+    kind = str(items[0]).strip().lower() if items else ""
+    sizes = {"rect": 4, "circle": 3}
+    try:
+        nums = tuple(float(v) for v in items[1:])
+    except (TypeError, ValueError):
+        nums = ()
+    if kind not in sizes or len(nums) != sizes[kind] or not all(map(math.isfinite, nums)):
+        raise DVRInputError(
+            f"{name}: expected '' (whole image), 'rect,x0,y0,x1,y1' or 'circle,cx,cy,r' in "
+            f"output pixels, got {value!r}"
+        )
+    return (kind, *nums)
+
+
 class TransferFunctionOptimizer(PerceptionMeasures):
     """VTK filter: optimise opacity, lighting and colour of a spec; output the optimised image.
 
@@ -130,6 +162,9 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         Iterations per stage (default 10).
     resolution : int
         Long side of the optimisation camera; 0 (default) uses the optimiser's default.
+    region : tuple or None
+        The lens: only rays in this rectangle or circle of the output image drive the
+        objective (see :func:`as_region`); ``None`` (default) is the whole image.
     result : OptimizationResult or None
         The last optimisation's result (``None`` before the first successful update).
     """
@@ -139,6 +174,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
     seed = Parameter(0, as_seed)
     max_iter = Parameter(10, as_positive_int)
     resolution = Parameter(0, as_resolution)
+    region = Parameter(None, as_region)
 
     def __init__(self) -> None:
         super().__init__()
@@ -164,7 +200,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         camera = self.make_camera(volume, spec)
         stages, weights = self.stages, self.weights
         res = optimize(volume, spec, camera, stages=stages, weights=weights, seed=self.seed,
-                       callback=self._callback(len(stages) * self.max_iter),
+                       region=self.region, callback=self._callback(len(stages) * self.max_iter),
                        max_iter=self.max_iter, resolution=self.resolution or None)  # fmt: skip
         self.UpdateProgress(0.9)
         opt = res.spec

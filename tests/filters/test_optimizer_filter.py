@@ -98,6 +98,9 @@ def test_terms_equal_optimize(filtered, phantom):
         (lambda f: f.SetStages("opacity,shine"), "stage"),
         (lambda f: setattr(f, "max_iter", 0), "max_iter"),
         (lambda f: setattr(f, "seed", -2), "seed"),
+        (lambda f: setattr(f, "region", "rect,1,2,3"), "region"),
+        (lambda f: setattr(f, "region", "square,1,2,3,4"), "region"),
+        (lambda f: setattr(f, "region", "circle,1,nan,3"), "region"),
     ],
 )
 def test_bad_parameters_are_refused(setting, message):
@@ -125,3 +128,37 @@ def test_bad_input_reported_through_vtk_no_crash(phantom):
         assert f.GetOutputDataObject(0).GetNumberOfPoints() == 0
     finally:
         vtkOutputWindow.SetInstance(old)
+
+
+def test_region_reaches_the_optimiser(monkeypatch, phantom):
+    import dvr_perception.optimize as opt_mod
+
+    _, spec, image = phantom
+    seen = {}
+    real = opt_mod.optimize
+
+    def spy(*args, **kwargs):
+        seen["region"] = kwargs.get("region")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(opt_mod, "optimize", spy)
+    f = TransferFunctionOptimizer()
+    f.SetInputDataObject(image)
+    f.spec_json = json.dumps(spec_to_dict(spec))
+    f.width = f.height = 24
+    f.max_iter = 1
+    f.SetStages("opacity")
+    f.region = "rect, 4, 4, 16, 12"
+    f.Update()
+    assert f.error_message == ""
+    assert seen["region"] == ("rect", 4.0, 4.0, 16.0, 12.0)
+    window = vtkStringOutputWindow()
+    old = vtkOutputWindow.GetInstance()
+    vtkOutputWindow.SetInstance(window)
+    try:
+        f.region = "circle,100,100,3"  # outside the 24 x 24 output: refused when run
+        f.Update()
+    finally:
+        vtkOutputWindow.SetInstance(old)
+    assert "region" in f.error_message
+    assert "covers no pixel" in window.GetOutput()

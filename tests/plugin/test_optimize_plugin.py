@@ -66,7 +66,8 @@ opt = OptimizeTransferFunction(Input=reader)
 hints = opt.SMProxy.GetHints()
 menu = hints.FindNestedElementByName("ShowInMenu") if hints else None
 defaults = {{}}
-for p in ("Stages", "Weights", "Seed", "MaxIterations", "Resolution", "Width", "UseSpecView"):
+for p in ("Stages", "Weights", "Seed", "MaxIterations", "Resolution", "Width", "UseSpecView",
+          "Region"):
     v = opt.GetPropertyValue(p)
     defaults[p] = list(v) if not isinstance(v, (str, int, float)) else v
 rng = opt.GetProperty("MaxIterations").SMProperty.FindDomain("vtkSMIntRangeDomain")
@@ -102,6 +103,7 @@ print({MARK!r} + json.dumps({{
     assert d["Stages"] == "opacity,lighting,colour"
     assert d["Weights"] == [1.0, 1.0, 1.0]
     assert (d["Seed"], d["MaxIterations"], d["Resolution"], d["UseSpecView"]) == (0, 10, 0, 1)
+    assert d["Region"] == ""  # whole image
     assert got["max_iter_range"][0] == 1
     assert got["dims"] == [SIZE, SIZE, 1]
     # the optimiser never returns something worse than its start
@@ -158,3 +160,62 @@ def test_batch_optimize_writes_before_after_screenshots_and_json(paraview, tmp_p
     assert before.shape[:2] == after.shape[:2] == (SIZE, SIZE)
     assert before[..., :3].max() > 8  # not blank
     assert after[..., :3].max() > 8
+
+
+BAD_OPTIMIZER_INPUTS = f"""
+import sys
+from paraview.simple import *
+LoadPlugin({str(PLUGIN_DIR / "dvr_perception_plugin.py")!r}, ns=globals())
+reader = OpenDataFile(sys.argv[1])
+spec = {str(SPEC)!r}
+def case(name, **kw):
+    sys.stderr.write(f"@@CASE {{name}}\\n"); sys.stderr.flush()
+    params = dict(Width=16, Height=16, MaxIterations=1)
+    params.update(kw)
+    f = OptimizeTransferFunction(**params)
+    f.UpdatePipeline()
+    ok = servermanager.Fetch(f).GetFieldData().GetArray("E") is not None
+    sys.stderr.write(f"@@END {{name}} ok={{ok}}\\n"); sys.stderr.flush()
+case("polydata", Input=Sphere(), SpecFile=spec)
+case("missing_spec", Input=reader, SpecFile="/no/such/dir/opt_spec.json")
+case("weights", Input=reader, SpecFile=spec, Weights=[0.0, 0.0, 0.0])
+case("stages", Input=reader, SpecFile=spec, Stages="opacity,bogus")
+case("resolution", Input=reader, SpecFile=spec, Resolution=4)
+case("region", Input=reader, SpecFile=spec, Region="rect,1,2")
+case("region_outside", Input=reader, SpecFile=spec, Region="circle,100,100,3")
+sys.stderr.write("@@SURVIVED\\n")
+"""
+
+
+def test_optimize_filter_reports_bad_input_without_crashing(paraview, tmp_path, neghip):
+    script = tmp_path / "bad_opt.py"
+    script.write_text(BAD_OPTIMIZER_INPUTS, encoding="utf-8")
+    proc = subprocess.run(
+        [str(paraview.pvpython), str(script), str(neghip)],
+        env=paraview.env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    text = proc.stdout
+    assert proc.returncode == 0, text
+    assert "@@SURVIVED" in text, text
+    cases = {}
+    for chunk in text.split("@@CASE ")[1:]:
+        name, _, body = chunk.partition("\n")
+        cases[name.strip()] = body
+    expected = {
+        "polydata": "is of type vtkPolyData, but a vtkImageData is required",
+        "missing_spec": "/no/such/dir/opt_spec.json",
+        "weights": "weights: expected three numbers (w_v, w_s, w_t) >= 0, not all zero",
+        "stages": "stages: unknown or missing stage(s) ['bogus']",
+        "resolution": "resolution: expected 0 (default) or an integer >= 8, got 4",
+        "region": "region: expected '' (whole image), 'rect,x0,y0,x1,y1' or 'circle,cx,cy,r'",
+        "region_outside": "covers no pixel of the 16 x 16 image",
+    }
+    for name, message in expected.items():
+        assert message in cases[name], f"{name}:\n{cases[name]}"
+        assert f"@@END {name} ok=False" in cases[name]
+        assert "Traceback" not in cases[name], cases[name]

@@ -4,12 +4,20 @@ A ``pvserver`` on a free port of this machine (under a private Xvfb) receives th
 ``LoadPlugin(path, remote=True)``; pvpython connects with ``Connect("localhost", port)``, reads
 a shared volume on the server, runs *Perception Measures* there and fetches the (small)
 output.  The server is stopped in every case.
+
+pvserver 5.11 cannot be told which address to bind (``--hostname`` only names the host in the
+connection URL) and listens on 0.0.0.0, plus OpenMPI's listener on 0.0.0.0 and [::].  The test
+preloads ``loopback_bind.c`` (built here with ``cc``), which turns those wildcard binds into
+127.0.0.1 / ::1, and checks in ``/proc/PID/net/tcp*`` that every socket pvserver listens on is
+a loopback one before the client connects.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import os
 import queue
+import shutil
 import socket
 import subprocess
 import threading
@@ -71,6 +79,53 @@ def display():
         pytest.skip(str(exc))
 
 
+def _required(reason: str) -> None:
+    """The ``paraview`` fixture's policy: skip locally, fail under CI=true."""
+    if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+        pytest.fail(f"required under CI=true: {reason}")
+    pytest.skip(reason)
+
+
+@pytest.fixture(scope="module")
+def loopback_shim(tmp_path_factory) -> Path:
+    """``loopback_bind.c`` built into a shared library for ``LD_PRELOAD``."""
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        _required("a C compiler (cc) to build the loopback bind shim for pvserver")
+    out = tmp_path_factory.mktemp("shim") / "libloopback_bind.so"
+    src = Path(__file__).with_name("loopback_bind.c")
+    cmd = [cc, "-shared", "-fPIC", "-O2", "-o", str(out), str(src), "-ldl"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    assert proc.returncode == 0, proc.stderr
+    return out
+
+
+def _listening(pid: int) -> list[tuple[str, int]]:
+    """``(address, port)`` of every TCP socket process ``pid`` listens on (IPv4 and IPv6)."""
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[len("socket:[") : -1])
+    found = []
+    for table in ("tcp", "tcp6"):
+        lines = Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]
+        for line in lines:
+            fields = line.split()
+            local, state, inode = fields[1], fields[3], fields[9]
+            if state != "0A" or inode not in inodes:  # 0A: LISTEN
+                continue
+            hex_addr, hex_port = local.split(":")
+            raw = bytes.fromhex(hex_addr)
+            # /proc prints each 32-bit word in host (little-endian) order
+            raw = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4))
+            found.append((str(ipaddress.ip_address(raw)), int(hex_port, 16)))
+    return found
+
+
 def _free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -113,16 +168,24 @@ def _library_e(shared_data):
     }
 
 
-def test_perception_measures_run_on_pvserver(paraview, display, shared_data, tmp_path):
+def test_perception_measures_run_on_pvserver(
+    paraview, display, loopback_shim, shared_data, tmp_path
+):
     try:
         pvserver = find_paraview("pvserver")
     except DVRInputError as exc:
         pytest.fail(f"pvpython is installed but pvserver is not: {exc}")
     env = dict(paraview.env, DISPLAY=display)
+    server_env = dict(env, LD_PRELOAD=str(loopback_shim))
     port = _free_port()
     cmd = [str(pvserver), f"--server-port={port}", "--hostname=localhost", "--timeout=5"]
     server = subprocess.Popen(
-        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path
+        cmd,
+        env=server_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        cwd=tmp_path,
     )
     lines: queue.Queue = queue.Queue()
     pump = threading.Thread(target=_reader, args=(server.stdout, lines), daemon=True)
@@ -140,6 +203,10 @@ def test_perception_measures_run_on_pvserver(paraview, display, shared_data, tmp
             assert line is not None, f"pvserver exited ({server.poll()}):\n{''.join(log)}"
             log.append(line)
         assert f":{port}" in "".join(log)
+        # reachable from this machine only: every listening socket of pvserver is loopback
+        sockets = _listening(server.pid)
+        assert (("127.0.0.1", port)) in sockets, sockets
+        assert all(ipaddress.ip_address(a).is_loopback for a, _ in sockets), sockets
         script = tmp_path / "client.py"
         script.write_text(CLIENT, encoding="utf-8")
         client = subprocess.run(
