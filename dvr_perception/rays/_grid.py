@@ -193,6 +193,8 @@ CELL_EMPTY = 0
 CELL_MIXED = 255
 #: Largest empty-space distance stored in :func:`cell_map` (high byte).
 CELL_MAX_DISTANCE = 255
+#: Cell maps memoised per volume (the most recent tables).
+_CELL_MAPS_KEPT = 3
 
 
 def label_map(volume, label_ids) -> np.ndarray | None:
@@ -289,6 +291,10 @@ def cell_map(
     np.minimum(dist, CELL_MAX_DISTANCE, out=dist)
     dist[cells == CELL_MIXED] = 0
     cells |= dist.astype(np.uint16) << np.uint16(8)
+    # one map per transfer table: keep the newest few (editing ranges makes a new table each time)
+    old = [k for k in memo if isinstance(k, tuple) and k and k[0] == "cells"]
+    for k in old[: max(len(old) - _CELL_MAPS_KEPT + 1, 0)]:
+        del memo[k]
     memo[key] = out
     return out
 

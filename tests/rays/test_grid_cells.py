@@ -121,3 +121,11 @@ def test_kernel_cell_codes_match_grid():
     assert int(nk._LOW) == 0xFF
     assert int(nk._HIGH) == 8
     assert _grid.CELL_MAX_DISTANCE <= 0xFF
+
+
+def test_only_the_newest_cell_maps_are_kept():
+    vol = Volume(np.arange(4 * 5 * 6, dtype=np.uint8).reshape(4, 5, 6))
+    for hi in range(20, 30):
+        _map(vol, StructureSpec((Structure("a", 0.5, (1, 0, 0), range=(10, hi)),)))
+    kept = [k for k in _grid._store(vol) if isinstance(k, tuple) and k[0] == "cells"]
+    assert len(kept) == _grid._CELL_MAPS_KEPT
