@@ -227,6 +227,12 @@ class Problem:
         total = out.sum(axis=0)
         return np.where(total > 0, out / np.where(total > 0, total, 1.0), a)
 
+    def fixed_parts(self, v: int, params: Params) -> dict:
+        """Return the masked parts of view ``v`` that do not depend on the parameters."""
+        if (v, False) not in self._fixed:
+            self._fixed_parts(v, self.render(params, v), self.masks[v], False)
+        return self._fixed[(v, False)]
+
     def _fixed_parts(self, v, analysis, mask, whole) -> dict:
         """Mask, assigned shares, counted rays and presence of view ``v``, computed once."""
         key = (v, bool(whole))

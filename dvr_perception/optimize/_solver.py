@@ -1,14 +1,31 @@
 """The per-stage solver: Polak-Ribiere conjugate gradients with annealing moves (Sec. 5).
 
 The stage objective ``f(x) = w' . (E_v, E_s, E_t) + PENALTY * penalty(x)`` is minimised over the
-stage's unbounded vector ``x`` (see :mod:`~dvr_perception.optimize.stages`):
+stage's unbounded vector ``x`` (see :mod:`~dvr_perception.optimize.stages`).
+
+**Opacity stage** (stages with ``exact = True``, :func:`_run_exact`): ``E_v`` and the coverage
+and their exact gradients in the opacities come from :class:`~._exact.OpacityModel` (about a
+millisecond at 96 px), so an iteration runs SLSQP (scipy; at most :data:`SLSQP_EVALS` model
+evaluations each) from :data:`STARTS` points, minimising ``E_v`` in log-opacity subject to
+``coverage >= floor +`` :data:`COVERAGE_MARGIN`: in the first iteration from the current point
+and annealing moves of it, later from annealing moves only (log-opacities of structures chosen
+as below, normal steps of :data:`HOP`; Metropolis acceptance of the iteration's result). When
+the coverage at the user's resolution (one exact evaluation there, no gradient) misses its
+floor, a result is moved up the coverage gradient until it holds (at most :data:`VERIFY`
+doubling steps). The results get the full terms (one rendering each) in order of ``E_v`` until
+one keeps the other terms' tolerances; the last one tried is moved halfway back towards the
+current point when it breaks them (at most :data:`BACKTRACK` times, never below the coverage
+floor).
+
+**Other stages** (conjugate gradients):
 
 * **gradient**: forward finite differences with step :data:`FD_STEP` (0.01 in logit units)
   of the stage's cheap objective (only the measures in ``Stage.fast``; the others are held at
-  the current point's values).  With more than :data:`FULL_FD` parameters, one difference
-  per parameter **group** (a structure's parameters, the light) along a seeded random
-  +-1 direction within the group (simultaneous perturbation), so a gradient costs one
-  evaluation per group instead of one per parameter;
+  the current point's values), on the ``coarse`` problem when given (the rays subsampled:
+  :data:`~dvr_perception.optimize.core.FD_RESOLUTION`, 48 px).  With more than
+  :data:`FULL_FD` parameters, one difference per parameter **group** (a structure's
+  parameters, the light) along a seeded random +-1 direction within the group (simultaneous
+  perturbation), so a gradient costs one evaluation per group instead of one per parameter;
 * **direction**: Polak-Ribiere+ conjugate direction, preconditioned by the inverse fraction of
   rays on which each parameter's structure is present (small structures have small gradients),
   reset to steepest descent when it is not a descent direction, then bent so that every nearly
@@ -37,10 +54,13 @@ from __future__ import annotations
 import copy
 import itertools
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import minimize
 
+from dvr_perception.optimize._exact import OpacityModel
 from dvr_perception.optimize._problem import TERMS, public_terms
 
 __all__ = ["run_stage"]
@@ -55,6 +75,13 @@ SIGMA = 0.4  # annealing step (logit units)
 STEP = 0.5  # first line-search step: largest parameter change in logit units
 ACTIVE = 5e-3  # constraints closer than this to their bound steer the direction
 ETA = 0.1
+SLSQP_ITER = 30  # iterations of one SLSQP run of the opacity stage (exact gradients: cheap)
+SLSQP_EVALS = 40  # evaluations of one SLSQP run (about 1 ms each at 96 px)
+HOP = 0.8  # opacity stage annealing move: standard deviation in log-opacity
+BACKTRACK = 3  # opacity stage: halvings towards the current point when a tolerance breaks
+STARTS = 3  # opacity stage: SLSQP runs per iteration (the current point and annealing moves)
+COVERAGE_MARGIN = 2e-3  # opacity stage: coverage kept this far above the floor (resolution)
+VERIFY = 4  # opacity stage: steps up the coverage gradient until the user's floor holds
 
 
 @dataclass
@@ -78,19 +105,24 @@ class _Stopped(Exception):
 class _Run:
     """State of one stage run (the closure over the problem, stage and counters)."""
 
-    def __init__(self, stage, problem, params0, terms0, active, weights, rng, notify):
+    def __init__(self, stage, problem, params0, terms0, active, weights, rng, notify,
+                 coarse=None, verify=None):  # fmt: skip
         self.stage, self.problem, self.params0, self.active = stage, problem, params0, active
+        self.coarse, self.verify = coarse, verify
         self.terms0, self.weights, self.rng, self.notify = terms0, weights, rng, notify
         self.w = stage.weights(weights)
         self.nfev = 0
 
-    def point(self, x, params=None, terms=None, ref=None) -> _Point:
-        """Evaluate ``x``; with ``ref`` only ``stage.fast`` (the rest taken from ``ref``)."""
+    def point(self, x, params=None, terms=None, ref=None, problem=None) -> _Point:
+        """Evaluate ``x``; with ``ref`` only ``stage.fast`` (the rest taken from ``ref``).
+
+        ``problem`` (default: the stage's) evaluates the terms, e.g. the coarse one.
+        """
         if params is None:
             params = self.stage.decode(self.params0, x, self.active)
         if terms is None:
             need = TERMS if ref is None else self.stage.fast
-            terms = self.problem.terms(params, need=need)
+            terms = (problem or self.problem).terms(params, need=need)
             self.nfev += 1
             if ref is not None:
                 for t in TERMS:
@@ -114,8 +146,10 @@ class _Run:
         else:
             sign = self.rng.choice([-1.0, 1.0], p.x.size)
             dirs = [np.where(groups == k, sign, 0.0) for k in np.unique(groups)]
+        if self.coarse is not None:  # differences on the coarse rays: p again there first
+            p = self.point(p.x, params=p.params, ref=p, problem=self.coarse)
         for v in dirs:
-            q = self.point(p.x + FD_STEP * v, ref=p)
+            q = self.point(p.x + FD_STEP * v, ref=p, problem=self.coarse)
             g += v * (q.smooth - p.smooth) / FD_STEP
             jac += np.outer((q.cons - p.cons) / FD_STEP, v)
         return g, jac
@@ -203,8 +237,171 @@ def _feasible_direction(d0, cons, jac):
     return best
 
 
-def run_stage(stage, problem, params0, terms0, active, *, weights, rng, max_iter, notify):
+def _run_exact(run, x0, groups, group_structures, max_iter, info, history):
+    """Run the opacity stage: SLSQP on exact ``E_v`` and coverage, with annealing restarts.
+
+    See :func:`run_stage` and the module docstring.  Returns ``(best, snapshots)``.
+    """
+    stage, problem, params0 = run.stage, run.problem, run.params0
+    model = OpacityModel(problem, params0)
+    idx = np.flatnonzero(run.active)
+    ops0 = np.clip(params0.opacities, *stage.bounds)
+    lo, hi = np.log(stage.bounds[0]), np.log(stage.bounds[1])
+    bound = [stage.floor(run.terms0) + COVERAGE_MARGIN]
+    user = None
+    if run.verify is not None:  # the coverage at the user's resolution, exactly
+        user = (OpacityModel(run.verify[0], params0), stage.floor(run.verify[1]))
+    memo = {}
+
+    def cheap(y):
+        key = np.asarray(y, float).tobytes()
+        if key not in memo:
+            ops = ops0.copy()
+            ops[idx] = np.exp(np.clip(y, lo, hi))
+            e_v, cov, g_v, g_c = model.evaluate(ops)
+            jac = np.exp(np.clip(y, lo, hi))
+            memo[key] = (e_v, cov, g_v[idx] * jac, g_c[idx] * jac)
+        return memo[key]
+
+    class _Budget(Exception):
+        pass
+
+    def local(y_from):
+        """SLSQP from ``y_from``: minimise ``E_v`` subject to coverage >= floor.
+
+        Returns the evaluated point with the lowest ``E_v`` that meets the floor (SLSQP's
+        last iterate may not), or ``None``; at most :data:`SLSQP_EVALS` new evaluations.
+        """
+        found, n0, floor = [None, np.inf], model.nfev, bound[0]
+
+        def value(y):
+            if model.nfev - n0 >= SLSQP_EVALS:
+                raise _Budget
+            e_v, cov, *_ = cheap(y)
+            if cov >= floor and e_v < found[1]:
+                found[:] = [np.clip(np.array(y, float), lo, hi), e_v]
+            return e_v
+
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                minimize(
+                    value, y_from, jac=lambda y: cheap(y)[2], method="SLSQP",
+                    bounds=[(lo, hi)] * idx.size,
+                    constraints=[{"type": "ineq", "fun": lambda y: cheap(y)[1] - floor,
+                                  "jac": lambda y: cheap(y)[3]}],
+                    options={"maxiter": SLSQP_ITER, "ftol": 1e-5},
+                )  # fmt: skip
+        except _Budget:
+            pass
+        return found[0]
+
+    def user_shortfall(y):
+        """How far the coverage at the user's resolution is below its floor (<= 0: fine)."""
+        if user is None:
+            return 0.0
+        ops = ops0.copy()
+        ops[idx] = np.exp(np.clip(y, lo, hi))
+        return user[1] - user[0].evaluate(ops, grad=False)[1]
+
+    def verified(y_from):
+        """:func:`local`, then moved up the coverage gradient until the user's floor holds.
+
+        The step along the (optimisation resolution's) coverage gradient starts at the
+        linear estimate of the shortfall and doubles, at most :data:`VERIFY` times.
+        """
+        y = local(y_from)
+        if y is None:
+            return None
+        short = user_shortfall(y)
+        if short <= 0.0:
+            return y
+        d = cheap(y)[3]
+        if not np.any(d > 0):
+            return None
+        t = 1.5 * short / float(d @ d)
+        for _ in range(VERIFY):
+            z = np.clip(y + t * d, lo, hi)
+            if user_shortfall(z) <= 0.0:
+                return z
+            t *= 2.0
+        return None
+
+    def full(y):
+        ops = params0.opacities.copy()
+        ops[idx] = np.exp(y)
+        params = params0.replace(opacities=ops)
+        return run.point(stage.encode(params, run.active)[0], params=params)
+
+    start = run.point(x0, params=params0, terms=run.terms0)
+    y_best = y_cur = np.log(ops0[idx])
+    best, cur, snapshots, quiet = start, start, [], 0
+    temperature = 0.05 * max(abs(start.f), 1e-2)
+    for it in range(1, max_iter + 1):
+        prev_best = best.f
+        froms = [y_cur] if it == 1 else []
+        kind = "slsqp" if it == 1 else "anneal"
+        bad = np.array([float(cur.terms["badness"][stage.lead][s]) for s in idx])
+        top = bad.max() if bad.size else 0.0
+        prob = np.clip(0.25 + (0.5 * bad / top if top > 0 else 0.25), 0.05, 0.95)
+        while len(froms) < STARTS:  # annealing moves: more likely where E_v deviates most
+            chosen = run.rng.random(idx.size) < prob
+            if not chosen.any():
+                chosen[int(np.argmax(prob))] = True
+            froms.append(np.clip(y_cur + run.rng.normal(0.0, HOP, idx.size) * chosen, lo, hi))
+        found = [y for y in map(verified, froms) if y is not None]
+        found.sort(key=lambda y: cheap(y)[0])
+        new = None
+        for n_try, y_try in enumerate(found[:STARTS]):  # the lowest E_v that keeps tolerances
+            for _ in range(BACKTRACK + 1 if n_try == len(found[:STARTS]) - 1 else 1):
+                q = full(y_try)
+                if q.pen <= 1e-12:
+                    new = q
+                    break
+                y_try = 0.5 * (y_try + y_cur)  # the last candidate: back towards y_cur
+                if cheap(y_try)[1] < bound[0] or user_shortfall(y_try) > 0.0:
+                    break
+            if new is not None:
+                break
+        u = run.rng.random()
+        if new is not None and (
+            new.key() <= cur.key() or u < np.exp(-(new.f - cur.f) / max(temperature, 1e-12))
+        ):
+            cur, y_cur = new, np.log(new.params.opacities[idx])
+        else:
+            kind += " (rejected)"
+        temperature *= 0.7
+        if cur.key() < best.key():
+            snapshots.append(best)
+            best, y_best = cur, y_cur
+        elif it > 1 and best is not cur:  # restart the hops from the best point
+            cur, y_cur = best, y_best
+        quiet = quiet + 1 if prev_best - best.f < FTOL * max(abs(prev_best), 1e-3) else 0
+        entry = public_terms(cur.terms, problem.names)
+        entry.update(iteration=it, kind=kind, f=cur.f, penalty=cur.pen, best_f=best.f)
+        history.append(entry)
+        info["iterations"] = it
+        try:
+            run.notify(it, cur, best)
+        except StopIteration:
+            info["stopped"] = True
+            break
+        if quiet >= PATIENCE:
+            info["converged"] = True
+            break
+    run.nfev += model.nfev + (0 if user is None else user[0].nfev)
+    info["exact_evaluations"] = model.nfev + (0 if user is None else user[0].nfev)
+    return best, snapshots
+
+
+def run_stage(stage, problem, params0, terms0, active, *, weights, rng, max_iter, notify,
+              coarse=None, verify=None):  # fmt: skip
     """Optimise ``stage``'s parameters from ``params0`` (terms ``terms0``).
+
+    ``coarse``: a :class:`~._problem.Problem` of the same views on fewer rays, for the
+    finite differences of the gradient (``None``: ``problem``).  ``verify``: ``(problem,
+    terms)`` at the user's resolution, where the opacity stage checks its coverage floor
+    (``None``: ``problem`` is at the user's resolution).
 
     ``notify(iteration, current _Point, best _Point)`` is called after every iteration; it may
     raise ``StopIteration`` to stop.  Returns ``(best, snapshots, info)``: the best feasible
@@ -212,7 +409,7 @@ def run_stage(stage, problem, params0, terms0, active, *, weights, rng, max_iter
     ``evaluations``, ``seconds``, ``history``, ``converged``, ``stopped``.
     """
     t0 = time.perf_counter()
-    run = _Run(stage, problem, params0, terms0, active, weights, rng, notify)
+    run = _Run(stage, problem, params0, terms0, active, weights, rng, notify, coarse, verify)
     x0, groups, group_structures = stage.encode(params0, active)
     frac = problem.presence_fraction()
     share = np.array([1.0 if s is None else max(frac[s], 0.01) for s in group_structures])
@@ -220,7 +417,9 @@ def run_stage(stage, problem, params0, terms0, active, *, weights, rng, max_iter
     start = run.point(x0, params=params0, terms=terms0)
     best, snapshots, history = start, [], []
     info = {"iterations": 0, "converged": x0.size == 0, "stopped": False}
-    if x0.size:
+    if x0.size and getattr(stage, "exact", False):
+        best, snapshots = _run_exact(run, x0, groups, group_structures, max_iter, info, history)
+    elif x0.size:
         cur, d, g_prev, z_prev, mode, run_len, quiet = start, None, None, None, "cg", 0, 0
         stuck = False  # the line search failed at ``cur``: only annealing can move on
         temperature = 0.05 * max(abs(start.f), 1e-2)

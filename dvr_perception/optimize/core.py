@@ -27,16 +27,20 @@ from dvr_perception.volume.volume import Volume
 
 __all__ = ["DEFAULT_RESOLUTION", "optimize"]
 
-#: Slack of the re-check of the stages' guards at the user's resolution (the optimisation
-#: resolution's coverage differs from the user's by this order).
-GUARD_SLACK = 0.01
+#: Slack of the re-check of the stages' guards at the user's resolution (the opacity stage
+#: checks its coverage floor there exactly, so only float rounding).
+GUARD_SLACK = 1e-6
 
 #: Long side, in pixels, of the camera the optimiser evaluates on (when ``resolution=None``).
 DEFAULT_RESOLUTION = 96
 
+#: Long side, in pixels, of the camera of the finite differences of the lighting and colour
+#: stages (the rays subsampled; only when the optimisation resolution is at least twice it).
+FD_RESOLUTION = 48
+
 
 def _check(volume, spec, camera, stages, weights, cameras, region, calibration, seed, callback,
-           max_iter, resolution, opacity_floor):  # fmt: skip
+           max_iter, resolution, opacity_floor, coverage_keep=None):  # fmt: skip
     if not isinstance(volume, Volume):
         raise DVRInputError(f"volume: expected a Volume, got {type(volume).__name__}")
     if not isinstance(spec, StructureSpec):
@@ -84,6 +88,15 @@ def _check(volume, spec, camera, stages, weights, cameras, region, calibration, 
         isinstance(opacity_floor, (int, float)) and 0.0 <= float(opacity_floor) <= 1.0
     ):
         raise DVRInputError(f"opacity_floor: expected a number in [0, 1], got {opacity_floor!r}")
+    if coverage_keep is not None:
+        if isinstance(coverage_keep, bool) or not (
+            isinstance(coverage_keep, (int, float)) and 0.0 <= float(coverage_keep) <= 1.0
+        ):
+            raise DVRInputError(
+                f"coverage_keep: expected a number in [0, 1], got {coverage_keep!r}"
+            )
+        if opacity_floor is not None:
+            raise DVRInputError("coverage_keep: give opacity_floor or coverage_keep, not both")
     return w
 
 
@@ -118,6 +131,7 @@ def optimize(
     max_iter=5,
     resolution=None,
     opacity_floor=None,
+    coverage_keep=None,
     allow_hue=False,
     curvature=None,
 ) -> OptimizationResult:
@@ -127,11 +141,14 @@ def optimize(
     then re-composites the cached rays (:func:`~dvr_perception.rays.engine.reevaluate`) and
     computes the three measures.  The stages run in the given order, each over its own
     parameters (:mod:`~dvr_perception.optimize.stages`), with conjugate gradients and annealing
-    (:mod:`~dvr_perception.optimize._solver`).  Evaluations use a camera whose long side is
+    (:mod:`~dvr_perception.optimize._solver`; the opacity stage with SLSQP on exact ``E_v``
+    and coverage gradients from the cached rays).  Evaluations use a camera whose long side is
     ``resolution`` pixels (default :data:`DEFAULT_RESOLUTION`, 96: "sampling the image"; an
-    evaluation there costs a few hundredths of a second).  The result is then checked at the
-    user's resolution: the last stages are undone until ``E`` has not risen and the re-checked
-    guards (the opacity stage's coverage, within :data:`GUARD_SLACK`) hold, so
+    evaluation there costs a few hundredths of a second); the finite differences of the
+    lighting and colour stages use one of :data:`FD_RESOLUTION` (48) pixels.  The result is
+    then checked at the user's resolution: the last stages are undone until ``E`` has not
+    risen and the re-checked guards (the opacity stage's coverage, within :data:`GUARD_SLACK`)
+    hold, so
     ``final["E"] <= initial["E"]``.  Only the initial and final terms are computed at the
     user's resolution (the stage records hold the optimisation resolution's terms).
 
@@ -168,8 +185,10 @@ def optimize(
         Long side of the optimisation camera (never above the user's).
     opacity_floor : float, optional
         Minimum mean accumulated opacity over the non-empty rays in the opacity stage
-        (default: 80 % of its starting value; pass the starting ``coverage`` to forbid any
-        loss).
+        (default: its starting value, no fading; a lower value accepts some fading).
+    coverage_keep : float, optional
+        The floor as a fraction of the starting coverage instead (default 1; e.g. 0.95 accepts
+        5 % fading); not together with ``opacity_floor``.
     allow_hue : bool
         Let the colour stage change hue (default: saturation and value only).
     curvature : ndarray, optional
@@ -197,7 +216,7 @@ def optimize(
     """
     t_start = time.perf_counter()
     w = _check(volume, spec, camera, stages, weights, cameras, region, calibration, seed, callback,
-               max_iter, resolution, opacity_floor)  # fmt: skip
+               max_iter, resolution, opacity_floor, coverage_keep)  # fmt: skip
     goals = parse_targets(targets, spec.names)
     mask = parse_region(region, camera.height, camera.width)
     views = [camera, *(cameras or [])]
@@ -220,6 +239,16 @@ def optimize(
     if not same:
         caches = [a.cache for a in opt_analyses]
         problem = Problem(caches, opt_masks, spec, w, goals, calibration)
+    coarse = None
+    if res >= 2 * FD_RESOLUTION and any(
+        max(a.cache.camera.width, a.cache.camera.height) >= 2 * FD_RESOLUTION for a in opt_analyses
+    ):
+        caches, masks = [], []
+        for cam in views:
+            small = _reduced(cam, FD_RESOLUTION)
+            caches.append(analyze(volume, spec, small, curvature=curvature).cache)
+            masks.append(None if mask is None else resample_mask(mask, small.height, small.width))
+        coarse = Problem(caches, masks, spec, w, goals, calibration)
 
     params = Params.from_spec(spec)
     names = spec.names
@@ -231,6 +260,8 @@ def optimize(
     done, nit, status, lum_ref = [], 0, 0, None
     for name in stages:
         stage = STAGES[name](allow_hue=allow_hue, opacity_floor=opacity_floor)
+        if coverage_keep is not None:
+            stage.coverage_keep = float(coverage_keep)
         if stage.brightened:
             lum_ref = terms if lum_ref is None else lum_ref
             stage.reference = lum_ref
@@ -244,7 +275,9 @@ def optimize(
                         stage=_name,
                         iteration=it,
                         nit=nit,
-                        nfev=problem.nfev + (0 if same else full_problem.nfev),
+                        nfev=problem.nfev
+                        + (0 if same else full_problem.nfev)
+                        + (0 if coarse is None else coarse.nfev),
                         terms=public_terms(cur.terms, names),
                         best_terms=public_terms(best.terms, names),
                         spec=cur.params.to_spec(spec),
@@ -253,7 +286,7 @@ def optimize(
 
         best, snapshots, info = run_stage(
             stage, problem, params, terms, active, weights=w, rng=rng, max_iter=int(max_iter),
-            notify=notify,
+            notify=notify, coarse=coarse, verify=None if same else (full_problem, full0),
         )  # fmt: skip
         chosen = _pick(params, terms, best, snapshots)
         after = terms if chosen is None else chosen.terms
@@ -281,6 +314,7 @@ def optimize(
     records = [_record(d, names, spec, i < kept) for i, d in enumerate(done)]
     final = _report(full_problem, params, mask is not None, final_terms)
     nfev = problem.nfev + (0 if same else full_problem.nfev)
+    nfev += 0 if coarse is None else coarse.nfev
     return OptimizationResult(
         spec=params.to_spec(spec),
         initial=initial,

@@ -7,13 +7,14 @@ of Eq. 12:
 ============  ===========================================================  =========
 stage         parameters (bounds)                                          leads
 ============  ===========================================================  =========
-``opacity``   rendering opacity per structure ([0.01, 1])                  ``E_v``
+``opacity``   rendering opacity per structure ([0.01, 1]); SLSQP on exact    ``E_v``
+              ``E_v``/coverage gradients (:mod:`~._exact`)
 ``lighting``  per structure: ambient ([0.05, 0.4]; diffuse = start         ``E_s``
               ambient+diffuse - ambient, in [0.4, 1]), specular
               ([0, 0.8]), specular power ([2, 96], log scale); one light
               direction within ~39 degrees of the headlight; brightness
               guard (see :class:`LightingStage`)
-``colour``    HSV saturation (>= 50 % of its start) and value              ``E_t``
+``colour``    HSV saturation (80 % of its start .. start + 0.2) and value  ``E_t``
               (>= 60 % of its start, >= 0.05) per structure; hue
               too with ``allow_hue`` (periodic)
 ============  ===========================================================  =========
@@ -25,9 +26,11 @@ parameter set is **feasible** for the stage when, compared with the stage's star
 * the lead term has not risen,
 * every other term with a non-zero weight has risen by at most :attr:`Stage.tolerance` (0.05
   absolute; the measures are region-based and jump by a few hundredths under small changes,
-  so 0.02 blocked nearly every step on the phantom), and
+  so 0.02 blocked nearly every step on the phantom) plus :attr:`Stage.trade` (1/2) of the
+  lead term's decrease in the stage (the transparency measure jumps by 0.1-0.3 when the
+  opacities of the engine change; the colour stage, which leads it, comes later), and
 * the stage's :meth:`Stage.guards` hold: (``opacity``) the mean accumulated opacity over the
-  non-empty rays (``coverage``) is at least 80 % of its starting value, or ``opacity_floor``
+  non-empty rays (``coverage``) is at least its starting value, or ``opacity_floor``
   when given: no winning by fading; (``lighting``, ``colour``) every structure's footprint
   luminance keeps >= 80 % of its value before the first of them: no winning by darkening.
 
@@ -78,14 +81,15 @@ class Stage:
     allow_hue : bool
         Whether colour stages may change hue.
     opacity_floor : float or None
-        Lowest allowed coverage for stages that change opacity (``None``: 80 % of the
-        starting value, see :meth:`OpacityStage.guards`).
+        Lowest allowed coverage for stages that change opacity (``None``: the starting
+        value, see :meth:`OpacityStage.guards`).
     """
 
     name = "stage"
     lead = "E_v"
     boost = 3.0
     tolerance = 0.05
+    trade = 0.5
     #: Measures computed by the finite-difference gradient evaluations (the others are taken
     #: as constant there); line-search and annealing points compute all three.
     fast = ("E_v", "E_s", "E_t")
@@ -101,6 +105,7 @@ class Stage:
     def __init__(self, *, allow_hue: bool = False, opacity_floor: float | None = None) -> None:
         self.allow_hue = bool(allow_hue)
         self.opacity_floor = opacity_floor
+        self.coverage_keep = None  # a fraction of the start replacing COVERAGE_KEEP
 
     def encode(self, params: Params, active: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
         """Return ``(x, groups, group_structures)`` for the stage's parameters.
@@ -128,12 +133,16 @@ class Stage:
         """Constraint values relative to ``start``; feasible where all are <= 0.
 
         ``lead - lead_start`` and, for every other term with a non-zero weight,
-        ``term - term_start - tolerance``.
+        ``term - term_start - tolerance - trade * gain`` with ``gain = lead_start - lead``
+        (>= 0): another term may rise by :attr:`tolerance` (the measures' jitter) plus
+        :attr:`trade` (1/2) of what the lead term gained, so every such rise is paid for
+        at least twice over by the lead.
         """
+        gain = max(0.0, float(start[self.lead] - terms[self.lead]))
         out = [terms[self.lead] - start[self.lead]]
         for w, t in zip(weights, TERMS, strict=True):
             if t != self.lead and w > 0:
-                out.append(terms[t] - start[t] - self.tolerance)
+                out.append(terms[t] - start[t] - self.tolerance - self.trade * gain)
         return np.array(out, float)
 
     def guards(self, terms: dict, start: dict) -> np.ndarray:
@@ -166,7 +175,8 @@ class OpacityStage(Stage):
     bounds = (0.01, 1.0)
     fast = ("E_v", "E_s")  # cheap; E_t (transparency, expensive) checked at line-search points
     recheck = True
-    COVERAGE_KEEP = 0.8
+    exact = True  # solved by _solver._run_exact (exact E_v and coverage gradients)
+    COVERAGE_KEEP = 1.0
 
     def encode(self, params, active):  # noqa: D102 (see Stage)
         idx = np.flatnonzero(active)
@@ -180,17 +190,27 @@ class OpacityStage(Stage):
     def describe(self, params, names):  # noqa: D102
         return {"opacity": {n: float(o) for n, o in zip(names, params.opacities, strict=True)}}
 
-    def guards(self, terms, start):
-        """``floor - coverage`` (no winning by fading).
+    def floor(self, start: dict) -> float:
+        """Return the lowest allowed coverage: ``opacity_floor``, else a fraction of the start.
 
-        The default floor is :attr:`COVERAGE_KEEP` (80 %) of the starting coverage, not all
-        of it: making an outer structure semi-transparent to show an inner one (what the
-        visibility measure asks for) lowers the accumulated opacity on the rays that meet only
-        the outer structure; at 100 % a two-structure skin/bone head cannot move at all.
+        The fraction is ``coverage_keep`` (``optimize(..., coverage_keep=...)``) or
+        :attr:`COVERAGE_KEEP` (1).
         """
-        keep = self.COVERAGE_KEEP * start["coverage"]
-        floor = keep if self.opacity_floor is None else self.opacity_floor
-        return np.array([floor - terms["coverage"]])
+        if self.opacity_floor is not None:
+            return float(self.opacity_floor)
+        keep = self.COVERAGE_KEEP if self.coverage_keep is None else self.coverage_keep
+        return keep * float(start["coverage"])
+
+    def guards(self, terms, start):
+        """``floor - coverage`` (no winning by fading, see :meth:`floor`).
+
+        By default the mean accumulated opacity over the non-empty rays may not fall below
+        its starting value (:attr:`COVERAGE_KEEP` = 1): lowering every opacity always
+        brings the visible shares towards the unoccluded assigned shares, so without this
+        rule ``E_v`` is won by fading the whole image.  ``opacity_floor`` (a coverage value
+        in [0, 1]) replaces the floor, e.g. to accept some fading for more visibility.
+        """
+        return np.array([self.floor(start) - terms["coverage"]])
 
     def constraints(self, terms, start, weights):
         """Return the base constraints plus :meth:`guards`."""
@@ -277,26 +297,32 @@ class LightingStage(Stage):
 class ColourStage(Stage):
     """Stage 3: per-structure HSV saturation and value (hue with ``allow_hue``); leads ``E_t``.
 
-    Saturation in [``SATURATION_KEEP`` (50 %) of its start, 1] and value in [``VALUE_KEEP``
-    (60 %) of its start (at least 0.05), 1], so structures keep their colour identity: with
-    [0, 1] and [0.05, 1] the engine's red inserts turned grey and lidc_chest's heart and aorta
-    almost black (value 0.29; its footprint luminance, dominated by the layers in front,
-    hardly changed).  Plus the brightness guard of :class:`LightingStage`.
+    The hue is kept (unless ``allow_hue``), saturation stays in [``SATURATION_KEEP`` (80 %) of
+    its start, its start + ``SATURATION_GAIN`` (0.2)] (at most 1) and value in [``VALUE_KEEP``
+    (60 %) of its start (at least 0.05), 1], so structures keep their colour identity: with [0,
+    1] and [0.05, 1] the engine's red inserts turned grey and lidc_chest's heart and aorta
+    almost black (value 0.29; its footprint luminance, dominated by the layers in front, hardly
+    changed), and with a saturation floor of 50 % the phantom's blue ventricle became near-white
+    (washed out), without a ceiling the tooth's pale blue-white enamel (saturation 0.15) turned
+    a strong blue (0.49).
+    Plus the brightness guard of :class:`LightingStage`.
     """
 
     name, lead = "colour", "E_t"
     brightened = True
     guards = Stage.brightness_guards
     VALUE_KEEP = 0.6
-    SATURATION_KEEP = 0.5
+    SATURATION_KEEP = 0.8
+    SATURATION_GAIN = 0.2
     _HUE_SCALE = 2.0  # x = 2 * hue: a gradient step of 0.01 moves the hue by 0.005
 
     def _bounds(self, hsv0):
         """(lo, hi), shape (n, 2) each, of (saturation, value) given the starting HSV."""
-        lo = np.zeros((len(hsv0), 2))
+        lo, hi = np.zeros((len(hsv0), 2)), np.ones((len(hsv0), 2))
         lo[:, 0] = np.minimum(self.SATURATION_KEEP * hsv0[:, 1], 0.95)
         lo[:, 1] = np.minimum(np.maximum(0.05, self.VALUE_KEEP * hsv0[:, 2]), 0.95)
-        return lo, np.ones((len(hsv0), 2))
+        hi[:, 0] = np.minimum(hsv0[:, 1] + self.SATURATION_GAIN, 1.0)
+        return lo, hi
 
     def _hsv(self, params, idx):
         return np.array([colorsys.rgb_to_hsv(*np.clip(params.colors[i], 0, 1)) for i in idx])

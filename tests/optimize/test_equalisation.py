@@ -16,6 +16,7 @@ from dvr_perception.volume.io import load_volume
 REPO = Path(__file__).resolve().parents[2]
 
 PX = 64
+FLOOR = 0.8  # the user's coverage floor, as a fraction of the starting coverage
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +49,11 @@ def test_visible_shares_move_toward_importance(cthead, skin, bone, gain):
             replace(by_name["bone"], importance=bone, opacity=None),
         ),
     )
-    r = optimize(vol, spec, cam, stages=("opacity",), seed=0)
+    # Equalising makes the skin semi-transparent, which fades the rays that meet only skin
+    # (the face's rim and the head rest): with the default floor (no fading at all) the
+    # stage cannot move here, so the user allows 20 % less coverage, as in the paper.
+    r = optimize(vol, spec, cam, stages=("opacity",), seed=0, coverage_keep=FLOOR)
+    assert r.final["coverage"] >= FLOOR * r.initial["coverage"]
     target = np.array([skin, bone]) / (skin + bone)
 
     def distance(terms):

@@ -15,6 +15,7 @@ from dvr_perception.optimize import (
     optimize,
     register_stage,
 )
+from dvr_perception.optimize._exact import OpacityModel
 from dvr_perception.optimize._problem import Params, Problem
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import curvature_volume
@@ -47,9 +48,8 @@ def _measure(vol, spec, cam):
 def test_stage1_lowers_visibility_without_fading(phantom, stage1):
     vol, spec, cam = phantom
     r = stage1
-    assert r.final["E_v"] <= 0.7 * r.initial["E_v"]
-    keep = OpacityStage.COVERAGE_KEEP
-    assert r.final["coverage"] >= keep * r.initial["coverage"]
+    assert r.final["E_v"] <= 0.7 * r.initial["E_v"]  # the issue's 30 %
+    assert r.final["coverage"] >= r.initial["coverage"]  # no fading by default
     assert r.final["E"] <= r.initial["E"]
     # the reported terms are the measures of the returned spec, and no fading in the image
     a0, ev0, _, _ = _measure(vol, spec, cam)
@@ -59,7 +59,7 @@ def test_stage1_lowers_visibility_without_fading(phantom, stage1):
         (r.final["E_v"], r.final["E_s"], r.final["E_t"]), abs=1e-6
     )
     rays = a0.assigned.sum(axis=0) > 0
-    assert a1.accumulated[rays].mean() >= keep * a0.accumulated[rays].mean()
+    assert a1.accumulated[rays].mean() >= a0.accumulated[rays].mean()
     rec = r.stages[0]
     assert rec.name == "opacity"
     assert rec.accepted
@@ -68,9 +68,59 @@ def test_stage1_lowers_visibility_without_fading(phantom, stage1):
     assert all(0.01 <= s.opacity <= 1.0 for s in r.spec.structures)
     assert len(rec.history) == rec.iterations
     assert r.nit == rec.iterations
-    # the other terms stay within the stage tolerance
+    # the other terms stay within the stage tolerance (0.05 + half the E_v gain)
+    gain = rec.terms_before["E_v"] - rec.terms_after["E_v"]
     for t in ("E_s", "E_t"):
-        assert rec.terms_after[t] <= rec.terms_before[t] + OpacityStage.tolerance + 1e-9
+        allowed = OpacityStage.tolerance + OpacityStage.trade * gain
+        assert rec.terms_after[t] <= rec.terms_before[t] + allowed + 1e-9
+
+
+def test_exact_opacity_model_matches_the_problem(phantom):
+    """E_v and coverage of the exact model equal the Problem's; gradients match differences."""
+    vol, spec, cam = phantom
+    curv, _ = curvature_volume(vol, spec)
+    problem = Problem([analyze(vol, spec, cam, curvature=curv).cache], [None], spec,
+                      np.ones(3), {}, None)  # fmt: skip
+    params = Params.from_spec(spec)
+    model = OpacityModel(problem, params)
+    ops = np.array([0.2, 0.5, 0.35, 0.6, 0.45, 0.8])
+    e_v, cov, g_v, g_c = model.evaluate(ops)
+    ref = problem.terms(params.replace(opacities=ops), need=("E_v",))
+    assert e_v == pytest.approx(ref["E_v"], abs=1e-6)
+    assert cov == pytest.approx(ref["coverage"], abs=1e-6)
+    h = 2e-3  # well above the 1/32767 rounding of the opacity table
+    for k in range(ops.size):
+        up, down = ops.copy(), ops.copy()
+        up[k] += h
+        down[k] -= h
+        (ev_u, c_u, *_), (ev_d, c_d, *_) = model.evaluate(up), model.evaluate(down)
+        assert g_c[k] == pytest.approx((c_u - c_d) / (2 * h), rel=0.1, abs=2e-3)
+        assert g_v[k] == pytest.approx((ev_u - ev_d) / (2 * h), rel=0.15, abs=5e-3)
+
+
+def test_no_fading_holds_at_the_user_resolution(phantom):
+    """Optimised on 24 px rays, the 48 px image keeps its coverage (checked exactly there)."""
+    vol, spec, cam = phantom
+    r = optimize(vol, spec, cam, stages=("opacity",), max_iter=3, seed=1, resolution=24)
+    assert r.stages[0].accepted
+    assert r.final["E_v"] < r.initial["E_v"]
+    assert r.final["coverage"] >= r.initial["coverage"]
+
+
+def test_lower_opacity_floor_allows_more_visibility(phantom, stage1):
+    """A user floor below the start trades coverage for E_v; the default never fades."""
+    vol, spec, cam = phantom
+    floor = 0.8 * stage1.initial["coverage"]
+    r = optimize(vol, spec, cam, stages=("opacity",), max_iter=8, seed=3, opacity_floor=floor)
+    assert r.final["coverage"] >= floor
+    assert r.final["E_v"] < stage1.final["E_v"] - 0.005
+    assert r.final["coverage"] < stage1.final["coverage"]
+    stage = OpacityStage()
+    assert stage.floor({"coverage": 0.7}) == 0.7
+    assert OpacityStage(opacity_floor=0.5).floor({"coverage": 0.7}) == 0.5
+    rel = optimize(vol, spec, cam, stages=("opacity",), max_iter=8, seed=3, coverage_keep=0.8)
+    assert rel.final["coverage"] >= 0.8 * rel.initial["coverage"]
+    assert rel.final["E_v"] < stage1.final["E_v"] - 0.005
 
 
 def test_lighting_stage_does_not_raise_E(phantom, stage1):
@@ -141,7 +191,8 @@ def test_colour_stage_keeps_hue_and_does_not_raise_E_t(phantom, stage1):
     for before, after in zip(stage1.spec.structures, r.spec.structures, strict=True):
         h0, s0, v0 = colorsys.rgb_to_hsv(*before.color)
         h1, s1, v1 = colorsys.rgb_to_hsv(*after.color)
-        assert s1 >= ColourStage.SATURATION_KEEP * s0 - 1e-6  # keeps its colour identity
+        assert s1 >= 0.8 * s0 - 1e-6  # keeps its colour identity: not washed out ...
+        assert s1 <= s0 + 0.2 + 1e-6  # ... nor garish
         assert h1 == pytest.approx(h0, abs=1e-6)
         assert v1 >= max(0.05, ColourStage.VALUE_KEEP * v0) - 1e-6  # no darkening to black
     for name, value in r.initial["luminance"].items():  # the brightness guard
@@ -178,7 +229,7 @@ def test_callback_gets_copies_and_stopiteration_returns_best(phantom):
     assert seen[1].nfev >= seen[0].nfev
     assert r.final["E"] >= 0
     assert r.final["E_v"] <= r.initial["E_v"]
-    assert r.final["coverage"] >= OpacityStage.COVERAGE_KEEP * r.initial["coverage"]
+    assert r.final["coverage"] >= r.initial["coverage"]
 
 
 def test_opacity_floor_at_start_forbids_any_fading(phantom):
@@ -274,6 +325,8 @@ def test_stage_registry_is_replaceable(phantom):
         ({"resolution": 4}, "resolution"),
         ({"seed": -1}, "seed"),
         ({"opacity_floor": 2.0}, "opacity_floor"),
+        ({"coverage_keep": 1.5}, "coverage_keep"),
+        ({"coverage_keep": 0.9, "opacity_floor": 0.5}, "coverage_keep"),
         ({"callback": 3}, "callback"),
         ({"cameras": [None]}, "cameras"),
     ],

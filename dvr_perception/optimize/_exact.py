@@ -1,0 +1,137 @@
+"""Exact ``E_v`` and coverage, with their gradients in the opacities, from cached rays.
+
+The opacity stage needs only the visibility term ``E_v`` and the coverage (mean accumulated
+opacity) for most of its evaluations; both depend on the per-structure rendering opacities only
+through the front-to-back compositing of each ray's cached samples.  :class:`OpacityModel`
+re-composites the :class:`~dvr_perception.rays.engine.RayCache` entries itself (no colour, no
+shading: a few milliseconds) and differentiates the compositing analytically: along a ray,
+with ``T_e`` the transmittance before entry ``e`` (structure ``s_e``, step-corrected opacity
+``a_e``),
+
+* ``visible_j = sum_{e: s_e = j} a_e T_e`` and ``acc = 1 - prod_e (1 - a_e)``;
+* ``d log T_e / d o_k = - sum_{e' < e, s_e' = k} (d a_e' / d o_k) / (1 - a_e')``, kept as a
+  running sum ``G_k`` per structure, so ``d visible_j / d o_k`` accumulates
+  ``a_e T_e G_k`` (plus ``T_e d a_e / d o_k`` when ``j = k``) in one pass.
+
+Values use the engine's quantised opacity table (:func:`~dvr_perception.rays._tables.alpha_table`)
+and its early ray termination, so they equal the ``E_v`` and ``coverage`` of
+:class:`~dvr_perception.optimize._problem.Problem` up to float rounding; the derivative of
+``a = 1 - (1 - o m) ** ratio`` is taken without the 1/32767 rounding.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from dvr_perception.rays import _tables
+
+__all__ = ["OpacityModel"]
+
+
+@njit(cache=True)  # serial: a few ms of work, and the cores are often shared
+def _composite_grad(rays, start, count, lut, ids, alpha, dalpha, k, ert, grad, vis, dvis, acc,
+                    dacc):  # fmt: skip
+    """Per selected ray: visible opacity per structure, accumulated opacity, and gradients.
+
+    Without ``grad`` only ``vis`` and ``acc`` are written (``dvis`` and ``dacc`` are not
+    touched and may be any arrays of the right dimensions).
+    """
+    for i in range(rays.shape[0]):
+        r = rays[i]
+        g = np.zeros(k)
+        tr = 1.0
+        for s in range(k):
+            vis[s, i] = 0.0
+            if grad:
+                for q in range(k):
+                    dvis[s, q, i] = 0.0
+        for e in range(start[r], start[r] + count[r]):
+            idx = lut[e]
+            al = alpha[idx]
+            if al <= 0.0:
+                continue
+            s = ids[idx]
+            w = al * tr
+            vis[s, i] += w
+            if grad:
+                for q in range(k):
+                    dvis[s, q, i] += w * g[q]
+                da = dalpha[idx]
+                dvis[s, s, i] += da * tr
+                g[s] -= da / max(1.0 - al, 1e-9)
+            tr *= 1.0 - al
+            if tr < ert:
+                break
+        acc[i] = 1.0 - tr
+        if grad:
+            for q in range(k):
+                dacc[q, i] = -tr * g[q]
+
+
+class OpacityModel:
+    """``E_v`` and coverage of one problem as functions of the K rendering opacities.
+
+    Parameters
+    ----------
+    problem : Problem
+        Its caches, masks and (targets-adjusted) assigned shares define the terms.
+    params : Params
+        Any parameter set (used once per view to set up the problem's fixed parts).
+    """
+
+    def __init__(self, problem, params) -> None:
+        self.views = []
+        for v, cache in enumerate(problem.caches):
+            fixed = problem.fixed_parts(v, params)
+            rays = np.flatnonzero(fixed["rays"].ravel()).astype(np.int64)
+            self.views.append((cache, rays, np.asarray(fixed["a_share"], np.float64)))
+        self.k = len(problem.names)
+        self.nfev = 0
+
+    def _tables(self, cache, ops):
+        alpha = _tables.alpha_table(cache.ids, cache.membership, ops, cache.ratio)
+        ids = np.asarray(cache.ids)
+        m = np.asarray(cache.membership, np.float64)
+        o = np.where(ids >= 0, ops[np.maximum(ids, 0)] * m, 0.0)
+        base = np.clip(1.0 - o, 1e-9, 1.0)
+        da = np.where(o > 1e-4, cache.ratio * m * base ** (cache.ratio - 1.0), m)
+        return alpha, np.where(ids >= 0, da, 0.0), np.maximum(ids, 0).astype(np.int64)
+
+    def evaluate(self, ops, grad: bool = True) -> tuple[float, float, np.ndarray, np.ndarray]:
+        """Return ``(E_v, coverage, dE_v/do, dcoverage/do)`` at opacities ``ops`` (K,).
+
+        With ``grad=False`` the two gradients are zeros (and not computed).
+        """
+        self.nfev += 1
+        ops = np.clip(np.asarray(ops, np.float64), 0.0, 1.0)
+        k = self.k
+        e_v = cov = 0.0
+        g_v, g_c = np.zeros(k), np.zeros(k)
+        for cache, rays, a_share in self.views:
+            n = rays.size
+            if n == 0:
+                continue
+            alpha, dalpha, ids = self._tables(cache, ops)
+            vis, acc = np.empty((k, n)), np.empty(n)
+            m = n if grad else 1
+            dvis, dacc = np.zeros((k, k, m)), np.zeros((k, m))
+            _composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha, k,
+                            _tables.ERT, grad, vis, dvis, acc, dacc)  # fmt: skip
+            acc32, vis32 = acc.astype(np.float32), vis.astype(np.float32)
+            pos = acc32 > 0
+            safe = np.where(pos, acc32, 1.0).astype(np.float32)
+            share = np.where(pos, np.clip(vis32 / safe, 0.0, 1.0), 0.0).astype(np.float32)
+            diff = a_share - share
+            e_v += float(np.abs(diff).sum(axis=0).mean())
+            cov += float(acc32.mean())
+            if not grad:
+                continue
+            # d share_j / d o_q = (dvis_jq acc - vis_j dacc_q) / acc^2 on rays with acc > 0
+            inv = np.where(pos, 1.0 / np.where(pos, acc, 1.0), 0.0)
+            dshare = (dvis * acc - vis[:, None, :] * dacc[None, :, :]) * inv**2
+            sgn = -np.sign(diff)
+            g_v += (sgn[:, None, :] * dshare).sum(axis=(0, 2)) / n
+            g_c += dacc.sum(axis=1) / n
+        nv = len(self.views)
+        return e_v / nv, cov / nv, g_v / nv, g_c / nv
