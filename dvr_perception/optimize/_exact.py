@@ -22,9 +22,17 @@ and its early ray termination, so they equal the ``E_v`` and ``coverage`` of
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from dvr_perception.rays import _tables
+
+try:
+    from numba import njit
+except ImportError:  # no numba: the same loop in plain Python (slow, same numbers)
+
+    def njit(*args, **_kwargs):
+        """Stand-in for :func:`numba.njit` that returns the function unchanged."""
+        return args[0] if args and callable(args[0]) else (lambda f: f)
+
 
 __all__ = ["OpacityModel"]
 
