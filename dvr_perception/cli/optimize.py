@@ -99,7 +99,14 @@ def add_parser(subparsers, parents) -> None:
         "--resolution",
         type=_positive_int,
         metavar="N",
-        help="long side of the optimisation camera in pixels (default 192)",
+        help="long side of the optimisation camera in pixels (default 96)",
+    )
+    p.add_argument(
+        "--coverage-keep",
+        type=float,
+        metavar="F",
+        help="share of the starting mean opacity the opacity stage must keep, in [0, 1] "
+        "(default 1: no fading; e.g. 0.9 lets the image fade by 10 %% for more visibility)",
     )
     p.set_defaults(run=run)
 
@@ -261,7 +268,7 @@ def _terms(d: dict) -> dict:
 
 def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lighting", "colour"),
                    weights=(1.0, 1.0, 1.0), region=None, views=1, seed=0, max_iter=10,
-                   resolution=None, progress=None) -> dict:  # fmt: skip
+                   resolution=None, coverage_keep=None, progress=None) -> dict:  # fmt: skip
     """Optimise ``spec`` for ``camera``, write every output into ``out_dir``, return the report.
 
     ``region`` is ``(x0, y0, x1, y1)`` in pixels or ``None``; ``progress`` a :class:`Progress`
@@ -288,6 +295,7 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
         callback=progress,
         max_iter=max_iter,
         resolution=resolution,
+        coverage_keep=coverage_keep,
     )
     if isinstance(progress, Progress):
         progress.close()
@@ -364,6 +372,9 @@ def run(args: argparse.Namespace) -> int:
     weights = parse_weights(args.weights)
     if args.seed < 0:
         raise DVRInputError(f"--seed: expected an integer >= 0, got {args.seed}")
+    keep = args.coverage_keep
+    if keep is not None and not (0.0 <= keep <= 1.0):
+        raise DVRInputError(f"--coverage-keep: expected a number in [0, 1], got {keep:g}")
     if args.region is not None and args.views > 1:
         raise DVRInputError("--region refines one view; use it without --views")
     scene = load_scene(args)
@@ -375,7 +386,7 @@ def run(args: argparse.Namespace) -> int:
         report = optimize_scene(scene.volume, scene.spec, cam, out_dir, stages=stages,
                                 weights=weights, region=region, views=args.views, seed=args.seed,
                                 max_iter=args.max_iter, resolution=args.resolution,
-                                progress=progress)  # fmt: skip
+                                coverage_keep=args.coverage_keep, progress=progress)  # fmt: skip
     report = {"volume": scene.volume_source, "spec": scene.spec_source, **report}
     write_json(out_dir / "result.json", report)
     if args.json:

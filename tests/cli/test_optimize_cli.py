@@ -158,6 +158,7 @@ def test_ctrl_c_saves_best_so_far(capsys, tmp_path, monkeypatch):
         (["--region", "5,5,20,20", "--views", "2"], "--region"),
         (["--views", "0"], "--views"),
         (["--seed", "-1"], "seed"),
+        (["--coverage-keep", "1.5"], "--coverage-keep"),
     ],
 )
 def test_bad_input_exits_2(capsys, tmp_path, option, message):
@@ -168,3 +169,12 @@ def test_bad_input_exits_2(capsys, tmp_path, option, message):
     assert err.count("\n") == 1
     assert err.startswith("dvr-perception: error:")
     assert message in err
+
+
+def test_coverage_keep_lets_the_opacity_stage_fade_only_that_far(capsys, tmp_path):
+    argv = ["optimize", "phantom", "--size", "48", "--stages", "opacity", "--max-iter", "3"]
+    code, _out, err = _run(capsys, [*argv, "--coverage-keep", "0.7", "--out", str(tmp_path / "o")])
+    assert code == 0, err
+    rep = json.loads((tmp_path / "o" / "result.json").read_text())
+    before, after = rep["initial"]["coverage"], rep["final"]["coverage"]
+    assert after >= 0.7 * before - 0.01
