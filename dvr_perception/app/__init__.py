@@ -1,10 +1,13 @@
 """The trame web app (issue 7): make a volume rendering readable in the browser.
 
-:class:`~dvr_perception.app.core.DVRApp` serves one page: choose a volume and its
-structures, rotate the server-rendered view, read the image-quality numbers and map, optimise
-opacity (or all stages) for the current view with live progress, cancel, undo, and export.
-Start it with ``dvr-perception app`` (:func:`serve`).  Needs the ``app`` extra (trame,
-trame-vuetify, trame-vtk, pyvista).
+:class:`~dvr_perception.app.core.DVRApp` serves one page with seven screens: choose (or upload)
+a volume and edit its structures; read the image-quality numbers, the quality map and each
+structure's visible share; optimise opacity (or all stages) for the current view with live
+progress, cancel, before/after and a history to undo to any step; draw a lens (rectangle or
+circle) and refine only that region with per-structure targets; calibrate the transparency
+measure to the viewer; run the paper's ranking task; export.  Start it with
+``dvr-perception app`` (:func:`serve`).  Needs the ``app`` extra (trame, trame-vuetify,
+trame-vtk, pyvista).  The state is one per server process, shared by all browser tabs.
 
 This package and :mod:`dvr_perception.plotting` are the only ones importing pyvista/trame;
 importing this package does not import trame (the app class is loaded on first use).

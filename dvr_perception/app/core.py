@@ -8,8 +8,9 @@ pushed to the browser.  Cancel sets an event the callback turns into ``StopItera
 the optimiser returns its best parameters so far.
 
 State: trame keeps **one state per server process**, shared by every connected browser tab:
-two tabs show the same volume, spec, camera and progress, and an edit in one appears in the
-other.  Run one server per user (``dvr-perception app --port N``).
+two tabs show the same volume, spec, camera, lens, calibration test and progress, and an edit
+in one appears in the other (the tests check that two tabs stay consistent).  Run one server
+per user (``dvr-perception app --port N``).
 """
 
 from __future__ import annotations
@@ -17,17 +18,28 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
+import math
 import threading
+import time
 import warnings
+from pathlib import Path
 
 from trame.app import TrameApp, asynchronous
 from trame.decorators import change
 
+from dvr_perception.app.charts import calibration_svg, lines_svg
 from dvr_perception.app.scene import new_plotter, show_spec
-from dvr_perception.app.session import PHANTOM, Session, measure_camera
+from dvr_perception.app.session import (
+    MAX_UPLOAD_BYTES,
+    PHANTOM,
+    Session,
+    measure_camera,
+    rgb_to_hex,
+)
+from dvr_perception.app.study import CalibrationTest, RankingTask, png_data_url
 from dvr_perception.errors import DVRInputError
 
-__all__ = ["MAX_ITER", "STAGE_SETS", "DVRApp"]
+__all__ = ["MAX_ITER", "STAGE_SETS", "DVRApp", "lens_region"]
 
 log = logging.getLogger("dvr_perception.app")
 
@@ -37,8 +49,81 @@ STAGE_SETS = {"opacity": ("opacity",), "all": ("opacity", "lighting", "colour")}
 MAX_ITER = 10
 #: Least seconds between two live images while optimising (rendering blocks the optimiser).
 LIVE_INTERVAL_S = 1.0
+#: Seconds after which a pushed image is pushed once more (see ``DVRApp._push_image``).
+REPUSH_S = 0.8
 #: Colour range of the quality maps (deviations above 1 saturate).
 MAP_CLIM = (0.0, 1.0)
+#: File (in the export folder) the ranking answers are appended to.
+RANKING_FILE = "ranking_answers.csv"
+#: Long side of the ranking images and of the before/after thumbnails.
+RANKING_SIZE = 160
+THUMB_WIDTH = 210
+
+
+#: The error terms charted per iteration: key, label, colour.
+TERMS = ("E_v", "E_s", "E_t")
+_TERM_STYLE = (("visibility", "#1565c0"), ("shape", "#2e7d32"), ("transparency", "#ef6c00"))
+
+
+def _history_chart(history) -> str:
+    """SVG of the three errors per iteration (empty string without iterations)."""
+    if not history:
+        return ""
+    cols = list(zip(*history, strict=True))
+    return lines_svg([(label, color, cols[k]) for k, (label, color) in enumerate(_TERM_STYLE)])
+
+
+def _style_bar(bar) -> None:
+    """Plain, readable colour-bar text (no italics, title clear of the labels)."""
+    bar.SetVerticalTitleSeparation(12)
+    bar.SetPosition(0.88, 0.08)
+    bar.SetWidth(0.1)
+    bar.SetHeight(0.84)
+    bar.SetBarRatio(0.45)
+    bar.SetLabelFormat("%.1f")
+    bar.SetUnconstrainedFontSize(True)
+    for prop, size in ((bar.GetTitleTextProperty(), 20), (bar.GetLabelTextProperty(), 18)):
+        prop.SetItalic(False)
+        prop.SetShadow(True)
+        prop.SetBold(prop is bar.GetTitleTextProperty())
+        prop.SetFontSize(size)
+
+
+def lens_region(lens, width: int, height: int):
+    """Turn the page's lens (fractions of the view) into an optimiser region in pixels.
+
+    ``lens`` is ``{"shape": "rect", "x0", "y0", "x1", "y1"}`` (corners) or
+    ``{"shape": "circle", "x0", "y0", "r"}`` (centre, radius as a fraction of the width).
+
+    Examples
+    --------
+    >>> lens_region({"shape": "rect", "x0": 0.5, "y0": 0.5, "x1": 0.25, "y1": 0.75}, 100, 80)
+    ('rect', 25.0, 40.0, 50.0, 60.0)
+    >>> lens_region({"shape": "circle", "x0": 0.5, "y0": 0.5, "r": 0.1}, 100, 80)
+    ('circle', 50.0, 40.0, 10.0)
+    """
+    if not isinstance(lens, dict):
+        raise DVRInputError("lens: draw a rectangle or a circle on the view first")
+    try:
+        if lens.get("shape") == "circle":
+            cx, cy, r = (float(lens[k]) for k in ("x0", "y0", "r"))
+            out = ("circle", cx * width, cy * height, r * width)
+        elif lens.get("shape") == "rect":
+            x0, y0, x1, y1 = (float(lens[k]) for k in ("x0", "y0", "x1", "y1"))
+            out = (
+                "rect",
+                min(x0, x1) * width,
+                min(y0, y1) * height,
+                max(x0, x1) * width,
+                max(y0, y1) * height,
+            )
+        else:
+            raise DVRInputError(f"lens: unknown shape {lens.get('shape')!r}")
+    except (KeyError, TypeError, ValueError):
+        raise DVRInputError(f"lens: malformed region {lens!r}") from None
+    if not all(math.isfinite(v) for v in out[1:]):
+        raise DVRInputError(f"lens: malformed region {lens!r}")
+    return out
 
 
 def _guard(fn):
@@ -79,6 +164,10 @@ class DVRApp(TrameApp):
         Folder the exports are written to.
     phantom_size : int
         Edge length of the built-in phantom.
+    max_upload_bytes : int
+        Largest volume file the upload field accepts.
+    max_iter : int
+        Optimiser iterations per stage.
     """
 
     def __init__(
@@ -89,9 +178,19 @@ class DVRApp(TrameApp):
         volume=None,
         export_dir="dvr_exports",
         phantom_size=96,
+        max_upload_bytes=MAX_UPLOAD_BYTES,
+        max_iter=MAX_ITER,
     ):
         super().__init__(server)
+        self.max_iter = int(max_iter)
         self.session = Session(data_dir, export_dir, phantom_size=phantom_size)
+        self.max_upload_bytes = int(max_upload_bytes)
+        # an upload travels in websocket messages: let them hold the largest accepted file
+        limit = int(self.server.options.get("ws_max_msg_size") or 0)
+        self.server.options["ws_max_msg_size"] = max(limit, self.max_upload_bytes + 2**20)
+        self.calibration_test = None
+        self.ranking = None
+        self._curve = None
         self.plotter = new_plotter()
         self.handle = None
         self.measures = None
@@ -102,6 +201,8 @@ class DVRApp(TrameApp):
         self._task_running = False
         self._measuring = False
         self._measure_again = False
+        self._e_history: list[tuple] = []
+        self._repush = None
         self._init_state()
         self._show_volume(volume or PHANTOM)
         from dvr_perception.app.ui import build_ui
@@ -119,6 +220,7 @@ class DVRApp(TrameApp):
         s.spec_path = "spec.json"
         s.spec_source = ""
         s.structures = []
+        s.structure_names = []
         s.error = ""
         s.info = ""
         s.show_map = False
@@ -129,7 +231,45 @@ class DVRApp(TrameApp):
         s.progress = 0
         s.progress_text = ""
         s.can_undo = False
+        s.history = []
         s.exports = []
+        s.tab = "data"
+        s.map_opacity = 0.6
+        s.shares = []
+        s.error_history_svg = ""
+        s.before_url = s.after_url = ""
+        s.before_text = s.after_text = ""
+        # lens
+        s.lens_shape = "rect"
+        s.lens = None
+        s.lens_text = ""
+        s.lens_rows = []
+        s.lens_drag = None
+        s.client_only("lens_drag")
+        # calibration test
+        s.cal_active = False
+        s.cal_index = 0
+        s.cal_total = 0
+        s.cal_url = ""
+        s.cal_rating = 0.5
+        s.cal_file = "my_calibration.json"
+        s.cal_svg = ""
+        s.cal_saved = ""
+        s.calibration_name = ""
+        s.use_calibration = False
+        s.has_calibration = False
+        # ranking task
+        s.rank_structure = 0
+        s.rank_images = []
+        s.rank_order = []
+        s.rank_busy = False
+        s.rank_result = ""
+        s.rank_saved = False
+        s.rank_file = str(self.session.export_dir / RANKING_FILE)
+        # upload
+        s.upload = None
+        s.max_upload_mb = round(self.max_upload_bytes / 1e6, 2)
+        s.max_upload_bytes = self.max_upload_bytes
 
     def fail(self, message: str) -> None:
         """Show ``message`` as the page's error banner."""
@@ -141,8 +281,37 @@ class DVRApp(TrameApp):
         self.state.structures = self.session.structure_rows()
         self.state.spec_source = self.session.spec_source
         self.state.can_undo = bool(self.session.undo_stack)
+        self.state.history = self.session.history_rows()
+        self.state.structure_names = [
+            {"title": s.name, "value": k} for k, s in enumerate(self.session.spec.structures)
+        ]
+
+    def _snapshot(self) -> str:
+        """Return the current view as a small PNG data URL (for the before/after comparison)."""
+        img = self.plotter.screenshot(None, return_img=True)
+        w = img.shape[1]
+        step = max(1, round(w / THUMB_WIDTH))
+        return png_data_url(img[::step, ::step, :3] / 255.0)
 
     def _push_image(self) -> None:
+        """Send the view to the browser, and once more a little later.
+
+        trame-vtk drops a push whose image is still being encoded when its retries run out
+        (under load), which left the browser showing an older frame; the repeat makes sure
+        the last state arrives (an unchanged frame is not sent again).
+        """
+        if self.view is None:
+            return
+        self.view.update()
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            return
+        if self._repush is None:
+            self._repush = loop.call_later(REPUSH_S, self._push_again)
+
+    def _push_again(self) -> None:
+        self._repush = None
         if self.view is not None:
             self.view.update()
 
@@ -160,6 +329,12 @@ class DVRApp(TrameApp):
         )
         set_plotter_camera(self.plotter, cam, window_size=False)
         self.state.volume_name = name
+        self.state.lens = None
+        self.state.lens_rows = []
+        self.state.lens_text = ""
+        self.state.rank_images = []
+        self.state.rank_order = []
+        self.state.before_url = self.state.after_url = ""
         self._sync()
         self.remeasure(wait=True)
 
@@ -223,7 +398,26 @@ class DVRApp(TrameApp):
     def _set_measures(self, measures) -> None:
         self.measures = measures
         self.state.update(measures.as_state())
+        self._set_shares({k: v["visible"] for k, v in measures.shares.items()})
+        self._update_lens_rows()
         self._update_map()
+
+    def _set_shares(self, visible: dict) -> None:
+        """Per-structure bars: visible share now (``visible``) and wanted share."""
+        wanted = self.measures.shares if self.measures is not None else {}
+        rows = []
+        for s in self.session.spec.structures:
+            if s.name not in visible:
+                continue
+            rows.append(
+                {
+                    "name": s.name,
+                    "color": rgb_to_hex(s.color),
+                    "visible": round(100 * float(visible[s.name]), 1),
+                    "wanted": round(100 * float(wanted.get(s.name, {}).get("wanted", 0.0)), 1),
+                }
+            )
+        self.state.shares = rows
 
     def _update_map(self) -> None:
         from dvr_perception.plotting import add_quality_map
@@ -232,12 +426,17 @@ class DVRApp(TrameApp):
             self.plotter.remove_actor(name, render=False)
         if self.state.show_map and self.measures is not None:
             kind = self.state.map_kind
-            add_quality_map(
-                self.plotter, self.measures.images[kind], title=f"{kind} error", clim=MAP_CLIM
+            overlay = add_quality_map(
+                self.plotter,
+                self.measures.images[kind],
+                title=f"{kind}\nproblem",
+                clim=MAP_CLIM,
+                opacity=min(max(float(self.state.map_opacity), 0.0), 1.0),
             )
+            _style_bar(overlay.scalar_bar)
         self._push_image()
 
-    @change("show_map", "map_kind")
+    @change("show_map", "map_kind", "map_opacity")
     @_guard
     def on_map_change(self, **_):
         """Toggle or switch the quality-map overlay."""
@@ -258,6 +457,21 @@ class DVRApp(TrameApp):
         """Slider released: set a structure's importance."""
         self.session.set_structure(index, importance=value)
         self._show_spec()
+
+    @_guard
+    def set_range(self, index, end, value):
+        """Range field changed: set the low (``end`` 0) or high (1) value of a structure."""
+        s = self.session.spec.structures[int(index)]
+        if s.range is None:
+            raise DVRInputError(f"{s.name}: a label structure has no value range")
+        bounds = list(s.range)
+        try:
+            bounds[int(end)] = float(value)
+        except (TypeError, ValueError):
+            raise DVRInputError(f"range of {s.name}: {value!r} is not a number") from None
+        self.state.error = ""
+        self.session.set_structure(index, value_range=bounds)
+        self._show_spec(restructured=True)
 
     @_guard
     def set_colour(self, index, value):
@@ -282,18 +496,20 @@ class DVRApp(TrameApp):
         self.state.info = f"saved {path}"
 
     @_guard
-    def undo(self):
-        """Restore the previous spec."""
-        if self._task_running or self.session.undo() is None:
+    def undo(self, steps=1):
+        """Go back ``steps`` changes (1: the last one)."""
+        if self._task_running or self.session.undo(int(steps)) is None:
             return
+        self.state.error = ""
         self._show_spec(restructured=True)
+        self.state.info = f"went back {int(steps)} step{'s' if int(steps) > 1 else ''}"
 
     @_guard
     def export(self):
         """Write the PNG, spec JSON, ParaView preset and Slicer file to the export folder."""
         self.state.error = ""
         self.plotter.render()
-        self.state.exports = [str(p) for p in self.session.export(self.plotter)]
+        self.state.exports = [p.name for p in self.session.export(self.plotter)]
         self.state.info = f"exported {len(self.state.exports)} files to {self.session.export_dir}"
 
     @_guard
@@ -303,19 +519,41 @@ class DVRApp(TrameApp):
 
     # -- optimisation ------------------------------------------------------------------------
     @_guard
-    def optimise(self, which="opacity"):
-        """Start optimising this view (``"opacity"`` or ``"all"`` stages) in the background."""
+    def optimise(self, which="opacity", in_lens=False):
+        """Start optimising this view (``"opacity"`` or ``"all"`` stages) in the background.
+
+        With ``in_lens`` only the lens region drives the optimisation, with the targets set
+        for the structures inside it.
+        """
         if self._task_running:
             return
         if which not in STAGE_SETS:
             raise DVRInputError(f"optimise: unknown stage set {which!r}")
+        camera = self.current_camera()
+        region = targets = None
+        if in_lens:
+            region = lens_region(self.state.lens, camera.width, camera.height)
+            targets = self._lens_targets()
         self.state.error = ""
         self._task_running = True
         self._cancel.clear()
         self.state.busy = True
         self.state.progress = 0
         self.state.progress_text = "analysing the view..."
-        asynchronous.create_task(self._optimise(STAGE_SETS[which]))
+        self.state.before_url = self._snapshot()
+        self.state.before_text = self._errors_text()
+        self.state.after_url = ""
+        self.state.after_text = ""
+        self._e_history = []
+        self.state.error_history_svg = ""
+        label = f"optimise {which}" + (" in lens" if in_lens else "")
+        asynchronous.create_task(self._optimise(STAGE_SETS[which], camera, region, targets, label))
+
+    def _errors_text(self) -> str:
+        s = self.state
+        if s.E_v is None:
+            return ""
+        return f"visibility {s.E_v}, shape {s.E_s}, transparency {s.E_t}"
 
     @_guard
     def cancel(self):
@@ -328,6 +566,7 @@ class DVRApp(TrameApp):
         """Optimiser callback (worker thread): hand the newest spec to the event loop."""
         if self._cancel.is_set():
             raise StopIteration
+        self._e_history.append(tuple(float(intermediate.terms[k]) for k in TERMS))
         first = self._pending is None
         self._pending = (stages, intermediate)
         if first:
@@ -343,17 +582,21 @@ class DVRApp(TrameApp):
             return
         self._last_live = asyncio.get_running_loop().time()
         stages, r = pending
-        done = stages.index(r.stage) * MAX_ITER + min(r.iteration, MAX_ITER)
+        n = self.max_iter
+        done = stages.index(r.stage) * n + min(r.iteration, n)
         self._render_spec(r.spec)
         self._push_image()
         with self.state:
-            self.state.progress = round(100 * done / (len(stages) * MAX_ITER))
+            self.state.error_history_svg = _history_chart(list(self._e_history))
+            self.state.update({k: float(f"{r.terms[k]:.3g}") for k in ("E_v", "E_s", "E_t")})
+            self._set_shares(r.terms.get("visible_share", {}))
+            self.state.progress = round(100 * done / (len(stages) * n))
             self.state.progress_text = (
                 f"step {stages.index(r.stage) + 1} of {len(stages)} ({r.stage}): "
-                f"iteration {r.iteration} of {MAX_ITER}"
+                f"iteration {r.iteration} of {n}"
             )
 
-    async def _optimise(self, stages) -> None:
+    async def _optimise(self, stages, camera, region, targets, label) -> None:
         from dvr_perception.optimize import optimize
 
         loop = asyncio.get_running_loop()
@@ -362,9 +605,12 @@ class DVRApp(TrameApp):
             optimize,
             volume,
             spec,
-            self.current_camera(),
+            camera,
             stages=stages,
-            max_iter=MAX_ITER,
+            region=region,
+            targets=targets,
+            calibration=self.session.calibration,
+            max_iter=self.max_iter,
             seed=0,
             callback=functools.partial(self._on_iteration, loop, stages),
         )
@@ -377,16 +623,295 @@ class DVRApp(TrameApp):
         self._pending = None
         with self.state:
             self.state.busy = False
+            self.state.error_history_svg = _history_chart(list(self._e_history))
             if result is None:
                 self.fail(error)
                 self._show_spec()
                 return
-            self.session.push_undo()
-            self.session.spec = result.spec
             cancelled = self._cancel.is_set()
+            self.session.push_undo(label + (" (cancelled)" if cancelled else ""))
+            self.session.spec = result.spec
+            where = " in the lens" if region is not None else ""
             self.state.progress = 100
+            same = result.final["E"] >= result.initial["E"]
             self.state.progress_text = (
-                f"{'cancelled, kept the best so far' if cancelled else 'done'}: total error "
-                f"{result.initial['E']:.3g} -> {result.final['E']:.3g} ({result.nit} iterations)"
+                f"{'cancelled, kept the best so far' if cancelled else 'done'}: total error"
+                f"{where} {result.initial['E']:.3g} -> {result.final['E']:.3g} "
+                f"({result.nit} iterations)"
+                + ("; no better setting found, rendering unchanged" if same else "")
             )
+            self._render_spec(result.spec)
+            self.state.after_url = self._snapshot()
             self._show_spec()
+        asynchronous.create_task(self._after_text())
+
+    async def _after_text(self) -> None:
+        """Fill the 'after' numbers once the new view is measured."""
+        while self._measuring:
+            await asyncio.sleep(0.1)
+        with self.state:
+            self.state.after_text = self._errors_text()
+
+    # -- lens --------------------------------------------------------------------------------
+    @change("lens")
+    @_guard
+    def on_lens_change(self, lens, **_):
+        """List the structures inside a newly drawn lens with their targets (or clear it)."""
+        if not lens:
+            self.state.lens_rows = []
+            self.state.lens_text = ""
+            return
+        self.state.error = ""
+        self._update_lens_rows()
+
+    def _update_lens_rows(self) -> None:
+        from dvr_perception.optimize._region import parse_region
+
+        lens = self.state.lens
+        if not lens or self.measures is None or self.measures.present is None:
+            return
+        h, w = self.measures.present.shape
+        region = lens_region(lens, w, h)
+        try:
+            mask = parse_region(region, h, w)
+        except DVRInputError:
+            self.state.lens_rows = []
+            self.state.lens_text = "the region is too small or outside the image: draw again"
+            return
+        inside = self.session.region_structures(
+            self.measures.present, mask, self.measures.share_images
+        )
+        old = {r["name"]: r for r in self.state.lens_rows or []}
+        rows = []
+        for r in inside:
+            s = self.session.spec.structures[r["index"]]
+            prev = old.get(r["name"], {})
+            share = r["visible"] if r["visible"] is not None else 0.0
+            rows.append(
+                {
+                    **r,
+                    "color": rgb_to_hex(s.color),
+                    "use_vis": prev.get("use_vis", False),
+                    "vis": prev.get("vis", round(min(max(share, 0.05), 1.0), 2)),
+                    "use_tr": prev.get("use_tr", False),
+                    "tr": prev.get("tr", round(1.0 - float(s.render_opacity), 2)),
+                }
+            )
+        self.state.lens_rows = rows
+        kind = "circle" if lens.get("shape") == "circle" else "rectangle"
+        pct = 100.0 * mask.mean()
+        self.state.lens_text = (
+            f"{kind} covering {pct:.0f} % of the image; {len(rows)} structure"
+            f"{'' if len(rows) == 1 else 's'} inside"
+        )
+
+    @_guard
+    def set_lens_target(self, index, key, value):
+        """Set a lens row's target field (``use_vis``, ``vis``, ``use_tr``, ``tr``)."""
+        if key not in ("use_vis", "vis", "use_tr", "tr"):
+            raise DVRInputError(f"lens target: unknown field {key!r}")
+        rows = [dict(r) for r in self.state.lens_rows]
+        for r in rows:
+            if r["index"] == int(index):
+                r[key] = bool(value) if key.startswith("use_") else float(value)
+        self.state.lens_rows = rows
+
+    def _lens_targets(self) -> dict:
+        targets = {}
+        for r in self.state.lens_rows or []:
+            wanted = {}
+            if r.get("use_vis"):
+                wanted["visibility"] = float(r["vis"])
+            if r.get("use_tr"):
+                wanted["transparency"] = float(r["tr"])
+            if wanted:
+                targets[r["name"]] = wanted
+        return targets
+
+    @_guard
+    def clear_lens(self):
+        """Remove the lens."""
+        self.state.lens = None
+        self.state.lens_rows = []
+        self.state.lens_text = ""
+
+    # -- calibration test --------------------------------------------------------------------
+    @_guard
+    def start_calibration(self):
+        """Start a new calibration test (stimuli in a new random order)."""
+        self.state.error = ""
+        self.calibration_test = CalibrationTest(seed=int(time.time()) % 100_000)
+        self.state.cal_active = True
+        self.state.cal_saved = ""
+        self.state.cal_svg = ""
+        self.state.cal_rating = 0.5
+        self._show_stimulus()
+
+    def _show_stimulus(self) -> None:
+        t = self.calibration_test
+        self.state.cal_total = len(t.stimuli)
+        self.state.cal_index = len(t.ratings) + 1
+        self.state.cal_url = t.image_url()
+
+    @_guard
+    def rate_stimulus(self, value=None):
+        """Record the rating of the shown stimulus; after the last one fit and save the curve."""
+        t = self.calibration_test
+        if t is None:
+            raise DVRInputError("calibration: press 'Start the test' first")
+        t.rate(self.state.cal_rating if value is None else value)
+        self.state.cal_rating = 0.5
+        if not t.done:
+            self._show_stimulus()
+            return
+        self.state.cal_active = False
+        path = self._results_path(self.state.cal_file, ".json")
+        path, curve = t.save(path)
+        self._curve = curve
+        self.session.use_calibration(curve, path.name)
+        self.state.cal_saved = str(path)
+        self.state.cal_svg = calibration_svg(curve, t.measured, t.ratings)
+        self.state.has_calibration = True
+        self.state.use_calibration = True
+        self.state.calibration_name = path.name
+        self.state.info = (
+            f"saved your calibration curve to {path} (your answers: "
+            f"{t.ratings_path(path).name}); the measures now use it"
+        )
+        self.remeasure()
+
+    @_guard
+    def load_calibration_file(self):
+        """Load a saved calibration curve (from the export folder) and use it."""
+        from dvr_perception.calibration import load_calibration
+
+        self.state.error = ""
+        path = self._results_path(self.state.cal_file, ".json", must_exist=True)
+        curve = load_calibration(path)
+        self._curve = curve
+        self.session.use_calibration(curve, path.name)
+        self.state.cal_svg = calibration_svg(curve)
+        self.state.has_calibration = True
+        self.state.use_calibration = True
+        self.state.calibration_name = path.name
+        self.state.info = f"loaded {path.name}; the measures now use it"
+        self.remeasure()
+
+    @change("use_calibration")
+    @_guard
+    def on_use_calibration(self, use_calibration, **_):
+        """Switch the personal calibration on or off for the measures and the optimiser."""
+        want = bool(use_calibration) and self._curve is not None
+        current = self.session.calibration is not None
+        if want == current:
+            return
+        name = self.state.calibration_name if want else ""
+        self.session.use_calibration(self._curve if want else None, name)
+        self.remeasure()
+
+    def _results_path(self, text, suffix: str, *, must_exist: bool = False) -> Path:
+        """Resolve a plain file name inside the export folder (no folders, given suffix)."""
+        name = str(text or "").strip()
+        if not name or Path(name).name != name or name in (".", ".."):
+            raise DVRInputError(
+                f"{name or '(empty)'}: expected a plain file name (saved in the export folder)"
+            )
+        if not name.endswith(suffix):
+            raise DVRInputError(f"{name}: expected a file name ending in {suffix}")
+        folder = self.session.export_dir
+        if must_exist:
+            if not (folder / name).is_file():
+                raise DVRInputError(f"{name}: no such file in {folder}")
+        else:
+            folder.mkdir(parents=True, exist_ok=True)
+        return folder / name
+
+    # -- ranking task ------------------------------------------------------------------------
+    @_guard
+    def new_ranking(self):
+        """Render a new set of ranking images (in the background)."""
+        if self.state.rank_busy:
+            return
+        self.state.error = ""
+        self.state.rank_busy = True
+        self.state.rank_result = ""
+        self.state.rank_saved = False
+        self.state.rank_order = []
+        asynchronous.create_task(self._new_ranking(int(self.state.rank_structure or 0)))
+
+    async def _new_ranking(self, structure: int) -> None:
+        loop = asyncio.get_running_loop()
+        camera = measure_camera(self.current_camera(), RANKING_SIZE)
+        run = functools.partial(
+            RankingTask.make,
+            self.session.volume,
+            self.session.spec,
+            camera,
+            structure,
+            seed=int(time.time() * 1000) % 100_000,
+        )
+        try:
+            task, error = await loop.run_in_executor(None, run), ""
+        except Exception as exc:  # shown in the page; the server keeps running
+            log.exception("ranking images failed")
+            task, error = None, f"ranking images failed: {exc}"
+        with self.state:
+            self.state.rank_busy = False
+            if task is None:
+                self.fail(error)
+                return
+            self.ranking = task
+            letters = "ABCDEFGH"
+            self.state.rank_images = [
+                {"id": i, "label": letters[k], "url": task.urls[i]}
+                for k, i in enumerate(task.shown)
+            ]
+            self.state.rank_order = []
+
+    @_guard
+    def save_ranking(self, order=None):
+        """Append the viewer's order (most see-through first) to the answers file."""
+        if self.ranking is None:
+            raise DVRInputError("ranking: press 'New set of images' first")
+        if self.state.rank_saved:
+            raise DVRInputError("ranking: this answer is already saved; press 'New set of images'")
+        order = list(self.state.rank_order if order is None else order)
+        path = Path(self.state.rank_file)
+        row = self.ranking.record(order, path)
+        labels = {r["id"]: r["label"] for r in self.state.rank_images}
+        measured = " > ".join(labels[i] for i in row["measured_order"].split())
+        self.state.rank_result = (
+            f"saved to {path.name}. Most to least see-through by the measure: {measured}; "
+            f"your order agrees on {row['pairs_agreeing']} of {row['pairs_total']} pairs."
+        )
+        self.state.rank_saved = True
+        self.state.info = f"answer saved to {path}"
+
+    # -- upload ------------------------------------------------------------------------------
+    @change("upload")
+    @_guard
+    def on_upload(self, upload, **_):
+        """Check, store and show the volume file chosen in the upload field."""
+        if not upload:
+            return
+        files = upload if isinstance(upload, list) else [upload]
+        self.state.upload = None
+        self.state.error = ""
+        if self._task_running:
+            raise DVRInputError("upload: wait until the optimisation has finished")
+        f = files[0]
+        content = f.get("content") or b""
+        if isinstance(content, list):
+            content = b"".join(content)
+        size = int(f.get("size") or len(content))
+        if size > self.max_upload_bytes:
+            raise DVRInputError(
+                f"upload {f.get('name')}: {size / 1e6:.2f} MB is larger than the limit of "
+                f"{self.max_upload_bytes / 1e6:.2f} MB"
+            )
+        name = self.session.store_upload(
+            f.get("name"), bytes(content), max_bytes=self.max_upload_bytes
+        )
+        self.state.volume_choices = self.session.volume_choices()
+        self.state.volume_name = name
+        self.state.info = f"uploaded {name} into the data folder"

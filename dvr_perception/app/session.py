@@ -20,6 +20,7 @@ import numpy as np
 from dvr_perception.errors import DVRInputError
 
 __all__ = [
+    "MAX_UPLOAD_BYTES",
     "MEASURE_SIZE",
     "PHANTOM",
     "VOLUME_SUFFIXES",
@@ -38,6 +39,8 @@ VOLUME_SUFFIXES = (".nhdr", ".nrrd", ".mha", ".mhd", ".vti", ".nii", ".nii.gz")
 MEASURE_SIZE = 256
 #: Most specs kept for undo.
 UNDO_DEPTH = 50
+#: Largest volume file accepted by the upload field.
+MAX_UPLOAD_BYTES = 64 * 1024 * 1024
 
 
 def rgb_to_hex(color) -> str:
@@ -88,12 +91,21 @@ def measure_camera(camera, size: int = MEASURE_SIZE):
 
 @dataclass(frozen=True)
 class Measures:
-    """The three measures of one view: the errors and their per-pixel deviation images."""
+    """The three measures of one view: the errors and their per-pixel deviation images.
+
+    ``shares`` maps each structure to its ``visible`` and ``wanted`` (assigned) share of the
+    image; ``present`` is the per-pixel bitmask of the structures a ray meets (bit ``k`` =
+    structure ``k``) and ``share_images`` the per-pixel visible shares ``(K, H, W)``, used to
+    list the structures inside a lens with their share there.
+    """
 
     E_v: float
     E_s: float
     E_t: float
     images: dict
+    shares: dict = None
+    present: np.ndarray = None
+    share_images: np.ndarray = None
 
     def as_state(self) -> dict:
         """Numbers for the page (three significant digits)."""
@@ -125,6 +137,9 @@ class Session:
         self.spec = None
         self.spec_source = ""
         self.undo_stack: list = []
+        self.undo_labels: list[str] = []
+        self.calibration = None
+        self.calibration_name = ""
 
     # -- files -------------------------------------------------------------------------------
     def volume_choices(self) -> list[str]:
@@ -158,7 +173,7 @@ class Session:
 
         if name == PHANTOM:
             volume, spec = make_phantom(size=self.phantom_size)
-            source = "built-in phantom spec"
+            source = "built-in phantom settings"
         else:
             path = self.data_path(name)
             volume = load_volume(path)
@@ -174,6 +189,7 @@ class Session:
         self.volume, self.volume_name = volume, name
         self.spec, self.spec_source = spec, source
         self.undo_stack.clear()
+        self.undo_labels.clear()
         return volume, spec
 
     def load_spec_file(self, text: str):
@@ -182,7 +198,7 @@ class Session:
 
         spec = load_spec(self.data_path(text))
         check_spec_for_volume(spec, self.volume)
-        self.push_undo()
+        self.push_undo(f"load {text}")
         self.spec, self.spec_source = spec, str(text)
         return spec
 
@@ -216,25 +232,49 @@ class Session:
         return [Path(p) for p in out]
 
     # -- editing -----------------------------------------------------------------------------
-    def push_undo(self) -> None:
-        """Remember the current spec (before a change)."""
+    def push_undo(self, label: str = "edit") -> None:
+        """Remember the current spec before a change described by ``label``."""
         if self.spec is not None:
             self.undo_stack.append(self.spec)
+            self.undo_labels.append(str(label))
             del self.undo_stack[:-UNDO_DEPTH]
+            del self.undo_labels[:-UNDO_DEPTH]
 
-    def undo(self):
-        """Restore the previous spec; return it (``None`` when there is nothing to undo)."""
-        if not self.undo_stack:
+    def undo(self, steps: int = 1):
+        """Go back ``steps`` changes; return the restored spec (``None``: nothing to undo)."""
+        n = int(steps)
+        if n < 1 or n > len(self.undo_stack):
             return None
-        self.spec = self.undo_stack.pop()
+        self.spec = self.undo_stack[-n]
+        del self.undo_stack[-n:]
+        del self.undo_labels[-n:]
         return self.spec
 
-    def set_structure(self, index: int, *, importance=None, color=None):
-        """Change one structure's importance (its opacity then follows it) or colour."""
+    def history_rows(self) -> list[dict]:
+        """List the changes that can be undone, newest first: ``{"steps", "label"}``."""
+        n = len(self.undo_labels)
+        return [{"steps": n - k, "label": self.undo_labels[k]} for k in range(n - 1, -1, -1)]
+
+    def set_structure(self, index: int, *, importance=None, color=None, value_range=None):
+        """Change one structure's importance (its opacity then follows it), colour or range."""
         k = int(index)
         if not 0 <= k < len(self.spec.structures):
             raise DVRInputError(f"structure {index}: no such structure")
         s = self.spec.structures[k]
+        if value_range is not None:
+            if s.range is None:
+                raise DVRInputError(f"{s.name}: a label structure has no value range")
+            try:
+                lo, hi = (float(v) for v in value_range)
+            except (TypeError, ValueError):
+                raise DVRInputError(
+                    f"range of {s.name}: expected two numbers, got {value_range!r}"
+                ) from None
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise DVRInputError(
+                    f"range of {s.name}: expected two numbers with low < high, got {lo:g} to {hi:g}"
+                )
+            s = replace(s, range=(lo, hi))
         if importance is not None:
             v = float(importance)
             if not (math.isfinite(v) and 0.0 <= v <= 1.0):
@@ -244,10 +284,16 @@ class Session:
             s = replace(s, color=hex_to_rgb(color))
         if s == self.spec.structures[k]:
             return self.spec
-        self.push_undo()
+        what = "importance" if importance is not None else "colour"
+        what = "range" if value_range is not None else what
+        self.push_undo(f"{what} of {s.name}")
         structures = list(self.spec.structures)
         structures[k] = s
         self.spec = replace(self.spec, structures=tuple(structures))
+        if value_range is not None:
+            from dvr_perception.structures import check_spec_for_volume
+
+            check_spec_for_volume(self.spec, self.volume)  # warns when the range is empty
         return self.spec
 
     def structure_rows(self) -> list[dict]:
@@ -276,10 +322,89 @@ class Session:
         analysis = analyze(self.volume, self.spec, cam, curvature=curvature, build_cache=False)
         v = visibility(analysis, self.spec)
         s = shape(analysis, self.spec)
-        t = transparency(analysis, self.spec)
+        t = transparency(analysis, self.spec, calibration=self.calibration)
         empty = ~v.nonempty  # no map where nothing is rendered: the background stays visible
         images = {
             name: np.where(empty, np.nan, np.asarray(r.deviation, dtype=np.float32))
             for name, r in (("visibility", v), ("shape", s), ("transparency", t))
         }
-        return Measures(float(v.E_v), float(s.E_s), float(t.E_t), images)
+        shares = {
+            name: {
+                "visible": float(d["visible_share"]),
+                "wanted": float(d["assigned_share"]),
+            }
+            for name, d in v.per_structure.items()
+        }
+        present = np.asarray(analysis.present, dtype=np.uint32)
+        share_images = np.asarray(analysis.visible_share, dtype=np.float32)
+        return Measures(
+            float(v.E_v), float(s.E_s), float(t.E_t), images, shares, present, share_images
+        )
+
+    def region_structures(self, present, mask, share_images=None) -> list[dict]:
+        """Structures met by rays inside ``mask`` (same shape as ``present``), most first.
+
+        Returns ``{"index", "name", "fraction", "visible"}`` rows: ``fraction`` is the share of
+        the region's pixels whose ray meets the structure, ``visible`` its mean visible share
+        over those pixels (from ``share_images``, ``(K, H, W)``; ``None`` without them).
+        """
+        m = np.asarray(mask, dtype=bool)
+        inside = np.asarray(present)[m]
+        rows = []
+        if inside.size == 0:
+            return rows
+        for k, s in enumerate(self.spec.structures):
+            hit = ((inside >> np.uint32(k)) & np.uint32(1)).astype(bool)
+            frac = float(hit.mean())
+            if frac > 0:
+                visible = None
+                if share_images is not None and k < len(share_images):
+                    visible = round(float(np.asarray(share_images[k])[m][hit].mean()), 3)
+                rows.append(
+                    {"index": k, "name": s.name, "fraction": round(frac, 3), "visible": visible}
+                )
+        return sorted(rows, key=lambda r: -r["fraction"])
+
+    # -- calibration -------------------------------------------------------------------------
+    def use_calibration(self, curve, name: str = "") -> None:
+        """Measure transparency through ``curve`` from now on (``None``: no calibration)."""
+        self.calibration = curve
+        self.calibration_name = str(name) if curve is not None else ""
+
+    # -- upload ------------------------------------------------------------------------------
+    def store_upload(self, name: str, content: bytes, *, max_bytes: int = MAX_UPLOAD_BYTES):
+        """Check an uploaded volume file, save it into the data folder and return its name.
+
+        The file must be no larger than ``max_bytes``, have a volume suffix and load as a
+        volume; otherwise nothing is kept and :class:`DVRInputError` says why.
+        """
+        from dvr_perception.volume import load_volume
+
+        base = Path(str(name or "")).name
+        if not base.lower().endswith(VOLUME_SUFFIXES):
+            raise DVRInputError(
+                f"upload {base or '(no name)'}: not a volume file; expected one of "
+                f"{', '.join(VOLUME_SUFFIXES)}"
+            )
+        size = len(content)
+        if size > max_bytes:
+            raise DVRInputError(
+                f"upload {base}: {size / 1e6:.1f} MB is larger than the limit of "
+                f"{max_bytes / 1e6:.1f} MB"
+            )
+        if base.lower().endswith(".nhdr"):
+            raise DVRInputError(
+                f"upload {base}: a detached header needs its data file; upload a single-file "
+                "volume (.nrrd, .mha, .vti, .nii, .nii.gz) instead"
+            )
+        path = self.data_path(base, must_exist=False)
+        tmp = path.with_name(f".upload-{path.name}")
+        tmp.write_bytes(content)
+        try:
+            load_volume(tmp)
+        except Exception as exc:
+            tmp.unlink(missing_ok=True)
+            why = str(exc).replace(f"{tmp}: ", "").replace(str(tmp), base)
+            raise DVRInputError(f"upload {base}: not a readable volume ({why})") from None
+        tmp.replace(path)
+        return path.name

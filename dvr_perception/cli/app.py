@@ -30,7 +30,9 @@ def add_parser(subparsers, parents) -> None:
         parents=parents,
         help="serve the interactive web app (needs the 'app' extra)",
         description="Serve the web app: choose a volume, edit structures, see the image "
-        "quality, optimise the current view, export.  Open the printed address in a browser.",
+        "quality, optimise the current view or a lens region, calibrate, run the ranking "
+        "study, export.  Open the printed address in a browser.  All browser tabs share one "
+        "state; run one server per person.",
     )
     p.add_argument(
         "volume",
@@ -60,6 +62,20 @@ def add_parser(subparsers, parents) -> None:
         metavar="N",
         help="edge length of the built-in phantom (default 96)",
     )
+    p.add_argument(
+        "--max-upload-mb",
+        type=float,
+        default=64.0,
+        metavar="MB",
+        help="largest volume file the upload field accepts, in MB (default 64)",
+    )
+    p.add_argument(
+        "--iterations",
+        type=int,
+        default=10,
+        metavar="N",
+        help="optimiser iterations per stage (default 10)",
+    )
     p.set_defaults(run=run)
 
 
@@ -86,6 +102,10 @@ def run(args) -> int:
         raise DVRInputError(f"--port: expected 0 to 65535, got {args.port}")
     if not 16 <= args.phantom_size <= 512:
         raise DVRInputError(f"--phantom-size: expected 16 to 512, got {args.phantom_size}")
+    if not 0 < args.max_upload_mb <= 4096:
+        raise DVRInputError(f"--max-upload-mb: expected 0 to 4096, got {args.max_upload_mb}")
+    if not 1 <= args.iterations <= 200:
+        raise DVRInputError(f"--iterations: expected 1 to 200, got {args.iterations}")
     data_dir, volume = _resolve(args)
     try:
         from dvr_perception.app import serve
@@ -100,6 +120,8 @@ def run(args) -> int:
         volume=volume,
         export_dir=args.export_dir,
         phantom_size=args.phantom_size,
+        max_upload_bytes=int(args.max_upload_mb * 1e6),
+        max_iter=args.iterations,
     )
     serve(app, port=args.port, host=args.host)
     return 0

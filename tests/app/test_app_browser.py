@@ -3,13 +3,18 @@
 The server (``dvr-perception app``) serves a 40-voxel phantom on a free loopback port; the
 page is loaded once and the tests run in file order on it.  Without Chromium or playwright the
 tests skip, except under ``CI=true`` where they fail.
+
+With ``DVR_APP_SCREENSHOTS=DIR`` the tests also save a screenshot of every screen into DIR
+(``DVR_APP_SCREENSHOTS=docs/images DVR_APP_PHANTOM_SIZE=64`` regenerates the README's).
 """
 
 from __future__ import annotations
 
+import csv
 import io
 import json
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -34,6 +39,11 @@ CHROMIUM_ARGS = [
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 START_TIMEOUT_S = 60
 ACTION_TIMEOUT_MS = 60_000
+SCREENSHOTS = os.environ.get("DVR_APP_SCREENSHOTS", "")
+PHANTOM_SIZE = int(os.environ.get("DVR_APP_PHANTOM_SIZE", "40"))
+MAX_UPLOAD_MB = 0.05
+# the README's screenshots are taken at 1400 x 900; a smaller page renders faster
+VIEWPORT = {"width": 1400, "height": 900} if SCREENSHOTS else {"width": 1180, "height": 720}
 
 pytestmark = [pytest.mark.vtk_render, pytest.mark.slow]
 
@@ -72,22 +82,39 @@ def server(tmp_path_factory, vtk_can_render):
     from dvr_perception.volume import make_phantom
 
     _, spec = make_phantom(size=16)
-    save_spec(spec.with_opacities([0.9] * len(spec.structures)), data / "opaque.json")
+    # a poor spec: the outer layers too opaque, the inner ones too faint
+    save_spec(spec.with_opacities([0.6, 0.6, 0.6, 0.2, 0.2, 0.2]), data / "poor.json")
     (data / "bad.json").write_text('{"version": 1, "structures": [', encoding="utf-8")
     (root / "outside.json").write_text("{}", encoding="utf-8")
+    uploads = root / "uploads"
+    uploads.mkdir()
+    from dvr_perception.volume.io import save_volume
+
+    save_volume(make_phantom(size=20)[0], uploads / "small.nrrd")
+    save_volume(make_phantom(size=48)[0], uploads / "large.nrrd")
+    assert (uploads / "large.nrrd").stat().st_size > MAX_UPLOAD_MB * 1e6
+    (uploads / "notes.nrrd").write_text("this is not a volume", encoding="utf-8")
     port = _free_port()
     env = dict(os.environ)
     if not env.get("DISPLAY"):
         env["VTK_DEFAULT_OPENGL_WINDOW"] = "vtkEGLRenderWindow"
     cmd = [sys.executable, "-c", "from dvr_perception.cli import main; raise SystemExit(main())"]
     cmd += ["app", "--port", str(port), "--host", "127.0.0.1", "--data-dir", str(data)]
-    cmd += ["--export-dir", str(exports), "--phantom-size", "40"]
+    cmd += ["--export-dir", str(exports), "--phantom-size", str(PHANTOM_SIZE)]
+    cmd += ["--max-upload-mb", str(MAX_UPLOAD_MB), "--iterations", "5"]
     log = root / "server.log"
     with log.open("w") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=root)
     try:
         _wait_listening(port, proc, log)
-        yield {"url": f"http://127.0.0.1:{port}/", "proc": proc, "exports": exports, "log": log}
+        yield {
+            "url": f"http://127.0.0.1:{port}/",
+            "proc": proc,
+            "exports": exports,
+            "log": log,
+            "data": data,
+            "uploads": uploads,
+        }
     finally:
         proc.terminate()
         try:
@@ -109,10 +136,11 @@ def page(server):
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
         try:
-            pg = browser.new_page(viewport={"width": 1280, "height": 820})
+            pg = browser.new_page(viewport=VIEWPORT)
             pg.set_default_timeout(ACTION_TIMEOUT_MS)
             pg.goto(server["url"])
             pg.wait_for_selector("#view img, #view canvas", state="attached")
+            pg.browser_for_tests = browser
             yield pg
         finally:
             browser.close()
@@ -143,10 +171,12 @@ def _view_image(page) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.float64) / 255.0
 
 
-def _wait_image_change(page, before: np.ndarray, *, tries: int = 40) -> np.ndarray:
+def _wait_image_change(
+    page, before: np.ndarray, *, tries: int = 80, min_change: float = 1e-4
+) -> np.ndarray:
     for _ in range(tries):  # the pushed image arrives asynchronously
         img = _view_image(page)
-        if img.shape == before.shape and np.abs(img - before).mean() > 1e-4:
+        if img.shape == before.shape and np.abs(img - before).mean() > min_change:
             return img
         page.wait_for_timeout(250)
     return img
@@ -157,8 +187,37 @@ def _error_text(page) -> str:
     return page.inner_text("#error-message")
 
 
+def _shot(page, name: str, *, close_messages: bool = True) -> None:
+    """Save a screenshot of the page as ``app_<name>.png`` when screenshots are requested."""
+    if SCREENSHOTS:
+        Path(SCREENSHOTS).mkdir(parents=True, exist_ok=True)
+        if close_messages:
+            _close_messages(page)
+        page.wait_for_timeout(800)  # let the pushed image arrive
+        page.screenshot(path=str(Path(SCREENSHOTS) / f"app_{name}.png"))
+
+
+def _tab(page, name: str) -> None:
+    page.click(f"#tab-{name}")
+    page.wait_for_selector(f"#panel-{name}", state="visible")
+
+
+def _close_messages(page) -> None:
+    page.evaluate(
+        "() => document.querySelectorAll('.v-alert__close button').forEach(b => b.click())"
+    )
+
+
+def _settled(page) -> None:
+    """Wait until no optimisation or measurement runs."""
+    page.wait_for_selector("#measuring", state="hidden")
+    page.wait_for_function(
+        "() => !document.querySelector('#cancel') || document.querySelector('#cancel').disabled"
+    )
+
+
 def test_page_shows_rendered_volume_and_measures(page):
-    assert "Readable transparent volume rendering" in page.content()
+    assert "Readable transparent volume rendering" in page.title()
     for key in ("E_v", "E_s", "E_t"):
         assert _wait_value(page, key) >= 0.0
     for _ in range(60):  # the first image arrives asynchronously
@@ -169,56 +228,267 @@ def test_page_shows_rendered_volume_and_measures(page):
     assert img.std() > 0.02, "the view is blank"
     assert (img.max(axis=2) > 0.1).mean() > 0.05, "almost nothing rendered"
     assert page.locator("#structure-table tr").count() == 1 + 6
+    _shot(page, "data")
 
 
-def _optimise(page, button: str) -> None:
-    """Click an optimise button and wait until that run is done."""
+def _optimise(page, button: str, *, expect: str = "done") -> None:
+    """Click an optimise button and wait until that run is done and measured."""
     page.click(button)
     page.wait_for_selector("#cancel:not([disabled])")  # running
     page.wait_for_selector("#cancel[disabled]")  # finished
-    assert page.inner_text("#progress-text").startswith("done")
+    assert page.inner_text("#progress-text").startswith(expect)
+    page.wait_for_selector("#measuring", state="hidden")
 
 
 def _load_spec(page, name: str) -> None:
-    page.get_by_label("Spec file (in the data folder)").fill(name)
+    _tab(page, "data")
+    page.get_by_label("Settings file (.json)").fill(name)
     page.click("#load-spec")
 
 
+def _errors_in_progress(page) -> tuple[float, float]:
+    m = re.search(
+        r"total error(?: in the lens)? ([\d.e+-]+) -> ([\d.e+-]+)",
+        page.inner_text("#progress-text"),
+    )
+    assert m, page.inner_text("#progress-text")
+    return float(m.group(1)), float(m.group(2))
+
+
 def test_optimise_opacity_lowers_visibility_error_and_changes_image(page):
-    # start from a poor spec: every structure 90 % opaque, the outer layers hide the inner
+    # start from a poor spec: the outer layers hide the inner ones
     ev_text = page.inner_text("#value-E_v").strip()
-    _load_spec(page, "opaque.json")
+    _load_spec(page, "poor.json")
     _wait_value(page, "E_v", not_equal=ev_text)
     page.wait_for_selector("#measuring", state="hidden")
     ev_text = page.inner_text("#value-E_v").strip()
     ev0 = float(ev_text)
     before = _view_image(page)
+    _tab(page, "optimise")
     _optimise(page, "#optimise-opacity")
-    ev1 = _wait_value(page, "E_v", not_equal=ev_text)
+    ev1 = _value(page, "E_v")
     assert ev1 < ev0
     after = _wait_image_change(page, before)
     assert np.abs(after - before).mean() > 1e-4, "the image did not change"
+    # before/after comparison and the error chart are shown
+    page.wait_for_selector("#after-image")
+    assert page.locator("#before-image").get_attribute("src").startswith("data:image/png")
+    assert page.locator("#error-history polyline").count() == 3  # E_v, E_s, E_t
+    assert page.locator("#share-chart-live .share-value").count() == 6
+    assert "optimise opacity" in page.inner_text("#history-list")
+    _shot(page, "optimise")
     # undo restores the previous spec and its error
     page.click("#undo")
     assert _wait_value(page, "E_v", not_equal=page.inner_text("#value-E_v").strip()) == ev0
-
-
-def test_optimise_all_stages_and_quality_map(page, server):
-    page.click("#show-map")
-    _optimise(page, "#optimise-all")
     page.wait_for_selector("#measuring", state="hidden")
-    assert _wait_value(page, "E_t") >= 0.0
-    assert server["proc"].poll() is None
+
+
+def test_quality_map_overlay_and_strength(page):
+    _tab(page, "quality")
+    plain = _view_image(page)
     page.click("#show-map")
+    page.wait_for_function("() => document.querySelector('#show-map').checked")
+    mapped = _wait_image_change(page, plain, min_change=1e-3)
+    errors = page.locator("#error-message").all_inner_texts()
+    assert np.abs(mapped - plain).mean() > 1e-3, f"the map did not appear {errors}"
+    _shot(page, "quality")
+    # map strength: drag the slider to its right end (opacity 1.0)
+    track = page.locator("#map-opacity .v-slider-track").bounding_box()
+    page.mouse.click(track["x"] + track["width"] - 1, track["y"] + track["height"] / 2)
+    strong = _wait_image_change(page, mapped)
+    assert np.abs(strong - mapped).mean() > 1e-4, "the map strength did not change the image"
+    # the share chart lists every structure with a number
+    assert page.locator("#share-chart .share-value").count() == 6
+    page.click("#map-kind button:has-text('Transparency')")
+    other_kind = _wait_image_change(page, strong)
+    assert np.abs(other_kind - strong).mean() > 1e-4, "switching the map kind changed nothing"
+    page.click("#show-map")
+    _wait_image_change(page, other_kind)
+
+
+def test_cancel_keeps_best_so_far_and_app_stays_responsive(page, server):
+    _tab(page, "optimise")
+    n_history = page.locator("#history-list > div").count()
+    page.click("#optimise-all")
+    page.wait_for_function(
+        "() => document.querySelector('#progress-text')?.innerText.includes('iteration')"
+    )
+    page.click("#cancel")
+    page.wait_for_selector("#cancel[disabled]")
+    assert page.inner_text("#progress-text").startswith("cancelled, kept the best so far")
+    e0, e1 = _errors_in_progress(page)
+    assert e1 <= e0
+    page.wait_for_selector("#measuring", state="hidden")
+    assert page.locator("#history-list > div").count() == n_history + 1
+    assert "(cancelled)" in page.inner_text("#history-list")
+    assert server["proc"].poll() is None
+    # still responsive: going back one step re-measures and enables the buttons again
+    page.locator("#history-list button").first.click()
+    page.wait_for_function(
+        f"() => document.querySelectorAll('#history-list > div').length === {n_history}"
+    )
+    page.wait_for_selector("#measuring", state="hidden")
+    assert not page.locator("#optimise-opacity").is_disabled()
+    assert _wait_value(page, "E_v") >= 0.0
+
+
+def _drag(page, x0, y0, x1, y1) -> None:
+    box = page.locator("#lens-pad").bounding_box()
+    w, h = box["width"], box["height"]
+    page.mouse.move(box["x"] + x0 * w, box["y"] + y0 * h)
+    page.mouse.down()
+    page.mouse.move(box["x"] + (x0 + x1) / 2 * w, box["y"] + (y0 + y1) / 2 * h, steps=4)
+    page.mouse.move(box["x"] + x1 * w, box["y"] + y1 * h, steps=4)
+    page.mouse.up()
+
+
+def test_drawn_lens_triggers_region_refinement(page):
+    _tab(page, "lens")
+    assert page.locator("#refine-lens").is_disabled()
+    # a circle around the image centre
+    page.click("#lens-circle")
+    _drag(page, 0.5, 0.5, 0.6, 0.5)
+    page.wait_for_function(
+        "() => document.querySelector('#lens-text')?.innerText.startsWith('circle')"
+    )
+    outline = page.locator("#lens-outline").bounding_box()
+    assert abs(outline["width"] - outline["height"]) < 2
+    # then a rectangle over the left part of the head
+    page.click("#lens-rect")
+    _drag(page, 0.3, 0.3, 0.55, 0.6)
+    page.wait_for_function(
+        "() => document.querySelector('#lens-text')?.innerText.startsWith('rectangle')"
+    )
+    names = page.locator("#lens-table tr td:first-child > span:nth-child(2)").all_inner_texts()
+    assert names, "no structure listed inside the lens"
+    assert len(set(names)) == len(names)
+    # ask for the tumour (or the innermost structure listed) to take 80 % of the region
+    k = names.index("tumour") if "tumour" in names else len(names) - 1
+    row = page.locator("#lens-table tr").nth(k + 1)
+    row.locator(".lens-use_vis input").check()
+    slider = row.locator("td:nth-child(2) .v-slider")
+    page.wait_for_function(
+        "(el) => !el.classList.contains('v-input--disabled')", arg=slider.element_handle()
+    )
+    track = row.locator("td:nth-child(2) .v-slider-track").bounding_box()
+    page.mouse.click(track["x"] + 0.8 * track["width"], track["y"] + track["height"] / 2)
+    page.wait_for_function(
+        "(el) => el.innerText.trim() === '0.80'",
+        arg=row.locator("td:nth-child(2) .text-caption").element_handle(),
+    )
+    before = _view_image(page)
+    _optimise(page, "#refine-lens")
+    assert "in the lens" in page.inner_text("#progress-text")
+    e0, e1 = _errors_in_progress(page)
+    assert e1 < e0
+    after = _wait_image_change(page, before)
+    assert np.abs(after - before).mean() > 1e-4, "the refinement did not change the image"
+    _shot(page, "lens")
+    _tab(page, "optimise")
+    assert "optimise opacity in lens" in page.inner_text("#history-list")
+
+
+def test_calibration_flow_saves_a_curve_file(page, server):
+    from dvr_perception.calibration import load_calibration
+
+    _tab(page, "calibration")
+    page.click("#cal-start")
+    page.wait_for_selector("#cal-image")
+    total = int(page.inner_text("#cal-progress").split()[-1])
+    assert total == 8
+    for k in range(total):
+        page.wait_for_function(
+            "() => document.querySelector('#cal-progress')?.innerText"
+            f".startsWith('Test image {k + 1} ')"
+        )
+        if k == 0:
+            _shot(page, "calibration_test")
+        thumb = page.locator(".cal-rating .v-slider-thumb")
+        thumb.focus()
+        for _ in range(k):  # ratings 0.5, 0.55, ... (the slider steps by 0.05)
+            page.keyboard.press("ArrowRight")
+        page.click("#cal-next")
+    page.wait_for_selector("#cal-saved")
+    path = server["exports"] / "my_calibration.json"
+    assert path.is_file()
+    curve = load_calibration(path)
+    with (server["exports"] / "my_calibration.ratings.csv").open(encoding="utf-8") as fh:
+        ratings = [float(r["rating"]) for r in csv.DictReader(fh)]
+    assert ratings == pytest.approx([0.5 + 0.05 * k for k in range(total)])
+    assert len(curve.x) >= 3
+    assert (curve.y[0], curve.y[-1]) == (0.0, 1.0)
+    assert any(abs(x - y) > 0.01 for x, y in zip(curve.x, curve.y, strict=True))  # not identity
+    assert page.locator("#cal-chart polyline").count() == 1
+    assert page.locator("#cal-chart circle").count() == total
+    _shot(page, "calibration", close_messages=False)
+    # the measures now use it (and say so)
+    _tab(page, "data")
+    page.wait_for_selector("#calibration-active", state="visible")
+    assert "my_calibration.json" in page.inner_text("#calibration-active")
+    page.wait_for_selector("#measuring", state="hidden")
+
+
+def test_ranking_task_writes_answers(page, server):
+    _tab(page, "ranking")
+    page.click("#rank-new")
+    page.wait_for_selector("#rank-D")
+    assert page.locator("#rank-save").is_disabled()
+    clicks = ["C", "A", "D", "B"]
+    for label in clicks:
+        page.click(f"#rank-{label}")
+    page.click("#rank-save")
+    page.wait_for_function(
+        "() => document.querySelector('#rank-result')?.innerText.includes('agrees on')"
+    )
+    _shot(page, "ranking")
+    path = server["exports"] / "ranking_answers.csv"
+    with path.open(newline="", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 1
+    row = rows[0]
+    shown = row["image_ids"].split()
+    by_label = dict(zip("ABCD", shown, strict=True))
+    assert row["user_order"].split() == [by_label[c] for c in clicks]
+    assert sorted(row["measured_order"].split()) == sorted(shown)
+    assert (row["structure"], row["volume"]) == ("skin", "phantom")
+    assert 0 <= int(row["pairs_agreeing"]) <= int(row["pairs_total"]) == 6
+    assert row["timestamp"][:2] == "20"
+    assert page.locator("#rank-save").is_disabled()  # one answer per set
+
+
+def test_range_edit_remeasures_and_bad_range_is_an_error(page, server):
+    _close_messages(page)
+    _tab(page, "data")
+    hi = page.locator("#structure-table .range-hi").nth(2)  # brain
+    old = hi.input_value()
+    ev = page.inner_text("#value-E_v").strip()
+    hi.fill(str(float(old) - 25))
+    hi.press("Enter")
+    hi.blur()
+    _wait_value(page, "E_v", not_equal=ev)
+    assert page.locator("#error-message").count() == 0
+    lo = page.locator("#structure-table .range-lo").nth(2)
+    lo.fill("250")
+    lo.press("Enter")
+    lo.blur()
+    assert "low < high" in _error_text(page)
+    assert server["proc"].poll() is None
+    page.click("#tab-optimise")
+    page.click("#undo")  # back to the unedited range
+    page.wait_for_selector("#measuring", state="hidden")
 
 
 def test_path_outside_data_folder_is_a_visible_error(page, server):
+    _close_messages(page)
+    page.wait_for_selector("#error-message", state="detached")
     _load_spec(page, "../outside.json")
     assert "outside the data folder" in _error_text(page)
     assert server["proc"].poll() is None
 
 
 def test_malformed_spec_is_a_visible_error(page, server):
+    _close_messages(page)
+    page.wait_for_selector("#error-message", state="detached")
     _load_spec(page, "bad.json")
     page.wait_for_function(
         "() => document.querySelector('#error-message')?.innerText.includes('bad')"
@@ -229,9 +499,12 @@ def test_malformed_spec_is_a_visible_error(page, server):
 
 
 def test_export_writes_valid_files(page, server):
+    _close_messages(page)
+    _tab(page, "export")
     page.click("#export")
     page.wait_for_function("() => document.querySelectorAll('#export-list').length === 4")
-    files = {p.name: p for p in server["exports"].iterdir()}
+    _shot(page, "export")
+    files = {p.name: p for p in server["exports"].iterdir() if p.name.startswith("phantom")}
     assert set(files) == {
         "phantom_view.png",
         "phantom_spec.json",
@@ -244,4 +517,63 @@ def test_export_writes_valid_files(page, server):
     assert len(load_spec(files["phantom_spec.json"]).structures) == 6
     json.loads(files["phantom_paraview.json"].read_text())
     json.loads(files["phantom.vp.json"].read_text())
+    assert server["proc"].poll() is None
+
+
+def test_two_tabs_share_one_consistent_state(page, server):
+    """State is per server process: a second tab sees (and changes) the same state."""
+    _tab(page, "quality")
+    other = page.browser_for_tests.new_page(viewport=VIEWPORT)
+    try:
+        other.set_default_timeout(ACTION_TIMEOUT_MS)
+        other.goto(server["url"])
+        other.wait_for_selector("#view img, #view canvas", state="attached")
+        for key in ("E_v", "E_s", "E_t"):
+            assert _wait_value(other, key) == _value(page, key)
+        _tab(other, "quality")
+        switch = "#show-map"
+        assert other.is_checked(switch) == page.is_checked(switch) is False
+        other.click("#show-map")
+        page.wait_for_function(f"() => document.querySelector('{switch}').checked")
+        _tab(other, "data")
+        other.locator("#structure-table tr").nth(1).wait_for()
+        assert (
+            other.locator("#structure-table tr").count()
+            == page.locator("#structure-table tr").count()
+        )
+        assert other.locator("#error-message").count() == 0
+    finally:
+        other.close()
+    page.click("#show-map")
+    page.wait_for_function(f"() => !document.querySelector('{switch}').checked")
+    assert page.locator("#error-message").count() == 0
+    assert server["proc"].poll() is None
+
+
+@pytest.mark.parametrize(
+    ("name", "message"),
+    [("notes.nrrd", "not a readable volume"), ("large.nrrd", "larger than the limit")],
+)
+def test_bad_upload_is_a_visible_error(page, server, name, message):
+    _tab(page, "data")
+    _close_messages(page)
+    page.set_input_files("#upload", str(server["uploads"] / name))
+    page.wait_for_function(
+        f"() => document.querySelector('#error-message')?.innerText.includes('{message}')"
+    )
+    assert not (server["data"] / name).exists()
+    assert server["proc"].poll() is None
+    assert _value(page, "E_v") >= 0.0
+
+
+def test_upload_of_a_volume_shows_it(page, server):
+    _close_messages(page)
+    page.set_input_files("#upload", str(server["uploads"] / "small.nrrd"))
+    page.wait_for_function(
+        "() => document.querySelector('#info-message')?.innerText.includes('uploaded small.nrrd')"
+    )
+    assert (server["data"] / "small.nrrd").is_file()
+    page.wait_for_selector("#measuring", state="hidden")
+    assert _wait_value(page, "E_v") >= 0.0
+    assert "small.nrrd" in page.inner_text("header")
     assert server["proc"].poll() is None
