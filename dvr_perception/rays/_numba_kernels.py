@@ -170,6 +170,22 @@ def _shade_at(volf, o, isy, isz, fx, fy, fz, tab, s):
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
+def _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz):
+    """Position of sample ``j`` in voxel coordinates and its cell (clamped to the grid).
+
+    The one place positions are computed, so every kernel gets them bit-identical.
+    """
+    t = t_first + j * step
+    px = ax + t * bx
+    py = ay + t * by
+    pz = az + t * bz
+    x = min(max(int(px), 0), nx - 2)
+    y = min(max(int(py), 0), ny - 2)
+    z = min(max(int(pz), 0), nz - 2)
+    return px, py, pz, x, y, z
+
+
+@njit(cache=True, fastmath=_FM, inline="always")
 def _tail(r, tix, cells, rep, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n, step, ids,
           memb, alpha_w, shade, has_curv, build, base, cnt, walked, bits, asg, out):  # fmt: skip
     """Walk the rest of a ray after early ray termination: only each sample's table index.
@@ -187,13 +203,7 @@ def _tail(r, tix, cells, rep, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j,
     nxy = nx * ny
     inv = _jump_scale(bx, by, bz, step)
     while j < n:
-        t = t_first + j * step
-        px = ax + t * bx
-        py = ay + t * by
-        pz = az + t * bz
-        x = min(max(int(px), 0), nx - 2)
-        y = min(max(int(py), 0), ny - 2)
-        z = min(max(int(pz), 0), nz - 2)
+        px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz)
         o = z * nxy + y * nx + x
         cl = cf[o]
         walked += 1
@@ -299,13 +309,7 @@ def _walk_ray(
     j = 0
     inv = _jump_scale(bx, by, bz, step)
     while j < n and alive:
-        t = t_first + j * step
-        px = ax + t * bx
-        py = ay + t * by
-        pz = az + t * bz
-        x = min(max(int(px), 0), nx - 2)
-        y = min(max(int(py), 0), ny - 2)
-        z = min(max(int(pz), 0), nz - 2)
+        px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz)
         o = np.uint64(z * nxy + y * nx + x)
         cl = cf[o]
         walked += 1
@@ -400,15 +404,9 @@ def _fill(e, j, ax, ay, az, bx, by, bz, t_first, step, vol, curv, tab, s, shade,
           c_sh, c_curv):  # fmt: skip
     """Compute entry ``e``'s shading and curvature from its sample index, as the walk would."""
     nz, ny, nx = vol.shape
-    t = t_first + j * step
-    px = ax + t * bx
-    py = ay + t * by
-    pz = az + t * bz
+    px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz)
     if shade:
         volf = vol.reshape(vol.size)
-        x = min(max(int(px), 0), nx - 2)
-        y = min(max(int(py), 0), ny - 2)
-        z = min(max(int(pz), 0), nz - 2)
         fx = min(max(px - x, 0.0), 1.0)
         fy = min(max(py - y, 0.0), 1.0)
         fz = min(max(pz - z, 0.0), 1.0)

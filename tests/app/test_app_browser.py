@@ -436,9 +436,11 @@ def test_ranking_task_writes_answers(page, server):
     clicks = ["C", "A", "D", "B"]
     for label in clicks:
         page.click(f"#rank-{label}")
+    page.wait_for_function("() => !document.querySelector('#rank-save').disabled")
     page.click("#rank-save")
     page.wait_for_function(
-        "() => document.querySelector('#rank-result')?.innerText.includes('agrees on')"
+        "() => document.querySelector('#rank-result')?.innerText.includes('agrees on')",
+        timeout=180_000,  # the server measures the four images first; slow on a busy machine
     )
     _shot(page, "ranking")
     path = server["exports"] / "ranking_answers.csv"
