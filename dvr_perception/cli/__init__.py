@@ -25,13 +25,14 @@ from dvr_perception.cli import (
     optimize,
     pvbatch,
     render,
+    report,
 )
 from dvr_perception.cli._common import PROG, CLIParser, common_parent
 from dvr_perception.errors import DVRInputError, DVRWarning
 
 __all__ = ["build_parser", "main"]
 
-COMMANDS = (render, check_renderer, bench, demo, measure, optimize, pvbatch, app)
+COMMANDS = (render, check_renderer, bench, demo, measure, optimize, pvbatch, app, report)
 
 
 def build_parser() -> CLIParser:

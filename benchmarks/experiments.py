@@ -1,0 +1,538 @@
+"""The paper's experiments (Sec. 7, Figs. 7-11) on the shared volumes, and the timings.
+
+Each ``run_*`` function returns a plain dict (numbers and names, JSON-ready) plus the images
+the report draws, under the key ``"_images"`` (NumPy arrays; :mod:`benchmarks.report` strips
+them before writing ``summary.json``).  Every term is measured at the user's image size with
+the public measures on a fresh :func:`~dvr_perception.rays.engine.analyze` (curvature volume
+included), not taken from the optimiser's own records, which are at its reduced
+optimisation resolution.
+"""
+
+from __future__ import annotations
+
+import colorsys
+import statistics
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks import checks
+from dvr_perception.measures import shape, transparency, visibility
+from dvr_perception.optimize import optimize
+from dvr_perception.rays.camera import Camera
+from dvr_perception.rays.curvature import curvature_volume
+from dvr_perception.rays.engine import analyze
+from dvr_perception.structures.io import load_spec
+from dvr_perception.structures.spec import Lighting, Structure
+from dvr_perception.volume.io import load_volume
+from dvr_perception.volume.volume import Volume
+
+__all__ = [
+    "STATE_FILES",
+    "Config",
+    "run_equalisation",
+    "run_performance",
+    "run_pipeline",
+    "run_saturation",
+    "run_shape",
+    "spec_after_stages",
+]
+
+STATE_FILES = Path(__file__).resolve().parents[1] / "state_files"
+TERMS = ("E_v", "E_s", "E_t")
+#: Stage -> the term it leads (paper, Sec. 5).
+LEAD = {"opacity": "E_v", "lighting": "E_s", "colour": "E_t"}
+#: Importance ratios of the visibility-equalisation experiment (paper, Fig. 7).
+RATIOS = ((0.2, 0.8), (0.5, 0.5), (0.8, 0.2))
+#: Coverage floor of the equalisation experiment, as a share of the starting coverage.  The
+#: optimiser's default (1: no fading at all) cannot make an enclosing skin semi-transparent,
+#: which is what Fig. 7 does; as ``tests/optimize/test_equalisation.py``, the experiment lets
+#: the coverage fall by at most 20 %.  The full pipeline runs with the optimiser's defaults.
+EQUALISATION_COVERAGE_KEEP = 0.8
+#: Outer-layer saturations of the colour experiment (paper, Fig. 9), in percent.
+SATURATIONS = (100, 75, 50, 25)
+
+
+@dataclass(frozen=True)
+class Config:
+    """What to run: data folder, image size, reduced (CI) form, seed and sweep sizes."""
+
+    data: Path
+    size: int = 512
+    quick: bool = False
+    seed: int = 0
+
+    @property
+    def image_sizes(self) -> tuple[int, ...]:
+        """Image sizes of the performance sweep (the last is ``size``)."""
+        if self.quick:
+            return (max(32, self.size // 2), max(48, (3 * self.size) // 4), self.size)
+        return (max(64, self.size // 4), max(96, self.size // 2), self.size)
+
+    @property
+    def stage_time_sizes(self) -> tuple[int, ...]:
+        """The two sizes at which per-stage times are tabulated (256 and 512 in full form)."""
+        return self.image_sizes[1:]
+
+    @property
+    def volume_factors(self) -> tuple[int, ...]:
+        """Down-sampling factors of the volume-size sweep (1 = the full volume)."""
+        return (4, 2, 1)
+
+    @property
+    def volume_sweep_size(self) -> int:
+        """Image size of the volume-size sweep."""
+        return self.image_sizes[1]
+
+
+# -- scenes -------------------------------------------------------------------------------------
+def load(cfg: Config, name: str):
+    """Return ``(volume, spec)`` of a shared dataset with its preset in ``state_files/``."""
+    return load_volume(Path(cfg.data) / f"{name}.nhdr"), load_spec(STATE_FILES / f"{name}.json")
+
+
+def camera_for(volume: Volume, spec, size: int) -> Camera:
+    """Return the preset's view (azimuth, elevation, zoom) at ``size`` x ``size`` pixels."""
+    az, el, zoom = spec.view or (0.0, 0.0, 1.0)
+    return Camera.from_view(
+        volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=size, height=size
+    )
+
+
+def downsample(volume: Volume, factor: int) -> Volume:
+    """Every ``factor``-th voxel along each axis (spacing scaled, so the bounds barely change)."""
+    if factor == 1:
+        return volume
+    data = np.ascontiguousarray(volume.data[::factor, ::factor, ::factor])
+    spacing = tuple(float(s) * factor for s in volume.spacing)
+    return Volume(data, spacing=spacing, origin=volume.origin, name=f"{volume.name}/{factor}")
+
+
+def measure(volume, spec, cam, curv) -> dict:
+    """Render ``spec`` and compute the three measures; return terms, shares and images."""
+    a = analyze(volume, spec, cam, curvature=curv, build_cache=False)
+    vis = visibility(a, spec)
+    shp = shape(a, spec)
+    trn = transparency(a, spec)
+    return {
+        "E_v": float(vis.E_v),
+        "E_s": float(shp.E_s),
+        "E_t": float(trn.E_t),
+        "visible_share": {n: float(v["visible_share"]) for n, v in vis.per_structure.items()},
+        "assigned_share": {n: float(v["assigned_share"]) for n, v in vis.per_structure.items()},
+        "perceived_transparency": {
+            n: v["perceived_transparency"] for n, v in trn.per_structure.items()
+        },
+        "coverage": float(np.mean(a.accumulated[vis.nonempty])) if vis.nonempty.any() else 0.0,
+        "_images": {
+            "image": np.asarray(a.image, np.float32),
+            "dv": np.asarray(vis.deviation),
+            "dv_mask": np.asarray(vis.nonempty),
+            "ds": np.asarray(shp.deviation),
+            "ds_mask": np.asarray(shp.nonempty),
+            "v_s": np.asarray(shp.v_s),
+            "v_i": np.asarray(shp.v_i),
+            "dt": np.asarray(trn.deviation),
+            "dt_mask": np.asarray(trn.layer_set) != 0,
+        },
+    }
+
+
+def public(d: dict) -> dict:
+    """``d`` without its ``_images``."""
+    return {k: v for k, v in d.items() if not k.startswith("_")}
+
+
+def apply_params(spec, params: dict):
+    """Apply a stage's ``params_after`` (``Stage.describe`` format) to ``spec``."""
+    out = []
+    for s in spec.structures:
+        changes = {}
+        if s.name in params.get("opacity", {}):
+            changes["opacity"] = float(params["opacity"][s.name])
+        if s.name in params.get("lighting", {}):
+            changes["lighting"] = Lighting(
+                **{k: float(v) for k, v in params["lighting"][s.name].items()}
+            )
+        if s.name in params.get("color", {}):
+            changes["color"] = tuple(float(c) for c in params["color"][s.name])
+        out.append(replace(s, **changes))
+    rendering = spec.rendering
+    if "light_direction" in params:
+        light = tuple(float(v) for v in params["light_direction"])
+        rendering = replace(rendering, light_direction=light)
+    return replace(spec, structures=tuple(out), rendering=rendering)
+
+
+def spec_after_stages(spec, result) -> list:
+    """Return the spec after each stage of ``result`` as returned (undone stages change nothing)."""
+    specs, cur = [], spec
+    for rec in result.stages:
+        if rec.accepted:  # an unchanged stage's params_after are its params_before
+            cur = apply_params(cur, rec.params_after)
+        specs.append(cur)
+    return specs
+
+
+def _stage_record(rec) -> dict:
+    lead = LEAD.get(rec.name)
+    return {
+        "name": rec.name,
+        "accepted": bool(rec.accepted),
+        "message": rec.message,
+        "iterations": int(rec.iterations),
+        "evaluations": int(rec.evaluations),
+        "seconds": float(rec.seconds),
+        "seconds_per_iteration": float(rec.seconds) / max(int(rec.iterations), 1),
+        "converged": bool(rec.converged),
+        "lead": lead,
+        "opt_resolution_lead_before": float(rec.terms_before[lead]) if lead else None,
+        "opt_resolution_lead_after": float(rec.terms_after[lead]) if lead else None,
+        "params_after": rec.params_after,
+    }
+
+
+def _timed_optimize(volume, spec, cam, curv, cfg, **kw):
+    t0 = time.perf_counter()
+    res = optimize(volume, spec, cam, seed=cfg.seed, curvature=curv, **kw)
+    return res, time.perf_counter() - t0
+
+
+# -- Fig. 7: visibility equalisation ------------------------------------------------------------
+def _two_structures(name: str, spec):
+    """Return the outer/inner pair of the equalisation experiment (cthead or engine)."""
+    by = {s.name: s for s in spec.structures}
+    if name == "cthead":
+        return by["skin"], by["bone"]
+    if name == "engine":
+        lo = by["light metal"].range[0]
+        hi = by["dense metal"].range[1]
+        block = Structure(
+            "block",
+            0.5,
+            by["light metal"].color,
+            range=(lo, hi),
+            edge=0.1,
+            lighting=by["light metal"].lighting,
+        )
+        return block, by["inserts"]
+    raise ValueError(f"no equalisation pair for {name!r}")
+
+
+def run_equalisation(cfg: Config, name: str) -> dict:
+    """Stage 1 alone (opacity) on an outer/inner pair at the three importance ratios."""
+    volume, full = load(cfg, name)
+    outer, inner = _two_structures(name, full)
+    base = replace(full, structures=(outer, inner))
+    cam = camera_for(volume, full, cfg.size)
+    curv, _ = curvature_volume(volume, base)
+    runs, out_checks = [], []
+    for w_out, w_in in RATIOS:
+        spec = replace(
+            base,
+            structures=(
+                replace(outer, importance=w_out, opacity=None),
+                replace(inner, importance=w_in, opacity=None),
+            ),
+        )
+        res, seconds = _timed_optimize(
+            volume,
+            spec,
+            cam,
+            curv,
+            cfg,
+            stages=("opacity",),
+            coverage_keep=EQUALISATION_COVERAGE_KEEP,
+        )
+        before, after = measure(volume, spec, cam, curv), measure(volume, res.spec, cam, curv)
+        names = spec.names
+        # the importance composition of the rays (Eq. 1: importance-based opacity, occlusion
+        # ignored), image-wide; it depends on the importances only, not on the opacities
+        composition = [before["assigned_share"][n] for n in names]
+        label = f"{name} {w_out:g}/{w_in:g}"
+        out_checks.append(
+            checks.moves_toward(
+                f"equalisation {label}: visible shares move toward the importance composition",
+                [before["visible_share"][n] for n in names],
+                [after["visible_share"][n] for n in names],
+                composition,
+            )
+        )
+        out_checks.append(
+            checks.lowered(f"opacity stage lowers E_v: {label}", before["E_v"], after["E_v"])
+        )
+        runs.append(
+            {
+                "importance": {names[0]: w_out, names[1]: w_in},
+                "composition": dict(zip(names, composition, strict=True)),
+                "distance_to_ratio": [
+                    checks.share_distance([r["visible_share"][n] for n in names], [w_out, w_in])
+                    for r in (before, after)
+                ],
+                "opacity_found": {s.name: float(s.render_opacity) for s in res.spec.structures},
+                "before": before,
+                "after": after,
+                "seconds": seconds,
+                "stage": _stage_record(res.stages[0]),
+                "result_spec": res.spec,
+            }
+        )
+    return {
+        "dataset": name,
+        "dims": list(volume.dims),
+        "size": cfg.size,
+        "structures": list(base.names),
+        "coverage_keep": EQUALISATION_COVERAGE_KEEP,
+        "runs": runs,
+        "checks": out_checks,
+    }
+
+
+# -- Fig. 8: shape enhancement ------------------------------------------------------------------
+def run_shape(cfg: Config, start_spec, name: str = "cthead") -> dict:
+    """Stage 2 alone (lighting) on the equalised skin/bone head; E_s and the lighting found."""
+    volume, full = load(cfg, name)
+    cam = camera_for(volume, full, cfg.size)
+    curv, _ = curvature_volume(volume, start_spec)
+    res, seconds = _timed_optimize(volume, start_spec, cam, curv, cfg, stages=("lighting",))
+    before, after = measure(volume, start_spec, cam, curv), measure(volume, res.spec, cam, curv)
+
+    def lighting(spec):
+        return {
+            s.name: {
+                k: float(getattr(s.lighting, k))
+                for k in ("ambient", "diffuse", "specular", "specular_power")
+            }
+            for s in spec.structures
+        }
+
+    return {
+        "dataset": name,
+        "dims": list(volume.dims),
+        "size": cfg.size,
+        "opacity": {s.name: float(s.render_opacity) for s in start_spec.structures},
+        "lighting_before": lighting(start_spec),
+        "lighting_after": lighting(res.spec),
+        "light_before": list(start_spec.rendering.light_direction),
+        "light_after": [float(v) for v in res.spec.rendering.light_direction],
+        "before": before,
+        "after": after,
+        "seconds": seconds,
+        "stage": _stage_record(res.stages[0]),
+        "checks": [
+            checks.lowered(
+                f"lighting stage lowers E_s: {name} skin/bone", before["E_s"], after["E_s"]
+            )
+        ],
+    }
+
+
+# -- Fig. 9: colour saturation and perceived transparency ---------------------------------------
+def with_saturation(color, fraction: float):
+    """``color`` with its HSV saturation set to ``fraction`` (hue and value kept)."""
+    h, _, v = colorsys.rgb_to_hsv(*color)
+    return tuple(float(c) for c in colorsys.hsv_to_rgb(h, float(fraction), v))
+
+
+def run_saturation(cfg: Config, name: str = "neghip", outer: str = "diffuse lobes") -> dict:
+    """Measure the outer layer's perceived transparency at 100/75/50/25 % saturation.
+
+    Also runs the colour stage alone from the preset (does it lower ``E_t``?).
+    """
+    volume, spec = load(cfg, name)
+    cam = camera_for(volume, spec, cfg.size)
+    curv, _ = curvature_volume(volume, spec)
+    series = []
+    for pct in SATURATIONS:
+        s = replace(
+            spec,
+            structures=tuple(
+                replace(x, color=with_saturation(x.color, pct / 100)) if x.name == outer else x
+                for x in spec.structures
+            ),
+        )
+        m = measure(volume, s, cam, curv)
+        series.append(
+            {
+                "saturation_percent": pct,
+                "color": [float(c) for c in next(x.color for x in s.structures if x.name == outer)],
+                "perceived_transparency": m["perceived_transparency"],
+                "outer_transparency": m["perceived_transparency"][outer],
+                "E_t": m["E_t"],
+                "E_v": m["E_v"],
+                "_images": m["_images"],
+            }
+        )
+    monotone = checks.monotone(
+        f"saturation series ({name}): perceived transparency of '{outer}' falls as its "
+        "saturation falls (paper, Fig. 9)",
+        [p["saturation_percent"] for p in series],
+        [p["outer_transparency"] for p in series],
+        increasing=True,
+    )
+    res, seconds = _timed_optimize(volume, spec, cam, curv, cfg, stages=("colour",))
+    before, after = measure(volume, spec, cam, curv), measure(volume, res.spec, cam, curv)
+    return {
+        "dataset": name,
+        "dims": list(volume.dims),
+        "size": cfg.size,
+        "outer": outer,
+        "expected_opacity": {x.name: float(x.target_opacity) for x in spec.structures},
+        "series": series,
+        "colour_stage": {
+            "before": before,
+            "after": after,
+            "seconds": seconds,
+            "color_after": {x.name: [float(c) for c in x.color] for x in res.spec.structures},
+            "stage": _stage_record(res.stages[0]),
+        },
+        "checks": [
+            monotone,
+            checks.lowered(f"colour stage lowers E_t: {name}", before["E_t"], after["E_t"]),
+        ],
+    }
+
+
+# -- Figs. 10-11: the full pipeline -------------------------------------------------------------
+def run_pipeline(cfg: Config, name: str) -> dict:
+    """All three stages; the image and all three terms after each stage."""
+    volume, spec = load(cfg, name)
+    cam = camera_for(volume, spec, cfg.size)
+    t0 = time.perf_counter()
+    curv, _ = curvature_volume(volume, spec)
+    curvature_s = time.perf_counter() - t0
+    res, seconds = _timed_optimize(volume, spec, cam, curv, cfg)
+    specs = [spec, *spec_after_stages(spec, res)]
+    labels = ["original", *(f"after {r.name}" for r in res.stages)]
+    steps = [
+        measure(volume, s, cam, curv) | {"label": lab} for s, lab in zip(specs, labels, strict=True)
+    ]
+    out_checks = []
+    for i, rec in enumerate(res.stages):
+        lead = LEAD[rec.name]
+        out_checks.append(
+            checks.lowered(
+                f"{rec.name} stage lowers {lead}: {name} (full pipeline)",
+                steps[i][lead],
+                steps[i + 1][lead],
+            )
+        )
+    return {
+        "dataset": name,
+        "dims": list(volume.dims),
+        "size": cfg.size,
+        "structures": list(spec.names),
+        "steps": steps,
+        "stages": [_stage_record(r) for r in res.stages],
+        "initial": {k: float(res.initial[k]) for k in (*TERMS, "E")},
+        "final": {k: float(res.final[k]) for k in (*TERMS, "E")},
+        "seconds": seconds,
+        "curvature_s": curvature_s,
+        "nfev": int(res.nfev),
+        "message": res.message,
+        "final_spec": res.spec,
+        "checks": out_checks,
+    }
+
+
+# -- performance --------------------------------------------------------------------------------
+def _median(fn, repeat: int) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(statistics.median(times))
+
+
+def _vtk_frame(volume, spec, cam) -> float | None:
+    from dvr_perception.errors import DVRInputError
+    from dvr_perception.rays.vtk_reference import time_vtk_frames
+
+    try:
+        return float(time_vtk_frames(volume, spec, cam, frames=3))
+    except DVRInputError:  # VTK cannot render here: the table shows a dash
+        return None
+
+
+def _time_point(volume, spec, cam, curv, cfg, *, optimise=True) -> dict:
+    analyze(volume, spec, cam, curvature=curv)  # warm (numba compiled once per process)
+    frame_s = _median(lambda: analyze(volume, spec, cam, curvature=curv), 2 if cfg.quick else 3)
+    vtk_s = _vtk_frame(volume, spec, cam)
+    point = {
+        "size": [cam.width, cam.height],
+        "dims": list(volume.dims),
+        "voxels": int(np.prod(volume.dims)),
+        "frame_s": frame_s,
+        "vtk_frame_s": vtk_s,
+        "frame_ratio": frame_s / vtk_s if vtk_s else None,
+    }
+    if optimise:
+        res, seconds = _timed_optimize(volume, spec, cam, curv, cfg)
+        point["optimize_s"] = seconds
+        point["optimize_vtk_frames"] = seconds / vtk_s if vtk_s else None
+        point["iterations"] = int(res.nit)
+        point["stages"] = [
+            {k: v for k, v in _stage_record(r).items() if k != "params_after"} for r in res.stages
+        ]
+    return point
+
+
+def run_performance(cfg: Config) -> dict:
+    """Frame and optimisation times against image size and volume size (and VTK's frame).
+
+    Image sizes: lidc_chest (the paper's chest stand-in) and, in the full form, engine; volume
+    sizes: engine down-sampled (the reduced form times frames and the curvature volume only,
+    no optimisation).
+    """
+    names = ("lidc_chest",) if cfg.quick else ("lidc_chest", "engine")
+    out = {"image_size": {}, "volume_size": {}, "curvature_s": {}}
+    for name in names:
+        volume, spec = load(cfg, name)
+        t0 = time.perf_counter()
+        curv, _ = curvature_volume(volume, spec)
+        out["curvature_s"][name] = time.perf_counter() - t0
+        out["image_size"][name] = [
+            _time_point(volume, spec, camera_for(volume, spec, n), curv, cfg)
+            for n in cfg.image_sizes
+        ]
+    # the paper evaluates every iteration on the whole image: the same without image sampling
+    out["full_resolution"] = {}
+    if not cfg.quick:
+        volume, spec = load(cfg, names[0])
+        curv, _ = curvature_volume(volume, spec)
+        points = []
+        for n in cfg.stage_time_sizes:
+            cam = camera_for(volume, spec, n)
+            res, seconds = _timed_optimize(volume, spec, cam, curv, cfg, resolution=n)
+            points.append(
+                {
+                    "size": [n, n],
+                    "optimize_s": seconds,
+                    "iterations": int(res.nit),
+                    "stages": [
+                        {k: v for k, v in _stage_record(r).items() if k != "params_after"}
+                        for r in res.stages
+                    ],
+                    "final": {k: float(res.final[k]) for k in (*TERMS, "E")},
+                    "initial": {k: float(res.initial[k]) for k in (*TERMS, "E")},
+                }
+            )
+        out["full_resolution"][names[0]] = points
+    name = "engine"
+    volume, spec = load(cfg, name)
+    points = []
+    for f in cfg.volume_factors:
+        small = downsample(volume, f)
+        t0 = time.perf_counter()
+        curv, _ = curvature_volume(small, spec)
+        curvature_s = time.perf_counter() - t0
+        cam = camera_for(small, spec, cfg.volume_sweep_size)
+        point = _time_point(small, spec, cam, curv, cfg, optimise=not cfg.quick)
+        point["factor"] = f
+        point["curvature_s"] = curvature_s
+        points.append(point)
+    out["volume_size"][name] = points
+    return out
