@@ -26,7 +26,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from dvr_perception import _paraview_compat
-from dvr_perception.cli._common import PROG, add_scene_args, emit_json, parse_size
+from dvr_perception.cli._common import PROG, add_scene_args, emit_json, log, parse_size
 from dvr_perception.errors import DVRInputError
 from dvr_perception.rays.camera import parse_view
 
@@ -171,15 +171,21 @@ def run(args: argparse.Namespace) -> int:
     pvbatch = find_paraview("pvbatch")
     script = _paraview_compat.repo_root() / "plugin" / "batch_measure.py"
     env = paraview_env()
-    with virtual_display() as display:
-        env["DISPLAY"] = display
-        proc = subprocess.run(
-            [str(pvbatch), str(script), *_script_args(args)],
-            env=env,
-            capture_output=True,
-            text=True,
-            check=False,
-        )
+    for attempt in (1, 2):
+        with virtual_display() as display:
+            env["DISPLAY"] = display
+            proc = subprocess.run(
+                [str(pvbatch), str(script), *_script_args(args)],
+                env=env,
+                capture_output=True,
+                text=True,
+                check=False,
+            )
+        # a signal (negative code) is ParaView crashing, not our script's error: Debian's
+        # pvbatch has been seen to abort once at start-up; one fresh retry, then report it
+        if proc.returncode >= 0 or attempt == 2:
+            break
+        log.warning("pvbatch died with signal %d; retrying once", -proc.returncode)
     if args.verbose and proc.stderr:
         sys.stderr.write(proc.stderr)
     if proc.returncode != 0:

@@ -130,3 +130,46 @@ def test_pvbatch_checks_options_before_starting_paraview(tmp_path, capsys):
     assert "--size" in capsys.readouterr().err
     assert main(["pvbatch", "phantom", "--sigma", "-1", "--out", str(tmp_path / "o")]) == 2
     assert "--sigma: expected a positive number" in capsys.readouterr().err
+
+
+def _fake_pvbatch(monkeypatch, tmp_path, codes):
+    """``dvr-perception pvbatch`` with ParaView replaced: each run exits with the next code."""
+    import contextlib
+    import json
+    import subprocess
+
+    from dvr_perception.cli import pvbatch as mod
+
+    calls = []
+
+    def fake_run(cmd, **_kw):
+        code = codes[len(calls)]
+        calls.append(cmd)
+        out = tmp_path / "o"
+        if code != 0:
+            return subprocess.CompletedProcess(cmd, code, "", "( 2.2s) FATL| Signal: SIGABRT")
+        out.mkdir(exist_ok=True)
+        (out / "result.json").write_text(json.dumps({"E_v": 0.1}), encoding="utf-8")
+        summary = {"out": str(out), "E_v": 0.1, "E_s": 0.2, "E_t": 0.3}
+        return subprocess.CompletedProcess(cmd, 0, json.dumps(summary) + "\n", "")
+
+    monkeypatch.setattr(mod, "find_paraview", lambda name: Path("/fake") / name)
+    monkeypatch.setattr(mod, "virtual_display", lambda: contextlib.nullcontext(":99"))
+    monkeypatch.setattr(mod.subprocess, "run", fake_run)
+    return calls
+
+
+def test_pvbatch_retries_once_when_paraview_dies_of_a_signal(tmp_path, monkeypatch, capsys):
+    calls = _fake_pvbatch(monkeypatch, tmp_path, [-6, 0])
+    assert main(["pvbatch", "phantom", "--out", str(tmp_path / "o")]) == 0
+    assert len(calls) == 2
+    out, err = capsys.readouterr()
+    assert "E_v = 0.1000" in out
+    assert "retrying once" in err
+
+
+def test_pvbatch_reports_a_second_crash(tmp_path, monkeypatch, capsys):
+    calls = _fake_pvbatch(monkeypatch, tmp_path, [-6, -6, 0])
+    assert main(["pvbatch", "phantom", "--out", str(tmp_path / "o")]) == 1
+    assert len(calls) == 2
+    assert "pvbatch failed with exit code -6" in capsys.readouterr().err
