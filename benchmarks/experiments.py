@@ -11,7 +11,6 @@ optimisation resolution.
 from __future__ import annotations
 
 import colorsys
-import statistics
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -19,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import checks
+from dvr_perception.cli.bench import _median_time
 from dvr_perception.measures import shape, transparency, visibility
 from dvr_perception.optimize import optimize
 from dvr_perception.rays.camera import Camera
@@ -438,15 +438,6 @@ def run_pipeline(cfg: Config, name: str) -> dict:
 
 
 # -- performance --------------------------------------------------------------------------------
-def _median(fn, repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(statistics.median(times))
-
-
 def _vtk_frame(volume, spec, cam) -> float | None:
     from dvr_perception.errors import DVRInputError
     from dvr_perception.rays.vtk_reference import time_vtk_frames
@@ -459,7 +450,8 @@ def _vtk_frame(volume, spec, cam) -> float | None:
 
 def _time_point(volume, spec, cam, curv, cfg, *, optimise=True) -> dict:
     analyze(volume, spec, cam, curvature=curv)  # warm (numba compiled once per process)
-    frame_s = _median(lambda: analyze(volume, spec, cam, curvature=curv), 2 if cfg.quick else 3)
+    repeat = 2 if cfg.quick else 3
+    frame_s = _median_time(lambda: analyze(volume, spec, cam, curvature=curv), repeat)
     vtk_s = _vtk_frame(volume, spec, cam)
     point = {
         "size": [cam.width, cam.height],

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dvr_perception._files import atomic_path
+from dvr_perception.cli._plots import DPI, _figure, _save
+from dvr_perception.cli._plots import EMPTY_COLOUR as EMPTY
 
 __all__ = [
     "equalisation_figure",
@@ -17,24 +18,6 @@ __all__ = [
     "shape_figure",
     "shares_figure",
 ]
-
-DPI = 100
-EMPTY = "#d0d0d0"
-
-
-def _figure(width: float, height: float):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(width, height), layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _save(fig, path) -> Path:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=DPI)
-    return Path(path)
 
 
 def _panel(image) -> float:

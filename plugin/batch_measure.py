@@ -194,18 +194,13 @@ def run(args):
     from dvr_perception._files import write_json
     from dvr_perception.cli._common import load_scene, make_output_dir
     from dvr_perception.structures.io import spec_to_dict
-    from dvr_perception.volume.convert import to_vtk_image
 
     scene = load_scene(args)
     out_dir = str(make_output_dir(args.out))
     from paraview import simple as pvs
 
     pvs.LoadPlugin(PLUGIN)  # adds the filters to paraview.simple
-    source = pvs.TrivialProducer(registrationName=os.path.basename(str(args.volume)))
-    image = to_vtk_image(scene.volume)
-    source.GetClientSideObject().SetOutput(image)
-    source.UpdatePipeline()
-    array = image.GetPointData().GetScalars().GetName()
+    source, array = volume_source(pvs, scene.volume, args.volume)
     measures = pvs.PerceptionMeasures(
         Input=source,
         ScalarArray=array,
@@ -233,6 +228,17 @@ def run(args):
     write_json(os.path.join(out_dir, "result.json"), result)
     print(json.dumps({k: result[k] for k in ("E_v", "E_s", "E_t")} | {"out": out_dir}))
     return 0
+
+
+def volume_source(pvs, volume, path):
+    """Return a ParaView source holding ``volume`` (named after ``path``) and its array name."""
+    from dvr_perception.volume.convert import to_vtk_image
+
+    source = pvs.TrivialProducer(registrationName=os.path.basename(str(path)))
+    image = to_vtk_image(volume)
+    source.GetClientSideObject().SetOutput(image)
+    source.UpdatePipeline()
+    return source, image.GetPointData().GetScalars().GetName()
 
 
 def main(argv=None, *, parse=parse_args, execute=run):

@@ -83,7 +83,6 @@ def run(args):
     from dvr_perception._files import write_json
     from dvr_perception.cli._common import load_scene, make_output_dir
     from dvr_perception.structures.io import spec_to_dict
-    from dvr_perception.volume.convert import to_vtk_image
 
     scene = load_scene(args)
     out_dir = str(make_output_dir(args.out))
@@ -92,11 +91,7 @@ def run(args):
     from paraview import simple as pvs
 
     pvs.LoadPlugin(bm.PLUGIN)
-    source = pvs.TrivialProducer(registrationName=os.path.basename(str(args.volume)))
-    image = to_vtk_image(scene.volume)
-    source.GetClientSideObject().SetOutput(image)
-    source.UpdatePipeline()
-    array = image.GetPointData().GetScalars().GetName()
+    source, array = bm.volume_source(pvs, scene.volume, args.volume)
     opt = pvs.OptimizeTransferFunction(
         Input=source,
         ScalarArray=array,

@@ -73,7 +73,7 @@ def test_filters_under_mpiexec_compute_once_on_the_whole_volume(paraview, tmp_pa
         env.update(OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1")
     cmd = [mpiexec, "-n", str(RANKS), *extra, str(paraview.pvbatch), str(script), str(volume)]
     with virtual_display() as display:
-        proc = subprocess.run(
+        proc = paraview.call(
             cmd,
             env=dict(env, DISPLAY=display),
             stdout=subprocess.PIPE,

@@ -7,7 +7,6 @@ Xvfb when there is no display) at small sizes with one iteration per stage.
 from __future__ import annotations
 
 import json
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -131,7 +130,7 @@ def test_batch_optimize_writes_before_after_screenshots_and_json(paraview, tmp_p
     argv = [str(neghip), "--structures", str(SPEC), f"--view={view}", "--size", str(SIZE)]
     argv += ["--max-iter", "1", "--out", str(out)]
     with _with_display(paraview) as env:
-        proc = subprocess.run(
+        proc = paraview.call(
             [str(paraview.pvbatch), str(PLUGIN_DIR / "batch_optimize.py"), *argv],
             env=env,
             capture_output=True,
@@ -188,24 +187,7 @@ sys.stderr.write("@@SURVIVED\\n")
 
 
 def test_optimize_filter_reports_bad_input_without_crashing(paraview, tmp_path, neghip):
-    script = tmp_path / "bad_opt.py"
-    script.write_text(BAD_OPTIMIZER_INPUTS, encoding="utf-8")
-    proc = subprocess.run(
-        [str(paraview.pvpython), str(script), str(neghip)],
-        env=paraview.env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        timeout=300,
-        check=False,
-    )
-    text = proc.stdout
-    assert proc.returncode == 0, text
-    assert "@@SURVIVED" in text, text
-    cases = {}
-    for chunk in text.split("@@CASE ")[1:]:
-        name, _, body = chunk.partition("\n")
-        cases[name.strip()] = body
+    cases = paraview.cases(BAD_OPTIMIZER_INPUTS, tmp_path, neghip)
     expected = {
         "polydata": "is of type vtkPolyData, but a vtkImageData is required",
         "missing_spec": "/no/such/dir/opt_spec.json",
@@ -215,7 +197,4 @@ def test_optimize_filter_reports_bad_input_without_crashing(paraview, tmp_path, 
         "region": "region: expected '' (whole image), 'rect,x0,y0,x1,y1' or 'circle,cx,cy,r'",
         "region_outside": "covers no pixel of the 16 x 16 image",
     }
-    for name, message in expected.items():
-        assert message in cases[name], f"{name}:\n{cases[name]}"
-        assert f"@@END {name} ok=False" in cases[name]
-        assert "Traceback" not in cases[name], cases[name]
+    paraview.assert_errors(cases, expected)

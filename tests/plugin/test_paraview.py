@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -224,24 +223,7 @@ sys.stderr.write(f"@@END fixed ok={{ok}}\\n@@SURVIVED\\n")
 
 
 def test_bad_input_is_an_error_message_in_paraview_not_a_crash(paraview, tmp_path, neghip):
-    script = tmp_path / "bad.py"
-    script.write_text(PRELUDE + BAD_INPUTS, encoding="utf-8")
-    proc = subprocess.run(
-        [str(paraview.pvpython), str(script), str(neghip)],
-        env=paraview.env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        timeout=300,
-        check=False,
-    )
-    text = proc.stdout
-    assert proc.returncode == 0, text
-    assert "@@SURVIVED" in text, text
-    cases = {}
-    for chunk in text.split("@@CASE ")[1:]:
-        name, _, body = chunk.partition("\n")
-        cases[name.strip()] = body
+    cases = paraview.cases(PRELUDE + BAD_INPUTS, tmp_path, neghip)
     expected = {
         "polydata": "is of type vtkPolyData, but a vtkImageData is required",
         "missing_spec": "/no/such/dir/spec.json",
@@ -249,10 +231,7 @@ def test_bad_input_is_an_error_message_in_paraview_not_a_crash(paraview, tmp_pat
         "width": "width: expected a positive integer, got 0",
         "camera": "camera_json: not valid JSON",
     }
-    for name, message in expected.items():
-        assert message in cases[name], f"{name}:\n{cases[name]}"
-        assert f"@@END {name} ok=False" in cases[name]
-        assert "Traceback" not in cases[name], cases[name]
+    paraview.assert_errors(cases, expected)
     assert "not found" in cases["missing_spec"]
     assert "@@END fixed ok=True" in cases["fixed"], cases["fixed"]
 

@@ -209,7 +209,7 @@ def test_perception_measures_run_on_pvserver(
         assert all(ipaddress.ip_address(a).is_loopback for a, _ in sockets), sockets
         script = tmp_path / "client.py"
         script.write_text(CLIENT, encoding="utf-8")
-        client = subprocess.run(
+        client = paraview.call(
             [str(paraview.pvpython), str(script), str(port), str(shared_data / "neghip.nhdr")],
             env=env,
             stdout=subprocess.PIPE,

@@ -124,7 +124,7 @@ def test_state_files_load_with_the_data_directory_and_update(
 ):
     script = tmp_path / "load_states.py"
     script.write_text(LOAD_ALL, encoding="utf-8")
-    proc = subprocess.run(
+    proc = paraview.call(
         [str(paraview.pvpython), str(script), str(shared_data)],
         env=dict(paraview.env, DISPLAY=display),
         stdout=subprocess.PIPE,
