@@ -5,8 +5,9 @@ Reported figures (seconds unless stated):
 * ``load_s`` – reading (or generating) the volume; ``curvature_s`` – the curvature volume.
 * ``compile_s`` – the first, warm-up :func:`~dvr_perception.rays.engine.analyze` call (numba
   compilation included); ``frame_s`` – median of ``--repeat`` further full calls.
-* ``vtk_frame_s`` – VTK's fixed-point ray caster, same view and size
-  (:func:`~dvr_perception.rays.vtk_reference.time_vtk_frames`); ``frame_ratio`` = ``frame_s /
+* ``vtk_frame_s`` – median of ``--repeat`` warm frames of VTK's fixed-point ray caster, same
+  view and size (:func:`~dvr_perception.rays.vtk_reference.vtk_frame_timer`), timed
+  alternately with ours so that both see the same machine load; ``frame_ratio`` = ``frame_s /
   vtk_frame_s``.
 * ``reeval_s`` – median :func:`~dvr_perception.rays.engine.reevaluate` with perturbed opacities
   (what one optimiser step costs); ``reeval_vtk_frames`` = ``reeval_s / vtk_frame_s``.
@@ -100,6 +101,27 @@ def _median_time(fn, repeat: int) -> float:
     return float(statistics.median(times))
 
 
+def _paired_frames(ours, scene, repeat: int) -> tuple[float, float | None, str | None]:
+    """Median seconds of our frame and of VTK's, timed alternately so both see the same machine.
+
+    When VTK cannot render here, VTK's time is ``None`` and the reason is returned.
+    """
+    from dvr_perception.errors import DVRInputError
+    from dvr_perception.rays.vtk_reference import vtk_frame_timer
+
+    mine, theirs = [], []
+    try:
+        with vtk_frame_timer(scene.volume, scene.spec, scene.camera) as vtk_frame:
+            for _ in range(repeat):
+                theirs.append(vtk_frame())
+                mine.append(_median_time(ours, 1))
+    except DVRInputError as exc:  # VTK cannot render here: report, do not fail the bench
+        missing = repeat - len(mine)
+        mine.extend(_median_time(ours, 1) for _ in range(missing))
+        return float(statistics.median(mine)), None, str(exc)
+    return float(statistics.median(mine)), float(statistics.median(theirs)), None
+
+
 def _samples(stats: dict):
     for key in ("samples", "n_samples", "samples_total"):
         if key in stats:
@@ -184,8 +206,10 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     result = analyze(vol, spec, cam, curvature=curv)
     compile_s = time.perf_counter() - t0
-    log.info("%d timed frames", args.repeat)
-    frame_s = _median_time(lambda: analyze(vol, spec, cam, curvature=curv), args.repeat)
+    log.info("%d timed frames, ours and VTK's alternately", args.repeat)
+    frame_s, vtk_frame_s, vtk_error = _paired_frames(
+        lambda: analyze(vol, spec, cam, curvature=curv), scene, args.repeat
+    )
 
     base = np.array([s.render_opacity for s in spec.structures], float)
     rng = np.random.default_rng(args.seed)
@@ -198,14 +222,6 @@ def run(args: argparse.Namespace) -> int:
     reeval_s = _median_time(reeval, args.repeat)
     measure_s, measure_total_s = _measure_times(vol, spec, cam, curv, result, args.repeat)
 
-    from dvr_perception.rays.vtk_reference import time_vtk_frames
-
-    vtk_frame_s, vtk_error = None, None
-    log.info("VTK frames")
-    try:
-        vtk_frame_s = float(time_vtk_frames(vol, spec, cam, frames=3))
-    except DVRInputError as exc:  # VTK cannot render here: report, do not fail the bench
-        vtk_error = str(exc)
     samples = _samples(result.stats)
     report = {
         "volume": scene.volume_source,

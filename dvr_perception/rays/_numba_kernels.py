@@ -421,12 +421,18 @@ def _fill(e, j, ax, ay, az, bx, by, bz, t_first, step, vol, curv, tab, s, shade,
 @njit(cache=True, fastmath=_FM, inline="always")
 def _composite_ray(
     r, e0, cnt, c_lut, c_j, c_sh, c_curv, a, b, t_first, step, vol, curv, ids, alpha_r, col,
-    light, tab, shade, has_curv, ert, rgba, vis, cimg,
+    light, tab, shade, has_curv, ert, vacc, chunk, bg, rgba, image, acc, vis, cimg,
 ):  # fmt: skip
     """Front-to-back compositing of ray ``r``'s entries with early ray termination.
 
     Shading and curvature of entries reached for the first time are computed and stored.
+    Accumulates the visible shares in float64 (``vacc[chunk]``: a slot per structure), writes
+    rgba, the image over the background ``bg``, accumulated opacity, visible shares and
+    curvature as float32, so no separate finishing pass is needed.
     """
+    nstruct = vis.shape[0]
+    for s in range(nstruct):
+        vacc[chunk, s] = 0.0
     ka, kd, ks = light[0], light[1], light[2]
     tr = 1.0
     cr = 0.0
@@ -449,7 +455,7 @@ def _composite_ray(
             dfac = ka[s] + kd[s] * (c_sh[e, 0] * _IQS)
             spec = ks[s] * (c_sh[e, 1] * _IQS)
         w = al * tr
-        vis[s, r] += w
+        vacc[chunk, s] += w
         cr += w * (col[s, 0] * dfac + spec)
         cg += w * (col[s, 1] * dfac + spec)
         cb += w * (col[s, 2] * dfac + spec)
@@ -461,11 +467,16 @@ def _composite_ray(
         tr *= 1.0 - al
         if tr < ert:
             break
-    rgba[r, 0] = min(cr, 1.0)
-    rgba[r, 1] = min(cg, 1.0)
-    rgba[r, 2] = min(cb, 1.0)
-    rgba[r, 3] = 1.0 - tr
+    al = np.float32(1.0 - tr)
+    rgba[r, 3] = al
+    acc[r] = al
+    rgb = (np.float32(min(cr, 1.0)), np.float32(min(cg, 1.0)), np.float32(min(cb, 1.0)))
+    for c in range(3):
+        rgba[r, c] = rgb[c]
+        image[r, c] = min(max(rgb[c] + (np.float32(1.0) - al) * bg[c], np.float32(0.0)), 1.0)
     cimg[r] = num / den if den > 0.0 else 0.0
+    for s in range(nstruct):
+        vis[s, r] = vacc[chunk, s]
 
 
 @njit(parallel=True, cache=True, fastmath=_FM)
@@ -537,22 +548,23 @@ def compact(height, width, nchunk, chunk_base, chunk_end, dest, start, src_lut, 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def composite(
     start, count, c_lut, c_j, c_sh, c_curv, a, b, t_first, step, vol, curv, height, width,
-    nchunk, ids, alpha_r, col, light, tab, shade, has_curv, ert, rgba, vis, cimg,
+    nchunk, ids, alpha_r, col, light, tab, shade, has_curv, ert, out,
 ):  # fmt: skip
     """Front-to-back compositing of cached entries with early ray termination.
 
-    No volume access except for shading and curvature of entries never reached before;
-    zeroes each ray's ``vis`` itself.
+    No volume access except for shading and curvature of entries never reached before.
+    ``out``: float32 (background, rgba, image, accumulated, visible, curvature), flat per ray.
     """
+    bg, rgba, image, acc, vis, cimg = out  # unpacked here: no reference counting per ray
+    vacc = np.empty((nchunk, max(vis.shape[0], 8)), np.float64)  # a cache line per chunk
     for c in prange(nchunk):
         for row in range(c, height, nchunk):
             for col_ in range(width):
                 r = row * width + col_
-                for s in range(vis.shape[0]):
-                    vis[s, r] = 0.0
                 _composite_ray(
                     r, start[r], count[r], c_lut, c_j, c_sh, c_curv, a, b, t_first, step, vol,
-                    curv, ids, alpha_r, col, light, tab, shade, has_curv, ert, rgba, vis, cimg,
+                    curv, ids, alpha_r, col, light, tab, shade, has_curv, ert, vacc, c, bg,
+                    rgba, image, acc, vis, cimg,
                 )  # fmt: skip
 
 

@@ -172,10 +172,16 @@ def _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache) -> RayAna
         rgba = np.asarray(rgba, np.float32).reshape(h, w, 4)
         image = np.clip(rgba[..., :3] + (1.0 - rgba[..., 3:]) * bg, 0.0, 1.0)
         acc = np.ascontiguousarray(rgba[..., 3])
+    return _analysis(rgba, image, acc, vis, asg, present, cimg, spec, camera, stats, cache)
+
+
+def _analysis(rgba, image, acc, vis, asg, present, cimg, spec, camera, stats, cache):
+    h, w = camera.height, camera.width
+    k = len(spec.structures)
     return RayAnalysis(
-        rgba=rgba,
-        image=image,
-        accumulated=acc,
+        rgba=rgba.reshape(h, w, 4),
+        image=image.reshape(h, w, 3),
+        accumulated=acc.reshape(h, w),
         visible=np.asarray(vis, np.float32).reshape(k, h, w),
         assigned=np.asarray(asg, np.float32).reshape(k, h, w),
         present=np.asarray(present, np.uint32).reshape(h, w),
@@ -531,25 +537,25 @@ def reevaluate(
         rgba, vis, cimg = _npk.composite(
             cache.start, cache.count, cache.lut, cache.shading, cache.curvature, *args, k
         )
-    else:
-        locked = _SCRATCH_LOCK.acquire(blocking=False)
-        try:  # float64 accumulators in reused scratch; _finish copies them out as float32
-            rgba = _scratch("rgba", h * w, (4,), np.float64, locked)
-            vis = _scratch("vis", k * h * w, (), np.float64, locked).reshape(k, h * w)
-            cimg = _scratch("cimg", h * w, (), np.float64, locked)
-            nk.composite(
-                cache.start, cache.count, cache.lut, z["steps"], cache.shading, cache.curvature,
-                z["a"], z["b"], z["t"], z["step"], z["volume"], z["curvature_volume"], h,
-                w, max(min(h, 64), 1), cache.ids, alpha_r, cols, light, tab, shade, has_curv,
-                _tables.ERT, rgba, vis, cimg,
-            )  # fmt: skip
-            stats = {"backend": cache.backend, "rays": h * w, "reevaluated": True}
-            stats["cache_entries"] = len(cache.lut)
-            res = _finish(rgba, vis, cache.assigned, cache.present, cimg, spec, camera, stats,
-                          cache)  # fmt: skip
-        finally:
-            if locked:
-                _SCRATCH_LOCK.release()
+    else:  # the kernel writes the float32 results itself
+        out = (
+            np.asarray(spec.background, np.float32),
+            np.empty((h * w, 4), np.float32),
+            np.empty((h * w, 3), np.float32),
+            np.empty(h * w, np.float32),
+            np.empty((k, h * w), np.float32),
+            np.empty(h * w, np.float32),
+        )
+        nk.composite(
+            cache.start, cache.count, cache.lut, z["steps"], cache.shading, cache.curvature,
+            z["a"], z["b"], z["t"], z["step"], z["volume"], z["curvature_volume"], h,
+            w, max(min(h, 64), 1), cache.ids, alpha_r, cols, light, tab, shade, has_curv,
+            _tables.ERT, out,
+        )  # fmt: skip
+        stats = {"backend": cache.backend, "rays": h * w, "reevaluated": True}
+        stats["cache_entries"] = len(cache.lut)
+        res = _analysis(*out[1:4], out[4], cache.assigned, cache.present, out[5], spec, camera,
+                        stats, cache)  # fmt: skip
         stats["seconds"] = time.perf_counter() - t_start
         return res
     seconds = time.perf_counter() - t_start

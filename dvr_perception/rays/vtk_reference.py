@@ -13,6 +13,7 @@ The accumulated opacity is recovered from two renders, over black and over white
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import subprocess
@@ -38,6 +39,7 @@ __all__ = [
     "render_vtk",
     "time_vtk_frames",
     "vtk_clipping_range",
+    "vtk_frame_timer",
 ]
 
 MAPPERS = ("fixed_point", "gpu")
@@ -259,7 +261,7 @@ def render_vtk(
 def time_vtk_frames(
     volume: Volume, spec: StructureSpec, camera: Camera, *, frames: int = 3
 ) -> float:
-    """Seconds per warm frame of the fixed-point mapper (first-render set-up excluded).
+    """Median seconds of ``frames`` warm frames of the fixed-point mapper (set-up excluded).
 
     Examples
     --------
@@ -272,17 +274,41 @@ def time_vtk_frames(
     """
     if int(frames) != frames or frames < 1:
         raise DVRInputError(f"frames: expected a positive integer, got {frames!r}")
+    with vtk_frame_timer(volume, spec, camera) as frame:
+        times = sorted(frame() for _ in range(int(frames)))
+    n = len(times)
+    return 0.5 * (times[(n - 1) // 2] + times[n // 2])
+
+
+@contextlib.contextmanager
+def vtk_frame_timer(volume: Volume, spec: StructureSpec, camera: Camera):
+    """Yield a function that renders one warm frame of the fixed-point mapper, returning seconds.
+
+    The render window stays open inside the ``with`` block, so frames can be interleaved with
+    other work (``dvr-perception bench`` alternates them with our engine's frames).
+
+    Examples
+    --------
+    >>> from dvr_perception.structures.spec import Structure
+    >>> vol = Volume(np.arange(8 ** 3, dtype=np.uint16).reshape(8, 8, 8) % 200)
+    >>> spec = StructureSpec((Structure("a", 0.5, (1, 1, 1), range=(50, 150)),))
+    >>> cam = Camera.from_view(vol.bounds, width=16, height=16)
+    >>> with vtk_frame_timer(vol, spec, cam) as frame:  # doctest: +SKIP
+    ...     frame() > 0
+    True
+    """
     _prepare(volume, spec, camera, "fixed_point")
     scene = _Scene(volume, spec, camera, "fixed_point", None, None)
     try:
-        scene.render(spec.background)
-        total = 0.0
-        for _ in range(int(frames)):
+        scene.render(spec.background)  # first render: set-up, not timed
+
+        def frame() -> float:
             scene.cam.Modified()
-            total += scene.render(spec.background)
+            return scene.render(spec.background)
+
+        yield frame
     finally:
         scene.close()
-    return total / int(frames)
 
 
 def compare_images(a, b) -> dict:
