@@ -90,9 +90,16 @@ class _Scene:
         self._enclosers: dict[int, _Estimate] = {}
         self._pairs: dict[tuple[int, int, int], tuple] = {}
         self._general: dict[tuple[int, int, int], _Estimate] = {}
+        self._plans: dict[frozenset, tuple] = {}
         # per layer set: pixel count, mean and (two-pass) population std of the luminance
-        sets, inverse = np.unique(self.layer_set.ravel(), return_inverse=True)
-        count, mean, std = _group_stats(self.y.ravel(), inverse, sets.size)
+        flat = self.layer_set.ravel()
+        if k <= 16:  # layer sets index a table directly: no sort
+            count, mean, std = _group_stats(self.y.ravel(), flat, 1 << k)
+            sets = np.flatnonzero(count)
+            count, mean, std = count[sets], mean[sets], std[sets]
+        else:
+            sets, inverse = np.unique(flat, return_inverse=True)
+            count, mean, std = _group_stats(self.y.ravel(), inverse, sets.size)
         rows = zip(sets.tolist(), count.tolist(), mean.tolist(), std.tolist(), strict=True)
         self._stats = {b: (n, m, d) for b, n, m, d in rows}
 
@@ -214,16 +221,22 @@ class _Scene:
             )
         return _Estimate(alpha=alpha, method="generalized")
 
+    def _plan(self, layers: frozenset) -> tuple:
+        """``(enclosing layers, active layers, enclosing bits)`` of a layer set (cached)."""
+        if layers not in self._plans:
+            enc = {
+                e
+                for e in layers
+                if self.encloses[e].any()
+                and all(self.encloses[e, k] or self.encloses[k, e] for k in layers - {e})
+            }
+            self._plans[layers] = (sorted(enc), sorted(layers - enc), _bits(enc))
+        return self._plans[layers]
+
     def evaluate(self, layers: frozenset, region_range: tuple, notes: list[str]):
         """Estimates ``{layer: _Estimate}`` for the layers of one region (Case 1-3)."""
-        enc = {
-            e
-            for e in layers
-            if self.encloses[e].any()
-            and all(self.encloses[e, k] or self.encloses[k, e] for k in layers - {e})
-        }
-        active, base = sorted(layers - enc), _bits(enc)
-        out = {e: self.encloser(e) for e in sorted(enc)}
+        enc, active, base = self._plan(layers)
+        out = {e: self.encloser(e) for e in enc}
         if len(active) == 1:
             i = active[0]
             reasons = []

@@ -212,19 +212,14 @@ def subregions(footprints) -> RegionMap:
     height, width = fp.shape[1:]
     mask = _bitmask(fp)
     labels = label(mask.astype(np.int64), background=-1, connectivity=2)  # labels 1..n
-    _, first = np.unique(labels.ravel(), return_index=True)  # sorted by label value
-    order = np.argsort(first, kind="stable")  # label values ranked by first pixel
-    remap = np.empty(order.size + 1, dtype=np.int32)
-    remap[order + 1] = np.arange(order.size, dtype=np.int32)
-    region_id = remap[labels]
-
+    region_id, first = _raster_ordered(labels)
     flat = region_id.ravel()
-    n = order.size
+    n = first.size
     area = np.bincount(flat, minlength=n)
     rows, cols = np.divmod(np.arange(flat.size), width)
     c_row = np.bincount(flat, weights=rows, minlength=n) / area
     c_col = np.bincount(flat, weights=cols, minlength=n) / area
-    sets = mask.ravel()[np.sort(first)]
+    sets = mask.ravel()[first]
     slices = ndimage.find_objects(region_id + 1)
     regions = []
     for rid in range(n):
@@ -243,6 +238,25 @@ def subregions(footprints) -> RegionMap:
             )
         )
     return RegionMap(region_id=region_id, layer_set=mask, regions=tuple(regions))
+
+
+def _raster_ordered(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Region ids ``0..n-1`` numbered by first pixel in row-major order, and those pixels.
+
+    ``skimage.measure.label`` numbers components that way already; that is checked in O(n)
+    (each label first appears where it exceeds all earlier ones) and only if it fails are
+    the labels sorted.
+    """
+    flat = labels.ravel()
+    seen = np.maximum.accumulate(flat)
+    first = np.flatnonzero(flat > np.concatenate(([0], seen[:-1])))
+    if np.array_equal(flat[first], np.arange(1, first.size + 1)) and first.size == seen[-1]:
+        return (labels - 1).astype(np.int32), first
+    _, first = np.unique(flat, return_index=True)  # sorted by label value
+    order = np.argsort(first, kind="stable")  # label values ranked by first pixel
+    remap = np.empty(order.size + 1, dtype=np.int32)
+    remap[order + 1] = np.arange(order.size, dtype=np.int32)
+    return remap[labels], np.sort(first)
 
 
 def _dilate8(fp: np.ndarray) -> np.ndarray:

@@ -12,7 +12,9 @@ fields it needs; the helpers here check them and raise
 
 from __future__ import annotations
 
+import threading
 import warnings
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -222,7 +224,8 @@ def _check_premultiplied(rgba: np.ndarray, notes: list[str], *, trusted: bool = 
     pixels), so only the note is made.
     """
     alpha = rgba[..., 3]
-    over = np.any(rgba[..., :3] > alpha[..., None] + _OPACITY_SLACK, axis=-1)
+    brightest = np.maximum(np.maximum(rgba[..., 0], rgba[..., 1]), rgba[..., 2])
+    over = brightest > alpha + _OPACITY_SLACK
     n_over = int(np.count_nonzero(over))
     if n_over == 0:
         return
@@ -241,13 +244,37 @@ def _check_premultiplied(rgba: np.ndarray, notes: list[str], *, trusted: bool = 
         )
 
 
+#: The last few engine analyses' luminance images: ``id -> (weakref, key, y, notes)``.
+_LUMINANCE_MEMO: dict[int, tuple] = {}
+_MEMO_LOCK = threading.Lock()
+
+
 def _image_luminance(analysis, spec, shape: tuple[int, int]) -> tuple[np.ndarray, list[str]]:
     """Linear CIE Y of the rendering composited over the background, clipped to [0, 1].
 
     With a spec, ``analysis.rgba`` is composited over ``spec.background``; without one,
     ``analysis.image`` (already composited) is used, falling back to ``rgba`` over black.
-    Luminance above the displayable 1 is clipped, with a note.
+    Luminance above the displayable 1 is clipped, with a note.  For an engine
+    :class:`RayAnalysis` (whose arrays are not changed after it is made) the result is
+    remembered, so shape and transparency of one analysis compute it once; it is read-only.
     """
+    if not isinstance(analysis, RayAnalysis):
+        return _compute_luminance(analysis, spec, shape)
+    key = (None if spec is None else tuple(spec.background), shape)
+    with _MEMO_LOCK:
+        hit = _LUMINANCE_MEMO.get(id(analysis))
+    if hit is not None and hit[0]() is analysis and hit[1] == key:
+        return hit[2], list(hit[3])
+    y, notes = _compute_luminance(analysis, spec, shape)
+    y.flags.writeable = False
+    with _MEMO_LOCK:
+        while len(_LUMINANCE_MEMO) >= 4:
+            del _LUMINANCE_MEMO[next(iter(_LUMINANCE_MEMO))]
+        _LUMINANCE_MEMO[id(analysis)] = (weakref.ref(analysis), key, y, tuple(notes))
+    return y, notes
+
+
+def _compute_luminance(analysis, spec, shape):
     notes: list[str] = []
     rgba = getattr(analysis, "rgba", None)
     image = getattr(analysis, "image", None)

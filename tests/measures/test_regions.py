@@ -162,3 +162,14 @@ def test_regions_512_six_layers_partition_the_image():
         assert mask.sum() == region.area
         expected = sum(1 << k for k in region.layers)
         assert np.all(rmap.layer_set[mask] == expected)
+
+
+def test_region_ids_follow_first_pixels_whatever_the_label_numbering():
+    from dvr_perception.measures.regions import _raster_ordered
+
+    raster = np.array([[1, 1, 2], [3, 2, 2]])
+    shuffled = np.array([[3, 3, 1], [2, 1, 1]])  # same components, other numbering
+    for labels in (raster, shuffled):
+        region_id, first = _raster_ordered(labels)
+        assert region_id.tolist() == [[0, 0, 1], [2, 1, 1]]
+        assert first.tolist() == [0, 2, 3]

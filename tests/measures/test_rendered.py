@@ -323,3 +323,27 @@ def test_empty_image():
     assert any("E_s = 0" in n for n in shp.notes)
     assert any("no non-empty region" in n for n in trans.notes)
     assert [r["kind"] for r in trans.regions] == ["empty"]
+
+
+def test_luminance_is_shared_by_the_measures_of_one_analysis_but_follows_the_background():
+    """Shape and transparency reuse one analysis's luminance; another background is new."""
+    from dvr_perception.measures.results import _image_luminance
+
+    vol = base_volume()
+    spec = make_spec(structure("slab", 0.5, (0.8, 0.8, 0.8), LOW))
+    cam = parallel_camera(vol)
+    a = analyze(vol, spec, cam)
+    y, _ = _image_luminance(a, spec, a.accumulated.shape)
+    again, _ = _image_luminance(a, spec, a.accumulated.shape)
+    assert again is y
+    assert not y.flags.writeable
+    white = dataclasses.replace(spec, background=(1.0, 1.0, 1.0))
+    y_white, _ = _image_luminance(a, white, a.accumulated.shape)
+    empty = a.accumulated < 1e-6
+    assert empty.any()
+    assert np.all(y[empty] == 0.0)
+    assert np.allclose(y_white[empty], 1.0)
+    b = analyze(vol, spec, cam)  # a new analysis is computed afresh, equal to the old one
+    y_b, _ = _image_luminance(b, spec, b.accumulated.shape)
+    assert y_b is not y
+    assert np.array_equal(y_b, y)
