@@ -18,16 +18,14 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
-import math
 import threading
-import time
-import warnings
-from pathlib import Path
 
 from trame.app import TrameApp, asynchronous
 from trame.decorators import change
 
-from dvr_perception.app.charts import calibration_svg, lines_svg
+from dvr_perception.app._guard import guard
+from dvr_perception.app.charts import lines_svg
+from dvr_perception.app.lens import LensHandlers, lens_region
 from dvr_perception.app.scene import new_plotter, show_spec
 from dvr_perception.app.session import (
     MAX_UPLOAD_BYTES,
@@ -36,7 +34,8 @@ from dvr_perception.app.session import (
     measure_camera,
     rgb_to_hex,
 )
-from dvr_perception.app.study import CalibrationTest, RankingTask, png_data_url
+from dvr_perception.app.study import png_data_url
+from dvr_perception.app.study_screens import RANKING_FILE, StudyHandlers
 from dvr_perception.errors import DVRInputError
 
 __all__ = ["MAX_ITER", "STAGE_SETS", "DVRApp", "lens_region"]
@@ -53,10 +52,7 @@ LIVE_INTERVAL_S = 1.0
 REPUSH_S = 0.8
 #: Colour range of the quality maps (deviations above 1 saturate).
 MAP_CLIM = (0.0, 1.0)
-#: File (in the export folder) the ranking answers are appended to.
-RANKING_FILE = "ranking_answers.csv"
-#: Long side of the ranking images and of the before/after thumbnails.
-RANKING_SIZE = 160
+#: Width of the before/after thumbnails.
 THUMB_WIDTH = 210
 
 
@@ -89,66 +85,7 @@ def _style_bar(bar) -> None:
         prop.SetFontSize(size)
 
 
-def lens_region(lens, width: int, height: int):
-    """Turn the page's lens (fractions of the view) into an optimiser region in pixels.
-
-    ``lens`` is ``{"shape": "rect", "x0", "y0", "x1", "y1"}`` (corners) or
-    ``{"shape": "circle", "x0", "y0", "r"}`` (centre, radius as a fraction of the width).
-
-    Examples
-    --------
-    >>> lens_region({"shape": "rect", "x0": 0.5, "y0": 0.5, "x1": 0.25, "y1": 0.75}, 100, 80)
-    ('rect', 25.0, 40.0, 50.0, 60.0)
-    >>> lens_region({"shape": "circle", "x0": 0.5, "y0": 0.5, "r": 0.1}, 100, 80)
-    ('circle', 50.0, 40.0, 10.0)
-    """
-    if not isinstance(lens, dict):
-        raise DVRInputError("lens: draw a rectangle or a circle on the view first")
-    try:
-        if lens.get("shape") == "circle":
-            cx, cy, r = (float(lens[k]) for k in ("x0", "y0", "r"))
-            out = ("circle", cx * width, cy * height, r * width)
-        elif lens.get("shape") == "rect":
-            x0, y0, x1, y1 = (float(lens[k]) for k in ("x0", "y0", "x1", "y1"))
-            out = (
-                "rect",
-                min(x0, x1) * width,
-                min(y0, y1) * height,
-                max(x0, x1) * width,
-                max(y0, y1) * height,
-            )
-        else:
-            raise DVRInputError(f"lens: unknown shape {lens.get('shape')!r}")
-    except (KeyError, TypeError, ValueError):
-        raise DVRInputError(f"lens: malformed region {lens!r}") from None
-    if not all(math.isfinite(v) for v in out[1:]):
-        raise DVRInputError(f"lens: malformed region {lens!r}")
-    return out
-
-
-def _guard(fn):
-    """Show input errors (and unexpected ones) in the page instead of failing the handler."""
-
-    @functools.wraps(fn)
-    def wrapper(self, *args, **kwargs):
-        try:
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                out = fn(self, *args, **kwargs)
-            if caught:
-                self.state.info = "; ".join(str(w.message) for w in caught[:3])
-            return out
-        except (DVRInputError, OSError, ValueError) as exc:
-            self.fail(str(exc))
-        except Exception as exc:
-            log.exception("unexpected error in %s", fn.__name__)
-            self.fail(f"unexpected {type(exc).__name__}: {exc}")
-        return None
-
-    return wrapper
-
-
-class DVRApp(TrameApp):
+class DVRApp(LensHandlers, StudyHandlers, TrameApp):
     """Web app: choose a volume, edit structures, see the quality map, optimise, export.
 
     Parameters
@@ -437,14 +374,14 @@ class DVRApp(TrameApp):
         self._push_image()
 
     @change("show_map", "map_kind", "map_opacity")
-    @_guard
+    @guard
     def on_map_change(self, **_):
         """Toggle or switch the quality-map overlay."""
         self._update_map()
 
     # -- data --------------------------------------------------------------------------------
     @change("volume_name")
-    @_guard
+    @guard
     def on_volume_change(self, volume_name, **_):
         """Load the chosen volume with its preset (or proposed) structures."""
         if not volume_name or volume_name == self.session.volume_name or self._task_running:
@@ -452,13 +389,13 @@ class DVRApp(TrameApp):
         self.state.error = ""
         self._show_volume(volume_name)
 
-    @_guard
+    @guard
     def set_importance(self, index, value):
         """Slider released: set a structure's importance."""
         self.session.set_structure(index, importance=value)
         self._show_spec()
 
-    @_guard
+    @guard
     def set_range(self, index, end, value):
         """Range field changed: set the low (``end`` 0) or high (1) value of a structure."""
         s = self.session.spec.structures[int(index)]
@@ -473,13 +410,13 @@ class DVRApp(TrameApp):
         self.session.set_structure(index, value_range=bounds)
         self._show_spec(restructured=True)
 
-    @_guard
+    @guard
     def set_colour(self, index, value):
         """Colour picked: set a structure's colour."""
         self.session.set_structure(index, color=value)
         self._show_spec()
 
-    @_guard
+    @guard
     def load_spec(self, path=None):
         """Load the spec JSON named in the file field (data folder only)."""
         path = self.state.spec_path if path is None else path
@@ -488,14 +425,14 @@ class DVRApp(TrameApp):
         self._show_spec(restructured=True)
         self.state.info = f"loaded {path}"
 
-    @_guard
+    @guard
     def save_spec(self, path=None):
         """Save the current spec as JSON into the data folder."""
         self.state.error = ""
         path = self.session.save_spec_file(self.state.spec_path if path is None else path)
         self.state.info = f"saved {path}"
 
-    @_guard
+    @guard
     def undo(self, steps=1):
         """Go back ``steps`` changes (1: the last one)."""
         if self._task_running or self.session.undo(int(steps)) is None:
@@ -504,7 +441,7 @@ class DVRApp(TrameApp):
         self._show_spec(restructured=True)
         self.state.info = f"went back {int(steps)} step{'s' if int(steps) > 1 else ''}"
 
-    @_guard
+    @guard
     def export(self):
         """Write the PNG, spec JSON, ParaView preset and Slicer file to the export folder."""
         self.state.error = ""
@@ -512,13 +449,13 @@ class DVRApp(TrameApp):
         self.state.exports = [p.name for p in self.session.export(self.plotter)]
         self.state.info = f"exported {len(self.state.exports)} files to {self.session.export_dir}"
 
-    @_guard
+    @guard
     def measure_view(self, *_):
         """Re-measure after the user rotated the view."""
         self.remeasure()
 
     # -- optimisation ------------------------------------------------------------------------
-    @_guard
+    @guard
     def optimise(self, which="opacity", in_lens=False):
         """Start optimising this view (``"opacity"`` or ``"all"`` stages) in the background.
 
@@ -555,7 +492,7 @@ class DVRApp(TrameApp):
             return ""
         return f"visibility {s.E_v}, shape {s.E_s}, transparency {s.E_t}"
 
-    @_guard
+    @guard
     def cancel(self):
         """Stop the running optimisation (it keeps the best result so far)."""
         if self._task_running:
@@ -652,244 +589,9 @@ class DVRApp(TrameApp):
         with self.state:
             self.state.after_text = self._errors_text()
 
-    # -- lens --------------------------------------------------------------------------------
-    @change("lens")
-    @_guard
-    def on_lens_change(self, lens, **_):
-        """List the structures inside a newly drawn lens with their targets (or clear it)."""
-        if not lens:
-            self.state.lens_rows = []
-            self.state.lens_text = ""
-            return
-        self.state.error = ""
-        self._update_lens_rows()
-
-    def _update_lens_rows(self) -> None:
-        from dvr_perception.optimize._region import parse_region
-
-        lens = self.state.lens
-        if not lens or self.measures is None or self.measures.present is None:
-            return
-        h, w = self.measures.present.shape
-        region = lens_region(lens, w, h)
-        try:
-            mask = parse_region(region, h, w)
-        except DVRInputError:
-            self.state.lens_rows = []
-            self.state.lens_text = "the region is too small or outside the image: draw again"
-            return
-        inside = self.session.region_structures(
-            self.measures.present, mask, self.measures.share_images
-        )
-        old = {r["name"]: r for r in self.state.lens_rows or []}
-        rows = []
-        for r in inside:
-            s = self.session.spec.structures[r["index"]]
-            prev = old.get(r["name"], {})
-            share = r["visible"] if r["visible"] is not None else 0.0
-            rows.append(
-                {
-                    **r,
-                    "color": rgb_to_hex(s.color),
-                    "use_vis": prev.get("use_vis", False),
-                    "vis": prev.get("vis", round(min(max(share, 0.05), 1.0), 2)),
-                    "use_tr": prev.get("use_tr", False),
-                    "tr": prev.get("tr", round(1.0 - float(s.render_opacity), 2)),
-                }
-            )
-        self.state.lens_rows = rows
-        kind = "circle" if lens.get("shape") == "circle" else "rectangle"
-        pct = 100.0 * mask.mean()
-        self.state.lens_text = (
-            f"{kind} covering {pct:.0f} % of the image; {len(rows)} structure"
-            f"{'' if len(rows) == 1 else 's'} inside"
-        )
-
-    @_guard
-    def set_lens_target(self, index, key, value):
-        """Set a lens row's target field (``use_vis``, ``vis``, ``use_tr``, ``tr``)."""
-        if key not in ("use_vis", "vis", "use_tr", "tr"):
-            raise DVRInputError(f"lens target: unknown field {key!r}")
-        rows = [dict(r) for r in self.state.lens_rows]
-        for r in rows:
-            if r["index"] == int(index):
-                r[key] = bool(value) if key.startswith("use_") else float(value)
-        self.state.lens_rows = rows
-
-    def _lens_targets(self) -> dict:
-        targets = {}
-        for r in self.state.lens_rows or []:
-            wanted = {}
-            if r.get("use_vis"):
-                wanted["visibility"] = float(r["vis"])
-            if r.get("use_tr"):
-                wanted["transparency"] = float(r["tr"])
-            if wanted:
-                targets[r["name"]] = wanted
-        return targets
-
-    @_guard
-    def clear_lens(self):
-        """Remove the lens."""
-        self.state.lens = None
-        self.state.lens_rows = []
-        self.state.lens_text = ""
-
-    # -- calibration test --------------------------------------------------------------------
-    @_guard
-    def start_calibration(self):
-        """Start a new calibration test (stimuli in a new random order)."""
-        self.state.error = ""
-        self.calibration_test = CalibrationTest(seed=int(time.time()) % 100_000)
-        self.state.cal_active = True
-        self.state.cal_saved = ""
-        self.state.cal_svg = ""
-        self.state.cal_rating = 0.5
-        self._show_stimulus()
-
-    def _show_stimulus(self) -> None:
-        t = self.calibration_test
-        self.state.cal_total = len(t.stimuli)
-        self.state.cal_index = len(t.ratings) + 1
-        self.state.cal_url = t.image_url()
-
-    @_guard
-    def rate_stimulus(self, value=None):
-        """Record the rating of the shown stimulus; after the last one fit and save the curve."""
-        t = self.calibration_test
-        if t is None:
-            raise DVRInputError("calibration: press 'Start the test' first")
-        t.rate(self.state.cal_rating if value is None else value)
-        self.state.cal_rating = 0.5
-        if not t.done:
-            self._show_stimulus()
-            return
-        self.state.cal_active = False
-        path = self._results_path(self.state.cal_file, ".json")
-        path, curve = t.save(path)
-        self._curve = curve
-        self.session.use_calibration(curve, path.name)
-        self.state.cal_saved = str(path)
-        self.state.cal_svg = calibration_svg(curve, t.measured, t.ratings)
-        self.state.has_calibration = True
-        self.state.use_calibration = True
-        self.state.calibration_name = path.name
-        self.state.info = (
-            f"saved your calibration curve to {path} (your answers: "
-            f"{t.ratings_path(path).name}); the measures now use it"
-        )
-        self.remeasure()
-
-    @_guard
-    def load_calibration_file(self):
-        """Load a saved calibration curve (from the export folder) and use it."""
-        from dvr_perception.calibration import load_calibration
-
-        self.state.error = ""
-        path = self._results_path(self.state.cal_file, ".json", must_exist=True)
-        curve = load_calibration(path)
-        self._curve = curve
-        self.session.use_calibration(curve, path.name)
-        self.state.cal_svg = calibration_svg(curve)
-        self.state.has_calibration = True
-        self.state.use_calibration = True
-        self.state.calibration_name = path.name
-        self.state.info = f"loaded {path.name}; the measures now use it"
-        self.remeasure()
-
-    @change("use_calibration")
-    @_guard
-    def on_use_calibration(self, use_calibration, **_):
-        """Switch the personal calibration on or off for the measures and the optimiser."""
-        want = bool(use_calibration) and self._curve is not None
-        current = self.session.calibration is not None
-        if want == current:
-            return
-        name = self.state.calibration_name if want else ""
-        self.session.use_calibration(self._curve if want else None, name)
-        self.remeasure()
-
-    def _results_path(self, text, suffix: str, *, must_exist: bool = False) -> Path:
-        """Resolve a plain file name inside the export folder (no folders, given suffix)."""
-        name = str(text or "").strip()
-        if not name or Path(name).name != name or name in (".", ".."):
-            raise DVRInputError(
-                f"{name or '(empty)'}: expected a plain file name (saved in the export folder)"
-            )
-        if not name.endswith(suffix):
-            raise DVRInputError(f"{name}: expected a file name ending in {suffix}")
-        folder = self.session.export_dir
-        if must_exist:
-            if not (folder / name).is_file():
-                raise DVRInputError(f"{name}: no such file in {folder}")
-        else:
-            folder.mkdir(parents=True, exist_ok=True)
-        return folder / name
-
-    # -- ranking task ------------------------------------------------------------------------
-    @_guard
-    def new_ranking(self):
-        """Render a new set of ranking images (in the background)."""
-        if self.state.rank_busy:
-            return
-        self.state.error = ""
-        self.state.rank_busy = True
-        self.state.rank_result = ""
-        self.state.rank_saved = False
-        self.state.rank_order = []
-        asynchronous.create_task(self._new_ranking(int(self.state.rank_structure or 0)))
-
-    async def _new_ranking(self, structure: int) -> None:
-        loop = asyncio.get_running_loop()
-        camera = measure_camera(self.current_camera(), RANKING_SIZE)
-        run = functools.partial(
-            RankingTask.make,
-            self.session.volume,
-            self.session.spec,
-            camera,
-            structure,
-            seed=int(time.time() * 1000) % 100_000,
-        )
-        try:
-            task, error = await loop.run_in_executor(None, run), ""
-        except Exception as exc:  # shown in the page; the server keeps running
-            log.exception("ranking images failed")
-            task, error = None, f"ranking images failed: {exc}"
-        with self.state:
-            self.state.rank_busy = False
-            if task is None:
-                self.fail(error)
-                return
-            self.ranking = task
-            letters = "ABCDEFGH"
-            self.state.rank_images = [
-                {"id": i, "label": letters[k], "url": task.urls[i]}
-                for k, i in enumerate(task.shown)
-            ]
-            self.state.rank_order = []
-
-    @_guard
-    def save_ranking(self, order=None):
-        """Append the viewer's order (most see-through first) to the answers file."""
-        if self.ranking is None:
-            raise DVRInputError("ranking: press 'New set of images' first")
-        if self.state.rank_saved:
-            raise DVRInputError("ranking: this answer is already saved; press 'New set of images'")
-        order = list(self.state.rank_order if order is None else order)
-        path = Path(self.state.rank_file)
-        row = self.ranking.record(order, path)
-        labels = {r["id"]: r["label"] for r in self.state.rank_images}
-        measured = " > ".join(labels[i] for i in row["measured_order"].split())
-        self.state.rank_result = (
-            f"saved to {path.name}. Most to least see-through by the measure: {measured}; "
-            f"your order agrees on {row['pairs_agreeing']} of {row['pairs_total']} pairs."
-        )
-        self.state.rank_saved = True
-        self.state.info = f"answer saved to {path}"
-
     # -- upload ------------------------------------------------------------------------------
     @change("upload")
-    @_guard
+    @guard
     def on_upload(self, upload, **_):
         """Check, store and show the volume file chosen in the upload field."""
         if not upload:

@@ -25,6 +25,15 @@ from trame.widgets import html
 from trame.widgets import vtk as vtk_widgets
 from trame.widgets import vuetify3 as v3
 
+from dvr_perception.app._widgets import heading
+from dvr_perception.app.ui_lens import lens_pad, lens_panel
+from dvr_perception.app.ui_study import (
+    calibration_panel,
+    calibration_screen,
+    ranking_panel,
+    ranking_screen,
+)
+
 __all__ = ["TABS", "build_ui"]
 
 TITLE = "Readable transparent volume rendering"
@@ -46,12 +55,6 @@ ERRORS = (
     ("E_s", "Shape", "Are the surface shapes readable (shading matches curvature)?"),
     ("E_t", "Transparency", "Does each layer look as see-through as intended?"),
 )
-
-
-def _heading(title: str, hint: str = "") -> None:
-    html.Div(title, classes="text-subtitle-1 font-weight-bold mt-2")
-    if hint:
-        html.Div(hint, classes="text-body-2 text-medium-emphasis mb-1")
 
 
 # -- always visible on the view screens --------------------------------------------------------
@@ -97,7 +100,7 @@ def _summary(app) -> None:
 
 # -- 1 data --------------------------------------------------------------------------------
 def _data_panel(app) -> None:
-    _heading(
+    heading(
         "Volume and structures",
         "Choose a scan; each structure is a range of values shown in one colour.",
     )
@@ -203,13 +206,13 @@ def _data_panel(app) -> None:
 
 # -- 2 quality map ---------------------------------------------------------------------------
 def _quality_panel(app) -> None:
-    _heading("What the three errors mean")
+    heading("What the three errors mean")
     with html.Table(classes="w-100 text-body-2"):
         for _key, name, help_text in ERRORS:
             with html.Tr():
                 html.Td(name, classes="font-weight-medium pr-2", style="vertical-align: top")
                 html.Td(help_text)
-    _heading("Quality map", "Colours the image where it is hard to read (yellow = problem).")
+    heading("Quality map", "Colours the image where it is hard to read (yellow = problem).")
     v3.VSwitch(
         label="Show the quality map over the image",
         v_model=("show_map",),
@@ -243,7 +246,7 @@ def _quality_panel(app) -> None:
             disabled=("!show_map",),
             classes="mt-2",
         )
-    _heading(
+    heading(
         "How much of the picture each structure takes",
         "Bar = share of what you see now; black mark = share its importance asks for.",
     )
@@ -288,7 +291,7 @@ def _share_chart(element_id: str, *, compact: bool = False) -> None:
 
 # -- 3 optimise ------------------------------------------------------------------------------
 def _optimise_panel(app) -> None:
-    _heading(
+    heading(
         "Optimise this view",
         "Adjusts the rendering for the view as it is now (rotate it first: drag; the wheel "
         "zooms). Cancel keeps the best result so far.",
@@ -364,368 +367,9 @@ def _optimise_panel(app) -> None:
         )
 
 
-# -- 4 lens --------------------------------------------------------------------------------
-def _lens_panel(app) -> None:
-    _heading(
-        "Lens: improve one region",
-        "Choose a shape, then drag on the image to mark the region to improve. Only that "
-        "region is optimised; you can ask for how visible or how see-through each structure "
-        "inside it should be.",
-    )
-    with v3.VBtnToggle(
-        v_model=("lens_shape",),
-        mandatory=True,
-        density="compact",
-        divided=True,
-        variant="outlined",
-        color="primary",
-        id="lens-shape",
-    ):
-        v3.VBtn("Rectangle", value="rect", size="small", id="lens-rect")
-        v3.VBtn("Circle", value="circle", size="small", id="lens-circle")
-    html.Div(
-        "{{ lens_text || 'No region yet: drag on the image.' }}",
-        classes="text-body-2 mt-2",
-        id="lens-text",
-    )
-    with html.Table(classes="w-100 text-body-2 mt-1", v_if="lens_rows.length", id="lens-table"):
-        with html.Tr():
-            html.Th("Structure in region", classes="text-left")
-            html.Th("Visible share wanted", classes="text-left")
-            html.Th("See-through wanted", classes="text-left")
-        with html.Tr(v_for="row in lens_rows", key="row.index"):
-            with html.Td():
-                html.Span(
-                    style=(
-                        "{display: 'inline-block', width: '12px', height: '12px', "
-                        "background: row.color, border: '1px solid #757575', "
-                        "marginRight: '4px'}",
-                    )
-                )
-                html.Span("{{ row.name }}")
-                html.Div(
-                    "in {{ (100 * row.fraction).toFixed(0) }} % of the region",
-                    classes="text-caption",
-                )
-            for use, key in (("use_vis", "vis"), ("use_tr", "tr")):
-                with (
-                    html.Td(style="min-width: 120px"),
-                    html.Div(classes="d-flex align-center"),
-                ):
-                    v3.VCheckboxBtn(
-                        model_value=(f"row.{use}",),
-                        density="compact",
-                        update_modelValue=(
-                            app.set_lens_target,
-                            f"[row.index, '{use}', $event]",
-                        ),
-                        classes=f"lens-{use}",
-                    )
-                    v3.VSlider(
-                        model_value=(f"row.{key}",),
-                        min=0,
-                        max=1,
-                        step=0.05,
-                        thumb_label=True,
-                        hide_details=True,
-                        density="compact",
-                        disabled=(f"!row.{use}",),
-                        end=(app.set_lens_target, f"[row.index, '{key}', $event]"),
-                    )
-                    html.Span(
-                        f"{{{{ row.{key}.toFixed(2) }}}}",
-                        classes="text-caption ml-1",
-                        style=(f"{{opacity: row.{use} ? 1 : 0.4}}",),
-                    )
-    html.Div(
-        "Tick a box to set a target. Visible share: how much of what you see in the region "
-        "should be this structure. See-through: 0 = solid, 1 = invisible.",
-        classes="text-caption",
-        v_if="lens_rows.length",
-    )
-    with v3.VRow(dense=True, classes="mt-2"):
-        with v3.VCol(cols=6):
-            v3.VBtn(
-                "Refine region",
-                title="optimise opacity inside the lens",
-                click=(app.optimise, "['opacity', true]"),
-                color="primary",
-                block=True,
-                disabled=("busy || !lens_rows.length",),
-                id="refine-lens",
-            )
-        with v3.VCol(cols=6):
-            v3.VBtn(
-                "Clear region",
-                click=app.clear_lens,
-                block=True,
-                disabled=("busy || !lens",),
-                id="clear-lens",
-            )
-
-
-def _outline_style(x0, y0, x1, y1, circle) -> str:
-    """Vue style object of a lens outline from pixel expressions."""
-    r = f"Math.hypot(({x1}) - ({x0}), ({y1}) - ({y0}))"
-    return (
-        f"({circle}) ? {{left: (({x0}) - {r}) + 'px', top: (({y0}) - {r}) + 'px', "
-        f"width: (2 * {r}) + 'px', height: (2 * {r}) + 'px', borderRadius: '50%'}} : "
-        f"{{left: Math.min({x0}, {x1}) + 'px', top: Math.min({y0}, {y1}) + 'px', "
-        f"width: Math.abs(({x1}) - ({x0})) + 'px', height: Math.abs(({y1}) - ({y0})) + 'px'}}"
-    )
-
-
-def _lens_pad(app) -> None:
-    """Transparent layer over the view that turns mouse drags into the lens (Lens tab)."""
-    d = "lens_drag"
-    down = (
-        f"{d} = {{x0: $event.offsetX, y0: $event.offsetY, x1: $event.offsetX, "
-        "y1: $event.offsetY, w: $event.currentTarget.clientWidth, "
-        "h: $event.currentTarget.clientHeight}; "
-        "$event.currentTarget.setPointerCapture($event.pointerId)"
-    )
-    move = f"{d} && ({d} = {{...{d}, x1: $event.offsetX, y1: $event.offsetY}})"
-    up = (
-        f"{d} && (lens = lens_shape === 'circle' ? "
-        f"{{shape: 'circle', x0: {d}.x0 / {d}.w, y0: {d}.y0 / {d}.h, "
-        f"r: Math.hypot({d}.x1 - {d}.x0, {d}.y1 - {d}.y0) / {d}.w, w: {d}.w, h: {d}.h}} : "
-        f"{{shape: 'rect', x0: {d}.x0 / {d}.w, y0: {d}.y0 / {d}.h, x1: {d}.x1 / {d}.w, "
-        f"y1: {d}.y1 / {d}.h, w: {d}.w, h: {d}.h}}); {d} = null"
-    )
-    with html.Div(
-        v_if="tab === 'lens'",
-        id="lens-pad",
-        style="position: absolute; inset: 0; z-index: 5; cursor: crosshair; touch-action: none;",
-        pointerdown=down,
-        pointermove=move,
-        pointerup=up,
-        __events=["pointerdown", "pointermove", "pointerup"],
-    ):
-        outline = (
-            "{position: 'absolute', pointerEvents: 'none', border: '3px dashed #ffeb3b', "
-            "boxShadow: '0 0 0 1px #000'}"
-        )
-        drawing = _outline_style(
-            f"{d}.x0", f"{d}.y0", f"{d}.x1", f"{d}.y1", "lens_shape === 'circle'"
-        )
-        html.Div(v_if=d, style=(f"[{outline}, {drawing}]",), id="lens-drawing")
-        c = "lens"
-        html.Div(
-            v_if=f"!{d} && {c}",
-            style=(
-                f"[{outline}, {c}.shape === 'circle' ? {{left: ({c}.x0 - {c}.r) * {c}.w + 'px', "
-                f"top: ({c}.y0 * {c}.h - {c}.r * {c}.w) + 'px', width: 2 * {c}.r * {c}.w + 'px', "
-                f"height: 2 * {c}.r * {c}.w + 'px', borderRadius: '50%'}} : "
-                f"{{left: Math.min({c}.x0, {c}.x1) * {c}.w + 'px', "
-                f"top: Math.min({c}.y0, {c}.y1) * {c}.h + 'px', "
-                f"width: Math.abs({c}.x1 - {c}.x0) * {c}.w + 'px', "
-                f"height: Math.abs({c}.y1 - {c}.y0) * {c}.h + 'px'}}]",
-            ),
-            id="lens-outline",
-        )
-        html.Div(
-            "Drag to draw the region; switch to another screen to rotate the view.",
-            style="position: absolute; left: 8px; top: 8px; color: #fff; "
-            "background: rgba(0,0,0,0.55); padding: 2px 8px; border-radius: 4px; "
-            "pointer-events: none;",
-            classes="text-body-2",
-        )
-
-
-# -- 5 calibration ---------------------------------------------------------------------------
-def _calibration_panel(app) -> None:
-    _heading(
-        "Calibrate how you see transparency",
-        "People judge see-through layers a little differently. You will see 8 test images: "
-        "a grey square lying over a background. Say how much of the background you can see "
-        "through the square. From your answers a personal curve is fitted and saved; the "
-        "transparency error then uses it.",
-    )
-    v3.VTextField(
-        label="Calibration file (saved in the export folder)",
-        v_model=("cal_file",),
-        density="compact",
-        hide_details=True,
-        id="cal-file",
-    )
-    with v3.VRow(dense=True, classes="mt-2"):
-        with v3.VCol(cols=6):
-            v3.VBtn(
-                "Start the test",
-                click=app.start_calibration,
-                color="primary",
-                block=True,
-                id="cal-start",
-            )
-        with v3.VCol(cols=6):
-            v3.VBtn(
-                "Load saved curve",
-                click=app.load_calibration_file,
-                block=True,
-                id="cal-load",
-            )
-    v3.VSwitch(
-        label="Use my calibration in the measures",
-        v_model=("use_calibration",),
-        disabled=("!has_calibration",),
-        color="primary",
-        density="compact",
-        hide_details=True,
-        id="use-calibration",
-    )
-    html.Div("Saved: {{ cal_saved }}", v_if="cal_saved", classes="text-caption", id="cal-saved")
-
-
-def _calibration_screen(app) -> None:
-    with html.Div(v_if="tab === 'calibration'", classes="pa-6", id="calibration-screen"):
-        with html.Div(v_if="cal_active"):
-            html.Div(
-                "Test image {{ cal_index }} of {{ cal_total }}",
-                classes="text-h6",
-                id="cal-progress",
-            )
-            html.Div(
-                "How much of the background can you see through the grey square in the middle?",
-                classes="text-body-1 mb-3",
-            )
-            html.Img(
-                src=("cal_url",),
-                style="width: 256px; height: 256px; image-rendering: pixelated; "
-                "border: 1px solid #9e9e9e;",
-                id="cal-image",
-            )
-            with html.Div(style="max-width: 420px", classes="mt-4"):
-                v3.VSlider(
-                    v_model=("cal_rating",),
-                    min=0,
-                    max=1,
-                    step=0.05,
-                    thumb_label="always",
-                    hide_details=True,
-                    classes="cal-rating",
-                )
-                with html.Div(classes="d-flex justify-space-between text-caption"):
-                    html.Span("0: nothing (solid square)")
-                    html.Span("1: everything (no square)")
-                v3.VBtn(
-                    "Next image",
-                    click=app.rate_stimulus,
-                    color="primary",
-                    classes="mt-3",
-                    id="cal-next",
-                )
-        with html.Div(v_if="!cal_active"):
-            html.Div("Your calibration curve", classes="text-h6")
-            html.Div(
-                "Press 'Start the test' on the left to (re)do the test. The chart shows your "
-                "answers (dots), the fitted curve (blue line) and, dashed, what the measure "
-                "assumes without calibration.",
-                classes="text-body-1 mb-3",
-                style="max-width: 640px",
-            )
-            html.Div(v_html=("cal_svg",), id="cal-chart")
-
-
-# -- 6 ranking -------------------------------------------------------------------------------
-def _ranking_panel(app) -> None:
-    _heading(
-        "Ranking study",
-        "As in the paper's user study: you see the same view four times; only the colour "
-        "brightness of one structure differs. Click the images in order, from the one where "
-        "that structure looks most see-through to the one where it looks least "
-        "see-through, then save. Your answer and the measured order are added to a file.",
-    )
-    v3.VSelect(
-        label="Structure whose colour changes",
-        v_model=("rank_structure",),
-        items=("structure_names",),
-        density="compact",
-        hide_details=True,
-        id="rank-structure",
-    )
-    v3.VBtn(
-        "New set of images",
-        click=app.new_ranking,
-        color="primary",
-        block=True,
-        loading=("rank_busy",),
-        classes="mt-2",
-        id="rank-new",
-    )
-    html.Div("Answers file: {{ rank_file }}", classes="text-caption mt-2")
-    html.Div("{{ rank_result }}", classes="text-body-2 mt-2", id="rank-result")
-
-
-def _ranking_screen(app) -> None:
-    with html.Div(v_if="tab === 'ranking'", classes="pa-6", id="ranking-screen"):
-        html.Div(
-            "Click the images from MOST see-through to LEAST see-through",
-            classes="text-h6",
-        )
-        html.Div(
-            "Press 'New set of images' on the left to begin.",
-            v_if="!rank_images.length",
-            classes="text-body-1",
-        )
-        with (
-            html.Div(classes="d-flex flex-wrap", style="gap: 16px", v_if="rank_images.length"),
-            html.Div(
-                v_for="img in rank_images",
-                key="img.id",
-                classes="rank-card",
-                style="position: relative; cursor: pointer; text-align: center;",
-                click="rank_saved || rank_order.includes(img.id) || "
-                "(rank_order = [...rank_order, img.id])",
-                id=("'rank-' + img.label",),
-            ),
-        ):
-            html.Img(
-                src=("img.url",),
-                style=(
-                    "{width: '200px', border: rank_order.includes(img.id) ? "
-                    "'4px solid #1565c0' : '4px solid transparent'}",
-                ),
-            )
-            html.Div("Image {{ img.label }}", classes="text-body-1")
-            html.Div(
-                "{{ rank_order.indexOf(img.id) + 1 }}",
-                v_if="rank_order.includes(img.id)",
-                classes="text-h5",
-                style="position: absolute; top: 8px; left: 8px; width: 40px; "
-                "height: 40px; line-height: 40px; border-radius: 50%; color: #fff; "
-                "background: #1565c0;",
-            )
-        with html.Div(classes="mt-4", v_if="rank_images.length"):
-            html.Div(
-                "Your order: {{ rank_order.map(i => rank_images.find(r => r.id === i).label)"
-                ".join(' > ') || '(none yet)' }}",
-                classes="text-body-1 mb-2",
-            )
-            v3.VBtn(
-                "Start over",
-                click="rank_order = []",
-                disabled=("rank_saved",),
-                classes="mr-2",
-                id="rank-reset",
-            )
-            v3.VBtn(
-                "Save my answer",
-                click=app.save_ranking,
-                color="primary",
-                disabled=("rank_saved || rank_order.length !== rank_images.length",),
-                id="rank-save",
-            )
-            html.Div(
-                "{{ rank_result }} Press 'New set of images' for the next set.",
-                v_if="rank_saved",
-                classes="text-body-1 mt-3",
-                style="max-width: 900px",
-            )
-
-
 # -- 7 export --------------------------------------------------------------------------------
 def _export_panel(app) -> None:
-    _heading(
+    heading(
         "Export",
         "Saves the image and settings to use in other programs: PNG image, settings (JSON), "
         "ParaView colour/opacity preset and 3D Slicer volume property (.vp.json).",
@@ -787,9 +431,9 @@ def build_ui(app):
                 ("data", _data_panel),
                 ("quality", _quality_panel),
                 ("optimise", _optimise_panel),
-                ("lens", _lens_panel),
-                ("calibration", _calibration_panel),
-                ("ranking", _ranking_panel),
+                ("lens", lens_panel),
+                ("calibration", calibration_panel),
+                ("ranking", ranking_panel),
                 ("export", _export_panel),
             ):
                 with html.Div(v_show=f"tab === '{value}'", id=f"panel-{value}"):
@@ -808,12 +452,12 @@ def build_ui(app):
                 EndAnimation=app.measure_view,
             )
             app.ctrl.view_update = app.view.update
-            _lens_pad(app)
+            lens_pad(app)
             with html.Div(
                 v_if=STUDY_TABS,
                 style="position: absolute; inset: 0; z-index: 6; background: #fff; overflow: auto;",
                 id="study-screen",
             ):
-                _calibration_screen(app)
-                _ranking_screen(app)
+                calibration_screen(app)
+                ranking_screen(app)
     return layout
