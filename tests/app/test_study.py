@@ -1,4 +1,4 @@
-"""The app's calibration test, ranking task, lens conversion, history and upload checks."""
+"""The app's calibration test, ranking task, history and upload checks."""
 
 from __future__ import annotations
 
@@ -108,18 +108,6 @@ def test_png_data_url_scales():
     img = Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1])))
     assert img.size == (6, 8)
     assert img.getpixel((0, 0)) == (128, 128, 128)
-
-
-def test_lens_region_from_page_fractions():
-    from dvr_perception.app.core import lens_region
-
-    rect = {"shape": "rect", "x0": 0.75, "y0": 0.1, "x1": 0.25, "y1": 0.5}
-    assert lens_region(rect, 200, 100) == ("rect", 50.0, 10.0, 150.0, 50.0)
-    circle = {"shape": "circle", "x0": 0.5, "y0": 0.5, "r": 0.25}
-    assert lens_region(circle, 200, 100) == ("circle", 100.0, 50.0, 50.0)
-    for bad in (None, {"shape": "star"}, {"shape": "rect", "x0": "a"}):
-        with pytest.raises(DVRInputError, match="lens"):
-            lens_region(bad, 10, 10)
 
 
 def test_region_structures_lists_only_those_inside(session):
