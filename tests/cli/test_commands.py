@@ -166,6 +166,43 @@ def test_bench_reports_keys(capsys, vtk_can_render):
     assert report["cache_mb"] > 0
 
 
+def test_bench_alternates_frames_and_survives_a_vtk_that_cannot_render(capsys, monkeypatch):
+    """Our frames and VTK's are timed in turn; when VTK fails, ours are still reported."""
+    import contextlib
+
+    from dvr_perception.errors import DVRInputError
+    from dvr_perception.rays import engine, vtk_reference
+
+    order = []
+    real_analyze = engine.analyze
+
+    def analyze(*args, **kwargs):
+        order.append("ours")
+        return real_analyze(*args, **kwargs)
+
+    @contextlib.contextmanager
+    def timer(*_):
+        def frame():
+            order.append("vtk")
+            if order.count("vtk") == 3:
+                raise DVRInputError("VTK: no OpenGL here")
+            return 0.5
+
+        yield frame
+
+    monkeypatch.setattr(engine, "analyze", analyze)
+    monkeypatch.setattr(vtk_reference, "vtk_frame_timer", timer)
+    code, out, err = _run(capsys, ["bench", "--size", "16", "--repeat", "4", "--json"])
+    assert code == 0, err
+    report = _one_json(out)
+    # warm-up, two pairs, VTK fails on the third, our two missing frames are timed alone
+    assert order[:8] == ["ours", "vtk", "ours", "vtk", "ours", "vtk", "ours", "ours"]
+    assert report["vtk_frame_s"] is None
+    assert report["frame_ratio"] is None
+    assert report["vtk_error"] == "VTK: no OpenGL here"
+    assert report["frame_s"] > 0
+
+
 def test_bench_rejects_bad_repeat(capsys):
     code, _, err = _run(capsys, ["bench", "--repeat", "0"])
     assert code == 2

@@ -12,6 +12,7 @@ from dvr_perception.rays.vtk_reference import (
     render_vtk,
     time_vtk_frames,
     vtk_clipping_range,
+    vtk_frame_timer,
 )
 from dvr_perception.structures.spec import Lighting, RenderSettings, Structure, StructureSpec
 from dvr_perception.volume.volume import Volume
@@ -196,3 +197,11 @@ def test_time_vtk_frames_and_compare_images(vtk_can_render):
     assert cmp["mean_abs_diff"] == pytest.approx(0.25)
     assert cmp["ssim"] < 0.9
     assert compare_images(b, b)["ssim"] == pytest.approx(1.0)
+
+
+def test_vtk_frame_timer_renders_frame_after_frame(vtk_can_render):
+    vol = Volume(np.arange(16**3, dtype=np.uint16).reshape(16, 16, 16) % 300)
+    cam = Camera.from_view(vol.bounds, width=32, height=32)
+    with vtk_frame_timer(vol, _opaque_spec(), cam) as frame:
+        times = [frame() for _ in range(3)]
+    assert all(0 < t < 5 for t in times)
