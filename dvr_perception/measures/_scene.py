@@ -91,6 +91,8 @@ class _Scene:
         self._pairs: dict[tuple[int, int, int], tuple] = {}
         self._general: dict[tuple[int, int, int], _Estimate] = {}
         self._plans: dict[frozenset, tuple] = {}
+        #: ``enclosure="unoccluded"``: per enclosing layer, the luminance without it.
+        self.without: dict[int, np.ndarray] | None = None
         # per layer set: pixel count, mean and (two-pass) population std of the luminance
         flat = self.layer_set.ravel()
         if k <= 16:  # layer sets index a table directly: no sort
@@ -147,13 +149,22 @@ class _Scene:
         plain = _bits([e, *np.flatnonzero(self.encloses[:, e])])
         inner = np.uint32(_bits(np.flatnonzero(self.encloses[e])))
         in_e = ((self.layer_set >> np.uint32(e)) & 1).astype(bool)
-        lum_p = self.y[in_e & ((self.layer_set & inner) != 0)]
+        covered = in_e & ((self.layer_set & inner) != 0)
+        lum_p = self.y[covered]
         head = f"enclosing layer {self.names[e]}: "
+        if lum_p.size == 0:
+            return _Estimate(reason=head + "no pixel shows it with a layer it encloses")
+        if self.without is not None:  # enclosure="unoccluded": the same pixels without e
+            alpha = self.tap(lum_p, self.without[e][covered])
+            if np.isnan(alpha):
+                return _Estimate(
+                    reason=head + "what it covers has no luminance contrast without it "
+                    "(TAP denominator ~0)"
+                )
+            return _Estimate(alpha=alpha, method="tap")
         why = self.missing([plain])
         if why is not None:
             return _Estimate(reason=head + why)
-        if lum_p.size == 0:
-            return _Estimate(reason=head + "no pixel shows it with a layer it encloses")
         alpha = self.tap(lum_p, self.y[self.mask(plain)])
         if np.isnan(alpha):
             return _Estimate(

@@ -17,6 +17,11 @@ Pipeline (all luminances are linear CIE Y of ``rgba`` composited over ``spec.bac
    following the paper, its plain view (layer set ``{e}`` plus the layers enclosing ``e``) is
    the background ``A`` and all pixels where ``e`` and a layer it encloses are present are
    treated as the transparent region ``P``: ``alpha = C(P) / C(A)`` (TAP, Eq. 6-7).
+   With ``enclosure="unoccluded"`` (beyond the paper) ``A`` is instead the same pixels of ``P``
+   rendered without ``e`` (re-composited from the analysis's cache with ``e``'s opacity 0):
+   what is behind the layer, seen with and without it, which is the TAP's own reading of
+   ``A``.  A brighter enclosing layer then lowers the Michelson contrast of what it covers
+   and reads as less transparent (tested against the closed form ``T mu / (T mu + c)``).
 4. **Active layers** (every reference set below is taken together with ``E``, i.e. enclosing
    layers are ignored as in the paper):
 
@@ -70,6 +75,24 @@ def _check_options(spec, contrast, calibration):
             raise DVRInputError(f"calibration: {err}") from None
 
 
+def _luminance_without(analysis, spec, layer: int) -> np.ndarray:
+    """Luminance of the same view with ``layer``'s opacity 0 (from the re-evaluation cache)."""
+    from dvr_perception.rays.engine import RayCache, reevaluate
+
+    cache = getattr(analysis, "cache", None)
+    if not isinstance(cache, RayCache):
+        raise DVRInputError(
+            "enclosure='unoccluded' needs the analysis's re-evaluation cache "
+            "(analyze(..., build_cache=True))"
+        )
+    ops = [float(s.render_opacity) for s in spec.structures]
+    ops[layer] = 0.0
+    colors = [tuple(s.color) for s in spec.structures]
+    other = reevaluate(cache, opacities=ops, colors=colors, background=spec.background)
+    y, _ = _image_luminance(other, spec, analysis.accumulated.shape)
+    return y
+
+
 def transparency(
     analysis,
     spec,
@@ -78,6 +101,7 @@ def transparency(
     calibration=None,
     tolerance: float = 0.02,
     contrast: str = "michelson",
+    enclosure: str = "plain",
 ) -> TransparencyResult:
     """Transparency deviation ``E_t`` of a rendering (Eq. 5-11, rules of Sec. 4.3.2).
 
@@ -99,6 +123,10 @@ def transparency(
         Footprint fraction forgiven by the layer relations (default 0.02).
     contrast : {"michelson", "range"}, optional
         TAP contrast: Michelson (Eq. 7, default) or luminance range (Eq. 6).
+    enclosure : {"plain", "unoccluded"}, optional
+        TAP background ``A`` of an enclosing layer: its plain view (default, the paper's
+        Case 2) or the covered pixels rendered without the layer (needs ``analysis.cache``,
+        i.e. an engine analysis made with ``build_cache=True``); see the module docstring.
 
     Returns
     -------
@@ -119,6 +147,8 @@ def transparency(
         If ``visible`` does not sum to ``accumulated`` or ``rgba`` is not premultiplied.
     """
     _check_options(spec, contrast, calibration)
+    if enclosure not in ("plain", "unoccluded"):
+        raise DVRInputError(f"enclosure must be 'plain' or 'unoccluded', got {enclosure!r}")
     accumulated = _accumulated(analysis)
     visible = _visible(analysis, accumulated)
     names = _names(analysis, spec, visible.shape[0])
@@ -128,6 +158,9 @@ def transparency(
     rmap = subregions(footprints)
     relations = layer_relations(footprints, tolerance=tolerance)
     scene = _Scene(y, rmap, relations, names, contrast)
+    if enclosure == "unoccluded":
+        enclosers = sorted({r.encloser for r in relations.values() if r.kind == "enclose"})
+        scene.without = {e: _luminance_without(analysis, spec, e) for e in enclosers}
 
     _, region_mean, region_std = _group_stats(y.ravel(), rmap.region_id.ravel(), len(rmap.regions))
     regions, undetermined, deltas = [], [], np.zeros(len(rmap.regions))

@@ -22,6 +22,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from dvr_perception.errors import DVRInputError
 from dvr_perception.measures import shape, transparency, visibility
 from dvr_perception.rays import Camera, _grid
 from dvr_perception.rays.curvature import curvature_volume
@@ -347,3 +348,61 @@ def test_luminance_is_shared_by_the_measures_of_one_analysis_but_follows_the_bac
     y_b, _ = _image_luminance(b, spec, b.accumulated.shape)
     assert y_b is not y
     assert np.array_equal(y_b, y)
+
+
+# -- an enclosing layer against the view without it (enclosure="unoccluded") ---------------------
+def shell_volume():
+    """A hollow labelled box (label 1) around two opaque grey blocks (labels 2 and 3)."""
+    data = np.zeros((24, 32, 32), np.uint8)
+    labels = np.zeros(data.shape, np.uint8)
+    labels[2:20, 4:28, 4:28] = 1
+    labels[4:18, 6:26, 6:26] = 0  # hollow: walls 2 voxels thick, front wall z = 18..19
+    labels[8:14, 10:22, 8:16] = 2
+    labels[8:14, 10:22, 16:24] = 3
+    return Volume(data, labels=labels)
+
+
+def shell_spec(grey):
+    settings = RenderSettings(shade=False, sample_distance=1.0, opacity_unit_distance=4.0)
+    return StructureSpec(
+        (
+            Structure("shell", 0.5, (grey, grey, grey), label=1),
+            Structure("light", 1.0, (0.3, 0.3, 0.3), label=2),
+            Structure("dark", 1.0, (0.1, 0.1, 0.1), label=3),
+        ),
+        rendering=settings,
+    )
+
+
+@pytest.mark.parametrize("grey", [0.6, 0.9])
+def test_unoccluded_enclosure_gives_the_tap_of_what_the_layer_covers(grey):
+    """Known answer: opaque blocks of luminance 0.3 / 0.1 behind a front wall of transmittance T.
+
+    Seen through the wall each pixel is ``T * Y + c`` with ``c = grey * (1 - T)``; the blocks'
+    robust range is [0, 0.4] (mean 0.2, std 0.1), so the Michelson TAP ratio is
+    ``0.2 T / (0.2 T + c)``.  A brighter wall (0.9) reads as less transparent (Fig. 9 effect).
+    """
+    vol = shell_volume()
+    spec = shell_spec(grey)
+    cam = parallel_camera(vol)
+    a = analyze(vol, spec, cam)
+    n = samples_in(vol, cam, 18, 20, 16, 12)
+    t = (1.0 - sample_opacity(0.5)) ** n
+    expected = 0.2 * t / (0.2 * t + grey * (1.0 - t))
+    res = transparency(a, spec, enclosure="unoccluded")
+    assert res.relations[("shell", "light")]["kind"] == "enclose"
+    assert res.per_structure["shell"]["perceived_transparency"] == pytest.approx(expected, abs=0.02)
+    plain = transparency(a, spec)  # the paper's Case 2 reference: the shell's plain view
+    assert plain.per_structure["shell"]["perceived_transparency"] != pytest.approx(
+        expected, abs=0.02
+    )
+
+
+def test_unoccluded_enclosure_needs_the_cache():
+    vol = shell_volume()
+    spec = shell_spec(0.6)
+    a = analyze(vol, spec, parallel_camera(vol), build_cache=False)
+    with pytest.raises(DVRInputError, match="build_cache=True"):
+        transparency(a, spec, enclosure="unoccluded")
+    with pytest.raises(DVRInputError, match="enclosure"):
+        transparency(a, spec, enclosure="behind")
