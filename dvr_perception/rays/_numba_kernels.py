@@ -561,6 +561,16 @@ def composite(
         for row in range(c, height, nchunk):
             for col_ in range(width):
                 r = row * width + col_
+                if count[r] == 0:  # nothing on this ray: background only
+                    for ch in range(4):
+                        rgba[r, ch] = 0.0
+                    for ch in range(3):
+                        image[r, ch] = min(max(bg[ch], np.float32(0.0)), np.float32(1.0))
+                    acc[r] = 0.0
+                    cimg[r] = 0.0
+                    for s in range(vis.shape[0]):
+                        vis[s, r] = 0.0
+                    continue
                 _composite_ray(
                     r, start[r], count[r], c_lut, c_j, c_sh, c_curv, a, b, t_first, step, vol,
                     curv, ids, alpha_r, col, light, tab, shade, has_curv, ert, vacc, c, bg,
