@@ -94,6 +94,20 @@ class Params:
         rendering = replace(spec.rendering, light_direction=tuple(float(v) for v in self.light))
         return replace(spec, structures=structures, rendering=rendering)
 
+    def toward(self, other: Params, t: float) -> Params:
+        """Return the point a fraction ``t`` of the way from these parameters to ``other``.
+
+        Opacities, materials and colours are mixed linearly; the light direction is mixed and
+        renormalised.
+        """
+        light = (1.0 - t) * self.light + t * other.light
+        return Params(
+            opacities=(1.0 - t) * self.opacities + t * other.opacities,
+            lighting=(1.0 - t) * self.lighting + t * other.lighting,
+            colors=(1.0 - t) * self.colors + t * other.colors,
+            light=light / max(float(np.linalg.norm(light)), 1e-12),
+        )
+
     def same(self, other: Params) -> bool:
         return all(
             np.array_equal(getattr(self, f), getattr(other, f))

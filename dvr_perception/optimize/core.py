@@ -30,6 +30,8 @@ __all__ = ["DEFAULT_RESOLUTION", "optimize"]
 #: Slack of the re-check of the stages' guards at the user's resolution (the opacity stage
 #: checks its coverage floor there exactly, so only float rounding).
 GUARD_SLACK = 1e-6
+#: Fractions of a stage's step retried at the user's resolution when the whole step fails there.
+SHORTER = (0.5, 0.25)
 
 #: Long side, in pixels, of the camera the optimiser evaluates on (when ``resolution=None``).
 DEFAULT_RESOLUTION = 96
@@ -297,20 +299,39 @@ def optimize(
             break
         if not info["converged"]:
             status = 2
-    # the hard check at the user's resolution: undo the last stages until E and guards hold
-    kept, final_terms = len(done), full0
+    # the hard check at the user's resolution: undo the last stages until E and guards hold;
+    # a stage whose whole step fails there is first retried with its step cut to SHORTER
+    kept, final_terms, short = len(done), full0, None
     while kept:
-        stage, _, _, _, chosen, after = done[kept - 1]
+        stage, _, before, _, chosen, after = done[kept - 1]
         if chosen is not None:
+
+            def holds(t, k=kept):
+                return t["E"] <= full0["E"] + 1e-12 and all(
+                    np.all(st.guards(t, full0) <= GUARD_SLACK) for st, *_ in done[:k] if st.recheck
+                )
+
             t = after if same else full_problem.terms(chosen.params)
-            if t["E"] <= full0["E"] + 1e-12 and all(
-                np.all(st.guards(t, full0) <= GUARD_SLACK) for st, *_ in done[:kept] if st.recheck
-            ):
+            if holds(t):
                 params, final_terms = chosen.params, t
                 break
+            if not same:
+                for frac in SHORTER:
+                    p_short = before.toward(chosen.params, frac)
+                    t = full_problem.terms(p_short)
+                    if holds(t) and t["E"] < full0["E"] - 1e-12:
+                        params, final_terms, short = p_short, t, (kept - 1, frac)
+                        break
+                if short is not None:
+                    break
         kept -= 1
     else:
         params = Params.from_spec(spec)
+    if short is not None:  # record the shortened step as the stage's result
+        i, frac = short
+        stage, info, before, t_before, chosen, _ = done[i]
+        t_opt = problem.terms(params)
+        done[i] = (stage, info, before, t_before, _Shortened(params, t_opt, frac), t_opt)
     records = [_record(d, names, spec, i < kept) for i, d in enumerate(done)]
     final = _report(full_problem, params, mask is not None, final_terms)
     nfev = problem.nfev + (0 if same else full_problem.nfev)
@@ -339,10 +360,22 @@ def _pick(params, terms, best, snapshots):
     return None
 
 
+class _Shortened:
+    """A stage's step cut back to ``fraction`` of its length so that it holds at full size."""
+
+    def __init__(self, params, terms, fraction):
+        self.params, self.terms, self.fraction = params, terms, fraction
+
+
 def _record(entry, names, spec, kept) -> StageRecord:
     stage, info, before, t_before, chosen, t_after = entry
     if chosen is None:
         message = "no feasible improvement found; parameters unchanged"
+    elif kept and isinstance(chosen, _Shortened):
+        message = (
+            f"improved, with the step cut to {chosen.fraction:.0%} of its length "
+            "(the whole step broke E or a guard at the user's resolution)"
+        )
     elif kept:
         message = "improved"
     else:

@@ -109,7 +109,6 @@ KNOWN_GAPS = {
     "equalised CT head at 128 px (the stage keeps the preset)",
     "saturation series (neghip)": "the measure gives the desaturated outer layer a slightly "
     "higher perceived transparency; the paper (and the eye) say lower",
-    "colour stage lowers E_t: neghip": "at 128 px the colour stage finds no step (it does at 512)",
     "opacity stage lowers E_v: lidc_chest": "under the no-fading rule no per-structure opacity "
     "lowers E_v on the chest (see the optimiser's --floors figures)",
 }

@@ -335,3 +335,41 @@ def test_bad_input(phantom, kwargs, name):
     vol, spec, cam = phantom
     with pytest.raises(DVRInputError, match=name):
         optimize(vol, spec, cam, **kwargs)
+
+
+def test_params_toward_mixes_and_keeps_the_light_a_unit_vector(phantom):
+    _, spec, _ = phantom
+    a = Params.from_spec(spec)
+    b = a.replace(opacities=np.ones(len(spec.structures)), light=[1.0, 0.0, 0.0])
+    assert a.toward(b, 0.0).same(a)
+    assert np.allclose(a.toward(b, 1.0).opacities, 1.0)
+    half = a.toward(b, 0.5)
+    assert np.allclose(half.opacities, 0.5 * (a.opacities + 1.0))
+    assert np.linalg.norm(half.light) == pytest.approx(1.0)
+    assert half.light[0] == pytest.approx(half.light[2])  # halfway between x and the headlight z
+
+
+def test_a_step_that_fails_at_full_size_is_retried_shorter(monkeypatch, phantom):
+    """The hard check at the user's resolution keeps half a step when the whole one fails."""
+    vol, spec, cam = phantom
+    kw = {"stages": ("opacity",), "max_iter": 3, "seed": 3, "resolution": 24}
+    full = optimize(vol, spec, cam, **kw)
+    assert full.stages[0].message == "improved"
+    whole = np.array([s.render_opacity for s in full.spec.structures])
+    real_terms = Problem.terms
+
+    def terms(self, params, **kwargs):  # the whole step breaks E at full size, shorter ones not
+        t = real_terms(self, params, **kwargs)
+        if self.caches[0].camera.width == cam.width and np.allclose(params.opacities, whole):
+            t = dict(t, E=t["E"] + 10.0)
+        return t
+
+    monkeypatch.setattr(Problem, "terms", terms)
+    res = optimize(vol, spec, cam, **kw)
+    rec = res.stages[0]
+    assert rec.accepted
+    assert "cut to 50%" in rec.message
+    start = np.full(len(spec.structures), 0.3)
+    got = np.array([s.render_opacity for s in res.spec.structures])
+    assert np.allclose(got, start + 0.5 * (whole - start))
+    assert res.final["E"] < res.initial["E"]
