@@ -31,6 +31,22 @@ def _show_image(ax, image, title):
     ax.set_title(title, fontsize=8)
 
 
+def _images_over_plot(panels, title_height: float):
+    """Make a figure with a row of ``(image, title)`` panels over one wide plot; return both.
+
+    ``title_height`` (inches) leaves room for the panels' titles.
+    """
+    size = _panel(panels[0][0])
+    fig = _figure(size * len(panels) + 0.4, size + title_height + 0.1 + 3.0)
+    keys = [f"i{i}" for i in range(len(panels))]
+    mosaic = fig.subplot_mosaic(
+        [keys, ["plot"] * len(keys)], height_ratios=[size + title_height, 3.0]
+    )
+    for key, (image, title) in zip(keys, panels, strict=True):
+        _show_image(mosaic[key], image, title)
+    return fig, mosaic["plot"]
+
+
 def _show_map(ax, values, mask, title, vmax, cmap="viridis"):
     import matplotlib as mpl
 
@@ -138,20 +154,13 @@ def shape_figure(path, exp: dict) -> Path:
 def saturation_figure(path, exp: dict) -> Path:
     """Draw the four renderings side by side and perceived transparency against saturation."""
     series = exp["series"]
-    size = _panel(series[0]["_images"]["image"])
-    fig = _figure(size * len(series) + 0.4, size + 0.6 + 3.0)
-    keys = [f"i{i}" for i in range(len(series))]
-    mosaic = fig.subplot_mosaic([keys, ["plot"] * len(keys)], height_ratios=[size + 0.5, 3.0])
-    for key, p in zip(keys, series, strict=True):
-        ax = mosaic[key]
+    panels = []
+    for p in series:
         t = p["outer_transparency"]
         shown = "undetermined" if t is None else f"{t:.3f}"
-        _show_image(
-            ax,
-            p["_images"]["image"],
-            f"saturation {p['saturation_percent']} %\nperceived transparency {shown}",
-        )
-    ax = mosaic["plot"]
+        title = f"saturation {p['saturation_percent']} %\nperceived transparency {shown}"
+        panels.append((p["_images"]["image"], title))
+    fig, ax = _images_over_plot(panels, 0.5)
     xs = [p["saturation_percent"] for p in series]
     names = list(series[0]["perceived_transparency"])
     for n in names:
@@ -176,18 +185,14 @@ def saturation_figure(path, exp: dict) -> Path:
 def pipeline_figure(path, exp: dict) -> Path:
     """Draw the four images (original, after each stage) with their terms, and the term plot."""
     steps = exp["steps"]
-    size = _panel(steps[0]["_images"]["image"])
-    fig = _figure(size * len(steps) + 0.4, size + 0.7 + 3.0)
-    keys = [f"i{i}" for i in range(len(steps))]
-    mosaic = fig.subplot_mosaic([keys, ["plot"] * len(keys)], height_ratios=[size + 0.6, 3.0])
-    for key, st in zip(keys, steps, strict=True):
-        ax = mosaic[key]
-        _show_image(
-            ax,
+    panels = [
+        (
             st["_images"]["image"],
             f"{st['label']}\nE_v {st['E_v']:.3f}  E_s {st['E_s']:.3f}  E_t {st['E_t']:.3f}",
         )
-    ax = mosaic["plot"]
+        for st in steps
+    ]
+    fig, ax = _images_over_plot(panels, 0.6)
     xs = np.arange(len(steps))
     for term, colour in (("E_v", "#4c72b0"), ("E_s", "#dd8452"), ("E_t", "#55a868")):
         ax.plot(xs, [s[term] for s in steps], "o-", color=colour, label=term)

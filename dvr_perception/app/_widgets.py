@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from trame.widgets import html
+from trame.widgets import vuetify3 as v3
 
-__all__ = ["heading"]
+__all__ = ["half_button", "heading"]
 
 
 def heading(title: str, hint: str = "") -> None:
@@ -12,3 +13,9 @@ def heading(title: str, hint: str = "") -> None:
     html.Div(title, classes="text-subtitle-1 font-weight-bold mt-2")
     if hint:
         html.Div(hint, classes="text-body-2 text-medium-emphasis mb-1")
+
+
+def half_button(label: str, **props) -> None:
+    """Add a full-width button in a half-width column (two of them make a row of a panel)."""
+    with v3.VCol(cols=6):
+        v3.VBtn(label, block=True, **props)

@@ -25,7 +25,7 @@ from trame.widgets import html
 from trame.widgets import vtk as vtk_widgets
 from trame.widgets import vuetify3 as v3
 
-from dvr_perception.app._widgets import heading
+from dvr_perception.app._widgets import half_button, heading
 from dvr_perception.app.ui_lens import lens_pad, lens_panel
 from dvr_perception.app.ui_study import (
     calibration_panel,
@@ -297,26 +297,22 @@ def _optimise_panel(app) -> None:
         "zooms). Cancel keeps the best result so far.",
     )
     with v3.VRow(dense=True):
-        with v3.VCol(cols=6):
-            v3.VBtn(
-                "Optimise opacity",
-                click=(app.optimise, "['opacity']"),
-                color="primary",
-                block=True,
-                disabled=("busy",),
-                id="optimise-opacity",
-            )
-        with v3.VCol(cols=6):
-            v3.VBtn(
-                "Optimise all",
-                title="opacity, then lighting, then colour",
-                click=(app.optimise, "['all']"),
-                color="primary",
-                variant="outlined",
-                block=True,
-                disabled=("busy",),
-                id="optimise-all",
-            )
+        half_button(
+            "Optimise opacity",
+            click=(app.optimise, "['opacity']"),
+            color="primary",
+            disabled=("busy",),
+            id="optimise-opacity",
+        )
+        half_button(
+            "Optimise all",
+            title="opacity, then lighting, then colour",
+            click=(app.optimise, "['all']"),
+            color="primary",
+            variant="outlined",
+            disabled=("busy",),
+            id="optimise-all",
+        )
     html.Div("'Optimise all' also adjusts lighting and colours.", classes="text-caption")
     with html.Div(v_show="error_history_svg", classes="mt-2"):
         html.Div(

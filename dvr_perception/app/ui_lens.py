@@ -5,7 +5,7 @@ from __future__ import annotations
 from trame.widgets import html
 from trame.widgets import vuetify3 as v3
 
-from dvr_perception.app._widgets import heading
+from dvr_perception.app._widgets import half_button, heading
 
 __all__ = ["lens_pad", "lens_panel"]
 
@@ -91,24 +91,20 @@ def lens_panel(app) -> None:
         v_if="lens_rows.length",
     )
     with v3.VRow(dense=True, classes="mt-2"):
-        with v3.VCol(cols=6):
-            v3.VBtn(
-                "Refine region",
-                title="optimise opacity inside the lens",
-                click=(app.optimise, "['opacity', true]"),
-                color="primary",
-                block=True,
-                disabled=("busy || !lens_rows.length",),
-                id="refine-lens",
-            )
-        with v3.VCol(cols=6):
-            v3.VBtn(
-                "Clear region",
-                click=app.clear_lens,
-                block=True,
-                disabled=("busy || !lens",),
-                id="clear-lens",
-            )
+        half_button(
+            "Refine region",
+            title="optimise opacity inside the lens",
+            click=(app.optimise, "['opacity', true]"),
+            color="primary",
+            disabled=("busy || !lens_rows.length",),
+            id="refine-lens",
+        )
+        half_button(
+            "Clear region",
+            click=app.clear_lens,
+            disabled=("busy || !lens",),
+            id="clear-lens",
+        )
 
 
 def _outline_style(x0, y0, x1, y1, circle) -> str:

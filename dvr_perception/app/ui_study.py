@@ -5,7 +5,7 @@ from __future__ import annotations
 from trame.widgets import html
 from trame.widgets import vuetify3 as v3
 
-from dvr_perception.app._widgets import heading
+from dvr_perception.app._widgets import half_button, heading
 
 __all__ = ["calibration_panel", "calibration_screen", "ranking_panel", "ranking_screen"]
 
@@ -28,21 +28,17 @@ def calibration_panel(app) -> None:
         id="cal-file",
     )
     with v3.VRow(dense=True, classes="mt-2"):
-        with v3.VCol(cols=6):
-            v3.VBtn(
-                "Start the test",
-                click=app.start_calibration,
-                color="primary",
-                block=True,
-                id="cal-start",
-            )
-        with v3.VCol(cols=6):
-            v3.VBtn(
-                "Load saved curve",
-                click=app.load_calibration_file,
-                block=True,
-                id="cal-load",
-            )
+        half_button(
+            "Start the test",
+            click=app.start_calibration,
+            color="primary",
+            id="cal-start",
+        )
+        half_button(
+            "Load saved curve",
+            click=app.load_calibration_file,
+            id="cal-load",
+        )
     v3.VSwitch(
         label="Use my calibration in the measures",
         v_model=("use_calibration",),

@@ -299,39 +299,13 @@ def optimize(
             break
         if not info["converged"]:
             status = 2
-    # the hard check at the user's resolution: undo the last stages until E and guards hold;
-    # a stage whose whole step fails there is first retried with its step cut to SHORTER
-    kept, final_terms, short = len(done), full0, None
-    while kept:
-        stage, _, before, _, chosen, after = done[kept - 1]
-        if chosen is not None:
-
-            def holds(t, k=kept):
-                return t["E"] <= full0["E"] + 1e-12 and all(
-                    np.all(st.guards(t, full0) <= GUARD_SLACK) for st, *_ in done[:k] if st.recheck
-                )
-
-            t = after if same else full_problem.terms(chosen.params)
-            if holds(t):
-                params, final_terms = chosen.params, t
-                break
-            if not same:
-                for frac in SHORTER:
-                    p_short = before.toward(chosen.params, frac)
-                    t = full_problem.terms(p_short)
-                    if holds(t) and t["E"] < full0["E"] - 1e-12:
-                        params, final_terms, short = p_short, t, (kept - 1, frac)
-                        break
-                if short is not None:
-                    break
-        kept -= 1
-    else:
+    kept, params, final_terms, frac = _full_size_check(done, full0, full_problem, same)
+    if params is None:
         params = Params.from_spec(spec)
-    if short is not None:  # record the shortened step as the stage's result
-        i, frac = short
-        stage, info, before, t_before, chosen, _ = done[i]
+    if frac is not None:  # record the shortened step as the stage's result
+        stage, info, before, t_before, _, _ = done[kept - 1]
         t_opt = problem.terms(params)
-        done[i] = (stage, info, before, t_before, _Shortened(params, t_opt, frac), t_opt)
+        done[kept - 1] = (stage, info, before, t_before, _Shortened(params, t_opt, frac), t_opt)
     records = [_record(d, names, spec, i < kept) for i, d in enumerate(done)]
     final = _report(full_problem, params, mask is not None, final_terms)
     nfev = problem.nfev + (0 if same else full_problem.nfev)
@@ -348,6 +322,36 @@ def optimize(
         message=STATUS_MESSAGES[status],
         success=status == 0,
     )
+
+
+def _holds(t, full0, done, k) -> bool:
+    """``E`` not above the start and the re-checked guards of the first ``k`` stages held."""
+    return t["E"] <= full0["E"] + 1e-12 and all(
+        np.all(st.guards(t, full0) <= GUARD_SLACK) for st, *_ in done[:k] if st.recheck
+    )
+
+
+def _full_size_check(done, full0, full_problem, same):
+    """Run the hard check at the user's resolution: ``(kept, params, terms, fraction)``.
+
+    Stages are undone from the last until ``E`` and the guards hold at full size; a stage
+    whose whole step fails there is first retried with its step cut to each of
+    :data:`SHORTER` (``fraction``; ``None`` for a whole step).  ``params`` is ``None`` when
+    every stage is undone.
+    """
+    for kept in range(len(done), 0, -1):
+        _, _, before, _, chosen, after = done[kept - 1]
+        if chosen is None:
+            continue
+        t = after if same else full_problem.terms(chosen.params)
+        if _holds(t, full0, done, kept):
+            return kept, chosen.params, t, None
+        for frac in () if same else SHORTER:
+            p_short = before.toward(chosen.params, frac)
+            t = full_problem.terms(p_short)
+            if _holds(t, full0, done, kept) and t["E"] < full0["E"] - 1e-12:
+                return kept, p_short, t, frac
+    return 0, None, full0, None
 
 
 def _pick(params, terms, best, snapshots):

@@ -12,15 +12,6 @@ from dvr_perception.errors import DVRInputError
 from dvr_perception.rays import Camera
 
 
-@pytest.fixture
-def session(tmp_path):
-    data = tmp_path / "data"
-    data.mkdir()
-    s = Session(data, tmp_path / "exports", phantom_size=40)
-    s.load_volume(PHANTOM)
-    return s
-
-
 def test_volume_choices_list_phantom_and_volume_files(session):
     (session.data_dir / "a.nhdr").write_text("x")
     (session.data_dir / "notes.txt").write_text("x")

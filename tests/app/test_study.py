@@ -7,7 +7,6 @@ import csv
 import numpy as np
 import pytest
 
-from dvr_perception.app.session import PHANTOM, Session
 from dvr_perception.app.study import (
     RANKING_FIELDS,
     CalibrationTest,
@@ -17,15 +16,6 @@ from dvr_perception.app.study import (
 )
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.rays import Camera
-
-
-@pytest.fixture
-def session(tmp_path):
-    data = tmp_path / "data"
-    data.mkdir()
-    s = Session(data, tmp_path / "exports", phantom_size=40)
-    s.load_volume(PHANTOM)
-    return s
 
 
 def test_calibration_test_rates_every_stimulus_and_saves_a_curve(tmp_path):
