@@ -19,7 +19,7 @@ import numpy as np
 
 from benchmarks import checks
 from dvr_perception.cli.bench import _median_time
-from dvr_perception.measures import shape, transparency, visibility
+from dvr_perception.measures import covered_transmittance, shape, transparency, visibility
 from dvr_perception.optimize import optimize
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import curvature_volume
@@ -339,7 +339,10 @@ def with_saturation(color, fraction: float):
 def run_saturation(cfg: Config, name: str = "neghip", outer: str = "diffuse lobes") -> dict:
     """Measure the outer layer's perceived transparency at 100/75/50/25 % saturation.
 
-    Also runs the colour stage alone from the preset (does it lower ``E_t``?).
+    Two readings per setting: the paper's Fig. 9 one, TAP of the outer layer over what it
+    covers seen with and without it (:func:`~dvr_perception.measures.covered_transmittance`),
+    and the ``E_t`` measure's area-weighted ``alpha_t`` (Eq. 8 for overlapping layers).  Also
+    runs the colour stage alone from the preset (does it lower ``E_t``?).
     """
     volume, spec = load(cfg, name)
     cam = camera_for(volume, spec, cfg.size)
@@ -354,21 +357,32 @@ def run_saturation(cfg: Config, name: str = "neghip", outer: str = "diffuse lobe
             ),
         )
         m = measure(volume, s, cam, curv)
+        tap = covered_transmittance(analyze(volume, s, cam, curvature=curv), s, outer)
         series.append(
             {
                 "saturation_percent": pct,
                 "color": [float(c) for c in next(x.color for x in s.structures if x.name == outer)],
                 "perceived_transparency": m["perceived_transparency"],
                 "outer_transparency": m["perceived_transparency"][outer],
+                "outer_tap": None if tap.reason else tap.alpha,
+                "outer_tap_pixels": tap.pixels,
                 "E_t": m["E_t"],
                 "E_v": m["E_v"],
                 "_images": m["_images"],
             }
         )
+    xs = [p["saturation_percent"] for p in series]
+    tap_monotone = checks.monotone(
+        f"saturation series, TAP ({name}): the TAP transparency of '{outer}' over what it "
+        "covers falls as its saturation falls (paper, Fig. 9: 'based on the TAP')",
+        xs,
+        [p["outer_tap"] for p in series],
+        increasing=True,
+    )
     monotone = checks.monotone(
-        f"saturation series ({name}): perceived transparency of '{outer}' falls as its "
-        "saturation falls (paper, Fig. 9)",
-        [p["saturation_percent"] for p in series],
+        f"saturation series ({name}): perceived transparency of '{outer}' (E_t measure, Eq. 8) "
+        "falls as its saturation falls",
+        xs,
         [p["outer_transparency"] for p in series],
         increasing=True,
     )
@@ -389,6 +403,7 @@ def run_saturation(cfg: Config, name: str = "neghip", outer: str = "diffuse lobe
             "stage": _stage_record(res.stages[0]),
         },
         "checks": [
+            tap_monotone,
             monotone,
             checks.lowered(f"colour stage lowers E_t: {name}", before["E_t"], after["E_t"]),
         ],

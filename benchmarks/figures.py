@@ -156,9 +156,9 @@ def saturation_figure(path, exp: dict) -> Path:
     series = exp["series"]
     panels = []
     for p in series:
-        t = p["outer_transparency"]
+        t = p.get("outer_tap")
         shown = "undetermined" if t is None else f"{t:.3f}"
-        title = f"saturation {p['saturation_percent']} %\nperceived transparency {shown}"
+        title = f"saturation {p['saturation_percent']} %\nTAP transparency {shown}"
         panels.append((p["_images"]["image"], title))
     fig, ax = _images_over_plot(panels, 0.5)
     xs = [p["saturation_percent"] for p in series]
@@ -173,8 +173,10 @@ def saturation_figure(path, exp: dict) -> Path:
             label=n,
             linewidth=2 if n == exp["outer"] else 1,
         )
+    taps = [np.nan if p.get("outer_tap") is None else p["outer_tap"] for p in series]
+    ax.plot(xs, taps, "s-", color="black", linewidth=2, label=f"TAP {exp['outer']}")
     ax.set_xlabel(f"saturation of '{exp['outer']}' (%)", fontsize=8)
-    ax.set_ylabel("perceived transparency α_t", fontsize=8)
+    ax.set_ylabel("perceived transparency (α_t; TAP)", fontsize=8)
     ax.set_ylim(0, 1)
     ax.legend(fontsize=7)
     ax.tick_params(labelsize=7)

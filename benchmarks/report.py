@@ -301,19 +301,23 @@ def _paper_rows(s: dict) -> list[list[str]]:
         ]
     )
     sat = s["saturation"]
-    series = ", ".join(
-        f"{p['saturation_percent']} %: {_f(p['outer_transparency'])}" for p in sat["series"]
-    )
-    mono = next(ch for ch in sat["checks"] if ch["name"].startswith("saturation"))
-    rows.append(
-        [
-            "Fig. 9 outer-layer saturation 100/75/50/25 %",
-            "neghip 64³: perceived transparency of the outer layer decreased with the "
-            "saturation (inner structures less visible)",
-            f"neghip: perceived transparency of '{sat['outer']}' {series}",
-            "agrees (monotone)" if mono["passed"] else f"does not agree: {mono['detail']}",
-        ]
-    )
+    for key, what, prefix in (
+        ("outer_tap", "TAP transparency (Fig. 9 reading)", "saturation series, TAP"),
+        ("outer_transparency", "E_t measure's α_t (Eq. 8)", "saturation series ("),
+    ):
+        series = ", ".join(f"{p['saturation_percent']} %: {_f(p.get(key))}" for p in sat["series"])
+        mono = next((ch for ch in sat["checks"] if ch["name"].startswith(prefix)), None)
+        if mono is None:  # a summary written before this check existed
+            continue
+        rows.append(
+            [
+                "Fig. 9 outer-layer saturation 100/75/50/25 %",
+                "neghip 64³: perceived transparency of the outer layer decreased with the "
+                "saturation (inner structures less visible), derived 'based on the TAP'",
+                f"neghip: {what} of '{sat['outer']}' {series}",
+                "agrees (monotone)" if mono["passed"] else f"does not agree: {mono['detail']}",
+            ]
+        )
     paper_pipeline = {
         "engine": (
             "Fig. 10",
@@ -533,11 +537,17 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
     L += [
         f"neghip with the outer layer '{sat['outer']}' at saturation 100/75/50/25 % (HSV "
         "saturation set to that fraction; hue and value kept; everything else as the preset). "
-        "Perceived transparency α_t from `dvr_perception.measures.transparency` (area-weighted "
-        'over the regions where it is determined). The paper: "the perceived transparency of '
+        'The paper: "the perceived transparency of '
         "the outer layer decreased with the saturation; thus, the overlapped inner structures "
-        'became less visible" — read here as: α_t falls as the saturation falls '
-        "(100 → 25 %), i.e. it increases with saturation.",
+        'became less visible", and "based on the TAP, we can derive the perceived transparency" '
+        "— read here as: the outer layer's TAP transparency falls as the saturation falls "
+        "(100 → 25 %). Two readings are given: **TAP** = `dvr_perception.measures."
+        "covered_transmittance`, the Michelson contrast of the pixels where the outer layer "
+        "covers another layer, over the contrast of the same pixels rendered without it (Eq. 7; "
+        "the check of this experiment); **α_t** = the `E_t` measure's perceived transparency "
+        "(`dvr_perception.measures.transparency`, area-weighted over the regions where it is "
+        "determined; Eq. 8 blends Metelli with TAP there, and Metelli keeps the physical "
+        "transmittance, so it need not follow the TAP).",
         "",
     ]
     names = list(sat["series"][0]["perceived_transparency"])
@@ -545,12 +555,15 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
         [
             f"{p['saturation_percent']} %",
             "(" + ", ".join(f"{c:.2f}" for c in p["color"]) + ")",
+            _f(p.get("outer_tap")),
             *(_f(p["perceived_transparency"][k]) for k in names),
             _f(p["E_t"], 4),
         ]
         for p in sat["series"]
     ]
-    L += _table(["saturation", "outer colour", *(f"α_t {k}" for k in names), "E_t"], rows)
+    L += _table(
+        ["saturation", "outer colour", "TAP outer", *(f"α_t {k}" for k in names), "E_t"], rows
+    )
     cs = sat["colour_stage"]
     L += [
         "Expected opacities (1 − α_t wanted): "

@@ -8,8 +8,11 @@ transmittance (Metelli, Eq. 5 and 9; TAP, Eq. 6-7; their blend, Eq. 8; calibrati
 The three quality measures read a ray analysis: :func:`~.visibility.visibility` (Sec. 4.1,
 Eq. 1-2), :func:`~.shape.shape` (Sec. 4.2, Eq. 3-4) and :func:`~.transparency.transparency`
 (Sec. 4.3, Eq. 5-11); their results are the dataclasses of :mod:`~.results`.
+:func:`~.covered.covered_transmittance` is the TAP of one layer over what it covers, seen
+with and without it (the paper's Fig. 9 reading).
 """
 
+from dvr_perception.measures.covered import CoveredTransmittance, covered_transmittance
 from dvr_perception.measures.luminance import composite_luminance, luminance
 from dvr_perception.measures.psychophysics import (
     blended_transmittance,
@@ -33,6 +36,7 @@ from dvr_perception.measures.transparency import transparency
 from dvr_perception.measures.visibility import visibility
 
 __all__ = [
+    "CoveredTransmittance",
     "Region",
     "RegionMap",
     "Relation",
@@ -42,6 +46,7 @@ __all__ = [
     "blended_transmittance",
     "calibrate",
     "composite_luminance",
+    "covered_transmittance",
     "generalized_metelli",
     "layer_footprints",
     "layer_relations",

@@ -50,6 +50,7 @@ import numpy as np
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures._scene import DENOMINATOR_EPS as DENOMINATOR_EPS  # re-export
 from dvr_perception.measures._scene import _group_stats, _robust, _Scene
+from dvr_perception.measures.covered import _without as _luminance_without
 from dvr_perception.measures.psychophysics import calibrate
 from dvr_perception.measures.regions import layer_footprints, layer_relations, subregions
 from dvr_perception.measures.results import (
@@ -73,24 +74,6 @@ def _check_options(spec, contrast, calibration):
             calibrate(0.5, calibration)
         except DVRInputError as err:
             raise DVRInputError(f"calibration: {err}") from None
-
-
-def _luminance_without(analysis, spec, layer: int) -> np.ndarray:
-    """Luminance of the same view with ``layer``'s opacity 0 (from the re-evaluation cache)."""
-    from dvr_perception.rays.engine import RayCache, reevaluate
-
-    cache = getattr(analysis, "cache", None)
-    if not isinstance(cache, RayCache):
-        raise DVRInputError(
-            "enclosure='unoccluded' needs the analysis's re-evaluation cache "
-            "(analyze(..., build_cache=True))"
-        )
-    ops = [float(s.render_opacity) for s in spec.structures]
-    ops[layer] = 0.0
-    colors = [tuple(s.color) for s in spec.structures]
-    other = reevaluate(cache, opacities=ops, colors=colors, background=spec.background)
-    y, _ = _image_luminance(other, spec, analysis.accumulated.shape)
-    return y
 
 
 def transparency(

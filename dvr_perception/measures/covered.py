@@ -1,0 +1,146 @@
+"""TAP transmittance of one layer over what it covers, seen with and without it (paper, Fig. 9).
+
+The paper's colour experiment (Sec. 7, Fig. 9) derives the outer layer's perceived
+transparency "based on the TAP": the contrast of what lies behind the layer, seen through it,
+relative to the contrast of the same things seen plainly (Eq. 6-7).  In a volume rendering the
+plain view of an *enclosed* or *overlapped* structure rarely exists as a region of the image, so
+:func:`covered_transmittance` renders it: the layer's covered pixels ``P`` (where the layer and
+at least one other layer are present) are compared with the same pixels re-composited from the
+analysis's cache with the layer's opacity set to 0 (``A``).  This is the reading that
+``transparency(..., enclosure="unoccluded")`` uses for enclosing layers, offered for any layer;
+``E_t`` itself is unchanged.
+
+A brighter layer adds the same luminance to every covered pixel, so the Michelson contrast of
+``P`` falls and the layer reads as *less* transparent, while the luminance range (Eq. 6) and
+Metelli's ratio (Eq. 5) keep the physical transmittance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dvr_perception.errors import DVRInputError
+from dvr_perception.measures._scene import DENOMINATOR_EPS
+from dvr_perception.measures.psychophysics import luminance_range, tap_transmittance
+from dvr_perception.measures.regions import layer_footprints
+from dvr_perception.measures.results import _accumulated, _image_luminance, _names, _visible
+
+__all__ = ["CoveredTransmittance", "covered_transmittance"]
+
+
+@dataclass(frozen=True)
+class CoveredTransmittance:
+    """Result of :func:`covered_transmittance`.
+
+    Attributes
+    ----------
+    structure : str
+        The layer.
+    alpha : float
+        TAP transmittance ``C(P) / C(A)`` (not clipped); NaN when undetermined.
+    pixels : int
+        Number of covered pixels ``P``.
+    contrast : str
+        ``"michelson"`` (Eq. 7) or ``"range"`` (Eq. 6).
+    reason : str or None
+        Why ``alpha`` is undetermined, else ``None``.
+    """
+
+    structure: str
+    alpha: float
+    pixels: int
+    contrast: str
+    reason: str | None = None
+
+
+def _without(analysis, spec, layer: int) -> np.ndarray:
+    """Luminance of the same view with ``layer``'s opacity 0 (from the re-evaluation cache)."""
+    from dvr_perception.rays.engine import RayCache, reevaluate
+
+    cache = getattr(analysis, "cache", None)
+    if not isinstance(cache, RayCache):
+        raise DVRInputError(
+            "analysis: the view without a layer needs the analysis's re-evaluation cache "
+            "(analyze(..., build_cache=True))"
+        )
+    ops = [float(s.render_opacity) for s in spec.structures]
+    ops[layer] = 0.0
+    colors = [tuple(s.color) for s in spec.structures]
+    other = reevaluate(cache, opacities=ops, colors=colors, background=spec.background)
+    y, _ = _image_luminance(other, spec, analysis.accumulated.shape)
+    return y
+
+
+def covered_transmittance(
+    analysis, spec, structure: str, *, threshold: float = 0.05, contrast: str = "michelson"
+) -> CoveredTransmittance:
+    """TAP transmittance of ``structure`` over the layers it covers (see the module docstring).
+
+    Parameters
+    ----------
+    analysis : RayAnalysis
+        An engine analysis made with ``build_cache=True``.
+    spec : StructureSpec
+        The spec of the analysis (names must match; its background enters the luminance).
+    structure : str
+        Name of the layer.
+    threshold : float, optional
+        Footprint threshold of :func:`~.regions.layer_footprints` (default 0.05, as
+        :func:`~.transparency.transparency`).
+    contrast : {"michelson", "range"}, optional
+        TAP contrast (default Michelson, Eq. 7).
+
+    Returns
+    -------
+    CoveredTransmittance
+
+    Raises
+    ------
+    DVRInputError
+        If ``structure`` is not a structure of ``spec``, ``contrast`` is unknown or the analysis
+        has no re-evaluation cache.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from dvr_perception.rays import Camera
+    >>> from dvr_perception.rays.engine import analyze
+    >>> from dvr_perception.structures import Structure, StructureSpec
+    >>> from dvr_perception.structures.spec import RenderSettings
+    >>> from dvr_perception.volume import Volume
+    >>> lab = np.zeros((12, 16, 16), np.uint8)
+    >>> lab[2:6, 2:14, 2:8], lab[2:6, 2:14, 8:14], lab[8:10, 1:15, 1:15] = 2, 3, 1
+    >>> spec = StructureSpec((Structure("veil", 0.3, (0.8, 0.8, 0.8), label=1),
+    ...                       Structure("light", 1.0, (0.4, 0.4, 0.4), label=2),
+    ...                       Structure("dark", 1.0, (0.1, 0.1, 0.1), label=3)),
+    ...                      rendering=RenderSettings(shade=False))
+    >>> vol = Volume(np.zeros(lab.shape, np.uint8), labels=lab)
+    >>> a = analyze(vol, spec, Camera.from_view(vol.bounds, width=32, height=32))
+    >>> res = covered_transmittance(a, spec, "veil")
+    >>> res.pixels > 0, 0.0 < res.alpha < 1.0
+    (True, True)
+    """
+    if contrast not in ("michelson", "range"):
+        raise DVRInputError(f"contrast must be 'michelson' or 'range', got {contrast!r}")
+    accumulated = _accumulated(analysis)
+    visible = _visible(analysis, accumulated)
+    names = _names(analysis, spec, visible.shape[0])
+    if structure not in names:
+        raise DVRInputError(f"structure: expected one of {list(names)}, got {structure!r}")
+    k = names.index(structure)
+    fp = layer_footprints(visible, threshold=threshold)
+    covered = fp[k] & np.delete(fp, k, axis=0).any(axis=0)
+    n = int(np.count_nonzero(covered))
+    if n == 0:
+        why = f"no pixel shows {structure!r} over another layer"
+        return CoveredTransmittance(structure, float("nan"), 0, contrast, why)
+    lum_a = _without(analysis, spec, k)[covered]
+    y, _ = _image_luminance(analysis, spec, accumulated.shape)
+    lo, hi = luminance_range(lum_a)
+    if hi - lo < DENOMINATOR_EPS:
+        why = f"what {structure!r} covers has no luminance contrast without it"
+        return CoveredTransmittance(structure, float("nan"), n, contrast, why)
+    alpha = tap_transmittance(y[covered], lum_a, contrast=contrast)
+    return CoveredTransmittance(structure, float(alpha), n, contrast)
