@@ -20,6 +20,7 @@ import pytest
 
 from dvr_perception.cli.pvbatch import virtual_display
 from dvr_perception.errors import DVRInputError
+from tests.plugin.conftest import CROSS_ENV_ABS
 
 REPO = Path(__file__).resolve().parents[2]
 PLUGIN = REPO / "plugin" / "dvr_perception_plugin.py"
@@ -146,7 +147,7 @@ def test_state_files_load_with_the_data_directory_and_update(
             for k, v in g["E"].items():
                 assert v is not None, (state, k)
                 assert math.isfinite(v), (state, k, v)
-                assert v == pytest.approx(expected[k], abs=1e-6), (state, k)
+                assert v == pytest.approx(expected[k], abs=CROSS_ENV_ABS), (state, k)
             assert g["views"] == ["RenderView", "RenderView", "SpreadSheetView"], state
             assert g["representation"] == ["Volume"], state
             # the preset's colour map: one node per structure edge, not ParaView's default
