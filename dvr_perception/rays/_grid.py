@@ -23,10 +23,12 @@ import numpy as np
 from dvr_perception.errors import DVRInputError
 
 __all__ = [
+    "BLOCK",
     "CELL_EMPTY",
     "CELL_MAX_DISTANCE",
     "CELL_MIXED",
     "ZERO_CODE",
+    "block_map",
     "camera_pack",
     "cell_map",
     "clipping_range",
@@ -296,6 +298,43 @@ def cell_map(
     for k in old[: max(len(old) - _CELL_MAPS_KEPT + 1, 0)]:
         del memo[k]
     memo[key] = out
+    return out
+
+
+#: Side of the blocks of :func:`block_map`, in cells.
+BLOCK = 4
+
+
+def block_map(volume, cells: np.ndarray) -> np.ndarray:
+    """Empty-space distance per block of ``BLOCK**3`` cells (uint8 ``[z, y, x]``; memoised).
+
+    0 for a block with a cell that is not :data:`CELL_EMPTY` in ``cells`` (:func:`cell_map`);
+    for an all-empty block, the chessboard distance ``d`` (in blocks, at most 255) to the
+    nearest other block, so every block within ``d - 1`` blocks on each axis is empty too.
+    Small enough to stay in the processor's cache where the cell map is not: the walk behind
+    early ray termination reads it instead of the cell map.
+    """
+    key = ("blocks", id(cells))
+    memo = _store(volume)
+    hit = memo.get(key)
+    if hit is not None and hit[0]() is cells:
+        return hit[1]
+    from scipy import ndimage
+
+    c = (cells[:-1, :-1, :-1] & 0xFF) == CELL_EMPTY  # the last plane of each axis: no cells
+    pad = [(0, -n % BLOCK) for n in c.shape]
+    c = np.pad(c, pad, constant_values=True)
+    bz, by, bx = (n // BLOCK for n in c.shape)
+    empty = c.reshape(bz, BLOCK, by, BLOCK, bx, BLOCK).all(axis=(1, 3, 5))
+    if empty.all():
+        dist = np.full(empty.shape, 255, np.int64)
+    else:
+        dist = ndimage.distance_transform_cdt(empty, metric="chessboard")
+    out = np.minimum(dist, 255).astype(np.uint8)
+    old = [k for k in memo if isinstance(k, tuple) and k and k[0] == "blocks"]
+    for k in old[: max(len(old) - _CELL_MAPS_KEPT + 1, 0)]:
+        del memo[k]
+    memo[key] = (weakref.ref(cells), out)
     return out
 
 

@@ -1,14 +1,16 @@
 """numba kernels of the ray-analysis engine (see :mod:`dvr_perception.rays.engine`).
 
-Kernels, parallel over chunks of interleaved image rows:
+Kernels, parallel over chunks of image tiles (:func:`dvr_perception.rays.engine.ray_order`):
 
 * :func:`walk` marches every ray through the voxel records (table index, and VTK's encoded
   normal when shading) at VTK's sample positions and composites it until early ray
   termination; :func:`_tail` goes on to the end of the ray reading only the compact table
   index, since ``present`` and the occlusion-free ``assigned`` need every sample.  Both look
-  up each sample's cell in :func:`_grid.cell_map` first: an empty cell makes the ray jump as
-  far as its empty-space distance allows, a plateau cell gives the table entry without
-  interpolating the 8 corners.  With ``build`` the walk packs one cache entry per sample with
+  up each sample's block of 4^3 cells in :func:`_grid.block_map` first (small enough to stay
+  in the processor's cache): far from anything the ray jumps by whole blocks.  Otherwise the
+  sample's cell in :func:`_grid.cell_map`: an empty cell makes the ray jump as far as its
+  empty-space distance allows, a plateau cell gives the table entry without interpolating
+  the 8 corners.  With ``build`` the walk packs one cache entry per sample with
   membership > 0 (table index, sample index, shading and curvature) into its chunk's region.
 * Shading (:func:`_shade_at`) is VTK's: the shading-table entries of the 8 corners' normal codes
   are interpolated trilinearly (lit diffuse cosine and specular power term, stored per entry as
@@ -19,7 +21,7 @@ Kernels, parallel over chunks of interleaved image rows:
   the first time a re-evaluation reaches them; :func:`invalidate` marks all shading so after
   a change of light.
   Sample positions are recomputed bit-identically from the sample index (no fp contraction).
-* :func:`segments` sets up every pixel's ray; :func:`compact` packs the chunks' entries.
+* :func:`segments` sets up every pixel's ray; :func:`compact` packs the entries in pixel order.
 
 Both compositing paths use the same quantised shading and the same update, so an
 analysis composited from the cache equals one composited during the walk.
@@ -47,6 +49,8 @@ _IQS = 1.0 / 65534.0
 _CELL_EMPTY = 0
 _CELL_MIXED = 255
 _LOW = np.uint16(0xFF)
+#: Side of :func:`_grid.block_map`'s blocks (= ``_grid.BLOCK``, tested; ``>> 2`` below).
+_BLOCK = 4
 _HIGH = np.uint16(8)
 
 
@@ -186,14 +190,17 @@ def _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz):
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
-def _tail(r, tix, cells, rep, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n, step, ids,
-          memb, alpha_w, shade, has_curv, build, base, cnt, walked, bits, asg, out):  # fmt: skip
+def _tail(r, tix, cells, blocks, rep, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n, step,
+          ids, memb, alpha_w, shade, has_curv, build, base, cnt, walked, bits, asg,
+          out):  # fmt: skip
     """Walk the rest of a ray after early ray termination: only each sample's table index.
 
     Accumulates the occlusion-free ``asg`` and the ``present`` bits and, with ``build``, writes
     cache entries whose shading and curvature are left unset.  ``tix`` is the compact table
     index volume (uint8 when the table has at most 256 entries): a quarter of the memory
-    traffic of the voxel records.
+    traffic of the voxel records.  Far from anything, the small block map
+    (:func:`_grid.block_map`, which stays in the processor's cache) gives longer jumps than
+    the cell map.
     """
     c_lut, c_j, c_sh, c_curv = out
     lab_end = (lab_base if lab_base >= 0 else len(ids)) - 1
@@ -202,11 +209,16 @@ def _tail(r, tix, cells, rep, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j,
     cf = cells.reshape(cells.size)
     nxy = nx * ny
     inv = _jump_scale(bx, by, bz, step)
+    binv = inv * _BLOCK
     while j < n:
         px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz)
+        walked += 1
+        d = blocks[z >> 2, y >> 2, x >> 2]
+        if d > 1:
+            j += max(int((d - 1) * binv), 1)
+            continue
         o = z * nxy + y * nx + x
         cl = cf[o]
-        walked += 1
         if cl & _LOW == _CELL_EMPTY:
             j += max(int(((cl >> _HIGH) - 1) * inv), 1)
             continue
@@ -276,7 +288,7 @@ def _walk_ray(
 ):  # fmt: skip
     """Walk one ray, compositing until early ray termination.
 
-    ``maps`` is ``(tix, cells, rep, lab, lab_base)`` (see :func:`walk`; one tuple because a
+    ``maps`` is ``(tix, cells, blocks, rep, lab, lab_base)`` (see :func:`walk`; one tuple because a
     call with more than 30 arguments becomes ``*args``, which numba cannot inline).
 
     ``vol`` holds the table index per voxel (low 16 bits) and, when shading, the normal code
@@ -285,7 +297,7 @@ def _walk_ray(
     (-1) for samples that compositing did not reach).
     """
     c_lut, c_j, c_sh, c_curv = out
-    tix, cells, rep, lab, lab_base = maps
+    tix, cells, blocks, rep, lab, lab_base = maps
     lab_end = (lab_base if lab_base >= 0 else len(ids)) - 1
     nz, ny, nx = vol.shape
     volf = vol.reshape(vol.size)
@@ -308,11 +320,16 @@ def _walk_ray(
     den = 0.0
     j = 0
     inv = _jump_scale(bx, by, bz, step)
+    binv = inv * _BLOCK
     while j < n and alive:
         px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz)
+        walked += 1
+        d = blocks[z >> 2, y >> 2, x >> 2]
+        if d > 1:
+            j += max(int((d - 1) * binv), 1)
+            continue
         o = np.uint64(z * nxy + y * nx + x)
         cl = cf[o]
-        walked += 1
         if cl & _LOW == _CELL_EMPTY:
             j += max(int(((cl >> _HIGH) - 1) * inv), 1)
             continue
@@ -387,8 +404,8 @@ def _walk_ray(
             alive = False
     if j < n:
         cnt, walked, bits = _tail(
-            r, tix, cells, rep, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n, step, ids,
-            memb, alpha_w, shade, has_curv, build, base, cnt, walked, bits, asg, out,
+            r, tix, cells, blocks, rep, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n, step,
+            ids, memb, alpha_w, shade, has_curv, build, base, cnt, walked, bits, asg, out,
         )  # fmt: skip
     present[r] = bits
     rgba[r, 0] = min(cr, 1.0)
@@ -481,73 +498,73 @@ def _composite_ray(
 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def walk(
-    vol, tix, cells, rep, lab, lab_base, curv, a, b, t_first, nsteps, step, height, width, nchunk,
-    ids, memb, alpha_r, alpha_w, col, light, tab, shade, has_curv, build, chunk_base, ert, rgba,
-    vis, asg, present, cimg, c_lut, c_j, c_sh, c_curv, start, count, chunk_end, walked,
+    vol, tix, cells, blocks, rep, lab, lab_base, curv, a, b, t_first, nsteps, step, order,
+    chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light, tab, shade, has_curv, build,
+    chunk_base, ert, rgba, vis, asg, present, cimg, c_lut, c_j, c_sh, c_curv, start, count,
+    chunk_end, walked,
 ):  # fmt: skip
     """March and composite all rays; see the module docstring.  Outputs are flat per ray.
 
-    ``tix`` and ``cells``: :func:`_grid.compact_index` and :func:`_grid.cell_map`; ``rep``: a
+    ``tix``, ``cells`` and ``blocks``: :func:`_grid.compact_index`, :func:`_grid.cell_map` and
+    :func:`_grid.block_map`; ``order`` and ``chunk_ptr``: :func:`engine.ray_order`; ``rep``: a
     plateau table entry per structure; ``lab``: :func:`_grid.label_map` whose value ``v > 0``
     means table entry ``lab_base + v - 1`` (``lab_base`` -1: no label structures).
 
-    Chunk ``c`` (rows ``c, c + nchunk, ...``) packs its rays' entries from ``chunk_base[c]``
-    on and records its end in ``chunk_end[c]``.
+    Chunk ``c`` (rays ``order[chunk_ptr[c]:chunk_ptr[c + 1]]``, whole tiles of pixels) packs
+    their entries from ``chunk_base[c]`` on and records its end in ``chunk_end[c]``.
     """
-    maps = (tix, cells, rep, lab, lab_base)
+    maps = (tix, cells, blocks, rep, lab, lab_base)
     for c in prange(nchunk):
         e = chunk_base[c]
-        for row in range(c, height, nchunk):
-            for col_ in range(width):
-                r = row * width + col_
-                start[r] = e
-                count[r] = 0
-                for s in range(vis.shape[0]):
-                    vis[s, r] = 0.0
-                    asg[s, r] = 0.0
-                if nsteps[r] == 0:
-                    rgba[r, 0] = 0.0
-                    rgba[r, 1] = 0.0
-                    rgba[r, 2] = 0.0
-                    rgba[r, 3] = 0.0
-                    cimg[r] = 0.0
-                    present[r] = 0
-                    walked[r] = 0
-                    continue
-                cnt, wk = _walk_ray(
-                    r, vol, maps, curv, a, b, t_first[r], nsteps[r], step, ids, memb,
-                    alpha_r, alpha_w, col, light, tab, shade, has_curv, build, e, ert,
-                    rgba, vis, asg, present, cimg, (c_lut, c_j, c_sh, c_curv),
-                )  # fmt: skip
-                count[r] = cnt
-                walked[r] = wk
-                e += cnt
+        for i in range(chunk_ptr[c], chunk_ptr[c + 1]):
+            r = order[i]
+            start[r] = e
+            count[r] = 0
+            for s in range(vis.shape[0]):
+                vis[s, r] = 0.0
+                asg[s, r] = 0.0
+            if nsteps[r] == 0:
+                rgba[r, 0] = 0.0
+                rgba[r, 1] = 0.0
+                rgba[r, 2] = 0.0
+                rgba[r, 3] = 0.0
+                cimg[r] = 0.0
+                present[r] = 0
+                walked[r] = 0
+                continue
+            cnt, wk = _walk_ray(
+                r, vol, maps, curv, a, b, t_first[r], nsteps[r], step, ids, memb,
+                alpha_r, alpha_w, col, light, tab, shade, has_curv, build, e, ert,
+                rgba, vis, asg, present, cimg, (c_lut, c_j, c_sh, c_curv),
+            )  # fmt: skip
+            count[r] = cnt
+            walked[r] = wk
+            e += cnt
         chunk_end[c] = e
 
 
 @njit(parallel=True, cache=True)
-def compact(height, width, nchunk, chunk_base, chunk_end, dest, start, src_lut, src_j, src_sh,
-            src_curv, lut, j_, sh, curv, shade, has_curv):  # fmt: skip
-    """Move each chunk's packed entries to ``dest[c]`` and shift its rays' ``start``."""
+def compact(order, chunk_ptr, nchunk, start, count, dest, src_lut, src_j, src_sh, src_curv, lut,
+            j_, sh, curv, shade, has_curv):  # fmt: skip
+    """Copy every ray's entries from ``start[r]`` to ``dest[r]`` (rays in ``order``'s chunks)."""
     for c in prange(nchunk):
-        s0 = chunk_base[c]
-        d0 = dest[c]
-        for i in range(chunk_end[c] - s0):
-            lut[d0 + i] = src_lut[s0 + i]
-            j_[d0 + i] = src_j[s0 + i]
-            if shade:
-                sh[d0 + i, 0] = src_sh[s0 + i, 0]
-                sh[d0 + i, 1] = src_sh[s0 + i, 1]
-            if has_curv:
-                curv[d0 + i] = src_curv[s0 + i]
-        for row in range(c, height, nchunk):
-            for col_ in range(width):
-                start[row * width + col_] += d0 - s0
+        for i in range(chunk_ptr[c], chunk_ptr[c + 1]):
+            r = order[i]
+            s0 = start[r]
+            d0 = dest[r]
+            for q in range(count[r]):
+                lut[d0 + q] = src_lut[s0 + q]
+                j_[d0 + q] = src_j[s0 + q]
+                if shade:
+                    sh[d0 + q, 0] = src_sh[s0 + q, 0]
+                    sh[d0 + q, 1] = src_sh[s0 + q, 1]
+                if has_curv:
+                    curv[d0 + q] = src_curv[s0 + q]
 
 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def composite(
-    start, count, c_lut, c_j, c_sh, c_curv, a, b, t_first, step, vol, curv, height, width,
+    start, count, c_lut, c_j, c_sh, c_curv, a, b, t_first, step, vol, curv, order, chunk_ptr,
     nchunk, ids, alpha_r, col, light, tab, shade, has_curv, ert, out,
 ):  # fmt: skip
     """Front-to-back compositing of cached entries with early ray termination.
@@ -558,24 +575,23 @@ def composite(
     bg, rgba, image, acc, vis, cimg = out  # unpacked here: no reference counting per ray
     vacc = np.empty((nchunk, max(vis.shape[0], 8)), np.float64)  # a cache line per chunk
     for c in prange(nchunk):
-        for row in range(c, height, nchunk):
-            for col_ in range(width):
-                r = row * width + col_
-                if count[r] == 0:  # nothing on this ray: background only
-                    for ch in range(4):
-                        rgba[r, ch] = 0.0
-                    for ch in range(3):
-                        image[r, ch] = min(max(bg[ch], np.float32(0.0)), np.float32(1.0))
-                    acc[r] = 0.0
-                    cimg[r] = 0.0
-                    for s in range(vis.shape[0]):
-                        vis[s, r] = 0.0
-                    continue
-                _composite_ray(
-                    r, start[r], count[r], c_lut, c_j, c_sh, c_curv, a, b, t_first, step, vol,
-                    curv, ids, alpha_r, col, light, tab, shade, has_curv, ert, vacc, c, bg,
-                    rgba, image, acc, vis, cimg,
-                )  # fmt: skip
+        for i in range(chunk_ptr[c], chunk_ptr[c + 1]):
+            r = order[i]
+            if count[r] == 0:  # nothing on this ray: background only
+                for ch in range(4):
+                    rgba[r, ch] = 0.0
+                for ch in range(3):
+                    image[r, ch] = min(max(bg[ch], np.float32(0.0)), np.float32(1.0))
+                acc[r] = 0.0
+                cimg[r] = 0.0
+                for s in range(vis.shape[0]):
+                    vis[s, r] = 0.0
+                continue
+            _composite_ray(
+                r, start[r], count[r], c_lut, c_j, c_sh, c_curv, a, b, t_first, step, vol,
+                curv, ids, alpha_r, col, light, tab, shade, has_curv, ert, vacc, c, bg,
+                rgba, image, acc, vis, cimg,
+            )  # fmt: skip
 
 
 @njit(parallel=True, cache=True)

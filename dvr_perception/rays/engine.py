@@ -347,6 +347,54 @@ def analyze(
             _SCRATCH_LOCK.release()
 
 
+#: The walk casts rays in tiles of this many pixels (rows, columns): neighbouring rays meet
+#: the same voxels, so they stay in the processor's cache.
+TILE = (16, 16)
+#: Tiles are dealt round-robin to this many chunks (parallel work items, balanced load).
+_CHUNKS = 64
+_ORDERS: dict = {}
+
+
+def ray_order(height: int, width: int, *, tile=TILE) -> tuple[np.ndarray, np.ndarray]:
+    """Return the order in which the numba kernels visit the rays (memoised, read-only).
+
+    Tiles of ``tile = (rows, columns)`` pixels, row by row inside a tile, are dealt
+    round-robin to at most 64 chunks; chunk ``c`` visits ``order[chunk_ptr[c]:chunk_ptr[c +
+    1]]`` (flat pixel indices, every pixel exactly once).  The walk uses square tiles
+    (:data:`TILE`); compositing from the cache uses whole image rows (``tile=(1, width)``),
+    the order in which the cache entries are stored.
+
+    Examples
+    --------
+    >>> order, ptr = ray_order(3, 20)
+    >>> len(ptr) - 1, sorted(order.tolist()) == list(range(60))
+    (2, True)
+    >>> order[: ptr[1]].tolist()[:18]
+    [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 20, 21]
+    >>> ray_order(3, 20, tile=(1, 20))[0][:4].tolist()
+    [0, 1, 2, 3]
+    """
+    th, tw = (max(int(v), 1) for v in tile)
+    key = (int(height), int(width), th, tw)
+    hit = _ORDERS.get(key)
+    if hit is not None:
+        return hit
+    rows = np.arange(height * width, dtype=np.int64).reshape(height, width)
+    ty, tx = -(-height // th), -(-width // tw)
+    tiles = [rows[y * th : (y + 1) * th, x * tw : (x + 1) * tw].ravel()
+             for y in range(ty) for x in range(tx)]  # fmt: skip
+    nchunk = max(min(len(tiles), _CHUNKS), 1)
+    parts = [np.concatenate(tiles[c::nchunk]) for c in range(nchunk)]
+    order = np.ascontiguousarray(np.concatenate(parts))
+    chunk_ptr = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
+    order.flags.writeable = False
+    chunk_ptr.flags.writeable = False
+    if len(_ORDERS) >= 8:
+        _ORDERS.pop(next(iter(_ORDERS)), None)
+    _ORDERS[key] = (order, chunk_ptr)
+    return order, chunk_ptr
+
+
 _SCRATCH: dict = {}
 _SCRATCH_LOCK = threading.Lock()
 
@@ -362,7 +410,8 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     tix = _grid.compact_index(volume, idx)
     cells = _grid.cell_map(volume, idx, ids, memb, lab[0] if lab[1] >= 0 else None)
     rep = _plateau_entries(ids, memb, k)
-    nchunk = max(min(h, 64), 1)
+    order, chunk_ptr = ray_order(h, w)
+    nchunk = len(chunk_ptr) - 1
     # every ray's outputs are written by the kernel: no zeroing needed
     rgba = _scratch("rgba", nrays, (4,), np.float64, locked)
     vis = _scratch("vis", k * nrays, (), np.float64, locked).reshape(k, nrays)
@@ -372,9 +421,8 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     start = np.empty(nrays, np.int64) if build else _scratch("start", nrays, (), np.int64, locked)
     count = np.empty(nrays, np.int64) if build else _scratch("count", nrays, (), np.int64, locked)
     walked = _scratch("walked", nrays, (), np.int64, locked)
-    per_chunk = n.reshape(h, w).sum(axis=1, dtype=np.int64)
-    per_chunk = np.bincount(np.arange(h) % nchunk, weights=per_chunk, minlength=nchunk)
-    chunk_base = np.concatenate([[0], np.cumsum(per_chunk.astype(np.int64))])
+    per_chunk = np.add.reduceat(n[order].astype(np.int64), chunk_ptr[:-1])
+    chunk_base = np.concatenate([[0], np.cumsum(per_chunk)])
     total = int(chunk_base[-1]) if build else 1
     chunk_base = np.ascontiguousarray(chunk_base[:-1])
     chunk_end = np.zeros(nchunk, np.int64)
@@ -383,8 +431,8 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     src_j = _scratch("j", cap if build else 1, (), np.int32, locked)
     src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked)
     src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked)
-    maps = (tix, cells, rep, *lab)
-    return _walk_compact(nk, vol, maps, cv, seg, step, h, w, nchunk, memb, alpha_w, args,
+    maps = (tix, cells, _grid.block_map(volume, cells), rep, *lab)
+    return _walk_compact(nk, vol, maps, cv, seg, step, (h, w), memb, alpha_w, args,
                          build, chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j,
                          src_sh, src_curv, start, count, chunk_end, walked)  # fmt: skip
 
@@ -426,32 +474,38 @@ def _scratch(name, n, tail, dtype, shared):
     return a[:n]
 
 
-def _walk_compact(nk, vol, maps, cv, seg, step, h, w, nchunk, memb, alpha_w, args, build,
+def _walk_compact(nk, vol, maps, cv, seg, step, out_shape, memb, alpha_w, args, build,
                   chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j, src_sh, src_curv,
                   start, count, chunk_end, walked):  # fmt: skip
     ids, alpha_r, cols, light, tab, shade, has_curv, ert = args
     n = seg["n"]
+    order, chunk_ptr = ray_order(*out_shape)
+    nchunk = len(chunk_ptr) - 1
     nk.walk(
-        vol, *maps, cv, seg["a"], seg["b"], seg["t"], n, step, h, w, nchunk, ids, memb,
-        alpha_r, alpha_w, cols, light, tab, shade, has_curv, build, chunk_base, ert, rgba, vis,
-        asg, present, cimg, src_lut, src_j, src_sh, src_curv, start, count, chunk_end, walked,
+        vol, *maps, cv, seg["a"], seg["b"], seg["t"], n, step, order, chunk_ptr, nchunk, ids,
+        memb, alpha_r, alpha_w, cols, light, tab, shade, has_curv, build, chunk_base, ert, rgba,
+        vis, asg, present, cimg, src_lut, src_j, src_sh, src_curv, start, count, chunk_end, walked,
     )  # fmt: skip
     entries = None
     if build:
-        sizes = chunk_end - chunk_base
-        dest = np.ascontiguousarray(np.concatenate([[0], np.cumsum(sizes)])[:-1])
-        e = int(sizes.sum())
+        # entries move to row-major pixel order, the order compositing reads them in
+        dest = np.empty(len(count), np.int64)
+        dest[0] = 0
+        np.cumsum(count[:-1], out=dest[1:])
+        e = int(dest[-1] + count[-1])
         entries = {
             "lut": np.empty(e, np.uint16),
             "steps": np.empty(e, np.int32),
             "shading": np.empty((e if shade else 0, 2), np.uint16),
             "curvature": np.empty(e if has_curv else 0, np.float32),
         }
+        rows, row_ptr = ray_order(*out_shape, tile=(1, out_shape[1]))
         nk.compact(
-            h, w, nchunk, chunk_base, chunk_end, dest, start, src_lut, src_j, src_sh, src_curv,
+            rows, row_ptr, len(row_ptr) - 1, start, count, dest, src_lut, src_j, src_sh, src_curv,
             entries["lut"], entries["steps"], entries["shading"], entries["curvature"], shade,
             has_curv,
         )  # fmt: skip
+        start = dest
     return rgba, vis, asg, present, cimg, start, count, entries, int(walked.sum())
 
 
@@ -546,10 +600,11 @@ def reevaluate(
             np.empty((k, h * w), np.float32),
             np.empty(h * w, np.float32),
         )
+        order, chunk_ptr = ray_order(h, w, tile=(1, w))
         nk.composite(
             cache.start, cache.count, cache.lut, z["steps"], cache.shading, cache.curvature,
-            z["a"], z["b"], z["t"], z["step"], z["volume"], z["curvature_volume"], h,
-            w, max(min(h, 64), 1), cache.ids, alpha_r, cols, light, tab, shade, has_curv,
+            z["a"], z["b"], z["t"], z["step"], z["volume"], z["curvature_volume"], order,
+            chunk_ptr, len(chunk_ptr) - 1, cache.ids, alpha_r, cols, light, tab, shade, has_curv,
             _tables.ERT, out,
         )  # fmt: skip
         stats = {"backend": cache.backend, "rays": h * w, "reevaluated": True}
