@@ -7,6 +7,7 @@ luminance, so every Metelli (Eq. 5, 9) and TAP (Eq. 6-7) term is computed once p
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,9 +55,9 @@ def _contrast(lo: float, hi: float, kind: str) -> float:
 
 def _blend(met: float, tap: float, lum_range: float) -> float:
     """Scalar :func:`~.psychophysics.blended_transmittance` (Eq. 8) without input checks."""
-    if np.isnan(met):
+    if math.isnan(met):
         return tap
-    if np.isnan(tap):
+    if math.isnan(tap):
         return met
     h = 1.0 - lum_range
     return h * met + (1.0 - h) * tap
@@ -156,7 +157,7 @@ class _Scene:
             return _Estimate(reason=head + "no pixel shows it with a layer it encloses")
         if self.without is not None:  # enclosure="unoccluded": the same pixels without e
             alpha = self.tap(lum_p, self.without[e][covered])
-            if np.isnan(alpha):
+            if math.isnan(alpha):
                 return _Estimate(
                     reason=head + "what it covers has no luminance contrast without it "
                     "(TAP denominator ~0)"
@@ -166,7 +167,7 @@ class _Scene:
         if why is not None:
             return _Estimate(reason=head + why)
         alpha = self.tap(lum_p, self.y[self.mask(plain)])
-        if np.isnan(alpha):
+        if math.isnan(alpha):
             return _Estimate(
                 reason=head + f"its plain view {self.label(plain)} has no luminance contrast "
                 "(TAP denominator ~0)"
@@ -189,7 +190,7 @@ class _Scene:
                 )
                 tap = self.tap_sets(p, a)
                 why = None
-                if np.isnan(met) and np.isnan(tap):
+                if math.isnan(met) and math.isnan(tap):
                     why = (
                         f"Eq. 8 with {self.names[j]}: Metelli denominator I{self.label(a)} - "
                         f"I{self.label(b)} and TAP contrast of {self.label(a)} are ~0"
@@ -204,9 +205,9 @@ class _Scene:
             return _Estimate(reason=why)
         lo, hi = region_range
         alpha = _blend(met, tap, hi - lo)
-        if np.isnan(tap) or hi - lo == 0.0:
+        if math.isnan(tap) or hi - lo == 0.0:
             method = "metelli"
-        elif np.isnan(met) or hi - lo >= 1.0:
+        elif math.isnan(met) or hi - lo >= 1.0:
             method = "tap"
         else:
             method = "blend"
@@ -226,7 +227,7 @@ class _Scene:
         if why is not None:
             return _Estimate(reason=f"Eq. 9: {why}")
         alpha = float(generalized_metelli(*(self.mean(s) for s in sets), eps=DENOMINATOR_EPS))
-        if np.isnan(alpha):
+        if math.isnan(alpha):
             return _Estimate(
                 reason=f"Eq. 9: denominator I{self.label(sets[2])} - I{self.label(sets[3])} ~0"
             )

@@ -219,24 +219,26 @@ def subregions(footprints) -> RegionMap:
     rows, cols = np.divmod(np.arange(flat.size), width)
     c_row = np.bincount(flat, weights=rows, minlength=n) / area
     c_col = np.bincount(flat, weights=cols, minlength=n) / area
-    sets = mask.ravel()[first]
+    sets = mask.ravel()[first].tolist()
     slices = ndimage.find_objects(region_id + 1)
-    regions = []
-    for rid in range(n):
-        layers = frozenset(k for k in range(fp.shape[0]) if int(sets[rid]) >> k & 1)
-        kind = "empty" if not layers else "plain" if len(layers) == 1 else "overlay"
-        sr, sc = slices[rid]
-        regions.append(
-            Region(
-                id=rid,
-                layers=layers,
-                kind=kind,
-                area=int(area[rid]),
-                area_fraction=float(area[rid]) / (height * width),
-                bbox=(sr.start, sc.start, sr.stop, sc.stop),
-                centroid=(float(c_row[rid]), float(c_col[rid])),
-            )
+    k, n_pix = fp.shape[0], height * width
+    kinds: dict[int, tuple] = {}  # per layer bitmask: (layers, kind), built once
+    for b in set(sets):
+        layers = frozenset(q for q in range(k) if b >> q & 1)
+        kinds[b] = (layers, "empty" if not layers else "plain" if len(layers) == 1 else "overlay")
+    rows_ = zip(sets, area.tolist(), c_row.tolist(), c_col.tolist(), slices, strict=True)
+    regions = [
+        Region(
+            id=rid,
+            layers=kinds[b][0],
+            kind=kinds[b][1],
+            area=a,
+            area_fraction=a / n_pix,
+            bbox=(sr.start, sc.start, sr.stop, sc.stop),
+            centroid=(cr, cc),
         )
+        for rid, (b, a, cr, cc, (sr, sc)) in enumerate(rows_)
+    ]
     return RegionMap(region_id=region_id, layer_set=mask, regions=tuple(regions))
 
 

@@ -162,8 +162,40 @@ def _opacity_range(arr: np.ndarray, name: str) -> np.ndarray:
     return np.clip(arr, 0.0, 1.0)
 
 
+#: Checked fields of the last few engine analyses: ``(id, name) -> (weakref, array)``.
+_FIELD_MEMO: dict[tuple, tuple] = {}
+_MEMO_LOCK = threading.Lock()
+
+
+def _remembered(analysis, name: str, compute) -> np.ndarray:
+    """``compute()``, remembered (read-only) for an engine :class:`RayAnalysis`.
+
+    The three measures of one analysis check and convert the same fields; an engine analysis
+    is not changed after it is made (as for the luminance below), so that is done once.
+    Other analysis objects are checked every time.
+    """
+    if not isinstance(analysis, RayAnalysis):
+        return compute()
+    key = (id(analysis), name)
+    with _MEMO_LOCK:
+        hit = _FIELD_MEMO.get(key)
+    if hit is not None and hit[0]() is analysis:
+        return hit[1]
+    value = compute()
+    value.flags.writeable = False
+    with _MEMO_LOCK:
+        while len(_FIELD_MEMO) >= 12:
+            del _FIELD_MEMO[next(iter(_FIELD_MEMO))]
+        _FIELD_MEMO[key] = (weakref.ref(analysis), value)
+    return value
+
+
 def _accumulated(analysis) -> np.ndarray:
     """Return the (H, W) accumulated opacity, checked to lie in [0, 1]."""
+    return _remembered(analysis, "accumulated", lambda: _accumulated_checked(analysis))
+
+
+def _accumulated_checked(analysis) -> np.ndarray:
     acc = _field(analysis, "accumulated", 2)
     if acc.shape[0] == 0 or acc.shape[1] == 0:
         raise DVRInputError(f"analysis.accumulated must have H, W >= 1, got shape {acc.shape}")
@@ -185,13 +217,17 @@ def _stack(analysis, name: str, shape: tuple[int, int]) -> np.ndarray:
 
 def _visible(analysis, accumulated: np.ndarray) -> np.ndarray:
     """``analysis.visible``, checked against ``accumulated`` (warns when sums disagree)."""
+    return _remembered(analysis, "visible", lambda: _visible_checked(analysis, accumulated))
+
+
+def _visible_checked(analysis, accumulated: np.ndarray) -> np.ndarray:
     vis = _opacity_range(_stack(analysis, "visible", accumulated.shape), "visible")
     if vis.shape[0] and np.max(np.abs(vis.sum(axis=0) - accumulated)) > _SUM_SLACK:
         warnings.warn(
             "analysis.visible does not sum over the structures to analysis.accumulated "
             f"(largest difference {np.max(np.abs(vis.sum(axis=0) - accumulated)):.3g})",
             DVRWarning,
-            stacklevel=3,
+            stacklevel=5,
         )
     return vis
 
@@ -246,7 +282,6 @@ def _check_premultiplied(rgba: np.ndarray, notes: list[str], *, trusted: bool = 
 
 #: The last few engine analyses' luminance images: ``id -> (weakref, key, y, notes)``.
 _LUMINANCE_MEMO: dict[int, tuple] = {}
-_MEMO_LOCK = threading.Lock()
 
 
 def _image_luminance(analysis, spec, shape: tuple[int, int]) -> tuple[np.ndarray, list[str]]:

@@ -27,6 +27,7 @@ from dvr_perception.measures.results import (
     VisibilityResult,
     _accumulated,
     _names,
+    _remembered,
     _stack,
     _visible,
 )
@@ -118,7 +119,9 @@ def visibility(analysis, spec=None, *, bins: int = 20) -> VisibilityResult:
     nbins = _check_bins(bins)
     accumulated = _accumulated(analysis)
     visible = _visible(analysis, accumulated)
-    assigned = _stack(analysis, "assigned", accumulated.shape)
+    assigned = _remembered(
+        analysis, "assigned", lambda: _stack(analysis, "assigned", accumulated.shape)
+    )
     if assigned.shape[0] != visible.shape[0]:
         raise DVRInputError(
             f"analysis.assigned has {assigned.shape[0]} structures, "
@@ -153,8 +156,10 @@ def visibility(analysis, spec=None, *, bins: int = 20) -> VisibilityResult:
             "assigned_share": (
                 float(assigned[k].sum()) / assigned_sum if assigned_sum > 0 else 0.0
             ),
-            "histogram_visible": np.histogram(v_share[k][rays], bins=edges)[0],
-            "histogram_assigned": np.histogram(a_share[k][rays], bins=edges)[0],
+            # bins=nbins with a range takes numpy's uniform-bin path (no sort); the counts
+            # equal those for bins=edges, which np.histogram builds the same way
+            "histogram_visible": np.histogram(v_share[k][rays], bins=nbins, range=(0, 1))[0],
+            "histogram_assigned": np.histogram(a_share[k][rays], bins=nbins, range=(0, 1))[0],
             "rays": int(np.count_nonzero(rays)),
         }
     return VisibilityResult(

@@ -350,6 +350,34 @@ def test_luminance_is_shared_by_the_measures_of_one_analysis_but_follows_the_bac
     assert np.array_equal(y_b, y)
 
 
+def test_checked_fields_are_shared_by_the_measures_and_give_the_same_answers():
+    """The measures of one engine analysis check its fields once; results do not change."""
+    from types import SimpleNamespace
+
+    from dvr_perception.measures.results import _accumulated, _visible
+
+    vol = base_volume()
+    spec = make_spec(
+        structure("low", 0.4, (0.9, 0.3, 0.2), LOW), structure("high", 0.9, (0.2, 0.4, 1.0), HIGH)
+    )
+    a = analyze(vol, spec, parallel_camera(vol))
+    acc = _accumulated(a)
+    assert _accumulated(a) is acc
+    assert _visible(a, acc) is _visible(a, acc)
+    assert not acc.flags.writeable
+    assert not _visible(a, acc).flags.writeable
+    fields = ("rgba", "image", "accumulated", "visible", "assigned", "present", "curvature")
+    plain = SimpleNamespace(names=a.names, **{f: np.array(getattr(a, f)) for f in fields})
+    assert _accumulated(plain) is not _accumulated(plain)  # other objects: checked each time
+    # (the plain object has no share properties: its shares come from float64 division)
+    v_a, v_p = visibility(a, spec), visibility(plain, spec)
+    assert v_a.E_v == pytest.approx(v_p.E_v, abs=1e-6)
+    assert v_a.E_v > 0.01
+    t_a, t_p = transparency(a, spec), transparency(plain, spec)
+    assert t_a.E_t == pytest.approx(t_p.E_t, abs=1e-6)
+    assert len(t_a.regions) == len(t_p.regions) > 1
+
+
 # -- an enclosing layer against the view without it (enclosure="unoccluded") ---------------------
 def shell_volume():
     """A hollow labelled box (label 1) around two opaque grey blocks (labels 2 and 3)."""
