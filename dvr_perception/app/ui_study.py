@@ -188,7 +188,8 @@ def ranking_screen(app) -> None:
             )
             v3.VBtn(
                 "Save my answer",
-                click=app.save_ranking,
+                # the order goes with the click: no race with the state sync of rank_order
+                click=(app.save_ranking, "[rank_order]"),
                 color="primary",
                 disabled=("rank_saved || rank_order.length !== rank_images.length",),
                 id="rank-save",

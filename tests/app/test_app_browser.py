@@ -429,6 +429,8 @@ def test_calibration_flow_saves_a_curve_file(page, server):
 
 
 def test_ranking_task_writes_answers(page, server):
+    _close_messages(page)
+    page.wait_for_selector("#error-message", state="detached")
     _tab(page, "ranking")
     page.click("#rank-new")
     page.wait_for_selector("#rank-D")
@@ -438,10 +440,12 @@ def test_ranking_task_writes_answers(page, server):
         page.click(f"#rank-{label}")
     page.wait_for_function("() => !document.querySelector('#rank-save').disabled")
     page.click("#rank-save")
-    page.wait_for_function(
-        "() => document.querySelector('#rank-result')?.innerText.includes('agrees on')",
+    page.wait_for_function(  # the result, or an error message (then the assertion says which)
+        "() => document.querySelector('#rank-result')?.innerText.includes('agrees on')"
+        " || document.querySelector('#error-message') !== null",
         timeout=180_000,  # the server measures the four images first; slow on a busy machine
     )
+    assert page.locator("#error-message").count() == 0, _error_text(page)
     _shot(page, "ranking")
     path = server["exports"] / "ranking_answers.csv"
     with path.open(newline="", encoding="utf-8") as fh:
