@@ -92,6 +92,7 @@ class _Scene:
         self._pairs: dict[tuple[int, int, int], tuple] = {}
         self._general: dict[tuple[int, int, int], _Estimate] = {}
         self._plans: dict[frozenset, tuple] = {}
+        self._templates: dict[frozenset, tuple] = {}
         #: ``enclosure="unoccluded"``: per enclosing layer, the luminance without it.
         self.without: dict[int, np.ndarray] | None = None
         # per layer set: pixel count, mean and (two-pass) population std of the luminance
@@ -203,15 +204,7 @@ class _Scene:
         met, tap, why = self._pair_terms(i, j, base)
         if why is not None:
             return _Estimate(reason=why)
-        lo, hi = region_range
-        alpha = _blend(met, tap, hi - lo)
-        if math.isnan(tap) or hi - lo == 0.0:
-            method = "metelli"
-        elif math.isnan(met) or hi - lo >= 1.0:
-            method = "tap"
-        else:
-            method = "blend"
-        return _Estimate(alpha=alpha, method=method)
+        return self._blended(met, tap, region_range)
 
     def generalized(self, i: int, active: list[int], base: int) -> _Estimate:
         """Eq. 9 for layer ``i`` of three or more overlapping active layers (cached)."""
@@ -246,32 +239,71 @@ class _Scene:
         return self._plans[layers]
 
     def evaluate(self, layers: frozenset, region_range: tuple, notes: list[str]):
-        """Estimates ``{layer: _Estimate}`` for the layers of one region (Case 1-3)."""
+        """Estimates ``{layer: _Estimate}`` for the layers of one region (Case 1-3).
+
+        Which rule applies, and every term except the Eq. 8 weight, depends on the layer set
+        only: that is worked out once per set (:meth:`_template`); a region adds its range.
+        """
+        tpl = self._templates.get(layers)
+        if tpl is None:
+            tpl = self._templates[layers] = self._template(layers)
+        items, tpl_notes = tpl
+        notes.extend(tpl_notes)
+        out = {}
+        for k, fixed, met, tap in items:
+            out[k] = fixed if fixed is not None else self._blended(met, tap, region_range)
+        return out
+
+    @staticmethod
+    def _blended(met: float, tap: float, region_range: tuple) -> _Estimate:
+        """Eq. 8 with the region's luminance range (see :meth:`pair`)."""
+        lo, hi = region_range
+        alpha = _blend(met, tap, hi - lo)
+        if math.isnan(tap) or hi - lo == 0.0:
+            method = "metelli"
+        elif math.isnan(met) or hi - lo >= 1.0:
+            method = "tap"
+        else:
+            method = "blend"
+        return _Estimate(alpha=alpha, method=method)
+
+    def _template(self, layers: frozenset) -> tuple[list, list[str]]:
+        """Per layer ``(k, estimate or None, metelli, tap)`` of a layer set, and its notes.
+
+        ``None``: an Eq. 8 pair whose blend depends on the region's range.
+        """
         enc, active, base = self._plan(layers)
-        out = {e: self.encloser(e) for e in enc}
+        items: list = [(e, self.encloser(e), None, None) for e in enc]
+        notes: list[str] = []
+
+        def pair_item(i, j):
+            met, tap, why = self._pair_terms(i, j, base)
+            if why is not None:
+                return (i, _Estimate(reason=why), None, None)
+            return (i, None, met, tap)
+
         if len(active) == 1:
             i = active[0]
             reasons = []
             for j in self.partners[i]:
-                est = self.pair(i, j, base, region_range)
-                if est.reason is None:
-                    out[i] = est
+                item = pair_item(i, j)
+                if item[1] is None:
+                    items.append(item)
                     break
-                reasons.append(est.reason)
+                reasons.append(item[1].reason)
             else:
                 if reasons:
-                    out[i] = _Estimate(reason="; ".join(reasons))
+                    items.append((i, _Estimate(reason="; ".join(reasons)), None, None))
         elif len(active) == 2:
             i, j = active
             if self.kind.get((i, j)) == "overlap":
-                out[i] = self.pair(i, j, base, region_range)
-                out[j] = self.pair(j, i, base, region_range)
+                items.append(pair_item(i, j))
+                items.append(pair_item(j, i))
             else:
                 notes.append(
                     f"layers {self.names[i]} and {self.names[j]} share a region but are "
                     f"{self.kind.get((i, j), 'unrelated')}; treated as Case 1 there"
                 )
         elif len(active) >= 3:
-            for i in active:
-                out[i] = self.generalized(i, active, base)
-        return out
+            items.extend((i, self.generalized(i, active, base), None, None) for i in active)
+        return items, notes

@@ -49,7 +49,7 @@ import numpy as np
 
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures._scene import DENOMINATOR_EPS as DENOMINATOR_EPS  # re-export
-from dvr_perception.measures._scene import _group_stats, _robust, _Scene
+from dvr_perception.measures._scene import _group_stats, _Scene
 from dvr_perception.measures.covered import _without as _luminance_without
 from dvr_perception.measures.psychophysics import calibrate
 from dvr_perception.measures.regions import layer_footprints, layer_relations, subregions
@@ -146,6 +146,9 @@ def transparency(
         scene.without = {e: _luminance_without(analysis, spec, e) for e in enclosers}
 
     _, region_mean, region_std = _group_stats(y.ravel(), rmap.region_id.ravel(), len(rmap.regions))
+    # mu -/+ 2 sigma clipped to [0, 1] (the robust range of Eq. 6-7), for every region at once
+    range_lo = np.maximum(region_mean - 2.0 * region_std, 0.0).tolist()
+    range_hi = np.minimum(region_mean + 2.0 * region_std, 1.0).tolist()
     regions, undetermined, deltas = [], [], np.zeros(len(rmap.regions))
     sums = {n: [0.0, 0.0] for n in names}  # area-weighted alpha sum, area
     reasons: dict[str, list[str]] = {n: [] for n in names}
@@ -162,7 +165,7 @@ def transparency(
             "undetermined": {},
             "delta_t": 0.0,
         }
-        region_range = _robust(region_mean[region.id], region_std[region.id])
+        region_range = (range_lo[region.id], range_hi[region.id])
         estimates = scene.evaluate(region.layers, region_range, notes)
         for k, est in estimates.items():
             name = names[k]
