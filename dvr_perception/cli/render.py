@@ -60,7 +60,12 @@ def run(args: argparse.Namespace) -> int:
         from dvr_perception.rays.curvature import curvature_volume
 
         curvature, _ = curvature_volume(scene.volume, scene.spec)
-    result = analyze(scene.volume, scene.spec, scene.camera, curvature=curvature, build_cache=False)
+    # the image alone needs no sample behind early ray termination; the buffers' assigned
+    # (occlusion-free) opacities need every sample of every ray
+    result = analyze(
+        scene.volume, scene.spec, scene.camera, curvature=curvature, build_cache=False,
+        occlusion_free=buffers is not None,
+    )  # fmt: skip
     seconds = time.perf_counter() - t0
     write_png(out, result.image)
     if buffers is not None:

@@ -284,7 +284,7 @@ def _tail(r, tix, cells, blocks, rep, lab, lab_base, ax, ay, az, bx, by, bz, t_f
 @njit(cache=True, fastmath=_FM, inline="always")
 def _walk_ray(
     r, vol, maps, curv, a, b, t_first, n, step, ids, memb, alpha_r, alpha_w, col, light, tab,
-    shade, has_curv, build, base, ert, rgba, vis, asg, present, cimg, out,
+    shade, has_curv, build, tail, base, ert, rgba, vis, asg, present, cimg, out,
 ):  # fmt: skip
     """Walk one ray, compositing until early ray termination.
 
@@ -402,7 +402,7 @@ def _walk_ray(
         tr *= 1.0 - al
         if tr < ert:
             alive = False
-    if j < n:
+    if j < n and tail:
         cnt, walked, bits = _tail(
             r, tix, cells, blocks, rep, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n, step,
             ids, memb, alpha_w, shade, has_curv, build, base, cnt, walked, bits, asg, out,
@@ -500,13 +500,15 @@ def _composite_ray(
 def walk(
     vol, tix, cells, blocks, rep, lab, lab_base, curv, a, b, t_first, nsteps, step, order,
     chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light, tab, shade, has_curv, build,
-    chunk_base, ert, rgba, vis, asg, present, cimg, c_lut, c_j, c_sh, c_curv, start, count,
+    tail, chunk_base, ert, rgba, vis, asg, present, cimg, c_lut, c_j, c_sh, c_curv, start, count,
     chunk_end, walked,
 ):  # fmt: skip
     """March and composite all rays; see the module docstring.  Outputs are flat per ray.
 
     ``tix``, ``cells`` and ``blocks``: :func:`_grid.compact_index`, :func:`_grid.cell_map` and
-    :func:`_grid.block_map`; ``order`` and ``chunk_ptr``: :func:`engine.ray_order`; ``rep``: a
+    :func:`_grid.block_map`; ``order`` and ``chunk_ptr``: :func:`engine.ray_order`; ``tail``
+    False: stop every ray at early ray termination, as VTK does (``asg`` and ``present`` then
+    cover only what was walked; without ``build`` only); ``rep``: a
     plateau table entry per structure; ``lab``: :func:`_grid.label_map` whose value ``v > 0``
     means table entry ``lab_base + v - 1`` (``lab_base`` -1: no label structures).
 
@@ -534,7 +536,7 @@ def walk(
                 continue
             cnt, wk = _walk_ray(
                 r, vol, maps, curv, a, b, t_first[r], nsteps[r], step, ids, memb,
-                alpha_r, alpha_w, col, light, tab, shade, has_curv, build, e, ert,
+                alpha_r, alpha_w, col, light, tab, shade, has_curv, build, tail, e, ert,
                 rgba, vis, asg, present, cimg, (c_lut, c_j, c_sh, c_curv),
             )  # fmt: skip
             count[r] = cnt

@@ -147,6 +147,8 @@ def test_bench_reports_keys(capsys, vtk_can_render):
         "frame_s",
         "vtk_frame_s",
         "frame_ratio",
+        "render_s",
+        "render_ratio",
         "samples_per_s",
         "reeval_s",
         "reeval_vtk_frames",
@@ -163,6 +165,7 @@ def test_bench_reports_keys(capsys, vtk_can_render):
     assert report["size"] == [24, 24]
     assert min(report["frame_s"], report["vtk_frame_s"]) > 0
     assert report["frame_ratio"] == pytest.approx(report["frame_s"] / report["vtk_frame_s"])
+    assert report["render_ratio"] == pytest.approx(report["render_s"] / report["vtk_frame_s"])
     assert report["cache_mb"] > 0
 
 
@@ -177,7 +180,7 @@ def test_bench_alternates_frames_and_survives_a_vtk_that_cannot_render(capsys, m
     real_analyze = engine.analyze
 
     def analyze(*args, **kwargs):
-        order.append("ours")
+        order.append("frame" if kwargs.get("occlusion_free", True) else "render")
         return real_analyze(*args, **kwargs)
 
     @contextlib.contextmanager
@@ -195,12 +198,15 @@ def test_bench_alternates_frames_and_survives_a_vtk_that_cannot_render(capsys, m
     code, out, err = _run(capsys, ["bench", "--size", "16", "--repeat", "4", "--json"])
     assert code == 0, err
     report = _one_json(out)
-    # warm-up, two pairs, VTK fails on the third, our two missing frames are timed alone
-    assert order[:8] == ["ours", "vtk", "ours", "vtk", "ours", "vtk", "ours", "ours"]
+    # warm-ups, two turns, VTK fails on the third, our two missing turns are timed alone
+    turn = ["frame", "render"]
+    assert order[:13] == ["frame", "render", "vtk", *turn, "vtk", *turn, "vtk", *turn, *turn]
     assert report["vtk_frame_s"] is None
     assert report["frame_ratio"] is None
+    assert report["render_ratio"] is None
     assert report["vtk_error"] == "VTK: no OpenGL here"
     assert report["frame_s"] > 0
+    assert report["render_s"] > 0
 
 
 def test_bench_rejects_bad_repeat(capsys):

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.measures import visibility
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.engine import analyze, reevaluate
 from dvr_perception.structures.spec import Lighting, RenderSettings, Structure, StructureSpec
@@ -250,3 +251,29 @@ def test_no_warning_for_normal_render():
         res = analyze(vol, _spec(*BLOB_STRUCTURES), _top_camera(vol, size=6))
     assert res.stats["samples"] > 0
     assert res.names == ("outer", "inner")
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_render_only_stops_at_early_termination_and_leaves_assigned_undefined(backend):
+    """``occlusion_free=False``: the same image, no occlusion-free shares, fewer samples."""
+    if backend == "numba":
+        pytest.importorskip("numba")
+    vol = _two_slabs()
+    front = Structure("front", 1.0, (1, 1, 1), range=(180, 255), edge=0.0)
+    back = Structure("back", 0.5, (1, 0, 0), range=(50, 150), edge=0.0)
+    spec, cam = _spec(back, front, shade=True), _top_camera(vol)
+    full = analyze(vol, spec, cam, backend=backend, build_cache=False)
+    image = analyze(vol, spec, cam, backend=backend, build_cache=False, occlusion_free=False)
+    for field in ("rgba", "image", "accumulated", "visible", "curvature"):
+        np.testing.assert_array_equal(getattr(image, field), getattr(full, field), err_msg=field)
+    assert np.all(np.isnan(image.assigned))
+    assert np.all(full.assigned[0] > 1.0)  # the hidden slab: only the full walk reaches it
+    assert full.stats["occlusion_free"] is True
+    assert image.stats["occlusion_free"] is False
+    if backend == "numba":  # the opaque front slab ends every ray: the back one is never met
+        assert image.stats["samples_walked"] < full.stats["samples_walked"] / 2
+        assert not np.any(image.present & 1)
+    with pytest.raises(DVRInputError, match="assigned must be finite"):
+        visibility(image, spec)
+    with pytest.raises(DVRInputError, match="build_cache=False"):
+        analyze(vol, spec, cam, backend=backend, occlusion_free=False)
