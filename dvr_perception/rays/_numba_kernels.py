@@ -463,7 +463,9 @@ def _composite_ray(
         if al <= 0.0:
             continue
         s = ids[k]
-        if (shade and c_sh[e, 0] == _UNSET) or (has_curv and c_curv[e] < 0.0):
+        # shading and curvature are set together (walk, _fill); only a change of light unsets
+        # shading alone, so with shading on its marker is the one to test
+        if (c_sh[e, 0] == _UNSET) if shade else (has_curv and c_curv[e] < 0.0):
             _fill(e, c_j[e], a[r, 0], a[r, 1], a[r, 2], b[r, 0], b[r, 1], b[r, 2], t_first[r],
                   step, vol, curv, tab, s, shade, has_curv, c_sh, c_curv)  # fmt: skip
         dfac = 1.0
