@@ -243,16 +243,23 @@ class _Scene:
 
         Which rule applies, and every term except the Eq. 8 weight, depends on the layer set
         only: that is worked out once per set (:meth:`_template`); a region adds its range.
+        The measure evaluates all regions of a set at once
+        (:func:`~dvr_perception.measures._estimates.region_estimates`); this per-region form
+        is its reference (``tests/measures/test_estimates.py``).
         """
-        tpl = self._templates.get(layers)
-        if tpl is None:
-            tpl = self._templates[layers] = self._template(layers)
-        items, tpl_notes = tpl
+        items, tpl_notes = self.template(layers)
         notes.extend(tpl_notes)
         out = {}
         for k, fixed, met, tap in items:
             out[k] = fixed if fixed is not None else self._blended(met, tap, region_range)
         return out
+
+    def template(self, layers: frozenset) -> tuple[list, list[str]]:
+        """:meth:`_template` of a layer set, worked out once."""
+        tpl = self._templates.get(layers)
+        if tpl is None:
+            tpl = self._templates[layers] = self._template(layers)
+        return tpl
 
     @staticmethod
     def _blended(met: float, tap: float, region_range: tuple) -> _Estimate:

@@ -49,10 +49,11 @@ class Region:
         Number of pixels.
     area_fraction : float
         ``area / (H * W)``.
-    bbox : tuple of 4 int
-        ``(min_row, min_col, max_row, max_col)``, max exclusive (as ``skimage.measure``).
-    centroid : tuple of 2 float
-        ``(row, col)`` mean pixel position.
+    bbox : tuple of 4 int or None
+        ``(min_row, min_col, max_row, max_col)``, max exclusive (as ``skimage.measure``);
+        ``None`` from ``subregions(..., geometry=False)``.
+    centroid : tuple of 2 float or None
+        ``(row, col)`` mean pixel position; ``None`` from ``subregions(..., geometry=False)``.
     """
 
     id: int
@@ -60,8 +61,8 @@ class Region:
     kind: str
     area: int
     area_fraction: float
-    bbox: tuple[int, int, int, int]
-    centroid: tuple[float, float]
+    bbox: tuple[int, int, int, int] | None
+    centroid: tuple[float, float] | None
 
 
 @dataclass(frozen=True)
@@ -174,7 +175,7 @@ def _bitmask(fp: np.ndarray) -> np.ndarray:
     return np.bitwise_or.reduce(fp.astype(np.uint32) * bits, axis=0, initial=np.uint32(0))
 
 
-def subregions(footprints) -> RegionMap:
+def subregions(footprints, *, geometry: bool = True) -> RegionMap:
     """Split the image into sub-regions of constant layer composition (Sec. 4.3.2, Fig. 5).
 
     Pixels with the same set of layers are grouped and split into connected components with
@@ -185,6 +186,9 @@ def subregions(footprints) -> RegionMap:
     ----------
     footprints : array_like of bool, shape (K, H, W)
         Layer footprints, e.g. from :func:`layer_footprints`; ``K`` may be 0 (no layers).
+    geometry : bool, optional
+        Also give each region its bounding box and centroid (default); ``False`` leaves them
+        ``None`` (the transparency measure needs neither, and skips their cost).
 
     Returns
     -------
@@ -216,17 +220,22 @@ def subregions(footprints) -> RegionMap:
     flat = region_id.ravel()
     n = first.size
     area = np.bincount(flat, minlength=n)
-    rows, cols = np.divmod(np.arange(flat.size), width)
-    c_row = np.bincount(flat, weights=rows, minlength=n) / area
-    c_col = np.bincount(flat, weights=cols, minlength=n) / area
     sets = mask.ravel()[first].tolist()
-    slices = ndimage.find_objects(region_id + 1)
+    if geometry:
+        rows, cols = np.divmod(np.arange(flat.size), width)
+        c_row = (np.bincount(flat, weights=rows, minlength=n) / area).tolist()
+        c_col = (np.bincount(flat, weights=cols, minlength=n) / area).tolist()
+        boxes = [(sr.start, sc.start, sr.stop, sc.stop)
+                 for sr, sc in ndimage.find_objects(region_id + 1)]  # fmt: skip
+        centroids = list(zip(c_row, c_col, strict=True))
+    else:
+        boxes = centroids = [None] * n
     k, n_pix = fp.shape[0], height * width
     kinds: dict[int, tuple] = {}  # per layer bitmask: (layers, kind), built once
     for b in set(sets):
         layers = frozenset(q for q in range(k) if b >> q & 1)
         kinds[b] = (layers, "empty" if not layers else "plain" if len(layers) == 1 else "overlay")
-    rows_ = zip(sets, area.tolist(), c_row.tolist(), c_col.tolist(), slices, strict=True)
+    rows_ = zip(sets, area.tolist(), boxes, centroids, strict=True)
     regions = [
         Region(
             id=rid,
@@ -234,10 +243,10 @@ def subregions(footprints) -> RegionMap:
             kind=kinds[b][1],
             area=a,
             area_fraction=a / n_pix,
-            bbox=(sr.start, sc.start, sr.stop, sc.stop),
-            centroid=(cr, cc),
+            bbox=box,
+            centroid=centroid,
         )
-        for rid, (b, a, cr, cc, (sr, sc)) in enumerate(rows_)
+        for rid, (b, a, box, centroid) in enumerate(rows_)
     ]
     return RegionMap(region_id=region_id, layer_set=mask, regions=tuple(regions))
 

@@ -48,8 +48,9 @@ from __future__ import annotations
 import numpy as np
 
 from dvr_perception.errors import DVRInputError
+from dvr_perception.measures._estimates import region_estimates, region_table
 from dvr_perception.measures._scene import DENOMINATOR_EPS as DENOMINATOR_EPS  # re-export
-from dvr_perception.measures._scene import _group_stats, _Scene
+from dvr_perception.measures._scene import _Scene
 from dvr_perception.measures.covered import _without as _luminance_without
 from dvr_perception.measures.psychophysics import calibrate
 from dvr_perception.measures.regions import layer_footprints, layer_relations, subregions
@@ -74,6 +75,41 @@ def _check_options(spec, contrast, calibration):
             calibrate(0.5, calibration)
         except DVRInputError as err:
             raise DVRInputError(f"calibration: {err}") from None
+
+
+def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure):
+    """Check the inputs; find layers, regions, relations and every region's estimates."""
+    _check_options(spec, contrast, calibration)
+    if enclosure not in ("plain", "unoccluded"):
+        raise DVRInputError(f"enclosure must be 'plain' or 'unoccluded', got {enclosure!r}")
+    accumulated = _accumulated(analysis)
+    visible = _visible(analysis, accumulated)
+    names = _names(analysis, spec, visible.shape[0])
+    expected = [float(s.target_opacity) for s in spec.structures]
+    y, notes = _image_luminance(analysis, spec, accumulated.shape)
+    footprints = layer_footprints(visible, threshold=threshold)
+    rmap = subregions(footprints, geometry=False)  # no bounding boxes: not reported
+    relations = layer_relations(footprints, tolerance=tolerance)
+    scene = _Scene(y, rmap, relations, names, contrast)
+    if enclosure == "unoccluded":
+        enclosers = sorted({r.encloser for r in relations.values() if r.kind == "enclose"})
+        scene.without = {e: _luminance_without(analysis, spec, e) for e in enclosers}
+    est = region_estimates(scene, rmap, y, expected, calibration, notes)
+    return names, expected, rmap, relations, est, notes
+
+
+def transparency_table(analysis, spec, *, calibration=None):
+    """E_t's ingredients as arrays, without the per-region records (for the optimiser).
+
+    Returns ``(region_id, deltas, alpha_t, empty)``: the (H, W) region map, Eq. 10 per region,
+    the (regions, K) calibrated transmittances (NaN: layer absent or undetermined) and the
+    empty-region mask; the other options are :func:`transparency`'s defaults.
+    """
+    names, _, rmap, _, est, _ = _core(
+        analysis, spec, 0.05, calibration, 0.02, "michelson", "plain"
+    )  # fmt: skip
+    alpha, empty = region_table(est, rmap, len(names))
+    return rmap.region_id, est.deltas, alpha, empty
 
 
 def transparency(
@@ -129,27 +165,11 @@ def transparency(
     DVRWarning
         If ``visible`` does not sum to ``accumulated`` or ``rgba`` is not premultiplied.
     """
-    _check_options(spec, contrast, calibration)
-    if enclosure not in ("plain", "unoccluded"):
-        raise DVRInputError(f"enclosure must be 'plain' or 'unoccluded', got {enclosure!r}")
-    accumulated = _accumulated(analysis)
-    visible = _visible(analysis, accumulated)
-    names = _names(analysis, spec, visible.shape[0])
-    expected = [float(s.target_opacity) for s in spec.structures]
-    y, notes = _image_luminance(analysis, spec, accumulated.shape)
-    footprints = layer_footprints(visible, threshold=threshold)
-    rmap = subregions(footprints)
-    relations = layer_relations(footprints, tolerance=tolerance)
-    scene = _Scene(y, rmap, relations, names, contrast)
-    if enclosure == "unoccluded":
-        enclosers = sorted({r.encloser for r in relations.values() if r.kind == "enclose"})
-        scene.without = {e: _luminance_without(analysis, spec, e) for e in enclosers}
-
-    _, region_mean, region_std = _group_stats(y.ravel(), rmap.region_id.ravel(), len(rmap.regions))
-    # mu -/+ 2 sigma clipped to [0, 1] (the robust range of Eq. 6-7), for every region at once
-    range_lo = np.maximum(region_mean - 2.0 * region_std, 0.0).tolist()
-    range_hi = np.minimum(region_mean + 2.0 * region_std, 1.0).tolist()
-    regions, undetermined, deltas = [], [], np.zeros(len(rmap.regions))
+    names, expected, rmap, relations, est, notes = _core(
+        analysis, spec, threshold, calibration, tolerance, contrast, enclosure
+    )
+    deltas = est.deltas
+    regions, undetermined = [], []
     sums = {n: [0.0, 0.0] for n in names}  # area-weighted alpha sum, area
     reasons: dict[str, list[str]] = {n: [] for n in names}
     for region in rmap.regions:
@@ -163,29 +183,25 @@ def transparency(
             "method": {},
             "clipped": {},
             "undetermined": {},
-            "delta_t": 0.0,
+            "delta_t": float(deltas[region.id]),
         }
-        region_range = (range_lo[region.id], range_hi[region.id])
-        estimates = scene.evaluate(region.layers, region_range, notes)
-        for k, est in estimates.items():
-            name = names[k]
-            if est.reason is not None:
-                entry["undetermined"][name] = est.reason
-                undetermined.append({"region": region.id, "structure": name, "reason": est.reason})
-                if est.reason not in reasons[name]:
-                    reasons[name].append(est.reason)
+        p = est.position[region.id]
+        for lay in est.layers[region.id]:
+            name = names[lay.k]
+            if lay.reason is not None:
+                entry["undetermined"][name] = lay.reason
+                undetermined.append({"region": region.id, "structure": name, "reason": lay.reason})
+                if lay.reason not in reasons[name]:
+                    reasons[name].append(lay.reason)
                 continue
-            measured = min(max(est.alpha, 0.0), 1.0)
-            if measured != est.alpha:
-                entry["clipped"][name] = est.alpha
-            alpha_t = measured if calibration is None else float(calibrate(measured, calibration))
+            measured, alpha_t = lay.measured[p], lay.alpha_t[p]
+            if measured != lay.raw[p]:
+                entry["clipped"][name] = lay.raw[p]
             entry["measured"][name] = measured
             entry["transmittance"][name] = alpha_t
-            entry["method"][name] = est.method
-            deltas[region.id] += (1.0 - alpha_t - expected[k]) ** 2
+            entry["method"][name] = lay.method[p]
             sums[name][0] += region.area_fraction * alpha_t
             sums[name][1] += region.area_fraction
-        entry["delta_t"] = float(deltas[region.id])
         regions.append(entry)
 
     n_clipped = sum(len(r["clipped"]) for r in regions)

@@ -33,8 +33,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from dvr_perception.errors import DVRWarning
-from dvr_perception.measures import shape, transparency
+from dvr_perception.measures import shape
 from dvr_perception.measures.luminance import LUMA_WEIGHTS
+from dvr_perception.measures.transparency import transparency_table
 from dvr_perception.rays.engine import reevaluate
 from dvr_perception.structures.spec import Lighting, StructureSpec
 
@@ -318,26 +319,33 @@ class Problem:
         return e_s, bad_s
 
     def _transparency(self, analysis, m):
+        """E_t and per-structure badness over the pixels of ``m`` (region areas counted there).
+
+        Sums run region after region in id order (``np.add.accumulate`` adds in sequence), so
+        the figures equal a loop over ``transparency(...).regions`` to the last bit.
+        """
         k = len(self.names)
-        tr = transparency(analysis, self.eval_spec, calibration=self.calibration)
-        counts = np.bincount(tr.region_id[m].ravel(), minlength=len(tr.regions))
-        num = den = 0.0
-        s_num, s_den = np.zeros(k), np.zeros(k)
+        region_id, deltas, alpha, empty = transparency_table(
+            analysis, self.eval_spec, calibration=self.calibration
+        )
+        counts = np.bincount(region_id[m].ravel(), minlength=len(deltas)).astype(np.float64)
+        keep = (counts > 0) & ~empty
+        num = _in_order_sum(counts[keep] * deltas[keep])
+        den = _in_order_sum(counts[keep])
         expected = np.array([s.target_opacity for s in self.eval_spec.structures])
-        index = {n: i for i, n in enumerate(self.names)}
-        for region in tr.regions:
-            area = float(counts[region["id"]])
-            if area == 0 or region["kind"] == "empty":
-                continue
-            num += area * region["delta_t"]
-            den += area
-            for name, alpha in region["transmittance"].items():
-                i = index[name]
-                s_num[i] += area * (1.0 - alpha - expected[i]) ** 2
-                s_den[i] += area
+        s_num, s_den = np.zeros(k), np.zeros(k)
+        for i in range(k):
+            sel = keep & ~np.isnan(alpha[:, i])
+            s_num[i] = _in_order_sum(counts[sel] * (1.0 - alpha[sel, i] - expected[i]) ** 2)
+            s_den[i] = _in_order_sum(counts[sel])
         e_t = num / den if den > 0 else 0.0
         bad_t = np.where(s_den > 0, s_num / np.maximum(s_den, 1e-12), 0.0)
         return e_t, bad_t
+
+
+def _in_order_sum(x: np.ndarray) -> float:
+    """Sum of ``x`` added strictly in order (as a Python loop would), 0.0 when empty."""
+    return float(np.add.accumulate(x)[-1]) if x.size else 0.0
 
 
 def public_terms(terms: dict, names) -> dict:
