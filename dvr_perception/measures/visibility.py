@@ -40,10 +40,13 @@ def _share(analysis, prop: str, shape: tuple[int, ...], fallback) -> np.ndarray:
     value = getattr(analysis, prop, None)
     if value is None:
         return fallback()
-    arr = np.asarray(value, dtype=np.float64)
+    arr = np.asarray(value)
+    if not np.issubdtype(arr.dtype, np.floating) or arr.dtype.itemsize > 8:
+        arr = np.asarray(arr, dtype=np.float64)
     if arr.shape != shape or not np.all(np.isfinite(arr)):
         raise DVRInputError(f"analysis.{prop} must be a finite array of shape {shape}")
-    return np.clip(arr, 0.0, 1.0)
+    # clipping before widening to float64 gives the same numbers (0 and 1 are exact)
+    return np.clip(arr, 0.0, 1.0).astype(np.float64, copy=False)
 
 
 def _normalise(x: np.ndarray, total: np.ndarray) -> np.ndarray:
@@ -52,19 +55,22 @@ def _normalise(x: np.ndarray, total: np.ndarray) -> np.ndarray:
     return np.clip(out, 0.0, 1.0)
 
 
-def _presence(analysis, assigned: np.ndarray, visible: np.ndarray) -> np.ndarray:
-    """(K, H, W) bool: structures met along each ray (``present`` bitmask if available)."""
-    k = assigned.shape[0]
+def _presence(analysis, assigned: np.ndarray, visible: np.ndarray):
+    """Per structure ``k``, a function giving its (H, W) bool mask of rays that meet it.
+
+    Uses the ``present`` bitmask when the analysis has one (bit ``k`` of each pixel, read one
+    structure at a time), else "any assigned or visible opacity".
+    """
     present = getattr(analysis, "present", None)
     if present is None:
-        return (assigned > 0) | (visible > 0)
+        return lambda k: (assigned[k] > 0) | (visible[k] > 0)
     bits = np.asarray(present)
     if bits.shape != assigned.shape[1:] or not np.issubdtype(bits.dtype, np.integer):
         raise DVRInputError(
             f"analysis.present must be an integer bitmask of shape {assigned.shape[1:]}"
         )
     bits = bits.astype(np.uint64)
-    return ((bits[None] >> np.arange(k, dtype=np.uint64)[:, None, None]) & 1).astype(bool)
+    return lambda k: ((bits >> np.uint64(k)) & np.uint64(1)).astype(bool)
 
 
 def _check_bins(bins) -> int:
@@ -150,7 +156,7 @@ def visibility(analysis, spec=None, *, bins: int = 20) -> VisibilityResult:
     acc_sum, assigned_sum = float(accumulated.sum()), float(total_assigned.sum())
     per_structure = {}
     for k, name in enumerate(names):
-        rays = present[k]
+        rays = present(k)
         per_structure[name] = {
             "visible_share": float(visible[k].sum()) / acc_sum if acc_sum > 0 else 0.0,
             "assigned_share": (
