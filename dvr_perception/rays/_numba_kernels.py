@@ -174,6 +174,17 @@ def _shade_at(volf, o, isy, isz, fx, fy, fz, tab, s):
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
+def _block_skip(blocks, x, y, z, binv):
+    """Return how many samples a ray may skip from cell ``(x, y, z)`` (0: look at the cell).
+
+    A block at empty-space distance ``d > 1`` has only empty blocks within ``d - 1`` blocks:
+    ``binv`` (samples per block of advance along the ray's fastest axis) times ``d - 1``.
+    """
+    d = blocks[z >> 2, y >> 2, x >> 2]
+    return max(int((d - 1) * binv), 1) if d > 1 else 0
+
+
+@njit(cache=True, fastmath=_FM, inline="always")
 def _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz):
     """Position of sample ``j`` in voxel coordinates and its cell (clamped to the grid).
 
@@ -213,9 +224,9 @@ def _tail(r, tix, cells, blocks, rep, lab, lab_base, ax, ay, az, bx, by, bz, t_f
     while j < n:
         px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz)
         walked += 1
-        d = blocks[z >> 2, y >> 2, x >> 2]
-        if d > 1:
-            j += max(int((d - 1) * binv), 1)
+        skip = _block_skip(blocks, x, y, z, binv)
+        if skip:
+            j += skip
             continue
         o = z * nxy + y * nx + x
         cl = cf[o]
@@ -324,9 +335,9 @@ def _walk_ray(
     while j < n and alive:
         px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz)
         walked += 1
-        d = blocks[z >> 2, y >> 2, x >> 2]
-        if d > 1:
-            j += max(int((d - 1) * binv), 1)
+        skip = _block_skip(blocks, x, y, z, binv)
+        if skip:
+            j += skip
             continue
         o = np.uint64(z * nxy + y * nx + x)
         cl = cf[o]
@@ -509,9 +520,9 @@ def walk(
 
     ``tix``, ``cells`` and ``blocks``: :func:`_grid.compact_index`, :func:`_grid.cell_map` and
     :func:`_grid.block_map`; ``order`` and ``chunk_ptr``: :func:`engine.ray_order`; ``tail``
-    False: stop every ray at early ray termination, as VTK does (``asg`` and ``present`` then
-    cover only what was walked; without ``build`` only); ``rep``: a
-    plateau table entry per structure; ``lab``: :func:`_grid.label_map` whose value ``v > 0``
+    False (only without ``build``): stop every ray at early ray termination, as VTK does, so
+    ``asg`` and ``present`` cover only the samples walked; ``rep``: a plateau table entry per
+    structure; ``lab``: :func:`_grid.label_map` whose value ``v > 0``
     means table entry ``lab_base + v - 1`` (``lab_base`` -1: no label structures).
 
     Chunk ``c`` (rays ``order[chunk_ptr[c]:chunk_ptr[c + 1]]``, whole tiles of pixels) packs

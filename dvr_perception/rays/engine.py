@@ -433,7 +433,7 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     asg = _scratch("asg", k * nrays, (), np.float64, locked).reshape(k, nrays)
     present = np.empty(nrays, np.uint32)
     cimg = _scratch("cimg", nrays, (), np.float64, locked)
-    start = np.empty(nrays, np.int64) if build else _scratch("start", nrays, (), np.int64, locked)
+    start = _scratch("start", nrays, (), np.int64, locked)  # with the cache: replaced by compact
     count = np.empty(nrays, np.int64) if build else _scratch("count", nrays, (), np.int64, locked)
     walked = _scratch("walked", nrays, (), np.int64, locked)
     per_chunk = np.add.reduceat(n[order].astype(np.int64), chunk_ptr[:-1])
@@ -447,7 +447,8 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked)
     src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked)
     maps = (tix, cells, _grid.block_map(volume, cells), rep, *lab)
-    return _walk_compact(nk, vol, maps, cv, seg, step, (h, w), memb, alpha_w, args,
+    layout = (order, chunk_ptr, h, w)
+    return _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args,
                          (build, tail), chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j,
                          src_sh, src_curv, start, count, chunk_end, walked)  # fmt: skip
 
@@ -489,13 +490,13 @@ def _scratch(name, n, tail, dtype, shared):
     return a[:n]
 
 
-def _walk_compact(nk, vol, maps, cv, seg, step, out_shape, memb, alpha_w, args, modes,
+def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, modes,
                   chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j, src_sh, src_curv,
                   start, count, chunk_end, walked):  # fmt: skip
     ids, alpha_r, cols, light, tab, shade, has_curv, ert = args
     build, tail = modes
     n = seg["n"]
-    order, chunk_ptr = ray_order(*out_shape)
+    order, chunk_ptr, h, w = layout
     nchunk = len(chunk_ptr) - 1
     nk.walk(
         vol, *maps, cv, seg["a"], seg["b"], seg["t"], n, step, order, chunk_ptr, nchunk, ids,
@@ -516,7 +517,7 @@ def _walk_compact(nk, vol, maps, cv, seg, step, out_shape, memb, alpha_w, args, 
             "shading": np.empty((e if shade else 0, 2), np.uint16),
             "curvature": np.empty(e if has_curv else 0, np.float32),
         }
-        rows, row_ptr = ray_order(*out_shape, tile=(1, out_shape[1]))
+        rows, row_ptr = ray_order(h, w, tile=(1, w))
         nk.compact(
             rows, row_ptr, len(row_ptr) - 1, start, count, dest, src_lut, src_j, src_sh, src_curv,
             entries["lut"], entries["steps"], entries["shading"], entries["curvature"], shade,
