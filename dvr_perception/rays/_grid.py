@@ -294,9 +294,9 @@ def cell_map(
     dist[cells == CELL_MIXED] = 0
     cells |= dist.astype(np.uint16) << np.uint16(8)
     # one map per transfer table: keep the newest few (editing ranges makes a new table each time)
-    old = [k for k in memo if isinstance(k, tuple) and k and k[0] == "cells"]
+    old = [k for k in list(memo) if isinstance(k, tuple) and k and k[0] == "cells"]
     for k in old[: max(len(old) - _CELL_MAPS_KEPT + 1, 0)]:
-        del memo[k]
+        memo.pop(k, None)  # (another thread may have dropped it)
     memo[key] = out
     return out
 
@@ -331,9 +331,9 @@ def block_map(volume, cells: np.ndarray) -> np.ndarray:
     else:
         dist = ndimage.distance_transform_cdt(empty, metric="chessboard")
     out = np.minimum(dist, 255).astype(np.uint8)
-    old = [k for k in memo if isinstance(k, tuple) and k and k[0] == "blocks"]
+    old = [k for k in list(memo) if isinstance(k, tuple) and k and k[0] == "blocks"]
     for k in old[: max(len(old) - _CELL_MAPS_KEPT + 1, 0)]:
-        del memo[k]
+        memo.pop(k, None)  # (another thread may have dropped it)
     memo[key] = (weakref.ref(cells), out)
     return out
 

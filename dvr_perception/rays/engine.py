@@ -368,6 +368,7 @@ TILE = (16, 16)
 #: Tiles are dealt round-robin to this many chunks (parallel work items, balanced load).
 _CHUNKS = 64
 _ORDERS: dict = {}
+_ORDERS_LOCK = threading.Lock()
 
 
 def ray_order(height: int, width: int, *, tile=TILE) -> tuple[np.ndarray, np.ndarray]:
@@ -391,7 +392,8 @@ def ray_order(height: int, width: int, *, tile=TILE) -> tuple[np.ndarray, np.nda
     """
     th, tw = (max(int(v), 1) for v in tile)
     key = (int(height), int(width), th, tw)
-    hit = _ORDERS.get(key)
+    with _ORDERS_LOCK:
+        hit = _ORDERS.get(key)
     if hit is not None:
         return hit
     rows = np.arange(height * width, dtype=np.int64).reshape(height, width)
@@ -404,9 +406,10 @@ def ray_order(height: int, width: int, *, tile=TILE) -> tuple[np.ndarray, np.nda
     chunk_ptr = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
     order.flags.writeable = False
     chunk_ptr.flags.writeable = False
-    if len(_ORDERS) >= 8:
-        _ORDERS.pop(next(iter(_ORDERS)), None)
-    _ORDERS[key] = (order, chunk_ptr)
+    with _ORDERS_LOCK:  # analyses may run in several threads (web app)
+        while len(_ORDERS) >= 8:
+            del _ORDERS[next(iter(_ORDERS))]
+        _ORDERS[key] = (order, chunk_ptr)
     return order, chunk_ptr
 
 
