@@ -199,13 +199,6 @@ class _Scene:
                 self._pairs[key] = (met, tap, why)
         return self._pairs[key]
 
-    def pair(self, i: int, j: int, base: int, region_range: tuple) -> _Estimate:
-        """Eq. 8 for layer ``i`` over the bipartite background given by layer ``j``."""
-        met, tap, why = self._pair_terms(i, j, base)
-        if why is not None:
-            return _Estimate(reason=why)
-        return self._blended(met, tap, region_range)
-
     def generalized(self, i: int, active: list[int], base: int) -> _Estimate:
         """Eq. 9 for layer ``i`` of three or more overlapping active layers (cached)."""
         key = (i, _bits(active), base)
@@ -263,7 +256,7 @@ class _Scene:
 
     @staticmethod
     def _blended(met: float, tap: float, region_range: tuple) -> _Estimate:
-        """Eq. 8 with the region's luminance range (see :meth:`pair`)."""
+        """Eq. 8 for one pair's Metelli and TAP terms with the region's luminance range."""
         lo, hi = region_range
         alpha = _blend(met, tap, hi - lo)
         if math.isnan(tap) or hi - lo == 0.0:
