@@ -162,17 +162,19 @@ def _opacity_range(arr: np.ndarray, name: str) -> np.ndarray:
     return np.clip(arr, 0.0, 1.0)
 
 
-#: Checked fields of the last few engine analyses: ``(id, name) -> (weakref, array)``.
+#: What the measures derived from the last few engine analyses (checked fields, luminance):
+#: ``(id, name) -> (weakref, value)``.
 _FIELD_MEMO: dict[tuple, tuple] = {}
 _MEMO_LOCK = threading.Lock()
 
 
-def _remembered(analysis, name: str, compute) -> np.ndarray:
-    """``compute()``, remembered (read-only) for an engine :class:`RayAnalysis`.
+def _remembered(analysis, name, compute):
+    """``compute()``, remembered for an engine :class:`RayAnalysis` (its arrays read-only).
 
-    The three measures of one analysis check and convert the same fields; an engine analysis
-    is not changed after it is made (as for the luminance below), so that is done once.
-    Other analysis objects are checked every time.
+    The three measures of one analysis check and convert the same fields and need the same
+    luminance; an engine analysis is not changed after it is made, so that is done once.
+    ``name`` is any hashable naming what is computed.  Other analysis objects get
+    ``compute()`` every time.  The value is an array or a tuple whose arrays are frozen.
     """
     if not isinstance(analysis, RayAnalysis):
         return compute()
@@ -182,7 +184,9 @@ def _remembered(analysis, name: str, compute) -> np.ndarray:
     if hit is not None and hit[0]() is analysis:
         return hit[1]
     value = compute()
-    value.flags.writeable = False
+    for arr in value if isinstance(value, tuple) else (value,):
+        if isinstance(arr, np.ndarray):
+            arr.flags.writeable = False
     with _MEMO_LOCK:
         while len(_FIELD_MEMO) >= 12:
             del _FIELD_MEMO[next(iter(_FIELD_MEMO))]
@@ -280,10 +284,6 @@ def _check_premultiplied(rgba: np.ndarray, notes: list[str], *, trusted: bool = 
         )
 
 
-#: The last few engine analyses' luminance images: ``id -> (weakref, key, y, notes)``.
-_LUMINANCE_MEMO: dict[int, tuple] = {}
-
-
 def _image_luminance(analysis, spec, shape: tuple[int, int]) -> tuple[np.ndarray, list[str]]:
     """Linear CIE Y of the rendering composited over the background, clipped to [0, 1].
 
@@ -293,20 +293,14 @@ def _image_luminance(analysis, spec, shape: tuple[int, int]) -> tuple[np.ndarray
     :class:`RayAnalysis` (whose arrays are not changed after it is made) the result is
     remembered, so shape and transparency of one analysis compute it once; it is read-only.
     """
-    if not isinstance(analysis, RayAnalysis):
-        return _compute_luminance(analysis, spec, shape)
-    key = (None if spec is None else tuple(spec.background), shape)
-    with _MEMO_LOCK:
-        hit = _LUMINANCE_MEMO.get(id(analysis))
-    if hit is not None and hit[0]() is analysis and hit[1] == key:
-        return hit[2], list(hit[3])
-    y, notes = _compute_luminance(analysis, spec, shape)
-    y.flags.writeable = False
-    with _MEMO_LOCK:
-        while len(_LUMINANCE_MEMO) >= 4:
-            del _LUMINANCE_MEMO[next(iter(_LUMINANCE_MEMO))]
-        _LUMINANCE_MEMO[id(analysis)] = (weakref.ref(analysis), key, y, tuple(notes))
-    return y, notes
+    background = None if spec is None else tuple(spec.background)
+
+    def compute():
+        y, notes = _compute_luminance(analysis, spec, shape)
+        return y, tuple(notes)
+
+    y, notes = _remembered(analysis, ("luminance", background, shape), compute)
+    return y, list(notes)
 
 
 def _compute_luminance(analysis, spec, shape):
