@@ -8,6 +8,7 @@ luminance, so every Metelli (Eq. 5, 9) and TAP (Eq. 6-7) term is computed once p
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,7 +34,28 @@ class _Estimate:
 
 
 def _group_stats(values: np.ndarray, group: np.ndarray, n: int):
-    """Per-group pixel count, mean and two-pass population std (exactly 0 on uniform groups)."""
+    """Per-group pixel count, mean and two-pass population std (exactly 0 on uniform groups).
+
+    ``values`` and ``group`` are flat; the numba twin (:func:`._kernels.group_stats`) is used
+    when numba is there, the numpy code below otherwise (the same numbers to the last bit).
+    """
+    kernel = _numba_group_stats()
+    if kernel is not None:
+        return kernel(np.ascontiguousarray(values, np.float64), np.ascontiguousarray(group), n)
+    return _group_stats_numpy(values, group, n)
+
+
+def _numba_group_stats():
+    if os.environ.get("DVR_PERCEPTION_NO_NUMBA", "").strip() not in ("", "0"):
+        return None
+    try:
+        from dvr_perception.measures._kernels import group_stats
+    except ImportError:
+        return None
+    return group_stats
+
+
+def _group_stats_numpy(values: np.ndarray, group: np.ndarray, n: int):
     count = np.bincount(group, minlength=n)
     safe = np.maximum(count, 1)
     mean = np.bincount(group, weights=values, minlength=n) / safe

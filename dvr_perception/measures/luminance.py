@@ -133,5 +133,10 @@ def composite_luminance(rgba_premultiplied, *, background=(0.0, 0.0, 0.0)) -> np
             DVRWarning,
             stacklevel=2,
         )
+    return _composite(arr, bg)
+
+
+def _composite(arr: np.ndarray, bg: np.ndarray) -> np.ndarray:
+    """:func:`composite_luminance` of checked float64 input (``bg``: three floats)."""
     weights = np.asarray(LUMA_WEIGHTS)
-    return arr[..., :3] @ weights + (1.0 - alpha) * float(bg @ weights)
+    return arr[..., :3] @ weights + (1.0 - arr[..., 3]) * float(bg @ weights)

@@ -271,7 +271,11 @@ def _raster_ordered(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _dilate8(fp: np.ndarray) -> np.ndarray:
-    """3x3 (8-neighbourhood) binary dilation of each (H, W) mask of a (K, H, W) stack."""
+    """3x3 (8-neighbourhood) dilation of each (H, W) image of a (K, H, W) stack.
+
+    Boolean masks are dilated; bitmasks (unsigned integers) are OR-ed over the neighbourhood,
+    which dilates every bit's mask at once.
+    """
     out = fp.copy()
     out[:, 1:, :] |= fp[:, :-1, :]
     out[:, :-1, :] |= fp[:, 1:, :]
@@ -323,14 +327,32 @@ def layer_relations(footprints, *, tolerance: float = 0.02) -> dict[tuple[int, i
     'touch'
     """
     fp = _as_footprints(footprints)
+    return _relations(_bitmask(fp), fp.shape[0], tolerance)
+
+
+def _relations(layer_set: np.ndarray, k: int, tolerance: float) -> dict:
+    """:func:`layer_relations` of the ``k`` layers of a (H, W) layer-set bitmask image."""
     if not 0.0 <= float(tolerance) < 0.5:
         raise DVRInputError(f"tolerance must lie in [0, 0.5), got {tolerance!r}")
     tol = float(tolerance)
-    k, n_pix = fp.shape[0], fp.shape[1] * fp.shape[2]
-    flat = fp.reshape(k, n_pix).astype(np.float64)
-    area = flat.sum(axis=1)
-    inter = np.rint(flat @ flat.T).astype(np.int64)
-    adjacent = (_dilate8(fp).reshape(k, n_pix).astype(np.float64) @ flat.T) > 0
+    # pixel counts per distinct layer set give every area and pairwise intersection exactly
+    flat = layer_set.ravel()
+    if k <= 16:
+        count = np.bincount(flat, minlength=1 << k)
+        sets = np.flatnonzero(count)
+        count = count[sets]
+    else:
+        sets, count = np.unique(flat, return_counts=True)
+    member = ((sets[:, None].astype(np.int64) >> np.arange(k)) & 1).astype(np.int64)  # (sets, k)
+    area = (member * count[:, None]).sum(axis=0).astype(np.float64)
+    inter = (member * count[:, None]).T @ member
+    # i and j are adjacent when a pixel of j has layer i within its 8-neighbourhood
+    near = _dilate8(layer_set[None])[0]
+    adjacent = np.zeros((k, k), bool)
+    for i in range(k):
+        if area[i]:
+            seen = np.bitwise_or.reduce(flat[(near.ravel() >> np.uint32(i)) & np.uint32(1) == 1])
+            adjacent[i] = (int(seen) >> np.arange(k)) & 1 == 1
     result: dict[tuple[int, int], Relation] = {}
     for i in range(k):
         for j in range(i + 1, k):

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from dvr_perception.errors import DVRInputError, DVRWarning
-from dvr_perception.measures.luminance import composite_luminance, luminance
-from dvr_perception.rays._results import RayAnalysis
+from dvr_perception.measures.luminance import _composite, composite_luminance, luminance
+from dvr_perception.rays._results import RayAnalysis, engine_made
 
 __all__ = ["ShapeResult", "TransparencyResult", "VisibilityResult"]
 
@@ -200,6 +200,8 @@ def _accumulated(analysis) -> np.ndarray:
 
 
 def _accumulated_checked(analysis) -> np.ndarray:
+    if engine_made(analysis):  # in [0, 1] and at least 1 x 1 by construction
+        return np.asarray(analysis.accumulated, np.float64)
     acc = _field(analysis, "accumulated", 2)
     if acc.shape[0] == 0 or acc.shape[1] == 0:
         raise DVRInputError(f"analysis.accumulated must have H, W >= 1, got shape {acc.shape}")
@@ -225,6 +227,8 @@ def _visible(analysis, accumulated: np.ndarray) -> np.ndarray:
 
 
 def _visible_checked(analysis, accumulated: np.ndarray) -> np.ndarray:
+    if engine_made(analysis):  # non-negative and summing to ``accumulated`` by construction
+        return np.asarray(analysis.visible, np.float64)
     vis = _opacity_range(_stack(analysis, "visible", accumulated.shape), "visible")
     if vis.shape[0] and np.max(np.abs(vis.sum(axis=0) - accumulated)) > _SUM_SLACK:
         warnings.warn(
@@ -234,6 +238,37 @@ def _visible_checked(analysis, accumulated: np.ndarray) -> np.ndarray:
             stacklevel=5,
         )
     return vis
+
+
+def _assigned(analysis, shape: tuple[int, int]) -> np.ndarray:
+    """``analysis.assigned`` (K, H, W), checked like :func:`_stack`; remembered."""
+    return _remembered(analysis, "assigned", lambda: _assigned_checked(analysis, shape))
+
+
+def _assigned_checked(analysis, shape):
+    if not engine_made(analysis):
+        return _stack(analysis, "assigned", shape)
+    if not analysis.stats.get("occlusion_free", True):
+        raise DVRInputError(
+            "analysis.assigned must be finite, but this analysis was made with "
+            "occlusion_free=False (render only): analyze with occlusion_free=True for it"
+        )
+    return np.asarray(analysis.assigned, np.float64)  # non-negative by construction
+
+
+def _curvature(analysis, shape: tuple[int, int]) -> np.ndarray:
+    """``analysis.curvature`` (H, W) as float64, checked to be non-negative and to fit."""
+    if engine_made(analysis):  # a weighted mean of |H| >= 0 by construction
+        return np.asarray(analysis.curvature, np.float64)
+    curvature = _field(analysis, "curvature", 2)
+    if curvature.shape != shape:
+        raise DVRInputError(
+            f"analysis.curvature must have shape {shape} to match "
+            f"analysis.accumulated, got {curvature.shape}"
+        )
+    if np.any(curvature < 0):
+        raise DVRInputError("analysis.curvature must be non-negative (it is |mean curvature|)")
+    return curvature
 
 
 def _names(analysis, spec, k: int) -> tuple[str, ...]:
@@ -309,10 +344,14 @@ def _compute_luminance(analysis, spec, shape):
     image = getattr(analysis, "image", None)
     if rgba is not None and (spec is not None or image is None):
         background = (0.0, 0.0, 0.0) if spec is None else tuple(spec.background)
-        arr = _field(analysis, "rgba", 3)
-        with warnings.catch_warnings():  # judged below: a few emissive pixels are expected
-            warnings.simplefilter("ignore", DVRWarning)
-            y = composite_luminance(arr, background=background)
+        if engine_made(analysis):  # finite, premultiplied, opacity in [0, 1] by construction
+            arr = np.asarray(analysis.rgba, np.float64)
+            y = _composite(arr, np.asarray(background, np.float64))
+        else:
+            arr = _field(analysis, "rgba", 3)
+            with warnings.catch_warnings():  # judged below: a few emissive pixels are expected
+                warnings.simplefilter("ignore", DVRWarning)
+                y = composite_luminance(arr, background=background)
         _check_premultiplied(arr, notes, trusted=isinstance(analysis, RayAnalysis))
         source = "rgba"
     elif image is not None:

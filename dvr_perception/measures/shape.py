@@ -35,7 +35,7 @@ from dvr_perception.errors import DVRInputError
 from dvr_perception.measures.results import (
     ShapeResult,
     _accumulated,
-    _field,
+    _curvature,
     _image_luminance,
     _names,
 )
@@ -119,14 +119,7 @@ def shape(analysis, spec=None, *, steepness: float = 0.05, percentile: float = 9
     """
     s, p = _check_options(steepness, percentile)
     accumulated = _accumulated(analysis)
-    curvature = _field(analysis, "curvature", 2)
-    if curvature.shape != accumulated.shape:
-        raise DVRInputError(
-            f"analysis.curvature must have shape {accumulated.shape} to match "
-            f"analysis.accumulated, got {curvature.shape}"
-        )
-    if np.any(curvature < 0):
-        raise DVRInputError("analysis.curvature must be non-negative (it is |mean curvature|)")
+    curvature = _curvature(analysis, accumulated.shape)
     if getattr(analysis, "names", None) is not None and spec is not None:
         _names(analysis, spec, len(analysis.names))
     y, notes = _image_luminance(analysis, spec, accumulated.shape)

@@ -53,7 +53,7 @@ from dvr_perception.measures._scene import DENOMINATOR_EPS as DENOMINATOR_EPS  #
 from dvr_perception.measures._scene import _Scene
 from dvr_perception.measures.covered import _without as _luminance_without
 from dvr_perception.measures.psychophysics import calibrate
-from dvr_perception.measures.regions import layer_footprints, layer_relations, subregions
+from dvr_perception.measures.regions import _relations, layer_footprints, subregions
 from dvr_perception.measures.results import (
     TransparencyResult,
     _accumulated,
@@ -89,7 +89,7 @@ def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure
     y, notes = _image_luminance(analysis, spec, accumulated.shape)
     footprints = layer_footprints(visible, threshold=threshold)
     rmap = subregions(footprints, geometry=False)  # no bounding boxes: not reported
-    relations = layer_relations(footprints, tolerance=tolerance)
+    relations = _relations(rmap.layer_set, len(names), tolerance)  # = layer_relations
     scene = _Scene(y, rmap, relations, names, contrast)
     if enclosure == "unoccluded":
         enclosers = sorted({r.encloser for r in relations.values() if r.kind == "enclose"})
@@ -169,28 +169,34 @@ def transparency(
         analysis, spec, threshold, calibration, tolerance, contrast, enclosure
     )
     deltas = est.deltas
+    delta_list, positions = deltas.tolist(), est.position.tolist()
     regions, undetermined = [], []
     sums = {n: [0.0, 0.0] for n in names}  # area-weighted alpha sum, area
     reasons: dict[str, list[str]] = {n: [] for n in names}
+    set_names: dict[frozenset, list[str]] = {}  # per layer set: its layers' names, in order
     for region in rmap.regions:
+        layer_names = set_names.get(region.layers)
+        if layer_names is None:
+            layer_names = set_names[region.layers] = [names[k] for k in sorted(region.layers)]
+        rid, area = region.id, region.area_fraction
         entry = {
-            "id": region.id,
-            "layers": [names[k] for k in sorted(region.layers)],
+            "id": rid,
+            "layers": list(layer_names),
             "kind": region.kind,
-            "area_fraction": region.area_fraction,
+            "area_fraction": area,
             "transmittance": {},
             "measured": {},
             "method": {},
             "clipped": {},
             "undetermined": {},
-            "delta_t": float(deltas[region.id]),
+            "delta_t": delta_list[rid],
         }
-        p = est.position[region.id]
-        for lay in est.layers[region.id]:
+        p = positions[rid]
+        for lay in est.layers[rid]:
             name = names[lay.k]
             if lay.reason is not None:
                 entry["undetermined"][name] = lay.reason
-                undetermined.append({"region": region.id, "structure": name, "reason": lay.reason})
+                undetermined.append({"region": rid, "structure": name, "reason": lay.reason})
                 if lay.reason not in reasons[name]:
                     reasons[name].append(lay.reason)
                 continue
@@ -200,8 +206,9 @@ def transparency(
             entry["measured"][name] = measured
             entry["transmittance"][name] = alpha_t
             entry["method"][name] = lay.method[p]
-            sums[name][0] += region.area_fraction * alpha_t
-            sums[name][1] += region.area_fraction
+            total = sums[name]
+            total[0] += area * alpha_t
+            total[1] += area
         regions.append(entry)
 
     n_clipped = sum(len(r["clipped"]) for r in regions)
@@ -213,7 +220,7 @@ def transparency(
         notes.append("no non-empty region (no layer above the threshold); E_t = 0")
     else:
         total_area = sum(r.area_fraction for r in nonempty)
-        e_t = float(sum(r.area_fraction * deltas[r.id] for r in nonempty) / total_area)
+        e_t = float(sum(r.area_fraction * delta_list[r.id] for r in nonempty) / total_area)
     if not any(r["transmittance"] for r in regions):
         notes.append("no region has a determinable layer transmittance; E_t = 0")
 

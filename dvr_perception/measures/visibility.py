@@ -26,11 +26,11 @@ from dvr_perception.errors import DVRInputError
 from dvr_perception.measures.results import (
     VisibilityResult,
     _accumulated,
+    _assigned,
     _names,
-    _remembered,
-    _stack,
     _visible,
 )
+from dvr_perception.rays._results import engine_made
 
 __all__ = ["visibility"]
 
@@ -47,6 +47,17 @@ def _share(analysis, prop: str, shape: tuple[int, ...], fallback) -> np.ndarray:
         raise DVRInputError(f"analysis.{prop} must be a finite array of shape {shape}")
     # clipping before widening to float64 gives the same numbers (0 and 1 are exact)
     return np.clip(arr, 0.0, 1.0).astype(np.float64, copy=False)
+
+
+def _engine_share(x: np.ndarray, total: np.ndarray) -> np.ndarray:
+    """Return an engine analysis' share (float32 ``x / total``, 0 where ``total`` is 0).
+
+    What :func:`_share` makes of ``RayAnalysis.visible_share`` and ``assigned_share``:
+    clipped to [0, 1] and widened to float64.
+    """
+    out = np.zeros(x.shape, np.float32)
+    np.divide(x, total, out=out, where=np.broadcast_to(total > 0, x.shape))
+    return np.clip(out, 0.0, 1.0, out=out).astype(np.float64)
 
 
 def _normalise(x: np.ndarray, total: np.ndarray) -> np.ndarray:
@@ -125,9 +136,7 @@ def visibility(analysis, spec=None, *, bins: int = 20) -> VisibilityResult:
     nbins = _check_bins(bins)
     accumulated = _accumulated(analysis)
     visible = _visible(analysis, accumulated)
-    assigned = _remembered(
-        analysis, "assigned", lambda: _stack(analysis, "assigned", accumulated.shape)
-    )
+    assigned = _assigned(analysis, accumulated.shape)
     if assigned.shape[0] != visible.shape[0]:
         raise DVRInputError(
             f"analysis.assigned has {assigned.shape[0]} structures, "
@@ -135,12 +144,16 @@ def visibility(analysis, spec=None, *, bins: int = 20) -> VisibilityResult:
         )
     names = _names(analysis, spec, visible.shape[0])
     total_assigned = assigned.sum(axis=0)
-    v_share = _share(
-        analysis, "visible_share", visible.shape, lambda: _normalise(visible, accumulated)
-    )
-    a_share = _share(
-        analysis, "assigned_share", assigned.shape, lambda: _normalise(assigned, total_assigned)
-    )
+    if engine_made(analysis):  # the shares' properties, without checking them again
+        v_share = _engine_share(analysis.visible, analysis.accumulated[None])
+        a_share = _engine_share(analysis.assigned, analysis.assigned.sum(axis=0, keepdims=True))
+    else:
+        v_share = _share(
+            analysis, "visible_share", visible.shape, lambda: _normalise(visible, accumulated)
+        )
+        a_share = _share(
+            analysis, "assigned_share", assigned.shape, lambda: _normalise(assigned, total_assigned)
+        )
 
     notes: list[str] = []
     nonempty = total_assigned > 0

@@ -338,6 +338,25 @@ def block_map(volume, cells: np.ndarray) -> np.ndarray:
     return out
 
 
+def cell_classes(volume, cells: np.ndarray) -> np.ndarray:
+    """Return the class byte of every cell of :func:`cell_map` (uint8 ``[z, y, x]``; memoised).
+
+    Half the memory of the cell map: what the walk behind early ray termination reads, where
+    only a sample's class matters (it does not jump by the cells' distances there).
+    """
+    key = ("classes", id(cells))
+    memo = _store(volume)
+    hit = memo.get(key)
+    if hit is not None and hit[0]() is cells:
+        return hit[1]
+    out = (cells & 0xFF).astype(np.uint8)
+    old = [k for k in list(memo) if isinstance(k, tuple) and k and k[0] == "classes"]
+    for k in old[: max(len(old) - _CELL_MAPS_KEPT + 1, 0)]:
+        memo.pop(k, None)  # (another thread may have dropped it)
+    memo[key] = (weakref.ref(cells), out)
+    return out
+
+
 #: Code of a zero gradient in VTK's spherical direction encoding (``255 * 256``).
 ZERO_CODE = 255 * 256
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -10,6 +11,10 @@ from dvr_perception.rays.camera import Camera
 from dvr_perception.structures.spec import StructureSpec
 
 __all__ = ["RayAnalysis", "RayCache"]
+
+#: The analyses the engine made (:func:`engine_made`): their arrays are read-only, finite and
+#: in range by construction, so the measures read them without checking them again.
+_ENGINE_MADE: weakref.WeakSet = weakref.WeakSet()
 
 
 @dataclass(frozen=True, eq=False)
@@ -90,3 +95,19 @@ class RayAnalysis:
         tot = self.assigned.sum(axis=0, keepdims=True)
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(tot > 0, self.assigned / tot, 0.0).astype(np.float32)
+
+
+def engine_made(analysis, *, mark: bool = False) -> bool:
+    """Whether ``analysis`` is a :class:`RayAnalysis` the engine made (``mark``: record it so).
+
+    The engine marks each analysis it returns after making its arrays read-only; anything
+    else (a hand-made :class:`RayAnalysis`, any other object) is not trusted.
+    """
+    if not isinstance(analysis, RayAnalysis):
+        return False
+    if mark:
+        for name in ("rgba", "image", "accumulated", "visible", "assigned", "present", "curvature"):
+            getattr(analysis, name).flags.writeable = False
+        _ENGINE_MADE.add(analysis)
+        return True
+    return analysis in _ENGINE_MADE

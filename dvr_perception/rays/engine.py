@@ -45,7 +45,7 @@ import numpy as np
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.rays import _grid, _tables
 from dvr_perception.rays import _numpy_kernels as _npk
-from dvr_perception.rays._results import RayAnalysis, RayCache
+from dvr_perception.rays._results import RayAnalysis, RayCache, engine_made
 from dvr_perception.rays.camera import Camera
 from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.structures.transfer import build_lut
@@ -178,7 +178,7 @@ def _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache) -> RayAna
 def _analysis(rgba, image, acc, vis, asg, present, cimg, spec, camera, stats, cache):
     h, w = camera.height, camera.width
     k = len(spec.structures)
-    return RayAnalysis(
+    analysis = RayAnalysis(
         rgba=rgba.reshape(h, w, 4),
         image=image.reshape(h, w, 3),
         accumulated=acc.reshape(h, w),
@@ -191,6 +191,8 @@ def _analysis(rgba, image, acc, vis, asg, present, cimg, spec, camera, stats, ca
         stats=stats,
         cache=cache,
     )
+    engine_made(analysis, mark=True)
+    return analysis
 
 
 def analyze(
@@ -433,7 +435,8 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     # every ray's outputs are written by the kernel: no zeroing needed
     rgba = _scratch("rgba", nrays, (4,), np.float64, locked)
     vis = _scratch("vis", k * nrays, (), np.float64, locked).reshape(k, nrays)
-    asg = _scratch("asg", k * nrays, (), np.float64, locked).reshape(k, nrays)
+    # a spare last row: where the walk behind early ray termination counts empty samples
+    asg_all = _scratch("asg", (k + 1) * nrays, (), np.float64, locked).reshape(k + 1, nrays)
     present = np.empty(nrays, np.uint32)
     cimg = _scratch("cimg", nrays, (), np.float64, locked)
     start = _scratch("start", nrays, (), np.int64, locked)  # with the cache: replaced by compact
@@ -449,11 +452,34 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     src_j = _scratch("j", cap if build else 1, (), np.int32, locked)
     src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked)
     src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked)
-    maps = (tix, cells, _grid.block_map(volume, cells), rep, *lab)
+    classes = _grid.cell_classes(volume, cells)
+    maps = (tix, cells, _grid.block_map(volume, cells), rep, *lab, classes,
+            *_tail_tables(ids, memb, alpha_w, rep, k))  # fmt: skip
     layout = (order, chunk_ptr, h, w)
-    return _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args,
-                         (build, tail), chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j,
-                         src_sh, src_curv, start, count, chunk_end, walked)  # fmt: skip
+    out = _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args,
+                        (build, tail), chunk_base, rgba, vis, asg_all, present, cimg, src_lut,
+                        src_j, src_sh, src_curv, start, count, chunk_end, walked)  # fmt: skip
+    return (out[0], out[1], asg_all[:k], *out[3:])
+
+
+def _tail_tables(ids, memb, alpha_w, rep, k):
+    """Return what the walk behind early ray termination looks up (``_numba_kernels._tail``).
+
+    ``kmap``: a cell class's table entry (a plateau's entry; the spare entry ``len(ids)``
+    for empty and mixed cells); per table entry plus the spare, its structure (``k``, the
+    spare row of ``asg``, outside every structure), its importance opacity (0 there) and its
+    ``present`` bit (0 there).
+    """
+    n = len(ids)
+    inside = memb > 0
+    tids = np.append(np.where(inside, ids, k), k).astype(np.int64)
+    t_alpha = np.append(np.where(inside, alpha_w, 0.0), 0.0)
+    t_bit = np.where(tids < k, np.left_shift(1, np.minimum(tids, 31)), 0).astype(np.uint32)
+    kmap = np.full(256, n, np.int64)
+    for s in range(k):
+        if rep[s] >= 0:
+            kmap[1 + s] = rep[s]
+    return kmap, tids, t_alpha, t_bit
 
 
 def _with_labels(volume, spec, lut):

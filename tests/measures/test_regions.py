@@ -173,3 +173,50 @@ def test_region_ids_follow_first_pixels_whatever_the_label_numbering():
         region_id, first = _raster_ordered(labels)
         assert region_id.tolist() == [[0, 0, 1], [2, 1, 1]]
         assert first.tolist() == [0, 2, 3]
+
+
+def _pixel_relations(fp, tol):
+    """Brute-force reference: areas, overlaps and 8-neighbour adjacency pixel by pixel."""
+    k, h, w = fp.shape
+    out = {}
+    for i in range(k):
+        for j in range(i + 1, k):
+            ai, aj = int(fp[i].sum()), int(fp[j].sum())
+            if not ai or not aj:
+                continue
+            x = int((fp[i] & fp[j]).sum())
+            adjacent = any(
+                fp[i, r, c] and fp[j, rr, cc]
+                for r in range(h)
+                for c in range(w)
+                for rr in range(max(r - 1, 0), min(r + 2, h))
+                for cc in range(max(c - 1, 0), min(c + 2, w))
+            )
+            small = min(ai, aj)
+            if not adjacent:
+                kind = "separate"
+            elif small - x <= tol * small:
+                kind = "enclose"
+            elif x <= tol * small:
+                kind = "touch"
+            else:
+                kind = "overlap"
+            out[(i, j)] = (kind, x)
+    return out
+
+
+@pytest.mark.parametrize("k", [2, 5, 18])
+def test_relations_equal_a_pixel_by_pixel_reference(k):
+    """Random blobs: the layer-set counting gives the brute-force areas, overlaps, adjacency."""
+    rng = np.random.default_rng(k)
+    fp = np.zeros((k, 14, 17), bool)
+    for layer in range(k):
+        r, c = rng.integers(0, 14), rng.integers(0, 17)
+        fp[layer] = disc((14, 17), (r, c), rng.integers(1, 5))
+    fp[-1] = False  # an empty layer is skipped
+    got = {key: (rel.kind, rel.intersection) for key, rel in layer_relations(fp).items()}
+    assert got == _pixel_relations(fp, 0.02)
+    if k == 2:
+        assert got == {}  # one layer left: no pair
+    else:
+        assert {kind for kind, _ in got.values()} >= {"separate", "overlap"}

@@ -378,6 +378,42 @@ def test_checked_fields_are_shared_by_the_measures_and_give_the_same_answers():
     assert len(t_a.regions) == len(t_p.regions) > 1
 
 
+def test_engine_analyses_are_read_without_checks_and_others_are_checked():
+    """The engine's own analyses skip the field checks (read-only, same answers); copies do not."""
+    from types import SimpleNamespace
+
+    from dvr_perception.rays._results import engine_made
+
+    vol = base_volume()
+    spec = make_spec(
+        structure("low", 0.4, (0.9, 0.3, 0.2), LOW), structure("high", 0.9, (0.2, 0.4, 1.0), HIGH)
+    )
+    a = analyze(vol, spec, parallel_camera(vol), build_cache=False)
+    assert engine_made(a)
+    fields = ("rgba", "image", "accumulated", "visible", "assigned", "present", "curvature")
+    for f in fields:
+        with pytest.raises(ValueError, match="read-only"):
+            getattr(a, f)[..., 0] = 0
+    plain = SimpleNamespace(
+        names=a.names,
+        visible_share=a.visible_share,
+        assigned_share=a.assigned_share,
+        **{f: np.array(getattr(a, f)) for f in fields},
+    )
+    for measure in (visibility, shape, transparency):
+        trusted, checked = measure(a, spec), measure(plain, spec)
+        for name in ("E_v", "E_s", "E_t", "deviation", "notes"):
+            if hasattr(trusted, name):
+                np.testing.assert_array_equal(getattr(trusted, name), getattr(checked, name))
+    bad = dataclasses.replace(a, visible=np.full(a.visible.shape, np.nan, np.float32))
+    assert not engine_made(bad)  # a hand-made RayAnalysis is checked as any other object
+    with pytest.raises(DVRInputError, match="visible must be finite"):
+        visibility(bad, spec)
+    bent = dataclasses.replace(a, curvature=-np.ones(a.curvature.shape, np.float32))
+    with pytest.raises(DVRInputError, match="curvature must be non-negative"):
+        shape(bent, spec)
+
+
 # -- an enclosing layer against the view without it (enclosure="unoccluded") ---------------------
 def shell_volume():
     """A hollow labelled box (label 1) around two opaque grey blocks (labels 2 and 3)."""
