@@ -18,11 +18,12 @@ Reported figures (seconds unless stated):
   (what one optimiser step costs); ``reeval_vtk_frames`` = ``reeval_s / vtk_frame_s``.
 * ``samples_per_s`` – ray samples per second of a full frame; ``cache_mb`` – size of the
   re-evaluation cache.
-* ``measure_s`` – median time of the three measures (visibility, shape, transparency) on one
-  analysis; ``measure_total_s`` – median of what ``dvr-perception measure`` pays per view
-  once the curvature volume exists: :func:`~dvr_perception.rays.engine.analyze` without the
-  re-evaluation cache, then the measures; ``measure_vtk_frames`` = ``measure_total_s /
-  vtk_frame_s``.
+* ``measure_s`` – median time of the three measures (visibility, shape, transparency, as
+  :func:`~dvr_perception.measures.all_measures` computes them) on one analysis;
+  ``measure_total_s`` – median of what ``dvr-perception measure`` pays per view once the
+  curvature volume exists: :func:`~dvr_perception.rays.engine.analyze` without the
+  re-evaluation cache, then the measures, timed in turn with VTK's frames as above;
+  ``measure_vtk_frames`` = ``measure_total_s / vtk_frame_s``.
 * with ``--optimize``: ``optimize_s`` – one whole :func:`~dvr_perception.optimize.optimize`
   run with the default stages (opacity, lighting, colour) and the curvature volume passed in
   (it is ``curvature_s`` above and does not depend on the optimised parameters);
@@ -145,22 +146,12 @@ def _samples(stats: dict):
     return None
 
 
-def _measure_times(vol, spec, cam, curv, result, repeat: int) -> tuple[float, float]:
-    """Median seconds of the three measures alone, and of analysis plus measures."""
-    from dvr_perception.measures import shape, transparency, visibility
-    from dvr_perception.rays.engine import analyze
-
-    def measures(analysis):
-        visibility(analysis, spec)
-        shape(analysis, spec)
-        transparency(analysis, spec)
+def _measure_times(result, spec, repeat: int) -> float:
+    """Median seconds of the three measures alone, on one analysis (``measure_s``)."""
+    from dvr_perception.measures import all_measures
 
     log.info("%d timed measure runs", repeat)
-    measure_s = _median_time(lambda: measures(result), repeat)
-    total_s = _median_time(
-        lambda: measures(analyze(vol, spec, cam, curvature=curv, build_cache=False)), repeat
-    )
-    return measure_s, total_s
+    return _median_time(lambda: all_measures(result, spec), repeat)
 
 
 def _optimize_report(vol, spec, cam, curv, seed: int) -> dict:
@@ -224,15 +215,22 @@ def run(args: argparse.Namespace) -> int:
     compile_s = time.perf_counter() - t0
     log.info("%d timed frames, ours and VTK's alternately", args.repeat)
     analyze(vol, spec, cam, build_cache=False, occlusion_free=False)  # compiles that variant
+    from dvr_perception.measures import all_measures
+
+    all_measures(result, spec)  # compiles the measures' kernels
     frames, vtk_frame_s, vtk_error = _paired_frames(
         {
             "frame": lambda: analyze(vol, spec, cam, curvature=curv),
             "render": lambda: analyze(vol, spec, cam, build_cache=False, occlusion_free=False),
+            # what ``dvr-perception measure`` pays per view once the curvature volume exists
+            "measure": lambda: all_measures(
+                analyze(vol, spec, cam, curvature=curv, build_cache=False), spec
+            ),
         },
         scene,
         args.repeat,
     )
-    frame_s, render_s = frames["frame"], frames["render"]
+    frame_s, render_s, measure_total_s = frames["frame"], frames["render"], frames["measure"]
 
     base = np.array([s.render_opacity for s in spec.structures], float)
     rng = np.random.default_rng(args.seed)
@@ -243,7 +241,7 @@ def run(args: argparse.Namespace) -> int:
 
     reeval()  # compiles the re-evaluation kernels
     reeval_s = _median_time(reeval, args.repeat)
-    measure_s, measure_total_s = _measure_times(vol, spec, cam, curv, result, args.repeat)
+    measure_s = _measure_times(result, spec, args.repeat)
 
     samples = _samples(result.stats)
     report = {

@@ -199,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     scene = load_scene(args)  # validates the options and the spec before anything is written
     out_dir = make_output_dir(args.out_dir) if args.out_dir else None
-    from dvr_perception.measures import shape, transparency, visibility
+    from dvr_perception.measures import all_measures
     from dvr_perception.rays.curvature import curvature_volume
     from dvr_perception.rays.engine import analyze
 
@@ -213,9 +213,7 @@ def run(args: argparse.Namespace) -> int:
     t_analysis = time.perf_counter() - t0
     log.info("computing the measures")
     t0 = time.perf_counter()
-    vis = visibility(result, scene.spec, bins=args.bins)
-    shp = shape(result, scene.spec)
-    trans = transparency(result, scene.spec)
+    vis, shp, trans = all_measures(result, scene.spec, bins=args.bins)
     t_measures = time.perf_counter() - t0
     report = {
         "volume": scene.volume_source,

@@ -51,7 +51,7 @@ from dvr_perception.filters._base import (
     point_array,
     string_array,
 )
-from dvr_perception.measures import composite_luminance, shape, transparency, visibility
+from dvr_perception.measures import all_measures, composite_luminance
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
@@ -166,11 +166,7 @@ class PerceptionMeasures(DVRFilterBase):
         self.UpdateProgress(0.3)
         result = analyze(volume, spec, camera, curvature=curvature, build_cache=False)
         self.UpdateProgress(0.7)
-        vis = visibility(result, spec)
-        self.UpdateProgress(0.75)
-        shp = shape(result, spec)
-        self.UpdateProgress(0.8)
-        trn = transparency(result, spec)
+        vis, shp, trn = all_measures(result, spec)
         self.UpdateProgress(0.95)
         lum = composite_luminance(result.rgba, background=spec.background)
 

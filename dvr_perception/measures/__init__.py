@@ -7,11 +7,13 @@ transmittance (Metelli, Eq. 5 and 9; TAP, Eq. 6-7; their blend, Eq. 8; calibrati
 
 The three quality measures read a ray analysis: :func:`~.visibility.visibility` (Sec. 4.1,
 Eq. 1-2), :func:`~.shape.shape` (Sec. 4.2, Eq. 3-4) and :func:`~.transparency.transparency`
-(Sec. 4.3, Eq. 5-11); their results are the dataclasses of :mod:`~.results`.
+(Sec. 4.3, Eq. 5-11); their results are the dataclasses of :mod:`~.results`, and
+:func:`~.combined.all_measures` computes the three together (transparency in a worker thread).
 :func:`~.covered.covered_transmittance` is the TAP of one layer over what it covers, seen
 with and without it (the paper's Fig. 9 reading).
 """
 
+from dvr_perception.measures.combined import MeasureSet, all_measures
 from dvr_perception.measures.covered import CoveredTransmittance, covered_transmittance
 from dvr_perception.measures.luminance import composite_luminance, luminance
 from dvr_perception.measures.psychophysics import (
@@ -37,12 +39,14 @@ from dvr_perception.measures.visibility import visibility
 
 __all__ = [
     "CoveredTransmittance",
+    "MeasureSet",
     "Region",
     "RegionMap",
     "Relation",
     "ShapeResult",
     "TransparencyResult",
     "VisibilityResult",
+    "all_measures",
     "blended_transmittance",
     "calibrate",
     "composite_luminance",

@@ -15,7 +15,9 @@ from __future__ import annotations
 import threading
 import warnings
 import weakref
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -122,17 +124,27 @@ class TransparencyResult:
     undetermined : list of dict
         ``{"region", "structure", "reason"}`` for every excluded (region, layer).
     notes : tuple of str
+    records : callable
+        Makes ``regions`` (called once, when ``regions`` is first read).
     """
 
     E_t: float
     deviation: np.ndarray
     region_id: np.ndarray
     layer_set: np.ndarray
-    regions: list
     relations: dict
     per_structure: dict
     undetermined: list
     notes: tuple[str, ...]
+    #: Makes the per-region records; they are made when :attr:`regions` is first read (a
+    #: fragmented view has thousands, and the scalar, images and per-structure figures do not
+    #: need them).
+    records: Callable[[], list] = field(repr=False, compare=False)
+
+    @cached_property
+    def regions(self) -> list:
+        """One dict per sub-region (see the class docstring), made when first read."""
+        return self.records()
 
 
 # -- input checks shared by the measures --------------------------------------------------------

@@ -45,6 +45,8 @@ Pipeline (all luminances are linear CIE Y of ``rgba`` composited over ``spec.bac
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 
 from dvr_perception.errors import DVRInputError
@@ -169,49 +171,27 @@ def transparency(
         analysis, spec, threshold, calibration, tolerance, contrast, enclosure
     )
     deltas = est.deltas
-    delta_list, positions = deltas.tolist(), est.position.tolist()
-    regions, undetermined = [], []
-    sums = {n: [0.0, 0.0] for n in names}  # area-weighted alpha sum, area
-    reasons: dict[str, list[str]] = {n: [] for n in names}
-    set_names: dict[frozenset, list[str]] = {}  # per layer set: its layers' names, in order
-    for region in rmap.regions:
-        layer_names = set_names.get(region.layers)
-        if layer_names is None:
-            layer_names = set_names[region.layers] = [names[k] for k in sorted(region.layers)]
-        rid, area = region.id, region.area_fraction
-        entry = {
-            "id": rid,
-            "layers": list(layer_names),
-            "kind": region.kind,
-            "area_fraction": area,
-            "transmittance": {},
-            "measured": {},
-            "method": {},
-            "clipped": {},
-            "undetermined": {},
-            "delta_t": delta_list[rid],
-        }
-        p = positions[rid]
-        for lay in est.layers[rid]:
+    delta_list = deltas.tolist()
+    area = np.array([r.area_fraction for r in rmap.regions], np.float64)
+    # per layer set: the undetermined (region, layer) pairs and the determined transmittances
+    pairs = []  # (region, position in its set's layers, name, reason)
+    determined: dict[str, list] = {n: [] for n in names}  # (region ids, alpha_t) per set
+    n_clipped = 0
+    for ids, lays in est.sets:
+        for pos, lay in enumerate(lays):
             name = names[lay.k]
             if lay.reason is not None:
-                entry["undetermined"][name] = lay.reason
-                undetermined.append({"region": rid, "structure": name, "reason": lay.reason})
-                if lay.reason not in reasons[name]:
-                    reasons[name].append(lay.reason)
+                pairs.extend((r, pos, name, lay.reason) for r in ids.tolist())
                 continue
-            measured, alpha_t = lay.measured[p], lay.alpha_t[p]
-            if measured != lay.raw[p]:
-                entry["clipped"][name] = lay.raw[p]
-            entry["measured"][name] = measured
-            entry["transmittance"][name] = alpha_t
-            entry["method"][name] = lay.method[p]
-            total = sums[name]
-            total[0] += area * alpha_t
-            total[1] += area
-        regions.append(entry)
+            n_clipped += int(np.count_nonzero(np.asarray(lay.measured) != np.asarray(lay.raw)))
+            determined[name].append((ids, np.asarray(lay.alpha_t, np.float64)))
+    pairs.sort(key=lambda t: (t[0], t[1]))  # region by region, as the records list them
+    undetermined = [{"region": r, "structure": n, "reason": why} for r, _, n, why in pairs]
+    reasons: dict[str, list[str]] = {n: [] for n in names}
+    for _, _, name, why in pairs:
+        if why not in reasons[name]:
+            reasons[name].append(why)
 
-    n_clipped = sum(len(r["clipped"]) for r in regions)
     if n_clipped:
         notes.append(f"{n_clipped} transmittance(s) outside [0, 1] were clipped (see 'clipped')")
     nonempty = [r for r in rmap.regions if r.kind != "empty"]
@@ -221,13 +201,19 @@ def transparency(
     else:
         total_area = sum(r.area_fraction for r in nonempty)
         e_t = float(sum(r.area_fraction * delta_list[r.id] for r in nonempty) / total_area)
-    if not any(r["transmittance"] for r in regions):
+    if not any(determined.values()):
         notes.append("no region has a determinable layer transmittance; E_t = 0")
 
     per_structure = {}
     for k, name in enumerate(names):
-        total, area = sums[name]
-        alpha = total / area if area > 0 else None
+        alpha = None
+        if determined[name]:
+            ids = np.concatenate([i for i, _ in determined[name]])
+            order = np.argsort(ids, kind="stable")  # region order, as a loop over the regions
+            ids = ids[order]
+            weighted = area[ids] * np.concatenate([a for _, a in determined[name]])[order]
+            total, covered = _in_order_sum(weighted), _in_order_sum(area[ids])
+            alpha = total / covered if covered > 0 else None
         per_structure[name] = {
             "perceived_transparency": alpha,
             "perceived_opacity": None if alpha is None else 1.0 - alpha,
@@ -246,9 +232,52 @@ def transparency(
         deviation=deltas[rmap.region_id].astype(np.float32),
         region_id=rmap.region_id,
         layer_set=rmap.layer_set,
-        regions=regions,
+        records=partial(_records, rmap, est, names, delta_list),
         relations=relation_out,
         per_structure=per_structure,
         undetermined=undetermined,
         notes=tuple(dict.fromkeys(notes)),
     )
+
+
+def _in_order_sum(values: np.ndarray) -> float:
+    """``0.0 + v[0] + v[1] + ...`` left to right, as a Python loop adds (no pairwise sum)."""
+    return float(np.add.accumulate(values)[-1]) if values.size else 0.0
+
+
+def _records(rmap, est, names, delta_list) -> list:
+    """One dict per region (``TransparencyResult.regions``), made when first read."""
+    regions = []
+    positions = est.position.tolist()
+    set_names: dict[frozenset, list[str]] = {}  # per layer set: its layers' names, in order
+    for region in rmap.regions:
+        layer_names = set_names.get(region.layers)
+        if layer_names is None:
+            layer_names = set_names[region.layers] = [names[k] for k in sorted(region.layers)]
+        rid = region.id
+        entry = {
+            "id": rid,
+            "layers": list(layer_names),
+            "kind": region.kind,
+            "area_fraction": region.area_fraction,
+            "transmittance": {},
+            "measured": {},
+            "method": {},
+            "clipped": {},
+            "undetermined": {},
+            "delta_t": delta_list[rid],
+        }
+        p = positions[rid]
+        for lay in est.layers[rid]:
+            name = names[lay.k]
+            if lay.reason is not None:
+                entry["undetermined"][name] = lay.reason
+                continue
+            measured = lay.measured[p]
+            if measured != lay.raw[p]:
+                entry["clipped"][name] = lay.raw[p]
+            entry["measured"][name] = measured
+            entry["transmittance"][name] = lay.alpha_t[p]
+            entry["method"][name] = lay.method[p]
+        regions.append(entry)
+    return regions

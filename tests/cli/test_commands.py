@@ -180,7 +180,10 @@ def test_bench_alternates_frames_and_survives_a_vtk_that_cannot_render(capsys, m
     real_analyze = engine.analyze
 
     def analyze(*args, **kwargs):
-        order.append("frame" if kwargs.get("occlusion_free", True) else "render")
+        if not kwargs.get("occlusion_free", True):
+            order.append("render")
+        else:
+            order.append("frame" if kwargs.get("build_cache", True) else "measure")
         return real_analyze(*args, **kwargs)
 
     @contextlib.contextmanager
@@ -199,14 +202,16 @@ def test_bench_alternates_frames_and_survives_a_vtk_that_cannot_render(capsys, m
     assert code == 0, err
     report = _one_json(out)
     # warm-ups, two turns, VTK fails on the third, our two missing turns are timed alone
-    turn = ["frame", "render"]
-    assert order[:13] == ["frame", "render", "vtk", *turn, "vtk", *turn, "vtk", *turn, *turn]
+    turn = ["frame", "render", "measure"]
+    assert order[:17] == ["frame", "render", "vtk", *turn, "vtk", *turn, "vtk", *turn, *turn]
     assert report["vtk_frame_s"] is None
     assert report["frame_ratio"] is None
     assert report["render_ratio"] is None
+    assert report["measure_vtk_frames"] is None
     assert report["vtk_error"] == "VTK: no OpenGL here"
     assert report["frame_s"] > 0
     assert report["render_s"] > 0
+    assert report["measure_total_s"] > report["measure_s"] > 0
 
 
 def test_bench_rejects_bad_repeat(capsys):
