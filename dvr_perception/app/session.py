@@ -313,16 +313,14 @@ class Session:
     # -- measures ----------------------------------------------------------------------------
     def measure(self, camera) -> Measures:
         """Analyse the current spec from ``camera`` (reduced) and compute E_v, E_s, E_t."""
-        from dvr_perception.measures import shape, transparency, visibility
+        from dvr_perception.measures import all_measures
         from dvr_perception.rays.curvature import curvature_volume
         from dvr_perception.rays.engine import analyze
 
         cam = measure_camera(camera)
         curvature, _ = curvature_volume(self.volume, self.spec)
         analysis = analyze(self.volume, self.spec, cam, curvature=curvature, build_cache=False)
-        v = visibility(analysis, self.spec)
-        s = shape(analysis, self.spec)
-        t = transparency(analysis, self.spec, calibration=self.calibration)
+        v, s, t = all_measures(analysis, self.spec, calibration=self.calibration)
         empty = ~v.nonempty  # no map where nothing is rendered: the background stays visible
         images = {
             name: np.where(empty, np.nan, np.asarray(r.deviation, dtype=np.float32))

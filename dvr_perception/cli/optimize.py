@@ -248,11 +248,11 @@ def stop_on_interrupt(progress: Progress):
 # -- measuring and writing -----------------------------------------------------------------------
 def _measure(volume, spec, camera, curvature, weights):
     from dvr_perception.cli.measure import _structures
-    from dvr_perception.measures import shape, transparency, visibility
+    from dvr_perception.measures import all_measures
     from dvr_perception.rays.engine import analyze
 
     result = analyze(volume, spec, camera, curvature=curvature, build_cache=False)
-    vis, shp, trn = visibility(result, spec), shape(result, spec), transparency(result, spec)
+    vis, shp, trn = all_measures(result, spec)
     terms = {"E_v": float(vis.E_v), "E_s": float(shp.E_s), "E_t": float(trn.E_t)}
     terms["E"] = float(sum(w * terms[k] for w, k in zip(weights, TERMS, strict=True)))
     keep = ("visible_share", "assigned_share", "perceived_transparency", "expected_opacity")

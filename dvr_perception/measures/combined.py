@@ -49,7 +49,9 @@ def _pool() -> ThreadPoolExecutor:
         return _POOL
 
 
-def all_measures(analysis, spec, *, bins: int = 20, parallel: bool = True) -> MeasureSet:
+def all_measures(
+    analysis, spec, *, bins: int = 20, calibration=None, parallel: bool = True
+) -> MeasureSet:
     """Visibility, shape and transparency of one ray analysis, with their defaults.
 
     Parameters
@@ -60,6 +62,8 @@ def all_measures(analysis, spec, *, bins: int = 20, parallel: bool = True) -> Me
         Structures (names must match the analysis), background and expected opacities.
     bins : int, optional
         Visibility histogram bins (default 20).
+    calibration : pair of array_like (x, y), optional
+        Transparency's calibration curve (default: none, the identity).
     parallel : bool, optional
         Compute transparency in a worker thread while shape and visibility run (default);
         ``False`` computes the three in turn.  The results are the same either way.
@@ -93,14 +97,14 @@ def all_measures(analysis, spec, *, bins: int = 20, parallel: bool = True) -> Me
         return MeasureSet(
             visibility(analysis, spec, bins=bins),
             shape(analysis, spec),
-            transparency(analysis, spec),
+            transparency(analysis, spec, calibration=calibration),
         )
     if engine_made(analysis):
         # what the measures share is remembered for an engine analysis: make it once, here
         accumulated = _accumulated(analysis)
         _visible(analysis, accumulated)
         _image_luminance(analysis, spec, accumulated.shape)
-    pending = _pool().submit(transparency, analysis, spec)
+    pending = _pool().submit(transparency, analysis, spec, calibration=calibration)
     try:
         vis = visibility(analysis, spec, bins=bins)
         shp = shape(analysis, spec)

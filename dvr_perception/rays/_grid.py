@@ -8,9 +8,9 @@ Everything here is plain numpy and is shared by the numba and the numpy back end
   sample and number of samples, exactly where ``vtkFixedPointVolumeRayCastMapper`` samples.
 * :func:`index_volume`, :func:`compact_index`, :func:`normal_codes`, :func:`voxel_records`,
   :func:`cell_map` - per-volume arrays (table index per voxel, also as uint8 when it fits,
-  VTK-encoded normals, both packed in one uint32 per voxel, class and empty-space distance per
-  cell), cached on the :class:`~dvr_perception.volume.volume.Volume` object for as long as it
-  lives.
+  VTK-encoded normals, both packed in one uint32 per voxel, class per cell; with
+  :func:`block_map`, empty-space distance per block of cells), cached on the
+  :class:`~dvr_perception.volume.volume.Volume` object for as long as it lives.
 """
 
 from __future__ import annotations
@@ -25,7 +25,6 @@ from dvr_perception.errors import DVRInputError
 __all__ = [
     "BLOCK",
     "CELL_EMPTY",
-    "CELL_MAX_DISTANCE",
     "CELL_MIXED",
     "ZERO_CODE",
     "block_map",
@@ -189,12 +188,10 @@ def compact_index(volume, index: np.ndarray) -> np.ndarray:
     return memo[key]
 
 
-#: Cell classes of :func:`cell_map` (low byte): no sample in the cell belongs to a structure,
-#: or its samples need the trilinear table index; ``1 + s``: all are on structure ``s``'s plateau.
+#: Cell classes of :func:`cell_map`: no sample in the cell belongs to a structure, or its
+#: samples need the trilinear table index; ``1 + s``: all are on structure ``s``'s plateau.
 CELL_EMPTY = 0
 CELL_MIXED = 255
-#: Largest empty-space distance stored in :func:`cell_map` (high byte).
-CELL_MAX_DISTANCE = 255
 #: Cell maps memoised per volume (the most recent tables).
 _CELL_MAPS_KEPT = 3
 
@@ -226,21 +223,19 @@ def label_map(volume, label_ids) -> np.ndarray | None:
 def cell_map(
     volume, index: np.ndarray, ids: np.ndarray, membership: np.ndarray, labels=None
 ) -> np.ndarray:
-    """Class and empty-space distance of every cell (uint16 ``[z, y, x]`` of its first corner).
+    """Class of every cell (uint8 ``[z, y, x]`` of its first corner; memoised).
 
     A sample's table index is interpolated from the cell's 8 corners, so it lies between their
     smallest and largest index (widened by one entry each way for VTK's fixed-point rounding
-    and float error).  Low byte, the class: when every table entry in that interval is outside
-    all structures the cell is :data:`CELL_EMPTY`; when every entry is on the plateau
-    (membership 1) of one structure ``s`` it is ``1 + s`` (the sample's structure and opacity
-    are then known without interpolating); otherwise :data:`CELL_MIXED`.  High byte, for the
-    uniform (empty and plateau) cells: the chessboard distance ``d`` (at most
-    :data:`CELL_MAX_DISTANCE`) to the nearest cell of another class, so every cell within
-    ``d - 1`` cells on each axis has the same class and a ray may advance ``d - 1`` voxels along
-    every axis without meeting another class; 0 for mixed cells.  The last plane of
-    each axis is never sampled (cells are clamped to ``n - 2``) and counts as empty.
-    ``labels`` (:func:`label_map`): a cell with a labelled corner is mixed (its samples take
-    their nearest voxel's label first).
+    and float error).  When every table entry in that interval is outside all structures the
+    cell is :data:`CELL_EMPTY`; when every entry is on the plateau (membership 1) of one
+    structure ``s`` it is ``1 + s`` (the sample's structure and opacity are then known without
+    interpolating); otherwise :data:`CELL_MIXED`.  The last plane of each axis is never
+    sampled (cells are clamped to ``n - 2``) and counts as empty.  ``labels``
+    (:func:`label_map`): a cell with a labelled corner is mixed (its samples take their
+    nearest voxel's label first).  Empty space is skipped by :func:`block_map`'s blocks; inside
+    them the walk looks at every sample (cheaper than jumping over the short runs of noisy
+    data).
     """
     ids = np.asarray(ids)
     memb = np.asarray(membership)
@@ -250,12 +245,11 @@ def cell_map(
     memo = _store(volume)
     if key in memo:
         return memo[key]
-    from scipy import ndimage
-
     n = len(ids)
     cat = np.where(memb <= 0, CELL_EMPTY, np.where(memb == 1, 1 + ids.astype(np.int64), CELL_MIXED))
     run = np.concatenate([[0], np.cumsum(cat[1:] != cat[:-1])])
-    out = np.zeros(index.shape, np.uint16)
+    cat = cat.astype(np.uint8)
+    out = np.zeros(index.shape, np.uint8)
     nz = index.shape[0]
     for z0 in range(0, nz - 1, 16):
         z1 = min(z0 + 17, nz)
@@ -273,26 +267,13 @@ def cell_map(
         khi = np.floor(hi * _W_SCALE + _W_BIAS).astype(np.int64) + 1
         np.clip(klo, 0, n - 1, out=klo)
         np.clip(khi, 0, n - 1, out=khi)
-        cls = np.where(run[klo] == run[khi], cat[klo], CELL_MIXED)
+        cls = np.where(run[klo] == run[khi], cat[klo], np.uint8(CELL_MIXED))
         if labels is not None:
             lab = labels[z0:z1] > 0
             lab = lab[:-1] | lab[1:]
             lab = lab[:, :-1] | lab[:, 1:]
             cls[lab[:, :, :-1] | lab[:, :, 1:]] = CELL_MIXED
         out[z0 : z0 + lo.shape[0], :-1, :-1] = cls
-    cells = out[:-1, :-1, :-1]
-    # cells with a neighbour of another class; a uniform cell at chessboard distance d from the
-    # nearest of them has only cells of its own class within d (d + 1 is the first other one)
-    edge = ndimage.maximum_filter(cells, size=3, mode="nearest") != ndimage.minimum_filter(
-        cells, size=3, mode="nearest"
-    )
-    if edge.any():
-        dist = ndimage.distance_transform_cdt(~edge, metric="chessboard") + 1
-    else:
-        dist = np.full(cells.shape, CELL_MAX_DISTANCE, np.int64)
-    np.minimum(dist, CELL_MAX_DISTANCE, out=dist)
-    dist[cells == CELL_MIXED] = 0
-    cells |= dist.astype(np.uint16) << np.uint16(8)
     # one map per transfer table: keep the newest few (editing ranges makes a new table each time)
     old = [k for k in list(memo) if isinstance(k, tuple) and k and k[0] == "cells"]
     for k in old[: max(len(old) - _CELL_MAPS_KEPT + 1, 0)]:
@@ -321,7 +302,7 @@ def block_map(volume, cells: np.ndarray) -> np.ndarray:
         return hit[1]
     from scipy import ndimage
 
-    c = (cells[:-1, :-1, :-1] & 0xFF) == CELL_EMPTY  # the last plane of each axis: no cells
+    c = cells[:-1, :-1, :-1] == CELL_EMPTY  # the last plane of each axis: no cells
     pad = [(0, -n % BLOCK) for n in c.shape]
     c = np.pad(c, pad, constant_values=True)
     bz, by, bx = (n // BLOCK for n in c.shape)
@@ -332,25 +313,6 @@ def block_map(volume, cells: np.ndarray) -> np.ndarray:
         dist = ndimage.distance_transform_cdt(empty, metric="chessboard")
     out = np.minimum(dist, 255).astype(np.uint8)
     old = [k for k in list(memo) if isinstance(k, tuple) and k and k[0] == "blocks"]
-    for k in old[: max(len(old) - _CELL_MAPS_KEPT + 1, 0)]:
-        memo.pop(k, None)  # (another thread may have dropped it)
-    memo[key] = (weakref.ref(cells), out)
-    return out
-
-
-def cell_classes(volume, cells: np.ndarray) -> np.ndarray:
-    """Return the class byte of every cell of :func:`cell_map` (uint8 ``[z, y, x]``; memoised).
-
-    Half the memory of the cell map: what the walk behind early ray termination reads, where
-    only a sample's class matters (it does not jump by the cells' distances there).
-    """
-    key = ("classes", id(cells))
-    memo = _store(volume)
-    hit = memo.get(key)
-    if hit is not None and hit[0]() is cells:
-        return hit[1]
-    out = (cells & 0xFF).astype(np.uint8)
-    old = [k for k in list(memo) if isinstance(k, tuple) and k and k[0] == "classes"]
     for k in old[: max(len(old) - _CELL_MAPS_KEPT + 1, 0)]:
         memo.pop(k, None)  # (another thread may have dropped it)
     memo[key] = (weakref.ref(cells), out)

@@ -8,9 +8,8 @@ Kernels, parallel over chunks of image tiles (:func:`dvr_perception.rays.engine.
   index, since ``present`` and the occlusion-free ``assigned`` need every sample.  Both look
   up each sample's block of 4^3 cells in :func:`_grid.block_map` first (small enough to stay
   in the processor's cache): far from anything the ray jumps by whole blocks.  Otherwise the
-  sample's cell in :func:`_grid.cell_map` (the walk) or :func:`_grid.cell_classes` (the
-  tail): in the walk an empty cell makes the ray jump as far as its empty-space distance
-  allows; in both a plateau cell gives the table entry without interpolating the 8 corners.
+  sample's cell class in :func:`_grid.cell_map`: an empty cell is passed over, a plateau
+  cell gives the table entry without interpolating the 8 corners.
   With ``build`` the walk packs one cache entry per sample with membership > 0 (table index,
   sample index, shading and curvature) into its chunk's region.
 * Shading (:func:`_shade_at`) is VTK's: the shading-table entries of the 8 corners' normal codes
@@ -49,10 +48,8 @@ _IQS = 1.0 / 65534.0
 #: Cell classes (= ``_grid.CELL_EMPTY`` / ``CELL_MIXED``, tested); ``1 + s`` is ``s``'s plateau.
 _CELL_EMPTY = 0
 _CELL_MIXED = 255
-_LOW = np.uint16(0xFF)
 #: Side of :func:`_grid.block_map`'s blocks (= ``_grid.BLOCK``, tested; ``>> 2`` below).
 _BLOCK = 4
-_HIGH = np.uint16(8)
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
@@ -202,7 +199,7 @@ def _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz):
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
-def _tail(r, tix, classes, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n,
+def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n,
           step, shade, has_curv, build, base, cnt, walked, bits, asg, out):  # fmt: skip
     """Walk the rest of a ray after early ray termination: only each sample's table index.
 
@@ -212,7 +209,7 @@ def _tail(r, tix, classes, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by,
     traffic of the voxel records.  Far from anything the ray jumps by whole blocks of the
     small block map (:func:`_grid.block_map`, which stays in the processor's cache).
     Otherwise every sample is looked at, with few branches: a plateau or empty cell's class
-    (:func:`_grid.cell_classes`) gives the table entry through ``kmap``, a mixed cell's entry
+    (:func:`_grid.cell_map`) gives the table entry through ``kmap``, a mixed cell's entry
     is interpolated, and an entry outside every structure counts for the spare structure
     ``len(asg) - 1`` (opacity 0; its row of ``asg`` is dropped later; ``t_bit`` holds each
     entry's ``present`` bit, 0 for the spare).  Looking at empty and plateau samples one by
@@ -225,7 +222,7 @@ def _tail(r, tix, classes, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by,
     lab_end = (lab_base if lab_base >= 0 else len(tids) - 1) - 1
     nz, ny, nx = tix.shape
     tf = tix.reshape(tix.size)
-    cf = classes.reshape(classes.size)
+    cf = cells.reshape(cells.size)
     bf = blocks.reshape(blocks.size)
     bnx = blocks.shape[2]
     bnxy = blocks.shape[1] * bnx
@@ -285,7 +282,7 @@ def _walk_ray(
 ):  # fmt: skip
     """Walk one ray, compositing until early ray termination.
 
-    ``maps`` is ``(tix, cells, blocks, rep, lab, lab_base, classes, tail_maps)`` (see
+    ``maps`` is ``(tix, cells, blocks, rep, lab, lab_base, tail_maps)`` (see
     :func:`walk`; one tuple because a call with more than 30 arguments becomes ``*args``,
     which numba cannot inline).
 
@@ -295,11 +292,11 @@ def _walk_ray(
     (-1) for samples that compositing did not reach).
     """
     c_lut, c_j, c_sh, c_curv = out
-    tix, cells, blocks, rep, lab, lab_base, classes, tail_maps = maps
+    tix, cells, blocks, rep, lab, lab_base, tail_maps = maps
     lab_end = (lab_base if lab_base >= 0 else len(ids)) - 1
     nz, ny, nx = vol.shape
     volf = vol.reshape(vol.size)
-    cf = cells.reshape(cells.size)
+    clf = cells.reshape(cells.size)
     isy = np.uint64(nx)
     nxy = nx * ny
     isz = np.uint64(nxy)
@@ -317,8 +314,7 @@ def _walk_ray(
     num = 0.0
     den = 0.0
     j = 0
-    inv = _jump_scale(bx, by, bz, step)
-    binv = inv * _BLOCK
+    binv = _jump_scale(bx, by, bz, step) * _BLOCK
     while j < n and alive:
         px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz)
         walked += 1
@@ -327,11 +323,10 @@ def _walk_ray(
             j += skip
             continue
         o = np.uint64(z * nxy + y * nx + x)
-        cl = cf[o]
-        if cl & _LOW == _CELL_EMPTY:
-            j += max(int(((cl >> _HIGH) - 1) * inv), 1)
+        cl = clf[o]
+        if cl == _CELL_EMPTY:
+            j += 1
             continue
-        cl &= _LOW
         fx = min(max(px - x, 0.0), 1.0)
         fy = min(max(py - y, 0.0), 1.0)
         fz = min(max(pz - z, 0.0), 1.0)
@@ -402,7 +397,7 @@ def _walk_ray(
             alive = False
     if j < n and tail:
         cnt, walked, bits = _tail(
-            r, tix, classes, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j,
+            r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j,
             n, step, shade, has_curv, build, base, cnt, walked, bits, asg, out,
         )  # fmt: skip
     present[r] = bits
@@ -498,7 +493,7 @@ def _composite_ray(
 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def walk(
-    vol, tix, cells, blocks, rep, lab, lab_base, classes, kmap, tids, t_alpha, t_bit, curv, a, b,
+    vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, curv, a, b,
     t_first, nsteps, step, order, chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light, tab,
     shade, has_curv, build, tail, chunk_base, ert, rgba, vis, asg, present, cimg, c_lut, c_j,
     c_sh, c_curv, start, count, chunk_end, walked,
@@ -511,7 +506,7 @@ def walk(
     ``asg`` and ``present`` cover only the samples walked; ``rep``: a plateau table entry per
     structure; ``lab``: :func:`_grid.label_map` whose value ``v > 0``
     means table entry ``lab_base + v - 1`` (``lab_base`` -1: no label structures);
-    ``classes``, ``kmap``, ``tids``, ``t_alpha`` and ``t_bit``: what :func:`_tail` reads
+    ``kmap``, ``tids``, ``t_alpha`` and ``t_bit``: what :func:`_tail` reads
     (``asg`` has a spare last row for it, ``K + 1`` rows in all).
 
     Chunk ``c`` (rays ``order[chunk_ptr[c]:chunk_ptr[c + 1]]``, whole tiles of pixels) packs
@@ -519,7 +514,7 @@ def walk(
     """
     for c in prange(nchunk):
         # built here: a tuple holding a tuple of arrays cannot enter a parallel loop
-        maps = (tix, cells, blocks, rep, lab, lab_base, classes, (kmap, tids, t_alpha, t_bit))
+        maps = (tix, cells, blocks, rep, lab, lab_base, (kmap, tids, t_alpha, t_bit))
         e = chunk_base[c]
         for i in range(chunk_ptr[c], chunk_ptr[c + 1]):
             r = order[i]

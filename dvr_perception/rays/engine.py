@@ -452,8 +452,7 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     src_j = _scratch("j", cap if build else 1, (), np.int32, locked)
     src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked)
     src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked)
-    classes = _grid.cell_classes(volume, cells)
-    maps = (tix, cells, _grid.block_map(volume, cells), rep, *lab, classes,
+    maps = (tix, cells, _grid.block_map(volume, cells), rep, *lab,
             *_tail_tables(ids, memb, alpha_w, rep, k))  # fmt: skip
     layout = (order, chunk_ptr, h, w)
     out = _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args,
@@ -497,7 +496,7 @@ def _with_labels(volume, spec, lut):
 
 
 def _plateau_entries(ids, memb, k) -> np.ndarray:
-    """Per structure, a table entry on its plateau (membership 1), or -1 (see ``cell_classes``)."""
+    """Per structure, a table entry on its plateau (membership 1), or -1 (``_grid.cell_map``)."""
     rep = np.full(max(k, 1), -1, np.int64)
     for e in np.flatnonzero(memb == 1)[::-1]:
         rep[ids[e]] = e

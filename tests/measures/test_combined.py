@@ -34,13 +34,19 @@ def _same(a, b):
             assert _equal(getattr(a, f.name), getattr(b, f.name)), f.name
 
 
-@pytest.mark.parametrize("parallel", [True, False])
-def test_all_measures_equal_the_three_measures_in_turn(parallel):
+@pytest.mark.parametrize(
+    ("parallel", "calibration"), [(True, None), (False, None), (True, ([0, 0.5, 1], [0, 0.3, 1]))]
+)
+def test_all_measures_equal_the_three_measures_in_turn(parallel, calibration):
     vol, spec, cam = _scene()
     alone = analyze(vol, spec, cam, build_cache=False)
     together = analyze(vol, spec, cam, build_cache=False)  # a fresh analysis: nothing remembered
-    want = (visibility(alone, spec), shape(alone, spec), transparency(alone, spec))
-    got = all_measures(together, spec, parallel=parallel)
+    want = (
+        visibility(alone, spec),
+        shape(alone, spec),
+        transparency(alone, spec, calibration=calibration),
+    )
+    got = all_measures(together, spec, calibration=calibration, parallel=parallel)
     for g, w in zip(got, want, strict=True):
         _same(g, w)
     assert got.transparency.regions == want[2].regions

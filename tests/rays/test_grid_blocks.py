@@ -52,7 +52,7 @@ def test_every_block_within_the_distance_holds_only_empty_cells():
     vol = Volume(data)
     spec = StructureSpec((Structure("specks", 0.7, (1, 1, 1), range=(100, 255)),))
     cells, blocks = _blocks(vol, spec)
-    empty_cell = (cells[:-1, :-1, :-1] & 0xFF) == _grid.CELL_EMPTY
+    empty_cell = cells[:-1, :-1, :-1] == _grid.CELL_EMPTY
     b = _grid.BLOCK
     assert (blocks > 1).any()
     assert (blocks == 0).any()

@@ -1,4 +1,4 @@
-"""The per-cell class and empty-space distance map the numba walk jumps and classifies with."""
+"""The per-cell class map the numba walk classifies samples with."""
 
 from __future__ import annotations
 
@@ -20,23 +20,19 @@ def _map(vol, spec):
     return lut, idx, _grid.cell_map(vol, idx, lut.ids, lut.membership)
 
 
-def test_one_bright_voxel_gives_chessboard_distances():
+def test_one_bright_voxel_makes_only_its_eight_cells_busy():
     data = np.zeros((7, 8, 9), np.uint8)
     data[3, 4, 5] = 200
     vol = Volume(data)
     spec = StructureSpec((Structure("dot", 1.0, (1, 1, 1), range=(100, 255)),))
     _, _, cells = _map(vol, spec)
-    cls = cells & 0xFF
-    dist = cells >> 8
+    assert cells.dtype == np.uint8
+    assert cells.shape == data.shape
     # the 8 cells sharing the voxel as a corner hold samples of the structure
-    busy = np.argwhere(cls[:-1, :-1, :-1] != _grid.CELL_EMPTY)
+    busy = np.argwhere(cells[:-1, :-1, :-1] != _grid.CELL_EMPTY)
     assert sorted(map(tuple, busy)) == [(z, y, x) for z in (2, 3) for y in (3, 4) for x in (4, 5)]
-    for p in np.ndindex(6, 7, 8):
-        if cls[p] == _grid.CELL_EMPTY:
-            cheb = np.abs(busy - np.array(p)).max(axis=1).min()
-            assert dist[p] == cheb, p
-        else:
-            assert dist[p] == 0  # mixed: no jumps
+    assert np.all(cells[tuple(busy.T)] == _grid.CELL_MIXED)  # 200 is on the ramp: interpolate
+    assert not cells[-1].any()  # the last plane is never sampled
 
 
 def test_constant_volume_inside_a_plateau_is_classified_without_interpolation():
@@ -49,17 +45,14 @@ def test_constant_volume_inside_a_plateau_is_classified_without_interpolation():
     )
     _, _, cells = _map(vol, spec)
     inner = cells[:-1, :-1, :-1]
-    assert np.all(inner & 0xFF == 1 + 1)  # structure 1 ("b"), its plateau
-    assert np.all(inner >> 8 == _grid.CELL_MAX_DISTANCE)  # no other class anywhere
+    assert np.all(inner == 1 + 1)  # structure 1 ("b"), its plateau
 
 
-def test_empty_volume_is_empty_at_the_largest_distance():
+def test_empty_volume_is_empty():
     vol = Volume(np.zeros((4, 4, 4), np.uint8))
     spec = StructureSpec((Structure("a", 0.5, (1, 0, 0), range=(100, 200)),))
     _, _, cells = _map(vol, spec)
-    inner = cells[:-1, :-1, :-1]
-    assert np.all(inner & 0xFF == _grid.CELL_EMPTY)
-    assert np.all(inner >> 8 == _grid.CELL_MAX_DISTANCE)
+    assert np.all(cells == _grid.CELL_EMPTY)
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
@@ -76,7 +69,7 @@ def test_classes_hold_for_every_sample_in_a_noisy_volume(dtype):
         )
     )
     lut, idx, cells = _map(vol, spec)
-    cls = (cells & 0xFF)[:-1, :-1, :-1]
+    cls = cells[:-1, :-1, :-1]
     assert {0, 1, 2, 255} <= set(np.unique(cls).tolist())  # every class occurs
     # random sample positions in every cell; the table entry the walk would interpolate
     pts = np.stack(np.meshgrid(*(np.arange(n - 1) for n in idx.shape), indexing="ij"), -1)
@@ -96,31 +89,12 @@ def test_classes_hold_for_every_sample_in_a_noisy_volume(dtype):
         plat = (c != _grid.CELL_EMPTY) & (c != _grid.CELL_MIXED)
         assert np.all(lut.membership[k[plat]] == 1)
         assert np.all(lut.ids[k[plat]] == c[plat] - 1)
-    # a uniform cell's distance d: every cell within d - 1 has its class, one at d does not
-    full = cells[:-1, :-1, :-1]
-    dist = full >> 8
-    for p in zip(*np.nonzero(cls != _grid.CELL_MIXED), strict=True):
-        d = int(dist[p])
-        lo = [max(q - d, 0) for q in p]
-        hi = [q + d + 1 for q in p]
-        box = cls[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
-        inner = cls[
-            max(p[0] - d + 1, 0) : p[0] + d, max(p[1] - d + 1, 0) : p[1] + d,
-            max(p[2] - d + 1, 0) : p[2] + d,
-        ]  # fmt: skip
-        assert np.all(inner == cls[p])
-        assert (
-            d == _grid.CELL_MAX_DISTANCE or np.any(box != cls[p]) or box.shape != (2 * d + 1,) * 3
-        )
 
 
 def test_kernel_cell_codes_match_grid():
     nk = pytest.importorskip("dvr_perception.rays._numba_kernels")
     assert nk._CELL_EMPTY == _grid.CELL_EMPTY
     assert nk._CELL_MIXED == _grid.CELL_MIXED
-    assert int(nk._LOW) == 0xFF
-    assert int(nk._HIGH) == 8
-    assert _grid.CELL_MAX_DISTANCE <= 0xFF
 
 
 def test_only_the_newest_cell_maps_are_kept():
