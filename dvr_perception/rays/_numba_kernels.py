@@ -172,6 +172,29 @@ def _shade_at(volf, o, isy, isz, fx, fy, fz, tab, s):
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
+def _table_index(flat, o, sy, sz, one, fx, fy, fz, last):
+    """Table entry of a sample: VTK's trilinear index of the cell at flat offset ``o``.
+
+    ``flat`` holds the table index in its low 16 bits (voxel records or the compact index),
+    ``sy``/``sz`` are the row and plane strides and ``one`` is 1 of the offsets' type;
+    ``fx, fy, fz`` the sample's place in the cell.  Rounded as VTK's fixed-point weights
+    round, and at most ``last``.
+    """
+    gx = 1.0 - fx
+    gy = 1.0 - fy
+    o1 = o + sy
+    o2 = o + sz
+    o3 = o2 + sy
+    f = (
+        (1.0 - fz) * (gy * (gx * (flat[o] & _MASK) + fx * (flat[o + one] & _MASK))
+                      + fy * (gx * (flat[o1] & _MASK) + fx * (flat[o1 + one] & _MASK)))
+        + fz * (gy * (gx * (flat[o2] & _MASK) + fx * (flat[o2 + one] & _MASK))
+                + fy * (gx * (flat[o3] & _MASK) + fx * (flat[o3 + one] & _MASK)))
+    )  # fmt: skip
+    return min(int(f * _W_SCALE + _W_BIAS), last)
+
+
+@njit(cache=True, fastmath=_FM, inline="always")
 def _block_skip(blocks, x, y, z, binv):
     """Return how many samples a ray may skip from cell ``(x, y, z)`` (0: look at the cell).
 
@@ -247,18 +270,7 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
                 fx = min(max(px - x, 0.0), 1.0)
                 fy = min(max(py - y, 0.0), 1.0)
                 fz = min(max(pz - z, 0.0), 1.0)
-                gx = 1.0 - fx
-                gy = 1.0 - fy
-                o1 = o + nx
-                o2 = o + nxy
-                o3 = o2 + nx
-                f = (
-                    (1.0 - fz) * (gy * (gx * tf[o] + fx * tf[o + 1])
-                                  + fy * (gx * tf[o1] + fx * tf[o1 + 1]))
-                    + fz * (gy * (gx * tf[o2] + fx * tf[o2 + 1])
-                            + fy * (gx * tf[o3] + fx * tf[o3 + 1]))
-                )  # fmt: skip
-                k = min(int(f * _W_SCALE + _W_BIAS), lab_end)
+                k = _table_index(tf, o, nx, nxy, 1, fx, fy, fz, lab_end)
         s = tids[k]
         asg[s, r] += t_alpha[k]
         bits |= t_bit[k]
@@ -337,19 +349,7 @@ def _walk_ray(
             lv = lab[int(pz + 0.5), int(py + 0.5), int(px + 0.5)]
             k = lab_base + lv - 1
         if cl == _CELL_MIXED and lv == 0:
-            gx = 1.0 - fx
-            gy = 1.0 - fy
-            gz = 1.0 - fz
-            o1 = o + isy
-            o2 = o + isz
-            o3 = o2 + isy
-            f = (
-                gz * (gy * (gx * (volf[o] & _MASK) + fx * (volf[o + _U1] & _MASK))
-                      + fy * (gx * (volf[o1] & _MASK) + fx * (volf[o1 + _U1] & _MASK)))
-                + fz * (gy * (gx * (volf[o2] & _MASK) + fx * (volf[o2 + _U1] & _MASK))
-                        + fy * (gx * (volf[o3] & _MASK) + fx * (volf[o3 + _U1] & _MASK)))
-            )  # fmt: skip
-            k = min(int(f * _W_SCALE + _W_BIAS), lab_end)
+            k = _table_index(volf, o, isy, isz, _U1, fx, fy, fz, lab_end)
         if memb[k] <= 0.0:
             j += 1
             continue
