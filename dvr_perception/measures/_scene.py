@@ -8,11 +8,11 @@ luminance, so every Metelli (Eq. 5, 9) and TAP (Eq. 6-7) term is computed once p
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 
 import numpy as np
 
+from dvr_perception._numba import kernels
 from dvr_perception.measures.psychophysics import (
     generalized_metelli,
     luminance_range,
@@ -46,13 +46,8 @@ def _group_stats(values: np.ndarray, group: np.ndarray, n: int):
 
 
 def _numba_group_stats():
-    if os.environ.get("DVR_PERCEPTION_NO_NUMBA", "").strip() not in ("", "0"):
-        return None
-    try:
-        from dvr_perception.measures._kernels import group_stats
-    except ImportError:
-        return None
-    return group_stats
+    module = kernels("dvr_perception.measures._kernels")
+    return None if module is None else module.group_stats
 
 
 def _group_stats_numpy(values: np.ndarray, group: np.ndarray, n: int):

@@ -34,7 +34,6 @@ Conventions matched to ``vtkFixedPointVolumeRayCastMapper`` (``docs/vtk_conventi
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 import warnings
@@ -42,6 +41,7 @@ import weakref
 
 import numpy as np
 
+from dvr_perception._numba import kernels
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.rays import _grid, _tables
 from dvr_perception.rays import _numpy_kernels as _npk
@@ -59,13 +59,7 @@ _MAX_STRUCTURES = 32
 
 def _numba_kernels():
     """Return the numba kernel module, or None when numba is unavailable or disabled."""
-    if os.environ.get("DVR_PERCEPTION_NO_NUMBA", "").strip() not in ("", "0"):
-        return None
-    try:
-        from dvr_perception.rays import _numba_kernels
-    except ImportError:
-        return None
-    return _numba_kernels
+    return kernels("dvr_perception.rays._numba_kernels")
 
 
 def _check_inputs(volume, spec, camera, backend) -> None:
