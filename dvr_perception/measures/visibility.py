@@ -36,28 +36,20 @@ __all__ = ["visibility"]
 
 
 def _share(analysis, prop: str, shape: tuple[int, ...], fallback) -> np.ndarray:
-    """Use the analysis' share property if it exists and fits, else compute it."""
+    """Use the analysis' share property if it exists and fits, else compute it.
+
+    An engine analysis' shares are finite and of the right shape by construction: not checked.
+    """
     value = getattr(analysis, prop, None)
     if value is None:
         return fallback()
     arr = np.asarray(value)
     if not np.issubdtype(arr.dtype, np.floating) or arr.dtype.itemsize > 8:
         arr = np.asarray(arr, dtype=np.float64)
-    if arr.shape != shape or not np.all(np.isfinite(arr)):
+    if not engine_made(analysis) and (arr.shape != shape or not np.all(np.isfinite(arr))):
         raise DVRInputError(f"analysis.{prop} must be a finite array of shape {shape}")
     # clipping before widening to float64 gives the same numbers (0 and 1 are exact)
     return np.clip(arr, 0.0, 1.0).astype(np.float64, copy=False)
-
-
-def _engine_share(x: np.ndarray, total: np.ndarray) -> np.ndarray:
-    """Return an engine analysis' share (float32 ``x / total``, 0 where ``total`` is 0).
-
-    What :func:`_share` makes of ``RayAnalysis.visible_share`` and ``assigned_share``:
-    clipped to [0, 1] and widened to float64.
-    """
-    out = np.zeros(x.shape, np.float32)
-    np.divide(x, total, out=out, where=np.broadcast_to(total > 0, x.shape))
-    return np.clip(out, 0.0, 1.0, out=out).astype(np.float64)
 
 
 def _normalise(x: np.ndarray, total: np.ndarray) -> np.ndarray:
@@ -144,16 +136,12 @@ def visibility(analysis, spec=None, *, bins: int = 20) -> VisibilityResult:
         )
     names = _names(analysis, spec, visible.shape[0])
     total_assigned = assigned.sum(axis=0)
-    if engine_made(analysis):  # the shares' properties, without checking them again
-        v_share = _engine_share(analysis.visible, analysis.accumulated[None])
-        a_share = _engine_share(analysis.assigned, analysis.assigned.sum(axis=0, keepdims=True))
-    else:
-        v_share = _share(
-            analysis, "visible_share", visible.shape, lambda: _normalise(visible, accumulated)
-        )
-        a_share = _share(
-            analysis, "assigned_share", assigned.shape, lambda: _normalise(assigned, total_assigned)
-        )
+    v_share = _share(
+        analysis, "visible_share", visible.shape, lambda: _normalise(visible, accumulated)
+    )
+    a_share = _share(
+        analysis, "assigned_share", assigned.shape, lambda: _normalise(assigned, total_assigned)
+    )
 
     notes: list[str] = []
     nonempty = total_assigned > 0

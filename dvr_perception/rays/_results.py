@@ -85,16 +85,19 @@ class RayAnalysis:
     @property
     def visible_share(self) -> np.ndarray:
         """``visible / accumulated`` per structure (0 where nothing accumulated)."""
-        acc = self.accumulated[None]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(acc > 0, self.visible / acc, 0.0).astype(np.float32)
+        return _share(self.visible, self.accumulated[None])
 
     @property
     def assigned_share(self) -> np.ndarray:
         """``assigned / assigned.sum(0)`` per structure (0 where the sum is 0)."""
-        tot = self.assigned.sum(axis=0, keepdims=True)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(tot > 0, self.assigned / tot, 0.0).astype(np.float32)
+        return _share(self.assigned, self.assigned.sum(axis=0, keepdims=True))
+
+
+def _share(x: np.ndarray, total: np.ndarray) -> np.ndarray:
+    """float32 ``x / total``, 0 where ``total`` is not positive (no division there)."""
+    out = np.zeros(x.shape, np.result_type(x, total, np.float32))
+    np.divide(x, total, out=out, where=np.broadcast_to(total > 0, x.shape))
+    return out.astype(np.float32, copy=False)
 
 
 def engine_made(analysis, *, mark: bool = False) -> bool:
