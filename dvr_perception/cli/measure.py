@@ -91,6 +91,7 @@ def _structures(vis, trans, names) -> dict:
         v, t = vis.per_structure[name], trans.per_structure[name]
         out[name] = {
             "visible_share": float(v["visible_share"]),
+            "target_share": float(v["target_share"]),
             "assigned_share": float(v["assigned_share"]),
             "perceived_transparency": t["perceived_transparency"],
             "perceived_opacity": t["perceived_opacity"],
@@ -125,7 +126,7 @@ def _check_defined(report: dict) -> None:
     """Fail loudly if a number that the measures define came out NaN or infinite."""
     bad = [key for key in ("E_v", "E_s", "E_t") if not math.isfinite(report[key])]
     for name, entry in report["structures"].items():
-        for key in ("visible_share", "assigned_share", "expected_opacity"):
+        for key in ("visible_share", "target_share", "assigned_share", "expected_opacity"):
             if not math.isfinite(entry[key]):
                 bad.append(f"structures.{name}.{key}")
         value = entry["perceived_transparency"]
@@ -265,12 +266,12 @@ def _print_summary(report: dict) -> None:
         f"   E_t {report['E_t']:.4f} (transparency, >= 0)"
     )
     width = max([len(n) for n in report["structures"]] + [9])
-    print(f"  {'structure':<{width}}  visible  assigned  perceived-alpha  expected-opacity")
+    print(f"  {'structure':<{width}}  visible   target  perceived-alpha  expected-opacity")
     for name, s in report["structures"].items():
         alpha = s["perceived_transparency"]
         alpha_text = "undetermined" if alpha is None else f"{alpha:.3f}"
         print(
-            f"  {name:<{width}}  {s['visible_share']:7.3f}  {s['assigned_share']:8.3f}  "
+            f"  {name:<{width}}  {s['visible_share']:7.3f}  {s['target_share']:7.3f}  "
             f"{alpha_text:>15}  {s['expected_opacity']:16.3f}"
         )
     if report["undetermined"]:

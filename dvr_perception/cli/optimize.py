@@ -255,11 +255,30 @@ def _measure(volume, spec, camera, curvature, weights):
     vis, shp, trn = all_measures(result, spec)
     terms = {"E_v": float(vis.E_v), "E_s": float(shp.E_s), "E_t": float(trn.E_t)}
     terms["E"] = float(sum(w * terms[k] for w, k in zip(weights, TERMS, strict=True)))
-    keep = ("visible_share", "assigned_share", "perceived_transparency", "expected_opacity")
+    keep = ("visible_share", "target_share", "assigned_share", "perceived_transparency",
+            "expected_opacity")  # fmt: skip
     per = _structures(vis, trn, result.names)
-    terms["coverage"] = coverage(result)
+    # the optimiser's coverage: mean accumulated opacity over the rays with assigned opacity
+    terms["coverage"] = float(np.asarray(result.accumulated)[vis.nonempty].mean()
+                              if vis.nonempty.any() else 0.0)  # fmt: skip
+    terms["pixel_coverage"] = coverage(result)
     terms["structures"] = {n: {k: e[k] for k in keep} for n, e in per.items()}
     return result, (vis, shp, trn), terms
+
+
+def _why(res, initial: dict, final: dict) -> dict:
+    """Per structure: the optimiser's reason, with the shares measured at the user's size."""
+    from dvr_perception.optimize.explain import explanation_line
+
+    out = {}
+    for name, entry in res.structures.items():
+        e = dict(entry)
+        before, after = initial["structures"][name], final["structures"][name]
+        e["share_before"], e["share_after"] = before["visible_share"], after["visible_share"]
+        e["target_share"] = before["target_share"]
+        e["line"] = explanation_line(name, e)
+        out[name] = e
+    return out
 
 
 def _terms(d: dict) -> dict:
@@ -339,6 +358,7 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
         for s in res.stages
     ]  # fmt: skip
     files.append(d / "result.json")
+    why = _why(res, initial, final)
     report = {
         "size": [camera.width, camera.height],
         "weights": list(weights),
@@ -350,6 +370,7 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
         "final": final,
         "optimizer": {"initial": _terms(res.initial), "final": _terms(res.final)},
         "stages": stages_out,
+        "structures": why,
         "nit": res.nit,
         "nfev": res.nfev,
         "seconds_optimize": res.seconds,
@@ -409,6 +430,8 @@ def print_summary(report: dict, *, indent: str = "  ") -> None:
             f"{indent}stage {s['name']:<9} E {s['before']['E']:.4f} -> {s['after']['E']:.4f}"
             f"  ({s['iterations']} it, {s['seconds']:.1f} s; {s['message']})"
         )
+    for entry in report.get("structures", {}).values():
+        print(f"{indent}{entry['line']}")
     print(f"{indent}status {report['status']}: {report['message']}")
     for note in report["notes"]:
         print(f"{indent}note: {note}")

@@ -43,18 +43,25 @@ class VisibilityResult:
     E_v : float
         Mean of ``deviation`` over the non-empty rays, in [0, 2]; 0 when no ray is non-empty.
     deviation : ndarray of float32, shape (H, W)
-        ``delta_v(r) = sum_s |assigned share - visible share|``; 0 on empty rays.
+        ``delta_v(r) = sum_s |alpha_o(s, r) - alpha_v(s, r)|`` (target against visible
+        opacity, decision D1); 0 on empty rays.
     nonempty : ndarray of bool, shape (H, W)
         Rays with any assigned opacity.
     per_structure : dict
-        ``name -> {"visible_share", "assigned_share", "histogram_visible",
-        "histogram_assigned", "rays"}``: image-wide shares (floats), histograms (int64 counts
-        over ``bin_edges``) of the per-ray shares over the rays where the structure is present,
-        and the number of those rays.
+        ``name -> {"visible_share", "target_share", "assigned_share", "visible_opacity",
+        "target_opacity", "histogram_visible", "histogram_assigned", "rays"}``: image-wide
+        shares of the visible opacity, of the target opacity and of the (thickness) assigned
+        opacity; mean visible and target opacity per non-empty ray; histograms (int64 counts
+        over ``bin_edges``) of the per-ray visible and target opacities over the rays where the
+        structure is present, and the number of those rays.
     bin_edges : ndarray of float64
         Histogram bin edges on [0, 1].
     notes : tuple of str
         Remarks on degenerate input.
+    target : ndarray of float32, shape (K, H, W) or None
+        The target opacities ``alpha_o`` of every structure and ray.
+    composition : str
+        The target composition used (``"importance"`` or ``"thickness"``).
     """
 
     E_v: float
@@ -63,6 +70,8 @@ class VisibilityResult:
     per_structure: dict
     bin_edges: np.ndarray
     notes: tuple[str, ...]
+    target: np.ndarray | None = None
+    composition: str = "importance"
 
 
 @dataclass(frozen=True)

@@ -1,21 +1,29 @@
-r"""Visibility deviation of a rendering: assigned versus visible opacity shares (Sec. 4.1).
+r"""Visibility deviation of a rendering: visible against target opacity, on one scale (Sec. 4.1).
 
 For every ray ``r`` and structure ``s`` the analysis provides the **visible** opacity
-``sum_{i in s} a_i T_i`` (what the structure contributes to the pixel, after occlusion) and the
-**assigned** opacity ``sum_{i in s} a^w_i`` (the importance-based opacities of its samples,
-ignoring occlusion).  Their normalised forms are
+``visible(s, r) = sum_{i in s} a_i T_i`` (what the structure contributes to the pixel, after
+occlusion) and the **assigned** opacity ``sum_{i in s} a^w_i`` (the importance-based opacities
+of its samples, ignoring occlusion).  Following the project's decision D1 (the paper: "the
+visibility of voxels is always lower than its initially assigned opacity", so both live on one
+scale):
 
-* ``alpha_v(s, r) = visible(s, r) / accumulated(r)`` (the visible share, 0 where nothing is
-  accumulated), and
-* ``alpha_o(s, r) = assigned(s, r) / sum_s assigned(s, r)`` (the assigned share).
+* ``alpha_v(s, r) = visible(s, r)`` (not normalised);
+* ``alpha_o(s, r) = c(s, r) * A_imp(r)``, where ``A_imp(r)`` is the accumulated opacity of the
+  ray rendered with every structure's opacity equal to its importance (fixed for a view:
+  ``analysis.importance_accumulated``) and ``c(s, r)`` the **target composition** of the ray:
 
-Both sum to 1 over the structures on a non-empty ray, so the ray deviation (Eq. 2)
+  - ``composition="importance"`` (default): ``c = imp_s p(s, r) / sum_s' imp_s' p(s', r)``
+    with the presence weight ``p(s, r) = 1 - exp(-assigned(s, r) / presence_scale)``, which
+    saturates with the structure's occlusion-free opacity on the ray (a ray that grazes a
+    structure does not count as full presence; ``presence_scale`` 0.05 by default);
+  - ``composition="thickness"`` (the paper read literally): ``c = assigned(s, r) / sum_s'
+    assigned(s', r)``, the thickness-weighted share.
 
-.. math:: \delta_v(r) = \sum_s |\alpha_o(s, r) - \alpha_v(s, r)|
-
-lies in [0, 2]: 0 when every structure is seen in proportion to its intended opacity, 2 when
-the visible and the intended structures are disjoint.  ``E_v`` is its mean over the non-empty
-rays (those with any assigned opacity).
+The ray deviation (Eq. 2) ``delta_v(r) = sum_s |alpha_o(s, r) - alpha_v(s, r)|`` lies in
+[0, 2]; ``E_v`` is its mean over the rays that carry assigned opacity.  Fading every opacity
+towards 0 leaves ``alpha_o`` where it is and raises ``E_v``: the measure has no trivial
+minimiser.  At the importance opacities, with the importance composition, a ray through one
+structure has ``delta_v = 0``.
 """
 
 from __future__ import annotations
@@ -30,26 +38,115 @@ from dvr_perception.measures.results import (
     _names,
     _visible,
 )
-from dvr_perception.rays._results import engine_made
 
-__all__ = ["visibility"]
+__all__ = ["COMPOSITIONS", "PRESENCE_SCALE", "target_opacity", "visibility"]
+
+#: The target compositions ``c(s, r)`` of :func:`target_opacity`.
+COMPOSITIONS = ("importance", "thickness")
+#: Occlusion-free opacity at which a structure's presence weight reaches 1 - 1/e.
+PRESENCE_SCALE = 0.05
 
 
-def _share(analysis, prop: str, shape: tuple[int, ...], fallback) -> np.ndarray:
-    """Use the analysis' share property if it exists and fits, else compute it.
+def _check_composition(composition, presence_scale) -> None:
+    if composition not in COMPOSITIONS:
+        raise DVRInputError(f"composition must be one of {COMPOSITIONS}, got {composition!r}")
+    ok = isinstance(presence_scale, (int, float, np.floating, np.integer)) and not isinstance(
+        presence_scale, bool
+    )
+    if not ok or not np.isfinite(presence_scale) or presence_scale <= 0:
+        raise DVRInputError(f"presence_scale must be a positive number, got {presence_scale!r}")
 
-    An engine analysis' shares are finite and of the right shape by construction: not checked.
+
+def target_composition(
+    assigned, importance, *, composition: str = "importance", presence_scale=PRESENCE_SCALE,
+    fixed=None,
+) -> np.ndarray:  # fmt: skip
+    """Target composition ``c(s, r)`` of every ray (module docstring); 0 on empty rays.
+
+    Parameters
+    ----------
+    assigned : ndarray, shape (K, ...)
+        Occlusion-free (importance-based) opacity of each structure on each ray.
+    importance : array_like, shape (K,)
+        The structures' importances.
+    composition : {"importance", "thickness"}
+    presence_scale : float
+    fixed : array_like, shape (K,), optional
+        Lens targets: ``c`` of structure ``s`` is ``fixed[s]`` wherever the structure is on the
+        ray (NaN: no target); the others are rescaled to fill ``1 - sum(fixed)``, and the
+        composition is normalised again.
+
+    Returns
+    -------
+    ndarray, shape (K, ...)
+        Non-negative, summing to 1 over the structures on rays with assigned opacity.
+
+    Examples
+    --------
+    >>> c = target_composition(np.array([[0.9], [0.05]]), [0.2, 0.8])
+    >>> np.round(c[:, 0], 3).tolist()   # thin but important: more than its thickness share
+    [0.283, 0.717]
+    >>> np.round(target_composition(np.array([[0.9], [0.05]]), [0.2, 0.8],
+    ...                             composition="thickness")[:, 0], 3).tolist()
+    [0.947, 0.053]
     """
-    value = getattr(analysis, prop, None)
+    _check_composition(composition, presence_scale)
+    a = np.maximum(np.asarray(assigned, np.float64), 0.0)
+    shape = (-1,) + (1,) * (a.ndim - 1)
+    if composition == "importance":
+        imp = np.asarray(importance, np.float64).reshape(shape)
+        w = imp * -np.expm1(-a / float(presence_scale))
+    else:
+        w = a
+    c = _normalise(w, w.sum(axis=0))
+    if fixed is None:
+        return c
+    t = np.asarray(fixed, np.float64).reshape(shape)
+    targeted = ~np.isnan(t)
+    if not targeted.any():
+        return c
+    on = c > 0
+    pinned = np.where(on & targeted, np.nan_to_num(t), 0.0)
+    free = np.where(targeted, 0.0, c)
+    scale = np.zeros(c.shape[1:])
+    free_sum = free.sum(axis=0)
+    np.divide(np.clip(1.0 - pinned.sum(axis=0), 0.0, None), free_sum, out=scale,
+              where=free_sum > 0)  # fmt: skip
+    out = pinned + free * scale
+    return np.where(out.sum(axis=0) > 0, _normalise(out, out.sum(axis=0)), c)
+
+
+def target_opacity(analysis, spec, **options) -> np.ndarray:
+    """``alpha_o = c * A_imp`` (K, H, W) of an analysis: what each structure should show.
+
+    ``options`` go to :func:`target_composition`.  ``A_imp`` is the analysis's
+    ``importance_accumulated``; an analysis without it is taken to be rendered at the
+    importances (``A_imp = accumulated``).
+    """
+    accumulated = _accumulated(analysis)
+    assigned = _assigned(analysis, accumulated.shape)
+    importance = _importance(spec, assigned.shape[0])
+    c = target_composition(assigned, importance, **options)
+    return c * _importance_accumulated(analysis, accumulated)[None]
+
+
+def _importance(spec, k: int) -> np.ndarray:
+    if spec is None:
+        return np.ones(k)
+    return np.array([float(s.importance) for s in spec.structures])
+
+
+def _importance_accumulated(analysis, accumulated: np.ndarray) -> np.ndarray:
+    value = getattr(analysis, "importance_accumulated", None)
     if value is None:
-        return fallback()
-    arr = np.asarray(value)
-    if not np.issubdtype(arr.dtype, np.floating) or arr.dtype.itemsize > 8:
-        arr = np.asarray(arr, dtype=np.float64)
-    if not engine_made(analysis) and (arr.shape != shape or not np.all(np.isfinite(arr))):
-        raise DVRInputError(f"analysis.{prop} must be a finite array of shape {shape}")
-    # clipping before widening to float64 gives the same numbers (0 and 1 are exact)
-    return np.clip(arr, 0.0, 1.0).astype(np.float64, copy=False)
+        return accumulated
+    arr = np.asarray(value, np.float64)
+    if arr.shape != accumulated.shape or not np.all(np.isfinite(arr)):
+        raise DVRInputError(
+            f"analysis.importance_accumulated must be a finite array of shape "
+            f"{accumulated.shape} (an analysis made with occlusion_free=True)"
+        )
+    return np.clip(arr, 0.0, 1.0)
 
 
 def _normalise(x: np.ndarray, total: np.ndarray) -> np.ndarray:
@@ -82,34 +179,48 @@ def _check_bins(bins) -> int:
     return int(bins)
 
 
-def visibility(analysis, spec=None, *, bins: int = 20) -> VisibilityResult:
-    """Visibility deviation ``E_v`` and per-structure visibility histograms (Eq. 1-2).
+def visibility(
+    analysis, spec=None, *, bins: int = 20, composition: str = "importance",
+    presence_scale: float = PRESENCE_SCALE,
+) -> VisibilityResult:  # fmt: skip
+    """Visibility deviation ``E_v`` and per-structure visibility histograms (Eq. 1-2, D1).
 
     Parameters
     ----------
     analysis : RayAnalysis
-        Ray analysis with ``visible``, ``assigned`` (K, H, W), ``accumulated`` (H, W) and
-        ``names``; ``visible_share``, ``assigned_share`` and ``present`` are used when present
-        (the shares are otherwise computed as in the module docstring, and presence falls back
-        to "any assigned or visible opacity").
+        Ray analysis with ``visible``, ``assigned`` (K, H, W), ``accumulated`` (H, W),
+        ``names`` and, from the engine, ``importance_accumulated`` (``A_imp``; without it the
+        analysis is taken to be rendered at the importances, ``A_imp = accumulated``, and a
+        note says so); ``present`` is used when there (else presence is "any assigned or
+        visible opacity").
     spec : StructureSpec, optional
-        If given, its structure names must equal ``analysis.names``.
+        Gives the importances (without it all importances are equal); its structure names
+        must equal ``analysis.names``.
     bins : int, optional
         Number of histogram bins on [0, 1] (default 20).
+    composition : {"importance", "thickness"}, optional
+        Target composition ``c(s, r)`` (module docstring); default ``"importance"``.
+    presence_scale : float, optional
+        Scale of the presence weight of the importance composition (default 0.05).
 
     Returns
     -------
     VisibilityResult
-        ``E_v``, the per-ray ``deviation`` (0 on empty rays), the ``nonempty`` mask, per-structure
-        image-wide shares (``sum_r visible[s] / sum_r accumulated`` and ``sum_r assigned[s] /
-        sum_r sum_s assigned``) with histograms of the per-ray visible and assigned shares over
-        the rays where the structure is present, the ``bin_edges`` and ``notes``.
+        ``E_v``; the per-ray ``deviation`` (0 on empty rays); the ``nonempty`` mask; the
+        per-ray ``target`` opacities ``alpha_o`` (K, H, W); per structure the image-wide
+        ``visible_share`` (``sum_r visible[s] / sum_r sum_s visible``), ``target_share``
+        (``sum_r alpha_o[s] / sum_r sum_s alpha_o``), the thickness ``assigned_share``
+        (``sum_r assigned[s] / sum_r sum_s assigned``), ``visible_opacity`` and
+        ``target_opacity`` (mean ``alpha_v`` and ``alpha_o`` over the non-empty rays),
+        histograms of the per-ray ``alpha_v`` and ``alpha_o`` over the rays where the
+        structure is present and their count; the ``bin_edges``, ``composition`` and
+        ``notes``.
 
     Raises
     ------
     DVRInputError
         If a field is missing, non-finite, negative or of the wrong shape, the names disagree
-        with the spec, or ``bins`` is not a positive integer.
+        with the spec, or an option is out of range.
 
     Warns
     -----
@@ -120,12 +231,17 @@ def visibility(analysis, spec=None, *, bins: int = 20) -> VisibilityResult:
     --------
     >>> from types import SimpleNamespace
     >>> ray = SimpleNamespace(  # one ray: an opaque front structure hides the back one
-    ...     visible=np.array([[[1.0]], [[0.0]]]), assigned=np.array([[[0.6]], [[0.2]]]),
-    ...     accumulated=np.array([[1.0]]), names=("front", "back"))
-    >>> round(visibility(ray).E_v, 6)  # 2 * 0.2 / (0.6 + 0.2)
-    0.5
+    ...     visible=np.array([[[0.9]], [[0.0]]]), assigned=np.array([[[2.0]], [[1.0]]]),
+    ...     accumulated=np.array([[0.9]]), importance_accumulated=np.array([[0.9]]),
+    ...     names=("front", "back"))
+    >>> res = visibility(ray)  # equal importances, both fully present: 0.45 each
+    >>> round(res.E_v, 6)  # |0.45 - 0.9| + |0.45 - 0|
+    0.9
+    >>> round(visibility(ray, composition="thickness").E_v, 6)  # 0.6 and 0.3 wanted
+    0.6
     """
     nbins = _check_bins(bins)
+    _check_composition(composition, presence_scale)
     accumulated = _accumulated(analysis)
     visible = _visible(analysis, accumulated)
     assigned = _assigned(analysis, accumulated.shape)
@@ -135,17 +251,18 @@ def visibility(analysis, spec=None, *, bins: int = 20) -> VisibilityResult:
             f"analysis.visible {visible.shape[0]}"
         )
     names = _names(analysis, spec, visible.shape[0])
-    total_assigned = assigned.sum(axis=0)
-    v_share = _share(
-        analysis, "visible_share", visible.shape, lambda: _normalise(visible, accumulated)
-    )
-    a_share = _share(
-        analysis, "assigned_share", assigned.shape, lambda: _normalise(assigned, total_assigned)
-    )
-
     notes: list[str] = []
-    nonempty = total_assigned > 0
-    deviation = np.where(nonempty, np.abs(a_share - v_share).sum(axis=0), 0.0)
+    if getattr(analysis, "importance_accumulated", None) is None:
+        notes.append("no importance_accumulated: the analysis is taken to be rendered at the "
+                     "importances (A_imp = accumulated)")  # fmt: skip
+    if spec is None and composition == "importance":
+        notes.append("no spec: every structure has the same importance")
+    a_imp = _importance_accumulated(analysis, accumulated)
+    c = target_composition(assigned, _importance(spec, len(names)), composition=composition,
+                           presence_scale=presence_scale)  # fmt: skip
+    target = c * a_imp[None]
+    nonempty = assigned.sum(axis=0) > 0
+    deviation = np.where(nonempty, np.abs(target - visible).sum(axis=0), 0.0)
     if nonempty.any():
         e_v = float(deviation[nonempty].mean())
     else:
@@ -154,21 +271,25 @@ def visibility(analysis, spec=None, *, bins: int = 20) -> VisibilityResult:
 
     edges = np.linspace(0.0, 1.0, nbins + 1)
     present = _presence(analysis, assigned, visible)
-    acc_sum, assigned_sum = float(accumulated.sum()), float(total_assigned.sum())
+    vis_k, tgt_k, asg_k = visible.sum(axis=(1, 2)), target.sum(axis=(1, 2)), assigned.sum((1, 2))
+    n_rays = max(int(np.count_nonzero(nonempty)), 1)
     per_structure = {}
     for k, name in enumerate(names):
         rays = present(k)
         per_structure[name] = {
-            "visible_share": float(visible[k].sum()) / acc_sum if acc_sum > 0 else 0.0,
-            "assigned_share": (
-                float(assigned[k].sum()) / assigned_sum if assigned_sum > 0 else 0.0
-            ),
+            "visible_share": _fraction(vis_k, k),
+            "target_share": _fraction(tgt_k, k),
+            "assigned_share": _fraction(asg_k, k),
+            "visible_opacity": float(visible[k][nonempty].sum()) / n_rays,
+            "target_opacity": float(target[k][nonempty].sum()) / n_rays,
             # bins=nbins with a range takes numpy's uniform-bin path (no sort); the counts
             # equal those for bins=edges, which np.histogram builds the same way
-            "histogram_visible": np.histogram(v_share[k][rays], bins=nbins, range=(0, 1))[0],
-            "histogram_assigned": np.histogram(a_share[k][rays], bins=nbins, range=(0, 1))[0],
+            "histogram_visible": np.histogram(
+                np.clip(visible[k][rays], 0, 1), bins=nbins, range=(0, 1))[0],
+            "histogram_assigned": np.histogram(
+                np.clip(target[k][rays], 0, 1), bins=nbins, range=(0, 1))[0],
             "rays": int(np.count_nonzero(rays)),
-        }
+        }  # fmt: skip
     return VisibilityResult(
         E_v=e_v,
         deviation=deviation.astype(np.float32),
@@ -176,4 +297,12 @@ def visibility(analysis, spec=None, *, bins: int = 20) -> VisibilityResult:
         per_structure=per_structure,
         bin_edges=edges,
         notes=tuple(notes),
+        target=target.astype(np.float32),
+        composition=composition,
     )
+
+
+def _fraction(totals: np.ndarray, k: int) -> float:
+    """``totals[k] / totals.sum()``, 0 when the sum is not positive."""
+    total = float(totals.sum())
+    return float(totals[k]) / total if total > 0 else 0.0

@@ -1,8 +1,9 @@
 """Exact ``E_v`` and coverage, with their gradients in the opacities, from cached rays.
 
-The opacity stage needs only the visibility term ``E_v`` and the coverage (mean accumulated
-opacity) for most of its evaluations; both depend on the per-structure rendering opacities only
-through the front-to-back compositing of each ray's cached samples.  :class:`OpacityModel`
+The opacity stage needs only the visibility term ``E_v`` (visible against the fixed target
+opacities, decision D1) and the coverage (mean accumulated opacity) for most of its
+evaluations; both depend on the per-structure rendering opacities only through the front-to-back
+compositing of each ray's cached samples.  :class:`OpacityModel`
 re-composites the :class:`~dvr_perception.rays.engine.RayCache` entries itself (no colour, no
 shading: a few milliseconds) and differentiates the compositing analytically: along a ray,
 with ``T_e`` the transmittance before entry ``e`` (structure ``s_e``, step-corrected opacity
@@ -93,7 +94,7 @@ class OpacityModel:
         for v, cache in enumerate(problem.caches):
             fixed = problem.fixed_parts(v, params)
             rays = np.flatnonzero(fixed["rays"].ravel()).astype(np.int64)
-            self.views.append((cache, rays, np.asarray(fixed["a_share"], np.float64)))
+            self.views.append((cache, rays, np.asarray(fixed["target"], np.float64)))
         self.k = len(problem.names)
         self.nfev = 0
 
@@ -116,7 +117,7 @@ class OpacityModel:
         k = self.k
         e_v = cov = 0.0
         g_v, g_c = np.zeros(k), np.zeros(k)
-        for cache, rays, a_share in self.views:
+        for cache, rays, target in self.views:
             n = rays.size
             if n == 0:
                 continue
@@ -126,20 +127,15 @@ class OpacityModel:
             dvis, dacc = np.zeros((k, k, m)), np.zeros((k, m))
             _composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha, k,
                             _tables.ERT, grad, vis, dvis, acc, dacc)  # fmt: skip
-            acc32, vis32 = acc.astype(np.float32), vis.astype(np.float32)
-            pos = acc32 > 0
-            safe = np.where(pos, acc32, 1.0).astype(np.float32)
-            share = np.where(pos, np.clip(vis32 / safe, 0.0, 1.0), 0.0).astype(np.float32)
-            diff = a_share - share
+            acc32, vis32 = acc.astype(np.float32), vis.astype(np.float32)  # as the engine's
+            diff = target - vis32.astype(np.float64)
             e_v += float(np.abs(diff).sum(axis=0).mean())
             cov += float(acc32.mean())
             if not grad:
                 continue
-            # d share_j / d o_q = (dvis_jq acc - vis_j dacc_q) / acc^2 on rays with acc > 0
-            inv = np.where(pos, 1.0 / np.where(pos, acc, 1.0), 0.0)
-            dshare = (dvis * acc - vis[:, None, :] * dacc[None, :, :]) * inv**2
+            # alpha_v = visible (D1): d delta_v / d o_q = -sum_j sign(diff_j) d visible_j / d o_q
             sgn = -np.sign(diff)
-            g_v += (sgn[:, None, :] * dshare).sum(axis=(0, 2)) / n
+            g_v += (sgn[:, None, :] * dvis).sum(axis=(0, 2)) / n
             g_c += dacc.sum(axis=1) / n
         nv = len(self.views)
         return e_v / nv, cov / nv, g_v / nv, g_c / nv

@@ -19,10 +19,13 @@ sampled again).  With a region mask, only the masked rays count:
 ``luminance`` always, they are cheap; the others are ``nan``): the stages' cheap objectives
 for the finite-difference gradients.  The transparency measure is by far the most expensive term.
 
-A visibility target ``t`` of structure ``s`` replaces its assigned share by ``t`` on the rays
-where it is present; the other structures' shares are rescaled to fill ``1 - t`` (and all are
-renormalised to sum to 1).  A transparency target ``a`` sets the expected opacity of ``s`` to
-``1 - a``.  With several views every term is the mean over the views.
+``E_v`` compares the visible opacity with the target opacity ``alpha_o = c * A_imp`` of
+:func:`~dvr_perception.measures.visibility.target_composition` (decision D1; ``composition``
+picks the importance or thickness composition).  A visibility target ``t`` of structure ``s``
+replaces its composition ``c`` by ``t`` on the rays where it is present; the other structures'
+compositions are rescaled to fill ``1 - t`` (and all are renormalised to sum to 1).  A
+transparency target ``a`` sets the expected opacity of ``s`` to ``1 - a``.  With several views every
+term is the mean over the views.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from dvr_perception.errors import DVRWarning
 from dvr_perception.measures import shape
 from dvr_perception.measures.luminance import LUMA_WEIGHTS
 from dvr_perception.measures.transparency import transparency_table
+from dvr_perception.measures.visibility import target_composition
 from dvr_perception.rays.engine import reevaluate
 from dvr_perception.structures.spec import Lighting, StructureSpec
 
@@ -133,9 +137,14 @@ class Problem:
         Parsed targets (see :func:`~._region.parse_targets`).
     calibration : pair of array_like or None
         Passed to :func:`~dvr_perception.measures.transparency`.
+    composition : {"importance", "thickness"}
+        Target composition of ``E_v`` (:func:`~dvr_perception.measures.visibility`).
     """
 
-    def __init__(self, caches, masks, spec, weights, targets, calibration) -> None:
+    def __init__(self, caches, masks, spec, weights, targets, calibration,
+                 composition="importance") -> None:  # fmt: skip
+        self.composition = composition
+        self.importance = np.array([s.importance for s in spec.structures], float)
         self.caches, self.masks = list(caches), list(masks)
         self.spec, self.weights, self.calibration = spec, np.asarray(weights, float), calibration
         self.names = spec.names
@@ -176,6 +185,22 @@ class Problem:
             total += p.size
         return hits / max(total, 1)
 
+    def copresence(self) -> np.ndarray:
+        """(K, K) fraction of the counted rays (all views) on which both structures are present.
+
+        Needs the fixed parts of every view (made by the first :meth:`terms`).
+        """
+        k = len(self.names)
+        both, total = np.zeros((k, k)), 0
+        for v in range(len(self.caches)):
+            fixed = self._fixed.get((v, False)) or self._fixed.get((v, True))
+            if fixed is None:
+                continue
+            p = fixed["present"].astype(np.float64)
+            both += p @ p.T
+            total += p.shape[1]
+        return both / max(total, 1)
+
     def render(self, params: Params, view: int = 0):
         """Return the ray analysis of ``params`` in ``view`` (re-composited from the cache)."""
         return reevaluate(
@@ -209,9 +234,8 @@ class Problem:
         out["luminance"] = np.mean([t["luminance"] for t in per_view], axis=0)
         if set(need) != set(TERMS):  # keep the renderings: complete() adds the other terms
             out["_analyses"], out["_whole"] = analyses_used, whole
-        out["visible_share"] = {
-            n: float(np.mean([t["visible_share"][n] for t in per_view])) for n in self.names
-        }
+        for key in ("visible_share", "target_share"):
+            out[key] = {n: float(np.mean([t[key][n] for t in per_view])) for n in self.names}
         out["badness"] = {t: np.mean([p["badness"][t] for p in per_view], axis=0) for t in TERMS}
         return out
 
@@ -223,25 +247,6 @@ class Problem:
         return self.terms(params, whole=terms["_whole"], analyses=terms["_analyses"])
 
     # -- one view ---------------------------------------------------------------------------
-    def _assigned_share(self, analysis) -> np.ndarray:
-        a = np.asarray(analysis.assigned_share, float)
-        fixed_mask = ~np.isnan(self.vis_target)
-        if not fixed_mask.any():
-            return a
-        on = a > 0
-        fixed = np.where(
-            on & fixed_mask[:, None, None], np.nan_to_num(self.vis_target)[:, None, None], 0.0
-        )
-        free = np.where(fixed_mask[:, None, None], 0.0, a)
-        free_sum = free.sum(axis=0)
-        scale = np.zeros_like(free_sum)
-        np.divide(
-            np.clip(1.0 - fixed.sum(axis=0), 0.0, None), free_sum, out=scale, where=free_sum > 0
-        )
-        out = fixed + free * scale
-        total = out.sum(axis=0)
-        return np.where(total > 0, out / np.where(total > 0, total, 1.0), a)
-
     def fixed_parts(self, v: int, params: Params) -> dict:
         """Return the masked parts of view ``v`` that do not depend on the parameters."""
         if (v, False) not in self._fixed:
@@ -249,32 +254,41 @@ class Problem:
         return self._fixed[(v, False)]
 
     def _fixed_parts(self, v, analysis, mask, whole) -> dict:
-        """Mask, assigned shares, counted rays and presence of view ``v``, computed once."""
+        """Mask, target opacities, counted rays and presence of view ``v``, computed once.
+
+        ``target`` (K, counted rays) is ``alpha_o = c * A_imp`` with the lens targets in ``c``;
+        ``target_share`` its image-wide share per structure over the counted rays.
+        """
         key = (v, bool(whole))
         if key not in self._fixed:
             k = len(self.names)
             m = np.ones(analysis.accumulated.shape, bool) if mask is None else mask
-            rays = (np.asarray(analysis.assigned, float).sum(axis=0) > 0) & m
+            assigned = np.asarray(analysis.assigned, float)
+            rays = (assigned.sum(axis=0) > 0) & m
             bits = np.asarray(analysis.present, np.uint64)[rays]
             present = (bits[None] >> np.arange(k, dtype=np.uint64)[:, None]) & 1 > 0
-            a_share = np.clip(self._assigned_share(analysis), 0.0, 1.0)
-            self._fixed[key] = {"m": m, "rays": rays, "present": present,
-                                "a_share": a_share[:, rays]}  # fmt: skip
+            c = target_composition(
+                assigned[:, rays],
+                self.importance,
+                composition=self.composition,
+                fixed=self.vis_target,
+            )
+            a_imp = np.asarray(analysis.importance_accumulated, float)[rays]
+            target = c * np.clip(a_imp, 0.0, 1.0)[None]
+            total = target.sum()
+            share = target.sum(axis=1) / total if total > 0 else np.zeros(k)
+            self._fixed[key] = {"m": m, "rays": rays, "present": present, "target": target,
+                                "target_share": share}  # fmt: skip
         return self._fixed[key]
 
     def _view_terms(self, analysis, fixed, need) -> dict:
         k = len(self.names)
         m, rays = fixed["m"], fixed["rays"]
-        # Eq. 2 exactly as measures.visibility computes it, with the targets' shares
+        # Eq. 2 as measures.visibility computes it (D1), with the lens targets in the target
         acc = np.asarray(analysis.accumulated, float)
         visible = np.asarray(analysis.visible, float)
         acc_r = acc[rays]
-        v_r = np.clip(
-            np.divide(visible[:, rays], acc_r, out=np.zeros((k, acc_r.size)), where=acc_r > 0),
-            0.0,
-            1.0,
-        ).astype(np.float32)  # as RayAnalysis.visible_share
-        dev = np.abs(fixed["a_share"] - v_r)
+        dev = np.abs(fixed["target"] - visible[:, rays])
         e_v = float(dev.sum(axis=0).mean()) if acc_r.size else 0.0
         coverage = float(acc_r.mean()) if acc_r.size else 0.0
         present = fixed["present"]
@@ -303,6 +317,7 @@ class Problem:
             "coverage": coverage,
             "luminance": luminance,
             "visible_share": shares,
+            "target_share": dict(zip(self.names, fixed["target_share"].tolist(), strict=True)),
             "badness": {"E_v": bad_v, "E_s": bad_s, "E_t": bad_t},
         }
 
@@ -350,8 +365,9 @@ def _in_order_sum(x: np.ndarray) -> float:
 
 def public_terms(terms: dict, names) -> dict:
     """Return a copy of ``terms`` without the ``badness`` arrays (``luminance`` by name)."""
-    skip = ("badness", "visible_share", "luminance")
+    skip = ("badness", "visible_share", "target_share", "luminance")
     out = {k: v for k, v in terms.items() if k not in skip and not k.startswith("_")}
     out["visible_share"] = dict(terms["visible_share"])
+    out["target_share"] = dict(terms["target_share"])
     out["luminance"] = {n: float(v) for n, v in zip(names, terms["luminance"], strict=True)}
     return out

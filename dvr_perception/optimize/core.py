@@ -9,9 +9,11 @@ import numpy as np
 
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures import calibrate
+from dvr_perception.measures.visibility import COMPOSITIONS
 from dvr_perception.optimize._problem import Params, Problem, public_terms
 from dvr_perception.optimize._region import parse_region, parse_targets, resample_mask
 from dvr_perception.optimize._solver import run_stage
+from dvr_perception.optimize.explain import explain
 from dvr_perception.optimize.results import (
     STATUS_MESSAGES,
     IntermediateResult,
@@ -136,6 +138,7 @@ def optimize(
     coverage_keep=None,
     allow_hue=False,
     curvature=None,
+    composition="importance",
 ) -> OptimizationResult:
     """Optimise opacity, lighting and colour of ``spec`` for a readable rendering (Eq. 12-15).
 
@@ -187,16 +190,19 @@ def optimize(
         Long side of the optimisation camera (never above the user's).
     opacity_floor : float, optional
         Minimum mean accumulated opacity over the non-empty rays in the opacity stage
-        (default: its starting value, no fading; a lower value accepts some fading).
+        (default: none; ``E_v`` itself penalises fading, decision D1).
     coverage_keep : float, optional
-        The floor as a fraction of the starting coverage instead (default 1; e.g. 0.95 accepts
-        5 % fading); not together with ``opacity_floor``.
+        The floor as a fraction of the starting coverage instead (default: none; e.g. 1
+        forbids any fading); not together with ``opacity_floor``.
     allow_hue : bool
         Let the colour stage change hue (default: saturation and value only).
     curvature : ndarray, optional
         The curvature volume of ``volume`` and ``spec``
         (:func:`~dvr_perception.rays.curvature.curvature_volume`), when already computed
         (it does not depend on the optimised parameters; computed when not given).
+    composition : {"importance", "thickness"}
+        Target composition of ``E_v`` (:func:`~dvr_perception.measures.visibility`): each
+        structure's share of a ray by importance and presence (default), or by thickness.
 
     Returns
     -------
@@ -219,6 +225,8 @@ def optimize(
     t_start = time.perf_counter()
     w = _check(volume, spec, camera, stages, weights, cameras, region, calibration, seed, callback,
                max_iter, resolution, opacity_floor, coverage_keep)  # fmt: skip
+    if composition not in COMPOSITIONS:
+        raise DVRInputError(f"composition: expected one of {COMPOSITIONS}, got {composition!r}")
     goals = parse_targets(targets, spec.names)
     mask = parse_region(region, camera.height, camera.width)
     views = [camera, *(cameras or [])]
@@ -235,12 +243,12 @@ def optimize(
         opt_masks.append(None if mask is None else resample_mask(mask, small.height, small.width))
     full_masks = [mask] + [None] * (len(views) - 1)
     full_problem = Problem([a.cache for a in full_analyses], full_masks, spec, w, goals,
-                           calibration)  # fmt: skip
+                           calibration, composition)  # fmt: skip
     same = all(a is b for a, b in zip(full_analyses, opt_analyses, strict=True))
     problem = full_problem
     if not same:
         caches = [a.cache for a in opt_analyses]
-        problem = Problem(caches, opt_masks, spec, w, goals, calibration)
+        problem = Problem(caches, opt_masks, spec, w, goals, calibration, composition)
     coarse = None
     if res >= 2 * FD_RESOLUTION and any(
         max(a.cache.camera.width, a.cache.camera.height) >= 2 * FD_RESOLUTION for a in opt_analyses
@@ -250,7 +258,7 @@ def optimize(
             small = _reduced(cam, FD_RESOLUTION)
             caches.append(analyze(volume, spec, small, curvature=curvature).cache)
             masks.append(None if mask is None else resample_mask(mask, small.height, small.width))
-        coarse = Problem(caches, masks, spec, w, goals, calibration)
+        coarse = Problem(caches, masks, spec, w, goals, calibration, composition)
 
     params = Params.from_spec(spec)
     names = spec.names
@@ -264,6 +272,8 @@ def optimize(
         stage = STAGES[name](allow_hue=allow_hue, opacity_floor=opacity_floor)
         if coverage_keep is not None:
             stage.coverage_keep = float(coverage_keep)
+        if hasattr(stage, "protect"):
+            stage.protect = _most_important(spec, active)
         if stage.brightened:
             lum_ref = terms if lum_ref is None else lum_ref
             stage.reference = lum_ref
@@ -308,6 +318,9 @@ def optimize(
         done[kept - 1] = (stage, info, before, t_before, _Shortened(params, t_opt, frac), t_opt)
     records = [_record(d, names, spec, i < kept) for i, d in enumerate(done)]
     final = _report(full_problem, params, mask is not None, final_terms)
+    why = explain(names, Params.from_spec(spec).opacities, params.opacities,
+                  initial["visible_share"], final["visible_share"], initial["target_share"],
+                  full_problem.copresence())  # fmt: skip
     nfev = problem.nfev + (0 if same else full_problem.nfev)
     nfev += 0 if coarse is None else coarse.nfev
     return OptimizationResult(
@@ -321,7 +334,14 @@ def optimize(
         status=status,
         message=STATUS_MESSAGES[status],
         success=status == 0,
+        structures=why,
     )
+
+
+def _most_important(spec, active) -> str | None:
+    """Name of the most important structure the objective sees (first of equals)."""
+    on = [s for s, a in zip(spec.structures, active, strict=True) if a]
+    return max(on, key=lambda s: s.importance).name if on else None
 
 
 def _holds(t, full0, done, k) -> bool:

@@ -8,7 +8,7 @@ opacity}``).  With a region they are taken inside the region.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from dvr_perception.structures.spec import StructureSpec
 
@@ -120,6 +120,9 @@ class OptimizationResult:
     message : str
     success : bool
         ``status == 0``.
+    structures : dict
+        Per structure, why it changed (:func:`~dvr_perception.optimize.explain.explain`):
+        opacity before and after, share of the picture before, target and after, reason.
     """
 
     spec: StructureSpec
@@ -132,3 +135,4 @@ class OptimizationResult:
     status: int
     message: str
     success: bool
+    structures: dict = field(default_factory=dict)

@@ -30,9 +30,11 @@ parameter set is **feasible** for the stage when, compared with the stage's star
   lead term's decrease in the stage (the transparency measure jumps by 0.1-0.3 when the
   opacities of the engine change; the colour stage, which leads it, comes later), and
 * the stage's :meth:`Stage.guards` hold: (``opacity``) the mean accumulated opacity over the
-  non-empty rays (``coverage``) is at least its starting value, or ``opacity_floor``
-  when given: no winning by fading; (``lighting``, ``colour``) every structure's footprint
-  luminance keeps >= 80 % of its value before the first of them: no winning by darkening.
+  non-empty rays (``coverage``) is at least ``coverage_keep`` times its start or
+  ``opacity_floor``, when one is given (off by default: ``E_v`` needs no floor, D1), and
+  the most important structure's share of the picture does not fall below its start or
+  target (D6); (``lighting``, ``colour``) every structure's footprint luminance keeps >= 80 % of its
+  value before the first of them: no winning by darkening.
 
 Infeasibility is a penalty inside the search and a hard rule for the kept result; in addition
 :func:`~dvr_perception.optimize.optimize` keeps the result only if, at the user's resolution,
@@ -176,7 +178,9 @@ class OpacityStage(Stage):
     fast = ("E_v", "E_s")  # cheap; E_t (transparency, expensive) checked at line-search points
     recheck = True
     exact = True  # solved by _solver._run_exact (exact E_v and coverage gradients)
-    COVERAGE_KEEP = 1.0
+    #: Fraction of the starting coverage kept by default: none (decision D1: fading raises
+    #: ``E_v`` by itself, so no floor is needed); ``coverage_keep`` or ``opacity_floor`` set one.
+    COVERAGE_KEEP = 0.0
 
     def encode(self, params, active):  # noqa: D102 (see Stage)
         idx = np.flatnonzero(active)
@@ -194,23 +198,38 @@ class OpacityStage(Stage):
         """Return the lowest allowed coverage: ``opacity_floor``, else a fraction of the start.
 
         The fraction is ``coverage_keep`` (``optimize(..., coverage_keep=...)``) or
-        :attr:`COVERAGE_KEEP` (1).
+        :attr:`COVERAGE_KEEP` (0: no floor).
         """
         if self.opacity_floor is not None:
             return float(self.opacity_floor)
         keep = self.COVERAGE_KEEP if self.coverage_keep is None else self.coverage_keep
         return keep * float(start["coverage"])
 
-    def guards(self, terms, start):
-        """``floor - coverage`` (no winning by fading, see :meth:`floor`).
+    #: The most important structure (set by :func:`~dvr_perception.optimize.optimize`): its
+    #: share of the picture may not fall below its start or, when it starts above its target
+    #: share, below that target (decision D6).
+    protect: str | None = None
+    SHARE_SLACK = 2e-3
 
-        By default the mean accumulated opacity over the non-empty rays may not fall below
-        its starting value (:attr:`COVERAGE_KEEP` = 1): lowering every opacity always
-        brings the visible shares towards the unoccluded assigned shares, so without this
-        rule ``E_v`` is won by fading the whole image.  ``opacity_floor`` (a coverage value
-        in [0, 1]) replaces the floor, e.g. to accept some fading for more visibility.
+    def guards(self, terms, start):
+        """``floor - coverage`` (see :meth:`floor`) and the protected structure's share rule.
+
+        The second entry (with :attr:`protect` set) is ``min(share_0, target) - share -``
+        :attr:`SHARE_SLACK`: what the user marked most important never loses share of the
+        picture while below its target, nor drops below the target when it starts above.
+
+        Off by default (:attr:`COVERAGE_KEEP` = 0): ``E_v`` compares the visible opacity
+        with target opacities on the same scale (decision D1), so fading the whole image
+        raises it by itself.  ``coverage_keep`` (a fraction of the start) or
+        ``opacity_floor`` (a coverage value in [0, 1]) set a floor, e.g. to keep the image
+        from fading while ``E_v`` improves.
         """
-        return np.array([self.floor(start) - terms["coverage"]])
+        out = [self.floor(start) - terms["coverage"]]
+        if self.protect is not None and self.protect in start.get("target_share", {}):
+            name = self.protect
+            keep = min(start["visible_share"][name], start["target_share"][name])
+            out.append(keep - terms["visible_share"][name] - self.SHARE_SLACK)
+        return np.array(out)
 
     def constraints(self, terms, start, weights):
         """Return the base constraints plus :meth:`guards`."""

@@ -223,10 +223,11 @@ def _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz):
 
 @njit(cache=True, fastmath=_FM, inline="always")
 def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n,
-          step, shade, has_curv, build, base, cnt, walked, bits, asg, out):  # fmt: skip
+          step, shade, has_curv, build, base, cnt, walked, bits, asg, out, ti, ert):  # fmt: skip
     """Walk the rest of a ray after early ray termination: only each sample's table index.
 
-    Accumulates the occlusion-free ``asg`` and the ``present`` bits and, with ``build``, writes
+    Accumulates the occlusion-free ``asg``, the ``present`` bits and the transmittance ``ti`` at
+    the importance opacities (until it falls below ``ert``) and, with ``build``, writes
     cache entries whose shading and curvature are left unset.  ``tix`` is the compact table
     index volume (uint8 when the table has at most 256 entries): a quarter of the memory
     traffic of the voxel records.  Far from anything the ray jumps by whole blocks of the
@@ -273,6 +274,8 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
                 k = _table_index(tf, o, nx, nxy, 1, fx, fy, fz, lab_end)
         s = tids[k]
         asg[s, r] += t_alpha[k]
+        if ti >= ert:
+            ti *= 1.0 - t_alpha[k]
         bits |= t_bit[k]
         if build and s != spare:
             e = base + cnt
@@ -284,7 +287,7 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
                 c_curv[e] = -1.0
             cnt += 1
         j += 1
-    return cnt, walked, bits
+    return cnt, walked, bits, ti
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
@@ -302,6 +305,10 @@ def _walk_ray(
     (high 16 bits).  ``build``: also write one cache entry per sample with membership
     (table index, sample index, shading and curvature; the last two marked "not yet computed"
     (-1) for samples that compositing did not reach).
+
+    Returns ``(entries, samples walked, ti)``: ``ti`` is the ray's transmittance at the
+    importance opacities ``alpha_w`` with early ray termination (``1 - ti`` is the
+    accumulated opacity of the ray rendered at the importances).
     """
     c_lut, c_j, c_sh, c_curv = out
     tix, cells, blocks, rep, lab, lab_base, tail_maps = maps
@@ -320,6 +327,7 @@ def _walk_ray(
     walked = 0
     alive = True
     tr = 1.0
+    ti = 1.0
     cr = 0.0
     cg = 0.0
     cb = 0.0
@@ -356,6 +364,8 @@ def _walk_ray(
         s = ids[k]
         bits |= np.uint32(1) << np.uint32(s)
         asg[s, r] += alpha_w[k]
+        if ti >= ert:
+            ti *= 1.0 - alpha_w[k]
         e = base + cnt
         if build:
             c_lut[e] = k
@@ -396,9 +406,9 @@ def _walk_ray(
         if tr < ert:
             alive = False
     if j < n and tail:
-        cnt, walked, bits = _tail(
+        cnt, walked, bits, ti = _tail(
             r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j,
-            n, step, shade, has_curv, build, base, cnt, walked, bits, asg, out,
+            n, step, shade, has_curv, build, base, cnt, walked, bits, asg, out, ti, ert,
         )  # fmt: skip
     present[r] = bits
     rgba[r, 0] = min(cr, 1.0)
@@ -406,7 +416,7 @@ def _walk_ray(
     rgba[r, 2] = min(cb, 1.0)
     rgba[r, 3] = 1.0 - tr
     cimg[r] = num / den if den > 0.0 else 0.0
-    return cnt, walked
+    return cnt, walked, ti
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
@@ -496,9 +506,12 @@ def walk(
     vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, curv, a, b,
     t_first, nsteps, step, order, chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light, tab,
     shade, has_curv, build, tail, chunk_base, ert, rgba, vis, asg, present, cimg, c_lut, c_j,
-    c_sh, c_curv, start, count, chunk_end, walked,
+    c_sh, c_curv, start, count, chunk_end, walked, aimp,
 ):  # fmt: skip
     """March and composite all rays; see the module docstring.  Outputs are flat per ray.
+
+    ``aimp``: per ray, the accumulated opacity at the importance opacities (``1 - ti`` of
+    :func:`_walk_ray`).
 
     ``tix``, ``cells`` and ``blocks``: :func:`_grid.compact_index`, :func:`_grid.cell_map` and
     :func:`_grid.block_map`; ``order`` and ``chunk_ptr``: :func:`engine.ray_order`; ``tail``
@@ -532,14 +545,16 @@ def walk(
                 cimg[r] = 0.0
                 present[r] = 0
                 walked[r] = 0
+                aimp[r] = 0.0
                 continue
-            cnt, wk = _walk_ray(
+            cnt, wk, ti = _walk_ray(
                 r, vol, maps, curv, a, b, t_first[r], nsteps[r], step, ids, memb,
                 alpha_r, alpha_w, col, light, tab, shade, has_curv, build, tail, e, ert,
                 rgba, vis, asg, present, cimg, (c_lut, c_j, c_sh, c_curv),
             )  # fmt: skip
             count[r] = cnt
             walked[r] = wk
+            aimp[r] = 1.0 - ti
             e += cnt
         chunk_end[c] = e
 

@@ -52,20 +52,23 @@ def shade_entries(vol, seg, step, start, count, steps, s, tab, shade) -> np.ndar
     return out
 
 
-def walk(idx, lab, lab_base, curv, seg, step, ids, memb, alpha_w, has_curv, k_count):
+def walk(idx, lab, lab_base, curv, seg, step, ids, memb, alpha_w, has_curv, k_count, ert):
     """March all rays; return cache entries in ray order plus ``present`` and ``assigned``.
 
     ``lab`` (uint8 label map) overrides the interpolated table entry with entry
     ``lab_base + lab - 1`` where a sample's nearest voxel is labelled (``lab_base`` -1: none).
 
     Returns a dict with ``off`` (R+1 int64), ``lut`` (uint16), ``steps`` (int32 sample index),
-    ``curv`` (float32), ``present`` (uint32 R), ``assigned`` (float64 (K, R)).
+    ``curv`` (float32), ``present`` (uint32 R), ``assigned`` (float64 (K, R)) and
+    ``importance_accumulated`` (float64 R: the accumulated opacity at the importance opacities
+    ``alpha_w``, with early ray termination below transmittance ``ert``).
     """
     a, b, t_first, n = seg["a"], seg["b"], seg["t"], seg["n"]
     nrays = len(n)
     nz, ny, nx = idx.shape
     present = np.zeros(nrays, np.uint32)
     assigned = np.zeros((k_count, nrays))
+    ti = np.ones(nrays)
     order = np.argsort(-n.astype(np.int64), kind="stable")
     neg = -n[order].astype(np.int64)
     parts: dict[str, list] = {"ray": [], "lut": [], "steps": [], "curv": []}
@@ -97,6 +100,8 @@ def walk(idx, lab, lab_base, curv, seg, step, ids, memb, alpha_w, has_curv, k_co
         rr, k, s = rr[hit], k[hit], ids[k[hit]].astype(np.int64)
         present[rr] |= np.left_shift(np.uint32(1), s.astype(np.uint32))
         np.add.at(assigned, (s, rr), alpha_w[k])
+        live = ti[rr] >= ert  # rays are distinct within a step
+        ti[rr[live]] *= 1.0 - alpha_w[k[live]]
         parts["ray"].append(rr)
         parts["lut"].append(k.astype(np.uint16))
         parts["steps"].append(np.full(len(rr), j, np.int32))
@@ -123,6 +128,7 @@ def walk(idx, lab, lab_base, curv, seg, step, ids, memb, alpha_w, has_curv, k_co
         "curv": curv_e,
         "present": present,
         "assigned": assigned,
+        "importance_accumulated": 1.0 - ti,
     }
 
 

@@ -50,6 +50,9 @@ class RayCache:
     #: float32 curvature array passed to ``analyze`` is used as is: do not modify it while the
     #: cache is in use).
     lazy: dict | None = None
+    #: (H, W) accumulated opacity of each ray at the importance opacities (see
+    #: :attr:`RayAnalysis.importance_accumulated`).
+    importance_accumulated: np.ndarray | None = None
 
     @property
     def nbytes(self) -> int:
@@ -68,6 +71,11 @@ class RayAnalysis:
     ``visible`` (sum of ``a_i T_i``), ``assigned`` (sum of the importance-based step-corrected
     opacity, no occlusion), ``present`` (bit ``s`` set if any sample of ``s``) and
     ``curvature`` (visibility-weighted mean ``|H|`` over boundary samples).
+
+    ``importance_accumulated`` (``A_imp``, DECISIONS D1) is the accumulated opacity of each ray
+    rendered with every structure's opacity equal to its importance (early ray termination
+    included): fixed for a view, whatever the current opacities.  The engine always sets it
+    (NaN with ``occlusion_free=False``); hand-made analyses may leave it ``None``.
     """
 
     rgba: np.ndarray
@@ -81,6 +89,7 @@ class RayAnalysis:
     camera: Camera
     stats: dict
     cache: RayCache | None = None
+    importance_accumulated: np.ndarray | None = None
 
     @property
     def visible_share(self) -> np.ndarray:
@@ -109,7 +118,8 @@ def engine_made(analysis, *, mark: bool = False) -> bool:
     if not isinstance(analysis, RayAnalysis):
         return False
     if mark:
-        for name in ("rgba", "image", "accumulated", "visible", "assigned", "present", "curvature"):
+        for name in ("rgba", "image", "accumulated", "visible", "assigned", "present", "curvature",
+                     "importance_accumulated"):  # fmt: skip
             getattr(analysis, name).flags.writeable = False
         _ENGINE_MADE.add(analysis)
         return True

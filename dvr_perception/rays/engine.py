@@ -145,7 +145,7 @@ def _segments(nk, camera, volume, step: float) -> dict:
     return seg
 
 
-def _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache) -> RayAnalysis:
+def _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp) -> RayAnalysis:
     h, w = camera.height, camera.width
     k = len(spec.structures)
     bg = np.asarray(spec.background, np.float32)
@@ -166,10 +166,10 @@ def _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache) -> RayAna
         rgba = np.asarray(rgba, np.float32).reshape(h, w, 4)
         image = np.clip(rgba[..., :3] + (1.0 - rgba[..., 3:]) * bg, 0.0, 1.0)
         acc = np.ascontiguousarray(rgba[..., 3])
-    return _analysis(rgba, image, acc, vis, asg, present, cimg, spec, camera, stats, cache)
+    return _analysis(rgba, image, acc, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
 
 
-def _analysis(rgba, image, acc, vis, asg, present, cimg, spec, camera, stats, cache):
+def _analysis(rgba, image, acc, vis, asg, present, cimg, spec, camera, stats, cache, aimp):
     h, w = camera.height, camera.width
     k = len(spec.structures)
     analysis = RayAnalysis(
@@ -184,6 +184,7 @@ def _analysis(rgba, image, acc, vis, asg, present, cimg, spec, camera, stats, ca
         camera=camera,
         stats=stats,
         cache=cache,
+        importance_accumulated=np.asarray(aimp, np.float32).reshape(h, w),
     )
     engine_made(analysis, mark=True)
     return analysis
@@ -291,16 +292,16 @@ def analyze(
     locked = nk is not None and _SCRATCH_LOCK.acquire(blocking=False)
     try:
         if nk is None:
-            out = _npk.walk(idx, *lab, cv, seg, step, ids, memb, alpha_w, has_curv, k)
+            out = _npk.walk(idx, *lab, cv, seg, step, ids, memb, alpha_w, has_curv, k, _tables.ERT)
             start, count = out["off"][:-1], np.diff(out["off"])
             c_lut, c_j, c_curv = out["lut"], out["steps"], out["curv"]
             c_sh = _npk.shade_entries(vol, seg, step, start, count, c_j, ids[c_lut], tab, shade)
             rgba, vis, cimg = _npk.composite(start, count, c_lut, c_sh, c_curv, *args, k)
-            present, asg = out["present"], out["assigned"]
+            present, asg, aimp = out["present"], out["assigned"], out["importance_accumulated"]
         else:
             res = _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
                               camera, build_cache, occlusion_free, locked)  # fmt: skip
-            rgba, vis, asg, present, cimg, start, count, entries, walked = res
+            rgba, vis, asg, present, cimg, start, count, entries, walked, aimp = res
             if entries is not None:
                 c_lut, c_j = entries["lut"], entries["steps"]
                 c_sh, c_curv = entries["shading"], entries["curvature"]
@@ -330,6 +331,7 @@ def analyze(
         }
         if not occlusion_free:  # not computed past early ray termination: no number at all
             asg = np.full((k, nrays), np.nan, np.float32)
+            aimp = np.full(nrays, np.nan, np.float32)
         cache = None
         if build_cache:
             h, w = camera.height, camera.width
@@ -349,10 +351,11 @@ def analyze(
                 backend=stats["backend"],
                 stats=dict(stats),
                 lazy=lazy,
+                importance_accumulated=np.asarray(aimp, np.float32).reshape(h, w),
             )
             stats["cache_entries"] = len(c_lut)
             stats["cache_bytes"] = cache.nbytes
-        return _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache)
+        return _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
     finally:
         if locked:
             _SCRATCH_LOCK.release()
@@ -436,6 +439,7 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     start = _scratch("start", nrays, (), np.int64, locked)  # with the cache: replaced by compact
     count = np.empty(nrays, np.int64) if build else _scratch("count", nrays, (), np.int64, locked)
     walked = _scratch("walked", nrays, (), np.int64, locked)
+    aimp = _scratch("aimp", nrays, (), np.float64, locked)
     per_chunk = np.add.reduceat(n[order].astype(np.int64), chunk_ptr[:-1])
     chunk_base = np.concatenate([[0], np.cumsum(per_chunk)])
     total = int(chunk_base[-1]) if build else 1
@@ -451,8 +455,9 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     layout = (order, chunk_ptr, h, w)
     out = _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args,
                         (build, tail), chunk_base, rgba, vis, asg_all, present, cimg, src_lut,
-                        src_j, src_sh, src_curv, start, count, chunk_end, walked)  # fmt: skip
-    return (out[0], out[1], asg_all[:k], *out[3:])
+                        src_j, src_sh, src_curv, start, count, chunk_end, walked,
+                        aimp)  # fmt: skip
+    return (out[0], out[1], asg_all[:k], *out[3:], aimp)
 
 
 def _tail_tables(ids, memb, alpha_w, rep, k):
@@ -514,7 +519,7 @@ def _scratch(name, n, tail, dtype, shared):
 
 def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, modes,
                   chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j, src_sh, src_curv,
-                  start, count, chunk_end, walked):  # fmt: skip
+                  start, count, chunk_end, walked, aimp):  # fmt: skip
     ids, alpha_r, cols, light, tab, shade, has_curv, ert = args
     build, tail = modes
     n = seg["n"]
@@ -524,7 +529,7 @@ def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, mod
         vol, *maps, cv, seg["a"], seg["b"], seg["t"], n, step, order, chunk_ptr, nchunk, ids,
         memb, alpha_r, alpha_w, cols, light, tab, shade, has_curv, build, tail, chunk_base, ert,
         rgba, vis, asg, present, cimg, src_lut, src_j, src_sh, src_curv, start, count, chunk_end,
-        walked,
+        walked, aimp,
     )  # fmt: skip
     entries = None
     if build:
@@ -650,10 +655,21 @@ def reevaluate(
         stats = {"backend": cache.backend, "rays": h * w, "reevaluated": True}
         stats["cache_entries"] = len(cache.lut)
         res = _analysis(*out[1:4], out[4], cache.assigned, cache.present, out[5], spec, camera,
-                        stats, cache)  # fmt: skip
+                        stats, cache, cache.importance_accumulated)  # fmt: skip
         stats["seconds"] = time.perf_counter() - t_start
         return res
     seconds = time.perf_counter() - t_start
     stats = {"seconds": seconds, "backend": cache.backend, "rays": h * w, "reevaluated": True}
     stats["cache_entries"] = len(cache.lut)
-    return _finish(rgba, vis, cache.assigned, cache.present, cimg, spec, camera, stats, cache)
+    return _finish(
+        rgba,
+        vis,
+        cache.assigned,
+        cache.present,
+        cimg,
+        spec,
+        camera,
+        stats,
+        cache,
+        cache.importance_accumulated,
+    )

@@ -227,11 +227,13 @@ def test_equal_opacity_layers_of_different_colour(yellow_in_front, white):
 
 # -- (d) an opaque front structure --------------------------------------------------------------
 def test_opaque_front_visibility_deviation():
-    """Rays through an opaque front box see only it: ``delta_v = 2 A_back / (A_front + A_back)``.
+    """Rays through an opaque front box see only it: ``delta_v = 2 c_back A_imp`` (D1).
 
-    ``A`` is the assigned opacity ``n a`` of a structure on the ray (occlusion ignored); the
-    visible shares are 1 (front) and 0 (back).  Rays through the back structure alone have
-    ``delta_v = 0``.
+    ``A`` is the assigned opacity ``n a`` of a structure on the ray (occlusion ignored): both
+    are thick enough for full presence, so the target composition is the importance ratio,
+    ``c_back = 0.5 / 1.5``.  The front shows ``A_imp`` (the ray's opacity at the importances)
+    where it should show ``(1 - c_back) A_imp``, the back 0 instead of ``c_back A_imp``.
+    Rays through the back structure alone have ``delta_v = 0``.
     """
     data = np.full((24, 32, 32), AIR, np.uint8)
     data[16:18, 8:24, 8:24] = LOW  # opaque front box, 2 voxels deep
@@ -254,7 +256,11 @@ def test_opaque_front_visibility_deviation():
     back_only = (res.visible[1] > 0.05) & (res.visible[0] == 0)
     assert through_front.sum() > 100
     assert back_only.sum() > 100
-    expected = 2.0 * a_back / (a_front + a_back)
+    c_back = 0.5 * (1 - np.exp(-a_back / 0.05))
+    c_back /= 1.0 * (1 - np.exp(-a_front / 0.05)) + c_back
+    assert c_back == pytest.approx(1 / 3)
+    expected = 2.0 * c_back * res.importance_accumulated[through_front]
+    assert expected.min() > 0.66  # the rays are opaque
     np.testing.assert_allclose(vis.deviation[through_front], expected, atol=2e-3)
     np.testing.assert_allclose(vis.deviation[back_only], 0.0, atol=2e-3)
 
@@ -390,7 +396,8 @@ def test_engine_analyses_are_read_without_checks_and_others_are_checked():
     )
     a = analyze(vol, spec, parallel_camera(vol), build_cache=False)
     assert engine_made(a)
-    fields = ("rgba", "image", "accumulated", "visible", "assigned", "present", "curvature")
+    fields = ("rgba", "image", "accumulated", "visible", "assigned", "present", "curvature",
+              "importance_accumulated")  # fmt: skip
     for f in fields:
         with pytest.raises(ValueError, match="read-only"):
             getattr(a, f)[..., 0] = 0

@@ -45,11 +45,10 @@ def _measure(vol, spec, cam):
     return a, visibility(a, spec).E_v, shape(a, spec).E_s, transparency(a, spec).E_t
 
 
-def test_stage1_lowers_visibility_without_fading(phantom, stage1):
+def test_stage1_lowers_visibility_without_washing_out(phantom, stage1):
     vol, spec, cam = phantom
     r = stage1
     assert r.final["E_v"] <= 0.7 * r.initial["E_v"]  # the issue's 30 %
-    assert r.final["coverage"] >= r.initial["coverage"]  # no fading by default
     assert r.final["E"] <= r.initial["E"]
     # the reported terms are the measures of the returned spec, and no fading in the image
     a0, ev0, _, _ = _measure(vol, spec, cam)
@@ -59,7 +58,10 @@ def test_stage1_lowers_visibility_without_fading(phantom, stage1):
         (r.final["E_v"], r.final["E_s"], r.final["E_t"]), abs=1e-6
     )
     rays = a0.assigned.sum(axis=0) > 0
-    assert a1.accumulated[rays].mean() >= a0.accumulated[rays].mean()
+    assert a1.accumulated[rays].mean() == pytest.approx(r.final["coverage"], abs=1e-6)
+    # no wash-out (D6) against the rendering at the importances, which E_v aims at (the
+    # start, every opacity 0.3, over-shows the structures of importance 0.1)
+    assert r.final["coverage"] >= 0.6 * a0.importance_accumulated[rays].mean()
     rec = r.stages[0]
     assert rec.name == "opacity"
     assert rec.accepted
@@ -99,28 +101,33 @@ def test_exact_opacity_model_matches_the_problem(phantom):
 
 
 def test_no_fading_holds_at_the_user_resolution(phantom):
-    """Optimised on 24 px rays, the 48 px image keeps its coverage (checked exactly there)."""
+    """Optimised on 24 px rays, the 48 px image keeps its coverage when the user asks for it
+    (``coverage_keep=1``, checked exactly there)."""
     vol, spec, cam = phantom
-    r = optimize(vol, spec, cam, stages=("opacity",), max_iter=3, seed=1, resolution=24)
+    r = optimize(vol, spec, cam, stages=("opacity",), max_iter=3, seed=1, resolution=24,
+                 coverage_keep=1.0)  # fmt: skip
     assert r.stages[0].accepted
     assert r.final["E_v"] < r.initial["E_v"]
     assert r.final["coverage"] >= r.initial["coverage"]
 
 
-def test_lower_opacity_floor_allows_more_visibility(phantom, stage1):
-    """A user floor below the start trades coverage for E_v; the default never fades."""
+def test_coverage_floor_is_off_by_default_and_holds_when_asked(phantom, stage1):
+    """No floor by default (D1: fading raises E_v); a user floor is kept, and costs E_v."""
     vol, spec, cam = phantom
-    floor = 0.8 * stage1.initial["coverage"]
+    assert OpacityStage().floor({"coverage": 0.7}) == 0.0
+    assert OpacityStage(opacity_floor=0.5).floor({"coverage": 0.7}) == 0.5
+    keep = OpacityStage()
+    keep.coverage_keep = 0.8
+    assert keep.floor({"coverage": 0.5}) == pytest.approx(0.4)
+    floor = 0.95 * stage1.initial["coverage"]
+    assert stage1.final["coverage"] < floor  # the free optimum fades the phantom somewhat
     r = optimize(vol, spec, cam, stages=("opacity",), max_iter=8, seed=3, opacity_floor=floor)
     assert r.final["coverage"] >= floor
-    assert r.final["E_v"] < stage1.final["E_v"] - 0.005
-    assert r.final["coverage"] < stage1.final["coverage"]
-    stage = OpacityStage()
-    assert stage.floor({"coverage": 0.7}) == 0.7
-    assert OpacityStage(opacity_floor=0.5).floor({"coverage": 0.7}) == 0.5
-    rel = optimize(vol, spec, cam, stages=("opacity",), max_iter=8, seed=3, coverage_keep=0.8)
-    assert rel.final["coverage"] >= 0.8 * rel.initial["coverage"]
-    assert rel.final["E_v"] < stage1.final["E_v"] - 0.005
+    assert r.final["E_v"] < r.initial["E_v"]
+    assert r.final["E_v"] > stage1.final["E_v"]  # the floor costs visibility
+    rel = optimize(vol, spec, cam, stages=("opacity",), max_iter=8, seed=3, coverage_keep=0.95)
+    assert rel.final["coverage"] >= 0.95 * rel.initial["coverage"]
+    assert rel.final["E_v"] < rel.initial["E_v"]
 
 
 def test_lighting_stage_does_not_raise_E(phantom, stage1):
@@ -229,7 +236,6 @@ def test_callback_gets_copies_and_stopiteration_returns_best(phantom):
     assert seen[1].nfev >= seen[0].nfev
     assert r.final["E"] >= 0
     assert r.final["E_v"] <= r.initial["E_v"]
-    assert r.final["coverage"] >= r.initial["coverage"]
 
 
 def test_opacity_floor_at_start_forbids_any_fading(phantom):
@@ -272,18 +278,55 @@ def test_region_freezes_absent_structures(phantom):
             assert after.opacity == before.opacity
 
 
-def test_targets_and_multiview(phantom):
+def _view_E(vol, spec, cam):
+    _, ev, es, et = _measure(vol, spec, cam)
+    return ev + es + et
+
+
+def test_two_views_lower_the_worse_view_more_than_one(phantom):
+    """Optimising the front view alone makes the 45-degree view worse than it started; both
+    together keep the worse of the two views lower than either single-view optimum does."""
     vol, spec, cam = phantom
-    side = Camera.from_view(vol.bounds, azimuth=90, width=PX, height=PX)
-    r = optimize(vol, spec, cam, stages=("opacity",), cameras=[side], max_iter=2)
-    assert r.final["E"] <= r.initial["E"]
-    t = optimize(
-        vol, spec, cam, stages=("opacity",), max_iter=1,
-        targets={"tumour": {"visibility": 0.5, "transparency": 0.2}},
-    )  # fmt: skip
-    plain = optimize(vol, spec, cam, stages=("opacity",), max_iter=1)
-    assert t.initial["E_v"] != plain.initial["E_v"]
+    oblique = Camera.from_view(vol.bounds, azimuth=45, elevation=30, width=PX, height=PX)
+    one = optimize(vol, spec, cam, stages=("opacity",), max_iter=5, seed=0)
+    two = optimize(vol, spec, cam, cameras=[oblique], stages=("opacity",), max_iter=5, seed=0)
+    start = _view_E(vol, spec, oblique)
+    e_one = [_view_E(vol, one.spec, c) for c in (cam, oblique)]
+    e_two = [_view_E(vol, two.spec, c) for c in (cam, oblique)]
+    assert e_two[1] < e_one[1] - 0.1
+    assert e_two[1] < start
+    assert max(e_two) < max(e_one) - 0.1
+    assert two.final["E"] <= two.initial["E"]
+
+
+def test_a_visibility_target_moves_the_share_toward_it(phantom):
+    vol, spec, cam = phantom
+    plain = optimize(vol, spec, cam, stages=("opacity",), max_iter=5, seed=0)
+    shares = {}
+    for goal in (0.2, 0.5):
+        t = optimize(vol, spec, cam, stages=("opacity",), max_iter=5, seed=0,
+                     targets={"tumour": {"visibility": goal}})  # fmt: skip
+        target = t.initial["target_share"]["tumour"]
+        start, end = t.initial["visible_share"]["tumour"], t.final["visible_share"]["tumour"]
+        assert target != plain.initial["target_share"]["tumour"]
+        assert abs(end - target) < 0.5 * abs(start - target)
+        assert abs(end - target) < abs(plain.final["visible_share"]["tumour"] - target)
+        shares[goal] = end
+    assert shares[0.5] > shares[0.2] + 0.03
+    t = optimize(vol, spec, cam, stages=("opacity",), max_iter=1,
+                 targets={"tumour": {"transparency": 0.2}})  # fmt: skip
     assert t.initial["E_t"] != plain.initial["E_t"]
+
+
+def test_colour_stage_changes_colours_and_lowers_E_t(phantom, stage1):
+    """Fails when the colour stage does nothing: E_t must fall and some colour change."""
+    vol, _, cam = phantom
+    r = optimize(vol, stage1.spec, cam, stages=("colour",), max_iter=3, seed=2)
+    assert r.stages[0].message == "improved"
+    assert r.final["E_t"] < r.initial["E_t"] - 0.005
+    moved = [np.abs(np.subtract(a.color, b.color)).max()
+             for a, b in zip(stage1.spec.structures, r.spec.structures, strict=True)]  # fmt: skip
+    assert max(moved) > 0.01
 
 
 def test_stage_registry_is_replaceable(phantom):

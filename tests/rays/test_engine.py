@@ -277,3 +277,26 @@ def test_render_only_stops_at_early_termination_and_leaves_assigned_undefined(ba
         visibility(image, spec)
     with pytest.raises(DVRInputError, match="build_cache=False"):
         analyze(vol, spec, cam, backend=backend, occlusion_free=False)
+
+
+def test_importance_accumulated_is_the_rendering_at_the_importances():
+    """``A_imp`` (D1): the accumulated opacity with every opacity at its importance, whatever
+    the opacities rendered; the same in both back ends, kept by re-evaluation, NaN when the
+    rays stop at early termination."""
+    vol = _blob()
+    spec = _spec(*BLOB_STRUCTURES)
+    cam = Camera.from_view(vol.bounds, azimuth=20, elevation=10, width=24, height=20)
+    at_importance = analyze(vol, spec, cam)
+    np.testing.assert_array_equal(at_importance.importance_accumulated, at_importance.accumulated)
+    faded = analyze(vol, spec, cam, opacities=[0.05, 0.1])
+    assert faded.accumulated.max() < at_importance.accumulated.max() - 0.1
+    np.testing.assert_array_equal(faded.importance_accumulated, at_importance.accumulated)
+    numpy = analyze(vol, spec, cam, opacities=[0.05, 0.1], backend="numpy")
+    np.testing.assert_allclose(numpy.importance_accumulated, faded.importance_accumulated,
+                               atol=1e-6)  # fmt: skip
+    again = reevaluate(faded.cache, opacities=[0.9, 0.2])
+    np.testing.assert_array_equal(again.importance_accumulated, at_importance.accumulated)
+    with pytest.raises(ValueError, match="read-only"):
+        faded.importance_accumulated[0, 0] = 0
+    render_only = analyze(vol, spec, cam, occlusion_free=False, build_cache=False)
+    assert np.isnan(render_only.importance_accumulated).all()
