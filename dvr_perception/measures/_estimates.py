@@ -1,11 +1,12 @@
 """Transmittance estimates of every sub-region, worked out once per layer set (``transparency``).
 
 Which rule of Sec. 4.3.2 applies to a layer, and every Metelli and TAP term, depend only on the
-layer set of the region (:meth:`._scene._Scene.template`); only the Eq. 8 weight ``h`` depends
-on the region (its robust luminance range).  :func:`region_estimates` therefore evaluates each
-layer set once and the regions of a set together, as arrays; :func:`region_table` gives the
-result as one (regions x layers) table for callers that need numbers, not per-region records
-(the optimiser evaluates E_t this way many times per stage).
+layer set of the region (:meth:`._scene._Scene.template`); only the Eq. 8 weight ``h = 1 - C``
+depends on the region (``C`` the contrast of its robust luminance range, Eq. 7).
+:func:`region_estimates` therefore evaluates each layer set once and the regions of a set
+together, as arrays; :func:`region_table` gives the result as one (regions x layers) table for
+callers that need numbers, not per-region records (the optimiser evaluates E_t this way many
+times per stage).
 """
 
 from __future__ import annotations
@@ -51,18 +52,25 @@ class RegionEstimates:
     deltas: np.ndarray
 
 
-def _blend_many(met: float, tap: float, lo: np.ndarray, hi: np.ndarray):
-    """Eq. 8 for many regions: ``h = 1 - (hi - lo)`` (as ``_scene._blended``, elementwise)."""
-    rng = hi - lo
+def _contrasts(lo: np.ndarray, hi: np.ndarray, kind: str) -> np.ndarray:
+    """Contrast ``C`` of many regions from their robust ranges, as ``_scene._contrast``."""
+    if kind == "range":
+        return hi - lo
+    total = hi + lo
+    return np.divide(hi - lo, total, out=np.zeros(lo.shape), where=total > 0)
+
+
+def _blend_many(met: float, tap: float, c: np.ndarray):
+    """Eq. 8 for many regions: ``h = 1 - C`` (as ``_scene._blended``, elementwise)."""
     if math.isnan(met):
-        alpha = np.full(rng.shape, tap)
+        alpha = np.full(c.shape, tap)
     elif math.isnan(tap):
-        alpha = np.full(rng.shape, met)
+        alpha = np.full(c.shape, met)
     else:
-        h = 1.0 - rng
+        h = 1.0 - c
         alpha = h * met + (1.0 - h) * tap
-    metelli = math.isnan(tap) | (rng == 0.0)
-    only_tap = math.isnan(met) | (rng >= 1.0)
+    metelli = math.isnan(tap) | (c == 0.0)
+    only_tap = math.isnan(met) | (c >= 1.0)
     method = np.where(metelli, "metelli", np.where(only_tap, "tap", "blend"))
     return alpha, method.tolist()
 
@@ -74,6 +82,7 @@ def region_estimates(scene, rmap, y, expected, calibration, notes: list) -> Regi
     # mu -/+ 2 sigma clipped to [0, 1]: the robust range of Eq. 6-7 of every region
     lo = np.maximum(mean - 2.0 * std, 0.0)
     hi = np.minimum(mean + 2.0 * std, 1.0)
+    contrast = _contrasts(lo, hi, scene.contrast)  # C of Eq. 7: Eq. 8's h = 1 - C
     groups: dict[frozenset, list[int]] = {}  # layer set -> its regions, by first region
     for region in rmap.regions:
         groups.setdefault(region.layers, []).append(region.id)
@@ -94,7 +103,7 @@ def region_estimates(scene, rmap, y, expected, calibration, notes: list) -> Regi
             if fixed is not None:
                 raw, method = np.full(ids.size, fixed.alpha), [fixed.method] * ids.size
             else:
-                raw, method = _blend_many(met, tap, lo[ids], hi[ids])
+                raw, method = _blend_many(met, tap, contrast[ids])
             measured = np.clip(raw, 0.0, 1.0)
             alpha_t = measured
             if calibration is not None:

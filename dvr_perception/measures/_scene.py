@@ -2,7 +2,8 @@
 
 :class:`_Scene` caches, per exact layer set, the pixel count, mean and standard deviation of the
 luminance, so every Metelli (Eq. 5, 9) and TAP (Eq. 6-7) term is computed once per layer set
-(or layer pair), not once per sub-region; only the Eq. 8 weight ``h`` depends on the region.
+(or layer pair), not once per sub-region; only the Eq. 8 weight ``h = 1 - C`` depends on the
+region (``C`` its contrast, Eq. 7).
 """
 
 from __future__ import annotations
@@ -70,13 +71,13 @@ def _contrast(lo: float, hi: float, kind: str) -> float:
     return (hi - lo) / (hi + lo) if hi + lo > 0 else 0.0
 
 
-def _blend(met: float, tap: float, lum_range: float) -> float:
-    """Scalar :func:`~.psychophysics.blended_transmittance` (Eq. 8) without input checks."""
+def _blend(met: float, tap: float, contrast: float) -> float:
+    """Scalar :func:`~.psychophysics.blended_transmittance` (Eq. 8, ``h = 1 - C``), unchecked."""
     if math.isnan(met):
         return tap
     if math.isnan(tap):
         return met
-    h = 1.0 - lum_range
+    h = 1.0 - contrast
     return h * met + (1.0 - h) * tap
 
 
@@ -252,7 +253,9 @@ class _Scene:
         """Estimates ``{layer: _Estimate}`` for the layers of one region (Case 1-3).
 
         Which rule applies, and every term except the Eq. 8 weight, depends on the layer set
-        only: that is worked out once per set (:meth:`_template`); a region adds its range.
+        only: that is worked out once per set (:meth:`_template`); a region adds its robust
+        luminance range ``region_range``, whose contrast (Eq. 7, or the range with
+        ``contrast="range"``) gives the Eq. 8 weight ``h = 1 - C``.
         The measure evaluates all regions of a set at once
         (:func:`~dvr_perception.measures._estimates.region_estimates`); this per-region form
         is its reference (``tests/measures/test_estimates.py``).
@@ -261,7 +264,9 @@ class _Scene:
         notes.extend(tpl_notes)
         out = {}
         for k, fixed, met, tap in items:
-            out[k] = fixed if fixed is not None else self._blended(met, tap, region_range)
+            if fixed is None:
+                fixed = self._blended(met, tap, _contrast(*region_range, self.contrast))
+            out[k] = fixed
         return out
 
     def template(self, layers: frozenset) -> tuple[list, list[str]]:
@@ -272,13 +277,12 @@ class _Scene:
         return tpl
 
     @staticmethod
-    def _blended(met: float, tap: float, region_range: tuple) -> _Estimate:
-        """Eq. 8 for one pair's Metelli and TAP terms with the region's luminance range."""
-        lo, hi = region_range
-        alpha = _blend(met, tap, hi - lo)
-        if math.isnan(tap) or hi - lo == 0.0:
+    def _blended(met: float, tap: float, contrast: float) -> _Estimate:
+        """Eq. 8 for one pair's Metelli and TAP terms with the region's contrast ``C``."""
+        alpha = _blend(met, tap, contrast)
+        if math.isnan(tap) or contrast == 0.0:
             method = "metelli"
-        elif math.isnan(met) or hi - lo >= 1.0:
+        elif math.isnan(met) or contrast >= 1.0:
             method = "tap"
         else:
             method = "blend"

@@ -32,7 +32,9 @@ Pipeline (all luminances are linear CIE Y of ``rgba`` composited over ``spec.bac
    * two overlapping active layers (Case 3): the same Eq. 8 for each of them;
    * three or more active layers (Case 3): the generalised Metelli Eq. 9 for each.
 
-   In Eq. 8, ``h`` comes from the robust luminance range of the evaluated region; when one of
+   In Eq. 8, ``h = 1 - C`` with ``C`` the contrast (Eq. 7) of the evaluated region's robust
+   luminance range: the Michelson contrast ``(I_max - I_min) / (I_max + I_min)`` (decision
+   D2; with ``contrast="range"`` the range ``I_max - I_min``, the Eq. 6 reading); when one of
    Metelli and TAP is undetermined (denominator below ``1e-3``) the other is used alone.
 5. Transmittances are clipped to [0, 1] (reported), mapped through the ``calibration`` curve
    and compared with each structure's expected opacity (``Structure.target_opacity``):
