@@ -43,13 +43,16 @@ class RegionEstimates:
 
     ``sets``: per layer set, ``(region ids, [LayerEstimate, ...])``; ``layers[r]`` is region
     ``r``'s list (shared by the regions of its set) and ``position[r]`` its index in the
-    lists; ``deltas``: Eq. 10 per region.
+    lists; ``deltas``: Eq. 10 per region; ``undetermined``: the regions whose layers with a
+    rule are all undetermined (they are left out of ``E_t``: an undetermined layer must not
+    lower it).
     """
 
     sets: list
     layers: list
     position: np.ndarray
     deltas: np.ndarray
+    undetermined: np.ndarray
 
 
 def _contrasts(lo: np.ndarray, hi: np.ndarray, kind: str) -> np.ndarray:
@@ -87,6 +90,7 @@ def region_estimates(scene, rmap, y, expected, calibration, notes: list) -> Regi
     for region in rmap.regions:
         groups.setdefault(region.layers, []).append(region.id)
     deltas = np.zeros(n)
+    undetermined = np.zeros(n, bool)
     position = np.empty(n, np.int64)
     layers: list = [None] * n
     sets = []
@@ -113,15 +117,18 @@ def region_estimates(scene, rmap, y, expected, calibration, notes: list) -> Regi
             out.append(LayerEstimate(k, method=method, **{f: v.tolist() for f, v in lists.items()}))
         for r in members:
             layers[r] = out
+        if out and all(lay.reason is not None for lay in out):
+            undetermined[ids] = True
         sets.append((ids, out))
-    return RegionEstimates(sets=sets, layers=layers, position=position, deltas=deltas)
+    return RegionEstimates(sets, layers, position, deltas, undetermined)
 
 
 def region_table(est: RegionEstimates, rmap, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Return ``(alpha_t, empty)`` of every region as arrays.
+    """Return ``(alpha_t, skip)`` of every region as arrays.
 
     ``alpha_t``: (regions, k) calibrated transmittances, NaN where a layer is absent or
-    undetermined; ``empty``: (regions,) mask of the regions without layers.
+    undetermined; ``skip``: (regions,) mask of the regions left out of ``E_t``, those without
+    layers and those whose layers are all undetermined.
     """
     alpha = np.full((len(rmap.regions), k), np.nan)
     for ids, lays in est.sets:
@@ -129,4 +136,4 @@ def region_table(est: RegionEstimates, rmap, k: int) -> tuple[np.ndarray, np.nda
             if lay.reason is None:
                 alpha[ids, lay.k] = lay.alpha_t
     empty = np.array([r.kind == "empty" for r in rmap.regions], bool)
-    return alpha, empty
+    return alpha, empty | est.undetermined

@@ -113,6 +113,18 @@ class _Scene:
         self._templates: dict[frozenset, tuple] = {}
         #: ``enclosure="unoccluded"``: per enclosing layer, the luminance without it.
         self.without: dict[int, np.ndarray] | None = None
+        #: (K, H, W) visible opacities and the footprint threshold: an enclosed layer whose
+        #: visible opacity is at most ``threshold`` on a covered pixel is hidden there (D3);
+        #: ``None``: footprints are visible ones, nothing covered is hidden.
+        self.visible: np.ndarray | None = None
+        self.threshold = 0.05
+        #: Luminance of the view without layer ``e`` (``recomposite(e)``, computed once per
+        #: layer), or ``None`` when the analysis has no re-evaluation cache; ``prefer``: an
+        #: encloser's TAP background is that view first (D3), else only when its plain view
+        #: is missing or uniform.
+        self.recomposite = None
+        self.prefer_recomposite = False
+        self._recomposited: dict[int, np.ndarray] = {}
         # per layer set: pixel count, mean and (two-pass) population std of the luminance
         flat = self.layer_set.ravel()
         if k <= 16:  # layer sets index a table directly: no sort
@@ -166,32 +178,84 @@ class _Scene:
         return self._enclosers[e]
 
     def _encloser(self, e: int) -> _Estimate:
-        plain = _bits([e, *np.flatnonzero(self.encloses[:, e])])
-        inner = np.uint32(_bits(np.flatnonzero(self.encloses[e])))
+        """Return an encloser's transmittance: TAP over what it covers, hidden pixels as 0.
+
+        ``P`` are the pixels where ``e`` and a layer it encloses are present.  Where the
+        enclosed layers are hidden (their visible opacity at most the threshold although they
+        are present: D3), the layer lets nothing of them through: transmittance 0 there.  The
+        rest, ``P'``, is read by TAP against the plain view of ``e`` and its enclosers (the
+        paper's Case 2, ``enclosure="plain"``) or against the same pixels re-composited
+        without ``e`` (``"unoccluded"``; ``"auto"`` when the analysis can be re-composited);
+        each is the fallback of the other where that is missing or uniform (the re-composite
+        only with a cache).  The estimate is
+        the mean over ``P``: ``|P'| / |P| * TAP``, and 0 (method ``"hidden"``) when everything
+        covered is hidden or only the hidden part can be read.
+        """
+        inner_layers = np.flatnonzero(self.encloses[e])
+        inner = np.uint32(_bits(inner_layers))
         in_e = ((self.layer_set >> np.uint32(e)) & 1).astype(bool)
         covered = in_e & ((self.layer_set & inner) != 0)
-        lum_p = self.y[covered]
         head = f"enclosing layer {self.names[e]}: "
-        if lum_p.size == 0:
+        n_covered = int(np.count_nonzero(covered))
+        if n_covered == 0:
             return _Estimate(reason=head + "no pixel shows it with a layer it encloses")
+        shown = covered
+        if self.visible is not None:
+            seen = self.visible[inner_layers].sum(axis=0) > self.threshold
+            shown = covered & seen
+        n_shown = int(np.count_nonzero(shown))
+        if n_shown == 0:
+            return _Estimate(alpha=0.0, method="hidden")
+        alpha, why = self._encloser_tap(e, shown)
+        if why is not None:
+            if n_shown < n_covered:  # only the hidden part can be read: opaque there
+                return _Estimate(alpha=0.0, method="hidden")
+            return _Estimate(reason=head + why)
+        return _Estimate(alpha=alpha * (n_shown / n_covered), method="tap")
+
+    def _encloser_tap(self, e: int, shown: np.ndarray) -> tuple[float, str | None]:
+        """TAP of ``e`` on the pixels ``shown``: ``(alpha, None)`` or ``(nan, reason)``."""
+        lum_p = self.y[shown]
         if self.without is not None:  # enclosure="unoccluded": the same pixels without e
-            alpha = self.tap(lum_p, self.without[e][covered])
+            alpha = self.tap(lum_p, self.without[e][shown])
             if math.isnan(alpha):
-                return _Estimate(
-                    reason=head + "what it covers has no luminance contrast without it "
-                    "(TAP denominator ~0)"
-                )
-            return _Estimate(alpha=alpha, method="tap")
+                return alpha, "what it covers has no contrast without it (TAP denominator ~0)"
+            return alpha, None
+        readings = [self._tap_plain, self._tap_without]
+        if self.prefer_recomposite:
+            readings.reverse()
+        reasons = []
+        for reading in readings:
+            alpha, why = reading(e, shown, lum_p)
+            if why is None:
+                return alpha, None
+            if why:
+                reasons.append(why)
+        return float("nan"), "; ".join(reasons)
+
+    def _tap_plain(self, e: int, shown: np.ndarray, lum_p: np.ndarray):
+        """Read the paper's Case 2: TAP against the plain view of ``e`` (and its enclosers)."""
+        plain = _bits([e, *np.flatnonzero(self.encloses[:, e])])
         why = self.missing([plain])
         if why is not None:
-            return _Estimate(reason=head + why)
+            return float("nan"), why
         alpha = self.tap(lum_p, self.y[self.mask(plain)])
         if math.isnan(alpha):
-            return _Estimate(
-                reason=head + f"its plain view {self.label(plain)} has no luminance contrast "
-                "(TAP denominator ~0)"
+            return alpha, (
+                f"its plain view {self.label(plain)} has no luminance contrast (TAP denominator ~0)"
             )
-        return _Estimate(alpha=alpha, method="tap")
+        return alpha, None
+
+    def _tap_without(self, e: int, shown: np.ndarray, lum_p: np.ndarray):
+        """Read D3's TAP against the same pixels without ``e`` (reason "" without a cache)."""
+        if self.recomposite is None:
+            return float("nan"), ""
+        if e not in self._recomposited:
+            self._recomposited[e] = self.recomposite(e)
+        alpha = self.tap(lum_p, self._recomposited[e][shown])
+        if math.isnan(alpha):
+            return alpha, "what it covers has no luminance contrast without it"
+        return alpha, None
 
     def _pair_terms(self, i: int, j: int, base: int) -> tuple:
         """``(metelli, tap, reason)`` of Eq. 8 for ``i`` over ``j``; region-independent, cached."""
