@@ -192,17 +192,26 @@ class _Scene:
         covered is hidden or only the hidden part can be read.
         """
         inner_layers = np.flatnonzero(self.encloses[e])
-        inner = np.uint32(_bits(inner_layers))
-        in_e = ((self.layer_set >> np.uint32(e)) & 1).astype(bool)
-        covered = in_e & ((self.layer_set & inner) != 0)
+        inner = _bits(inner_layers)
+        # the layer sets with e and an enclosed layer, looked up among the sets in the image
+        sets = [b for b in self._stats if b >> e & 1 and b & inner]
         head = f"enclosing layer {self.names[e]}: "
-        n_covered = int(np.count_nonzero(covered))
-        if n_covered == 0:
+        if not sets:
             return _Estimate(reason=head + "no pixel shows it with a layer it encloses")
+        if len(self.names) <= 16:  # layer sets index a table directly
+            table = np.zeros(1 << len(self.names), bool)
+            table[sets] = True
+            covered = table[self.layer_set]
+        else:
+            covered = np.isin(self.layer_set, np.array(sets, self.layer_set.dtype))
+        n_covered = int(np.count_nonzero(covered))
         shown = covered
-        if self.visible is not None:
-            seen = self.visible[inner_layers].sum(axis=0) > self.threshold
-            shown = covered & seen
+        if self.visible is not None:  # D3: pixels where what e covers is not seen
+            pix = np.flatnonzero(covered)
+            flat = self.visible.reshape(self.visible.shape[0], -1)
+            seen = flat[np.ix_(inner_layers, pix)].sum(axis=0) > self.threshold
+            shown = np.zeros(covered.shape, bool)
+            shown.ravel()[pix[seen]] = True
         n_shown = int(np.count_nonzero(shown))
         if n_shown == 0:
             return _Estimate(alpha=0.0, method="hidden")
