@@ -348,7 +348,7 @@ def _most_important(spec, active) -> str | None:
 def _holds(t, full0, done, k) -> bool:
     """``E`` not above the start and the re-checked guards of the first ``k`` stages held."""
     return t["E"] <= full0["E"] + 1e-12 and all(
-        np.all(st.guards(t, full0) <= GUARD_SLACK) for st, *_ in done[:k] if st.recheck
+        np.all(st.guards(t, full0, full=True) <= GUARD_SLACK) for st, *_ in done[:k] if st.recheck
     )
 
 
