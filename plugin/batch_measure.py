@@ -38,7 +38,13 @@ DEVIATION_IMAGES = (
     ("shape_deviation.png", "shape_deviation", (0.0, 1.0)),
     ("transparency_deviation.png", "transparency_deviation", None),
 )
-PER_STRUCTURE = ("visible_share", "assigned_share", "perceived_transparency", "expected_opacity")
+PER_STRUCTURE = (
+    "visible_share",
+    "target_share",
+    "assigned_share",
+    "perceived_transparency",
+    "expected_opacity",
+)
 
 
 class BatchError(Exception):

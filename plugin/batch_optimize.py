@@ -64,6 +64,13 @@ def parse_args(argv):
     return args
 
 
+def _strings(array):
+    """The values of a vtkStringArray as a list (empty when the array is missing)."""
+    if array is None:
+        return []
+    return [array.GetValue(i) for i in range(array.GetNumberOfValues())]
+
+
 def optimizer_values(output):
     fd = output.GetFieldData()
     if fd.GetArray("E") is None or fd.GetAbstractArray("optimized_spec_json") is None:
@@ -73,6 +80,7 @@ def optimizer_values(output):
         "final": {k: fd.GetArray(k).GetValue(0) for k in TERMS},
         "status": int(fd.GetArray("status").GetValue(0)),
         "status_message": fd.GetAbstractArray("status_message").GetValue(0),
+        "why": _strings(fd.GetAbstractArray("why")),
         "iterations": int(fd.GetArray("iterations").GetValue(0)),
         "optimized_spec": json.loads(fd.GetAbstractArray("optimized_spec_json").GetValue(0)),
     }

@@ -69,6 +69,13 @@ def _history_chart(history) -> str:
     return lines_svg([(label, color, cols[k]) for k, (label, color) in enumerate(_TERM_STYLE)])
 
 
+def _why_lines(result) -> list[str]:
+    """One line per structure: opacity and share of the picture before -> target -> after."""
+    from dvr_perception.optimize.explain import explanation_line
+
+    return [explanation_line(n, e) for n, e in result.structures.items()]
+
+
 def _style_bar(bar) -> None:
     """Plain, readable colour-bar text (no italics, title clear of the labels)."""
     bar.SetVerticalTitleSeparation(12)
@@ -176,6 +183,7 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         s.error_history_svg = ""
         s.before_url = s.after_url = ""
         s.before_text = s.after_text = ""
+        s.why_lines = []  # the optimiser's reason per structure (issue 16)
         # lens
         s.lens_shape = "rect"
         s.lens = None
@@ -577,6 +585,7 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
                 f"({result.nit} iterations)"
                 + ("; no better setting found, rendering unchanged" if same else "")
             )
+            self.state.why_lines = _why_lines(result)
             self._render_spec(result.spec)
             self.state.after_url = self._snapshot()
             self._show_spec()

@@ -93,7 +93,7 @@ def measure_camera(camera, size: int = MEASURE_SIZE):
 class Measures:
     """The three measures of one view: the errors and their per-pixel deviation images.
 
-    ``shares`` maps each structure to its ``visible`` and ``wanted`` (assigned) share of the
+    ``shares`` maps each structure to its ``visible`` and ``wanted`` (target, D1) share of the
     image; ``present`` is the per-pixel bitmask of the structures a ray meets (bit ``k`` =
     structure ``k``) and ``share_images`` the per-pixel visible shares ``(K, H, W)``, used to
     list the structures inside a lens with their share there.
@@ -329,7 +329,7 @@ class Session:
         shares = {
             name: {
                 "visible": float(d["visible_share"]),
-                "wanted": float(d["assigned_share"]),
+                "wanted": float(d["target_share"]),
             }
             for name, d in v.per_structure.items()
         }

@@ -320,7 +320,7 @@ def _optimise_panel(app) -> None:
             classes="text-body-2 font-weight-bold",
         )
         html.Div(v_html=("error_history_svg",), id="error-history")
-        html.Div("Visible share of each structure (mark: wanted)", classes="text-caption")
+        html.Div("Visible share of each structure (mark: its target share)", classes="text-caption")
         _share_chart("share-chart-live", compact=True)
     with html.Div(v_if="before_url", classes="mt-2", id="before-after"):
         html.Div("Before and after", classes="text-body-2 font-weight-bold")
@@ -339,6 +339,9 @@ def _optimise_panel(app) -> None:
                     id="after-image",
                 )
                 html.Div("after: {{ after_text }}", classes="text-caption")
+    with html.Div(v_if="why_lines.length", classes="mt-2", id="why"):
+        html.Div("What changed and why", classes="text-body-2 font-weight-bold")
+        html.Div("{{ line }}", v_for="line in why_lines", key="line", classes="text-caption")
     with html.Div(classes="d-flex align-center mt-2"):
         html.Div("History of changes", classes="text-subtitle-1 font-weight-bold flex-grow-1")
         v3.VBtn(

@@ -152,6 +152,7 @@ def stage_optimize(state: DemoState) -> None:
         "final": {k: report["final"][k] for k in keys},
         "status": report["status"],
         "message": report["message"],
+        "why": [e["line"] for e in report["structures"].values()],
     }
 
 
@@ -187,6 +188,8 @@ def run(args: argparse.Namespace) -> int:
         print("  optimised (opacity, lighting, colour): before -> after")
         for k in ("E_v", "E_s", "E_t", "E"):
             print(f"    {k:<3} {a[k]:.4f} -> {b[k]:.4f}")
+        for line in opt["why"]:
+            print(f"    {line}")
         print(f"    status {opt['status']}: {opt['message']}")
     times = ", ".join(f"{k} {v:.2f}" for k, v in state.seconds.items() if k != "phantom")
     print(f"  seconds: {times}")

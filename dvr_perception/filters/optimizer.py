@@ -4,7 +4,8 @@ One 3-D ``vtkImageData`` in; one 2-D ``vtkImageData`` out: the rendering of the 
 spec, with exactly the point and field data of
 :class:`~dvr_perception.filters.PerceptionMeasures` (``rgba``, ``luminance``, the three
 deviation maps, ``layer_set``, ``region_id``; ``E_v``, ``E_s``, ``E_t``, ``structure_names``,
-``visible_share``, ``assigned_share``, ``perceived_transparency``, ``expected_opacity``).  The
+``visible_share``, ``target_share``, ``assigned_share``, ``perceived_transparency``,
+``expected_opacity``).  The
 filter runs :func:`~dvr_perception.optimize.optimize` and then measures the optimised spec
 with the library measures at the output resolution; without a region and with one view the
 ``E_*`` arrays equal the optimiser's ``final`` terms.
@@ -25,7 +26,9 @@ sum of Eq. 12 with ``weights``), ``initial_E_v``, ``initial_E_s``, ``initial_E_t
 ``initial_E`` (the optimiser's terms before), ``status`` (0 converged, 1 stopped, 2 a stage hit
 ``max_iter``; see :data:`~dvr_perception.optimize.STATUS_MESSAGES`), ``iterations``; and the
 strings ``optimized_spec_json`` (the optimised spec as JSON, the format of
-:func:`~dvr_perception.structures.io.spec_to_dict`) and ``status_message``.
+:func:`~dvr_perception.structures.io.spec_to_dict`) and ``status_message``; and ``why``, one
+line per structure: its opacity and share of the picture before -> target -> after and the
+optimiser's reason in words (:func:`~dvr_perception.optimize.explain.explain`).
 
 Progress is reported with ``UpdateProgress`` from the optimiser's callback (0.05 to 0.9 over
 the expected iterations); ``AbortExecute`` (ParaView's *Abort*) stops the optimiser after the
@@ -191,6 +194,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
     def execute(self, image, output) -> None:
         """Optimise, render and measure the optimised spec, and fill the output."""
         from dvr_perception.optimize import optimize
+        from dvr_perception.optimize.explain import explanation_line
 
         self.UpdateProgress(0.0)
         self.result = None
@@ -239,6 +243,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         pv, pt = vis.per_structure, trn.per_structure
         for key, values in (
             ("visible_share", [pv[n]["visible_share"] for n in names]),
+            ("target_share", [pv[n]["target_share"] for n in names]),
             ("assigned_share", [pv[n]["assigned_share"] for n in names]),
             ("perceived_transparency", [_nan(pt[n]["perceived_transparency"]) for n in names]),
             ("expected_opacity", [pt[n]["expected_opacity"] for n in names]),
@@ -254,5 +259,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         fd.AddArray(double_array([res.status], "status"))
         fd.AddArray(double_array([res.nit], "iterations"))
         fd.AddArray(string_array([res.message], "status_message"))
+        why = [explanation_line(n, res.structures[n]) for n in names if n in res.structures]
+        fd.AddArray(string_array(why, "why"))
         fd.AddArray(string_array([json.dumps(spec_to_dict(opt))], "optimized_spec_json"))
         self.result = res

@@ -24,7 +24,8 @@ Row order
 Field data
     ``E_v``, ``E_s``, ``E_t``: one-tuple double arrays with the three deviations;
     ``structure_names`` (vtkStringArray); and, ordered like ``structure_names``, double arrays
-    ``visible_share``, ``assigned_share`` (image-wide shares of the visibility measure),
+    ``visible_share``, ``target_share`` (D1) and ``assigned_share`` (thickness) (image-wide
+    shares of the visibility measure),
     ``perceived_transparency`` (area-weighted perceived transmittance of the transparency
     measure; **NaN** where it could not be determined, e.g. a structure that is not visible)
     and ``expected_opacity`` (the opacity the transparency measure expects).
@@ -196,6 +197,7 @@ class PerceptionMeasures(DVRFilterBase):
         per_v = vis.per_structure
         per_t = trn.per_structure
         fd.AddArray(double_array([per_v[n]["visible_share"] for n in names], "visible_share"))
+        fd.AddArray(double_array([per_v[n]["target_share"] for n in names], "target_share"))
         fd.AddArray(double_array([per_v[n]["assigned_share"] for n in names], "assigned_share"))
         fd.AddArray(
             double_array(

@@ -107,16 +107,21 @@ class OpacityModel:
         da = np.where(o > 1e-4, cache.ratio * m * base ** (cache.ratio - 1.0), m)
         return alpha, np.where(ids >= 0, da, 0.0), np.maximum(ids, 0).astype(np.int64)
 
-    def evaluate(self, ops, grad: bool = True) -> tuple[float, float, np.ndarray, np.ndarray]:
+    def evaluate(self, ops, grad: bool = True, shares: bool = False) -> tuple:
         """Return ``(E_v, coverage, dE_v/do, dcoverage/do)`` at opacities ``ops`` (K,).
 
-        With ``grad=False`` the two gradients are zeros (and not computed).
+        With ``grad=False`` the two gradients are zeros (and not computed).  With
+        ``shares=True`` two more entries follow: each structure's share of the picture
+        (``sum_r visible_s / sum_r sum_s' visible_s'``, (K,), mean over the views, as the
+        problem's ``visible_share``) and its Jacobian in the opacities ((K, K); zeros
+        without ``grad``).
         """
         self.nfev += 1
         ops = np.clip(np.asarray(ops, np.float64), 0.0, 1.0)
         k = self.k
         e_v = cov = 0.0
         g_v, g_c = np.zeros(k), np.zeros(k)
+        share, d_share = np.zeros(k), np.zeros((k, k))
         for cache, rays, target in self.views:
             n = rays.size
             if n == 0:
@@ -131,11 +136,19 @@ class OpacityModel:
             diff = target - vis32.astype(np.float64)
             e_v += float(np.abs(diff).sum(axis=0).mean())
             cov += float(acc32.mean())
+            v_sum = vis32.astype(np.float64).sum(axis=1)
+            total = float(v_sum.sum())
+            if total > 0:
+                share += v_sum / total
             if not grad:
                 continue
+            if total > 0:  # d (V_s / V) / d o_q = (dV_sq V - V_s dV_q) / V^2
+                dv = dvis.sum(axis=2)
+                d_share += (dv * total - v_sum[:, None] * dv.sum(axis=0)[None, :]) / total**2
             # alpha_v = visible (D1): d delta_v / d o_q = -sum_j sign(diff_j) d visible_j / d o_q
             sgn = -np.sign(diff)
             g_v += (sgn[:, None, :] * dvis).sum(axis=(0, 2)) / n
             g_c += dacc.sum(axis=1) / n
         nv = len(self.views)
-        return e_v / nv, cov / nv, g_v / nv, g_c / nv
+        out = (e_v / nv, cov / nv, g_v / nv, g_c / nv)
+        return (*out, share / nv, d_share / nv) if shares else out

@@ -88,6 +88,7 @@ BACKTRACK = 3  # opacity stage: halvings towards the current point when a tolera
 STARTS = 3  # opacity stage: SLSQP runs per iteration (the current point and annealing moves)
 COVERAGE_MARGIN = 2e-3  # opacity stage: coverage kept this far above the floor (resolution)
 VERIFY = 4  # opacity stage: steps up the coverage gradient until the user's floor holds
+SHARE_MARGIN = 0.0  # opacity stage: guarded shares kept this far inside their bounds
 
 
 @dataclass
@@ -264,6 +265,11 @@ def _run_exact(run, x0, groups, group_structures, max_iter, info, history):
     ops0 = np.clip(params0.opacities, *stage.bounds)
     lo, hi = np.log(stage.bounds[0]), np.log(stage.bounds[1])
     bound = [stage.floor(run.terms0) + COVERAGE_MARGIN]
+    # share bounds (D6): the structures below their target share only move toward it
+    bounds = stage.share_bounds(run.terms0) if hasattr(stage, "share_bounds") else {}
+    guarded = np.array([problem.names.index(n) for n in bounds], np.int64)
+    share_lo = np.array([b[0] for b in bounds.values()], float) + SHARE_MARGIN
+    share_hi = np.array([min(b[1], 2.0) for b in bounds.values()], float) - SHARE_MARGIN
     user = None
     if run.verify is not None:  # the coverage at the user's resolution, exactly
         user = (OpacityModel(run.verify[0], params0), stage.floor(run.verify[1]))
@@ -274,9 +280,12 @@ def _run_exact(run, x0, groups, group_structures, max_iter, info, history):
         if key not in memo:
             ops = ops0.copy()
             ops[idx] = np.exp(np.clip(y, lo, hi))
-            e_v, cov, g_v, g_c = model.evaluate(ops)
+            e_v, cov, g_v, g_c, share, d_share = model.evaluate(ops, shares=True)
             jac = np.exp(np.clip(y, lo, hi))
-            memo[key] = (e_v, cov, g_v[idx] * jac, g_c[idx] * jac)
+            s, ds = share[guarded], d_share[guarded][:, idx] * jac
+            memo[key] = (e_v, cov, g_v[idx] * jac, g_c[idx] * jac,
+                         np.concatenate([s - share_lo, share_hi - s]),
+                         np.concatenate([ds, -ds]))  # fmt: skip
         return memo[key]
 
     class _Budget(Exception):
@@ -293,8 +302,8 @@ def _run_exact(run, x0, groups, group_structures, max_iter, info, history):
         def value(y):
             if model.nfev - n0 >= SLSQP_EVALS:
                 raise _Budget
-            e_v, cov, *_ = cheap(y)
-            if cov >= floor and e_v < found[1]:
+            e_v, cov, _, _, slack, _ = cheap(y)
+            if cov >= floor and np.all(slack >= 0.0) and e_v < found[1]:
                 found[:] = [np.clip(np.array(y, float), lo, hi), e_v]
             return e_v
 
@@ -305,7 +314,9 @@ def _run_exact(run, x0, groups, group_structures, max_iter, info, history):
                     value, y_from, jac=lambda y: cheap(y)[2], method="SLSQP",
                     bounds=[(lo, hi)] * idx.size,
                     constraints=[{"type": "ineq", "fun": lambda y: cheap(y)[1] - floor,
-                                  "jac": lambda y: cheap(y)[3]}],
+                                  "jac": lambda y: cheap(y)[3]}]
+                    + ([{"type": "ineq", "fun": lambda y: cheap(y)[4],
+                         "jac": lambda y: cheap(y)[5]}] if guarded.size else []),
                     options={"maxiter": SLSQP_ITER, "ftol": 1e-5},
                 )  # fmt: skip
         except _Budget:

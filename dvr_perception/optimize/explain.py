@@ -29,6 +29,12 @@ def _reason(k, names, ops, before, after, target, copresence) -> str:
     d_op = ops[1][k] - ops[0][k]
     b, t = before[name], target[name]
     if abs(d_op) < KEPT:
+        a = after[name]
+        if abs(a - b) >= _NEAR:
+            return (
+                f"kept: the other changes moved its share from {_pct(b)} to {_pct(a)} of the "
+                f"picture (target {_pct(t)})"
+            )
         return f"kept: it has {_pct(b)} of the picture against a target of {_pct(t)}"
     if d_op > 0:
         if b < t - _NEAR:
@@ -78,7 +84,7 @@ def explain(names, opacities_before, opacities_after, shares_before, shares_afte
     >>> out["skin"]["reason"]
     'lowered: it covered bone, which had 10 % of the picture against a target of 50 %'
     >>> out["bone"]["reason"]
-    'kept: it has 10 % of the picture against a target of 50 %'
+    'kept: the other changes moved its share from 10 % to 40 % of the picture (target 50 %)'
     """
     names = list(names)
     k = len(names)

@@ -205,30 +205,40 @@ class OpacityStage(Stage):
         keep = self.COVERAGE_KEEP if self.coverage_keep is None else self.coverage_keep
         return keep * float(start["coverage"])
 
-    #: The most important structure (set by :func:`~dvr_perception.optimize.optimize`): its
-    #: share of the picture may not fall below its start or, when it starts above its target
-    #: share, below that target (decision D6).
+    #: The most important structure (set by :func:`~dvr_perception.optimize.optimize`).
     protect: str | None = None
-    SHARE_SLACK = 2e-3
+    #: Share of the picture a guarded structure may lose (float rounding, resolution).
+    SHARE_SLACK = 1e-3
+
+    def share_bounds(self, start: dict) -> dict:
+        """Bounds on shares of the picture (decision D6): ``{name: (low, high)}``.
+
+        A structure whose share starts below its target share may only move toward the
+        target: it keeps at least its start and ends no farther from the target than it
+        started (``high = 2 target - start``).  The most important structure
+        (:attr:`protect`) keeps its start or, when it starts above its target, the target.
+        """
+        shares, targets = start.get("visible_share", {}), start.get("target_share", {})
+        out = {}
+        for name, target in targets.items():
+            share = shares.get(name, 0.0)
+            if share < target:
+                out[name] = (share, 2.0 * target - share)
+            elif name == self.protect:
+                out[name] = (target, np.inf)
+        return out
 
     def guards(self, terms, start):
-        """``floor - coverage`` (see :meth:`floor`) and the protected structure's share rule.
+        """``floor - coverage`` (see :meth:`floor`) and the share bounds, two per structure.
 
-        The second entry (with :attr:`protect` set) is ``min(share_0, target) - share -``
-        :attr:`SHARE_SLACK`: what the user marked most important never loses share of the
-        picture while below its target, nor drops below the target when it starts above.
-
-        Off by default (:attr:`COVERAGE_KEEP` = 0): ``E_v`` compares the visible opacity
-        with target opacities on the same scale (decision D1), so fading the whole image
-        raises it by itself.  ``coverage_keep`` (a fraction of the start) or
-        ``opacity_floor`` (a coverage value in [0, 1]) set a floor, e.g. to keep the image
-        from fading while ``E_v`` improves.
+        The share bounds (:meth:`share_bounds`, widened by :attr:`SHARE_SLACK`) keep every
+        structure that has less of the picture than its target moving toward it, and what
+        the user marked most important from falling below its start or target.
         """
         out = [self.floor(start) - terms["coverage"]]
-        if self.protect is not None and self.protect in start.get("target_share", {}):
-            name = self.protect
-            keep = min(start["visible_share"][name], start["target_share"][name])
-            out.append(keep - terms["visible_share"][name] - self.SHARE_SLACK)
+        for name, (low, high) in self.share_bounds(start).items():
+            share = terms["visible_share"][name]
+            out += [low - share - self.SHARE_SLACK, share - high - self.SHARE_SLACK]
         return np.array(out)
 
     def constraints(self, terms, start, weights):

@@ -276,6 +276,9 @@ def test_optimise_opacity_lowers_visibility_error_and_changes_image(page):
     assert page.locator("#error-history polyline").count() == 3  # E_v, E_s, E_t
     assert page.locator("#share-chart-live .share-value").count() == 6
     assert "optimise opacity" in page.inner_text("#history-list")
+    why = page.inner_text("#why")  # one line per structure, with the reason in words
+    assert why.count("share of the picture") == 6
+    assert any(w in why for w in ("lowered:", "raised:"))
     _shot(page, "optimise")
     # undo restores the previous spec and its error
     page.click("#undo")

@@ -171,6 +171,7 @@ def test_perception_measures_matches_library(phantom, spec_json, library):
     assert tuple(names) == res.names
     for key, source in (
         ("visible_share", vis.per_structure),
+        ("target_share", vis.per_structure),
         ("assigned_share", vis.per_structure),
         ("perceived_transparency", trn.per_structure),
         ("expected_opacity", trn.per_structure),

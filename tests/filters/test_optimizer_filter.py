@@ -64,8 +64,13 @@ def test_output_image_and_field_data(filtered, phantom):
     assert names == list(spec.names)
     k = len(names)
     for name in ("opacity", "ambient", "diffuse", "specular", "specular_power", "visible_share",
-                 "assigned_share", "perceived_transparency", "expected_opacity"):  # fmt: skip
+                 "target_share", "assigned_share", "perceived_transparency",
+                 "expected_opacity"):  # fmt: skip
         assert _field(out, name).shape == (k,), name
+    why = _field(out, "why")  # the optimiser's reason, one line per structure
+    assert len(why) == k
+    assert all(line.startswith(f"{n}: opacity") for n, line in zip(names, why, strict=True))
+    assert all("share of the picture" in line for line in why)
     assert _field(out, "color").shape == (k, 3)
     assert _field(out, "light_direction").shape == (1, 3)
     opt = spec_from_dict(json.loads(_field(out, "optimized_spec_json")[0]))

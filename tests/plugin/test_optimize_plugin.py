@@ -155,6 +155,9 @@ def test_batch_optimize_writes_before_after_screenshots_and_json(paraview, tmp_p
         "inner lobes",
         "peaks",
     }
+    assert [line.split(":")[0] for line in result["why"]] == ["diffuse lobes", "inner lobes",
+                                                             "peaks"]  # fmt: skip
+    assert all("share of the picture" in line for line in result["why"])
     before, after = read_png(out / "before.png"), read_png(out / "after.png")
     assert before.shape[:2] == after.shape[:2] == (SIZE, SIZE)
     assert before[..., :3].max() > 8  # not blank
