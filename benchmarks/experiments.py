@@ -486,11 +486,13 @@ def run_pipeline(cfg: Config, name: str, objective: str | None = None) -> dict:
     out_checks = []
     for i, rec in enumerate(res.stages):
         lead = LEAD[rec.name]
+        changed = rec.accepted and rec.params_after != rec.params_before
         out_checks.append(
-            checks.lowered(
-                f"{rec.name} stage lowers {lead}: {name} (full pipeline)",
+            checks.lowered_or_declined(
+                f"{rec.name} stage lowers {lead} or keeps no change (D4): {name} (full pipeline)",
                 steps[i][lead],
                 steps[i + 1][lead],
+                changed,
             )
         )
     return {

@@ -690,6 +690,19 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
                     p["iterations"],
                 ]
             )
+    big = [
+        f"{name} {p['optimize_s']:.2f} s = {p['optimize_vtk_frames']:.1f} VTK frames"
+        for name, points in perf["image_size"].items()
+        for p in points
+        if p["size"][0] == n and p.get("optimize_vtk_frames") is not None
+    ]
+    if big:
+        L += [
+            f"**Whole default optimisation at {n}²** (ray analyses at full size included, "
+            "curvature volume excluded), in warm VTK CPU frames of the same view and size "
+            "(target ≤ 25): " + "; ".join(big) + ".",
+            "",
+        ]
     L += ["**Against image size**", ""]
     L += _table(
         [
