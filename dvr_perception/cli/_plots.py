@@ -103,7 +103,11 @@ def save_deviation_map(
 
 
 def save_visibility_histograms(path, per_structure: dict, bin_edges, *, title: str) -> Path:
-    """Write one panel per structure: histograms of its per-ray visible and assigned shares.
+    """Write one panel per structure: histograms of its per-ray visible and target opacities.
+
+    Decision D1: ``histogram_visible`` counts the per-ray visible opacity ``alpha_v`` and
+    ``histogram_assigned`` the per-ray target opacity ``alpha_o``; the title gives the
+    structure's image-wide share of the picture against its target share.
 
     Parameters
     ----------
@@ -111,7 +115,7 @@ def save_visibility_histograms(path, per_structure: dict, bin_edges, *, title: s
         Output PNG.
     per_structure : dict
         ``VisibilityResult.per_structure``: ``name -> {"histogram_visible",
-        "histogram_assigned", "visible_share", "assigned_share", "rays"}``.
+        "histogram_assigned", "visible_share", "target_share", "rays"}``.
     bin_edges : array_like
         Histogram bin edges on [0, 1].
     title : str
@@ -140,15 +144,15 @@ def save_visibility_histograms(path, per_structure: dict, bin_edges, *, title: s
         asg = np.asarray(entry["histogram_assigned"], float)
         frac_v = vis / rays if rays else vis
         frac_a = asg / rays if rays else asg
-        ax.bar(centres - width / 4, frac_a, width / 2, color="#4c72b0", label="assigned share")
-        ax.bar(centres + width / 4, frac_v, width / 2, color="#dd8452", label="visible share")
+        ax.bar(centres - width / 4, frac_a, width / 2, color="#4c72b0", label="target opacity")
+        ax.bar(centres + width / 4, frac_v, width / 2, color="#dd8452", label="visible opacity")
         ax.set_xlim(0.0, 1.0)
-        ax.set_xlabel("per-ray share", fontsize=8)
+        ax.set_xlabel("per-ray opacity", fontsize=8)
         ax.set_ylabel("fraction of rays", fontsize=8)
         ax.tick_params(labelsize=7)
         ax.set_title(
-            f"{name}: visible {entry['visible_share']:.3f} / assigned "
-            f"{entry['assigned_share']:.3f} ({rays} rays)",
+            f"{name}: share {entry['visible_share']:.3f} / target "
+            f"{entry['target_share']:.3f} ({rays} rays)",
             fontsize=8,
         )
     if names:

@@ -106,7 +106,7 @@ def add_parser(subparsers, parents) -> None:
         type=float,
         metavar="F",
         help="share of the starting mean opacity the opacity stage must keep, in [0, 1] "
-        "(default 1: no fading; e.g. 0.9 lets the image fade by 10 %% for more visibility)",
+        "(default: no floor, E_v itself penalises fading; e.g. 1 forbids any fading)",
     )
     p.add_argument(
         "--objective",

@@ -84,7 +84,7 @@ class OpacityModel:
     Parameters
     ----------
     problem : Problem
-        Its caches, masks and (targets-adjusted) assigned shares define the terms.
+        Its caches, masks and (targets-adjusted) target opacities define the terms.
     params : Params
         Any parameter set (used once per view to set up the problem's fixed parts).
     """

@@ -10,7 +10,8 @@ sampled again).  With a region mask, only the masked rays count:
 * ``E_t``: the area-weighted mean ``delta_t`` over the non-empty sub-regions that intersect the
   mask, each weighted by its area *inside* the mask;
 * ``coverage``: mean accumulated opacity over the masked rays that carry assigned opacity (a
-  set that does not depend on the parameters), used to forbid "winning by fading";
+  set that does not depend on the parameters), kept above a floor when the user asks for one
+  (``coverage_keep``; none by default, D1);
 * ``luminance``: (K,) mean image luminance over each structure's **footprint**, weighted by
   its visible opacity (``sum visible_i Y / sum visible_i``), used to forbid "winning by
   darkening" in the lighting stage.

@@ -181,7 +181,8 @@ def optimize(
         change (the light direction stays free).  See :mod:`~dvr_perception.optimize._region`.
     targets : dict, optional
         ``{structure: {"visibility": share, "transparency": perceived transparency}}``
-        overriding the assigned share and the expected opacity (``1 - transparency``).
+        overriding the structure's target composition ``c`` where it is present (D1) and the
+        expected opacity (``1 - transparency``).
     calibration : pair of array_like (x, y), optional
         Transparency calibration curve (:func:`~dvr_perception.measures.calibrate`).
     cameras : list of Camera, optional

@@ -27,7 +27,13 @@ REQUIRED_KEYS = {
     "undetermined",
     "notes",
 }
-STRUCTURE_KEYS = {"visible_share", "assigned_share", "perceived_transparency", "expected_opacity"}
+STRUCTURE_KEYS = {
+    "visible_share",
+    "target_share",
+    "assigned_share",
+    "perceived_transparency",
+    "expected_opacity",
+}
 
 
 def _no_nan(text: str) -> dict:

@@ -26,7 +26,13 @@ FILES = {
     *(f"{p}_{f}" for p in ("before", "after") for f in MEASURE_FIGURES),
 }
 TERM_KEYS = {"E_v", "E_s", "E_t", "E"}
-STRUCTURE_KEYS = {"visible_share", "assigned_share", "perceived_transparency", "expected_opacity"}
+STRUCTURE_KEYS = {
+    "visible_share",
+    "target_share",
+    "assigned_share",
+    "perceived_transparency",
+    "expected_opacity",
+}
 
 
 def _run(capsys, argv):
