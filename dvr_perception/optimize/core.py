@@ -219,7 +219,13 @@ def optimize(
         ``E(f, r) = w_v d_v(r) + w_s d_s(r) + w_t d_t(r)`` over the rays that carry assigned
         opacity (mean over views).  Both ``E`` and ``S`` are reported either way.  The
         opacity stage's SLSQP minimises ``E_v`` in both modes; its candidates are judged on
-        the objective.
+        the objective.  The default is ``"mean"`` (decision D4, benchmark report section
+        4b): on engine, cthead and lidc_chest at 512² both give the same opacities (the
+        opacity stage leads), so the images differ only through lighting and colour, and
+        there the mean reveals as much or more: on the engine the least-squares lighting
+        brightens the block's surfaces, which hides the inserts a little more, while cthead
+        and lidc_chest look the same; the mean is also cheaper (no full coarse evaluation
+        per finite-difference gradient).
 
     Returns
     -------
