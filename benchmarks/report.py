@@ -827,11 +827,12 @@ def _objectives_section(s: dict, obs: dict) -> list[str]:
         names = list(first["visible_share"])
         rows.append([name, "original", *_objective_cells(first, names), "–"])
         for obj, r in by.items():
-            kept = ", ".join(st["name"] for st in r["stages"] if st["accepted"]) or "none"
+            changed = [st["name"] for st in r["stages"] if st["message"].startswith("improved")]
+            kept = ", ".join(changed) or "none"
             rows.append([name, obj, *_objective_cells(r["final"], names), kept])
     L += _table(
         ["volume", "image", "E_v", "E_s", "E_t", "S", "coverage", "visible shares",
-         "target shares", "stages kept"],
+         "target shares", "stages that changed"],
         rows,
     )  # fmt: skip
     L += [f"![objectives]({s['images']['objectives']})", ""]
