@@ -1,11 +1,12 @@
 """Transmittance estimates of every sub-region, worked out once per layer set (``transparency``).
 
 Which rule of Sec. 4.3.2 applies to a layer, and every Metelli and TAP term, depend only on the
-layer set of the region (:meth:`._scene._Scene.template`); only the Eq. 8 weight ``h`` depends
-on the region (its robust luminance range).  :func:`region_estimates` therefore evaluates each
-layer set once and the regions of a set together, as arrays; :func:`region_table` gives the
-result as one (regions x layers) table for callers that need numbers, not per-region records
-(the optimiser evaluates E_t this way many times per stage).
+layer set of the region (:meth:`._scene._Scene.template`); only the Eq. 8 weight ``h = 1 - C``
+depends on the region (``C`` the contrast of its robust luminance range, Eq. 7).
+:func:`region_estimates` therefore evaluates each layer set once and the regions of a set
+together, as arrays; :func:`region_table` gives the result as one (regions x layers) table for
+callers that need numbers, not per-region records (the optimiser evaluates E_t this way many
+times per stage).
 """
 
 from __future__ import annotations
@@ -42,27 +43,37 @@ class RegionEstimates:
 
     ``sets``: per layer set, ``(region ids, [LayerEstimate, ...])``; ``layers[r]`` is region
     ``r``'s list (shared by the regions of its set) and ``position[r]`` its index in the
-    lists; ``deltas``: Eq. 10 per region.
+    lists; ``deltas``: Eq. 10 per region; ``undetermined``: the regions whose layers with a
+    rule are all undetermined (they are left out of ``E_t``: an undetermined layer must not
+    lower it).
     """
 
     sets: list
     layers: list
     position: np.ndarray
     deltas: np.ndarray
+    undetermined: np.ndarray
 
 
-def _blend_many(met: float, tap: float, lo: np.ndarray, hi: np.ndarray):
-    """Eq. 8 for many regions: ``h = 1 - (hi - lo)`` (as ``_scene._blended``, elementwise)."""
-    rng = hi - lo
+def _contrasts(lo: np.ndarray, hi: np.ndarray, kind: str) -> np.ndarray:
+    """Contrast ``C`` of many regions from their robust ranges, as ``_scene._contrast``."""
+    if kind == "range":
+        return hi - lo
+    total = hi + lo
+    return np.divide(hi - lo, total, out=np.zeros(lo.shape), where=total > 0)
+
+
+def _blend_many(met: float, tap: float, c: np.ndarray):
+    """Eq. 8 for many regions: ``h = 1 - C`` (as ``_scene._blended``, elementwise)."""
     if math.isnan(met):
-        alpha = np.full(rng.shape, tap)
+        alpha = np.full(c.shape, tap)
     elif math.isnan(tap):
-        alpha = np.full(rng.shape, met)
+        alpha = np.full(c.shape, met)
     else:
-        h = 1.0 - rng
+        h = 1.0 - c
         alpha = h * met + (1.0 - h) * tap
-    metelli = math.isnan(tap) | (rng == 0.0)
-    only_tap = math.isnan(met) | (rng >= 1.0)
+    metelli = math.isnan(tap) | (c == 0.0)
+    only_tap = math.isnan(met) | (c >= 1.0)
     method = np.where(metelli, "metelli", np.where(only_tap, "tap", "blend"))
     return alpha, method.tolist()
 
@@ -74,10 +85,12 @@ def region_estimates(scene, rmap, y, expected, calibration, notes: list) -> Regi
     # mu -/+ 2 sigma clipped to [0, 1]: the robust range of Eq. 6-7 of every region
     lo = np.maximum(mean - 2.0 * std, 0.0)
     hi = np.minimum(mean + 2.0 * std, 1.0)
+    contrast = _contrasts(lo, hi, scene.contrast)  # C of Eq. 7: Eq. 8's h = 1 - C
     groups: dict[frozenset, list[int]] = {}  # layer set -> its regions, by first region
     for region in rmap.regions:
         groups.setdefault(region.layers, []).append(region.id)
     deltas = np.zeros(n)
+    undetermined = np.zeros(n, bool)
     position = np.empty(n, np.int64)
     layers: list = [None] * n
     sets = []
@@ -94,7 +107,7 @@ def region_estimates(scene, rmap, y, expected, calibration, notes: list) -> Regi
             if fixed is not None:
                 raw, method = np.full(ids.size, fixed.alpha), [fixed.method] * ids.size
             else:
-                raw, method = _blend_many(met, tap, lo[ids], hi[ids])
+                raw, method = _blend_many(met, tap, contrast[ids])
             measured = np.clip(raw, 0.0, 1.0)
             alpha_t = measured
             if calibration is not None:
@@ -104,15 +117,18 @@ def region_estimates(scene, rmap, y, expected, calibration, notes: list) -> Regi
             out.append(LayerEstimate(k, method=method, **{f: v.tolist() for f, v in lists.items()}))
         for r in members:
             layers[r] = out
+        if out and all(lay.reason is not None for lay in out):
+            undetermined[ids] = True
         sets.append((ids, out))
-    return RegionEstimates(sets=sets, layers=layers, position=position, deltas=deltas)
+    return RegionEstimates(sets, layers, position, deltas, undetermined)
 
 
 def region_table(est: RegionEstimates, rmap, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Return ``(alpha_t, empty)`` of every region as arrays.
+    """Return ``(alpha_t, skip)`` of every region as arrays.
 
     ``alpha_t``: (regions, k) calibrated transmittances, NaN where a layer is absent or
-    undetermined; ``empty``: (regions,) mask of the regions without layers.
+    undetermined; ``skip``: (regions,) mask of the regions left out of ``E_t``, those without
+    layers and those whose layers are all undetermined.
     """
     alpha = np.full((len(rmap.regions), k), np.nan)
     for ids, lays in est.sets:
@@ -120,4 +136,4 @@ def region_table(est: RegionEstimates, rmap, k: int) -> tuple[np.ndarray, np.nda
             if lay.reason is None:
                 alpha[ids, lay.k] = lay.alpha_t
     empty = np.array([r.kind == "empty" for r in rmap.regions], bool)
-    return alpha, empty
+    return alpha, empty | est.undetermined

@@ -2,7 +2,8 @@
 
 :class:`_Scene` caches, per exact layer set, the pixel count, mean and standard deviation of the
 luminance, so every Metelli (Eq. 5, 9) and TAP (Eq. 6-7) term is computed once per layer set
-(or layer pair), not once per sub-region; only the Eq. 8 weight ``h`` depends on the region.
+(or layer pair), not once per sub-region; only the Eq. 8 weight ``h = 1 - C`` depends on the
+region (``C`` its contrast, Eq. 7).
 """
 
 from __future__ import annotations
@@ -70,13 +71,13 @@ def _contrast(lo: float, hi: float, kind: str) -> float:
     return (hi - lo) / (hi + lo) if hi + lo > 0 else 0.0
 
 
-def _blend(met: float, tap: float, lum_range: float) -> float:
-    """Scalar :func:`~.psychophysics.blended_transmittance` (Eq. 8) without input checks."""
+def _blend(met: float, tap: float, contrast: float) -> float:
+    """Scalar :func:`~.psychophysics.blended_transmittance` (Eq. 8, ``h = 1 - C``), unchecked."""
     if math.isnan(met):
         return tap
     if math.isnan(tap):
         return met
-    h = 1.0 - lum_range
+    h = 1.0 - contrast
     return h * met + (1.0 - h) * tap
 
 
@@ -112,6 +113,18 @@ class _Scene:
         self._templates: dict[frozenset, tuple] = {}
         #: ``enclosure="unoccluded"``: per enclosing layer, the luminance without it.
         self.without: dict[int, np.ndarray] | None = None
+        #: (K, H, W) visible opacities and the footprint threshold: an enclosed layer whose
+        #: visible opacity is at most ``threshold`` on a covered pixel is hidden there (D3);
+        #: ``None``: footprints are visible ones, nothing covered is hidden.
+        self.visible: np.ndarray | None = None
+        self.threshold = 0.05
+        #: Luminance of the view without layer ``e`` (``recomposite(e)``, computed once per
+        #: layer), or ``None`` when the analysis has no re-evaluation cache; ``prefer``: an
+        #: encloser's TAP background is that view first (D3), else only when its plain view
+        #: is missing or uniform.
+        self.recomposite = None
+        self.prefer_recomposite = False
+        self._recomposited: dict[int, np.ndarray] = {}
         # per layer set: pixel count, mean and (two-pass) population std of the luminance
         flat = self.layer_set.ravel()
         if k <= 16:  # layer sets index a table directly: no sort
@@ -165,32 +178,93 @@ class _Scene:
         return self._enclosers[e]
 
     def _encloser(self, e: int) -> _Estimate:
-        plain = _bits([e, *np.flatnonzero(self.encloses[:, e])])
-        inner = np.uint32(_bits(np.flatnonzero(self.encloses[e])))
-        in_e = ((self.layer_set >> np.uint32(e)) & 1).astype(bool)
-        covered = in_e & ((self.layer_set & inner) != 0)
-        lum_p = self.y[covered]
+        """Return an encloser's transmittance: TAP over what it covers, hidden pixels as 0.
+
+        ``P`` are the pixels where ``e`` and a layer it encloses are present.  Where the
+        enclosed layers are hidden (their visible opacity at most the threshold although they
+        are present: D3), the layer lets nothing of them through: transmittance 0 there.  The
+        rest, ``P'``, is read by TAP against the plain view of ``e`` and its enclosers (the
+        paper's Case 2, ``enclosure="plain"``) or against the same pixels re-composited
+        without ``e`` (``"unoccluded"``; ``"auto"`` when the analysis can be re-composited);
+        each is the fallback of the other where that is missing or uniform (the re-composite
+        only with a cache).  The estimate is
+        the mean over ``P``: ``|P'| / |P| * TAP``, and 0 (method ``"hidden"``) when everything
+        covered is hidden or only the hidden part can be read.
+        """
+        inner_layers = np.flatnonzero(self.encloses[e])
+        inner = _bits(inner_layers)
+        # the layer sets with e and an enclosed layer, looked up among the sets in the image
+        sets = [b for b in self._stats if b >> e & 1 and b & inner]
         head = f"enclosing layer {self.names[e]}: "
-        if lum_p.size == 0:
+        if not sets:
             return _Estimate(reason=head + "no pixel shows it with a layer it encloses")
+        if len(self.names) <= 16:  # layer sets index a table directly
+            table = np.zeros(1 << len(self.names), bool)
+            table[sets] = True
+            covered = table[self.layer_set]
+        else:
+            covered = np.isin(self.layer_set, np.array(sets, self.layer_set.dtype))
+        n_covered = int(np.count_nonzero(covered))
+        shown = covered
+        if self.visible is not None:  # D3: pixels where what e covers is not seen
+            pix = np.flatnonzero(covered)
+            flat = self.visible.reshape(self.visible.shape[0], -1)
+            seen = flat[np.ix_(inner_layers, pix)].sum(axis=0) > self.threshold
+            shown = np.zeros(covered.shape, bool)
+            shown.ravel()[pix[seen]] = True
+        n_shown = int(np.count_nonzero(shown))
+        if n_shown == 0:
+            return _Estimate(alpha=0.0, method="hidden")
+        alpha, why = self._encloser_tap(e, shown)
+        if why is not None:
+            if n_shown < n_covered:  # only the hidden part can be read: opaque there
+                return _Estimate(alpha=0.0, method="hidden")
+            return _Estimate(reason=head + why)
+        return _Estimate(alpha=alpha * (n_shown / n_covered), method="tap")
+
+    def _encloser_tap(self, e: int, shown: np.ndarray) -> tuple[float, str | None]:
+        """TAP of ``e`` on the pixels ``shown``: ``(alpha, None)`` or ``(nan, reason)``."""
+        lum_p = self.y[shown]
         if self.without is not None:  # enclosure="unoccluded": the same pixels without e
-            alpha = self.tap(lum_p, self.without[e][covered])
+            alpha = self.tap(lum_p, self.without[e][shown])
             if math.isnan(alpha):
-                return _Estimate(
-                    reason=head + "what it covers has no luminance contrast without it "
-                    "(TAP denominator ~0)"
-                )
-            return _Estimate(alpha=alpha, method="tap")
+                return alpha, "what it covers has no contrast without it (TAP denominator ~0)"
+            return alpha, None
+        readings = [self._tap_plain, self._tap_without]
+        if self.prefer_recomposite:
+            readings.reverse()
+        reasons = []
+        for reading in readings:
+            alpha, why = reading(e, shown, lum_p)
+            if why is None:
+                return alpha, None
+            if why:
+                reasons.append(why)
+        return float("nan"), "; ".join(reasons)
+
+    def _tap_plain(self, e: int, shown: np.ndarray, lum_p: np.ndarray):
+        """Read the paper's Case 2: TAP against the plain view of ``e`` (and its enclosers)."""
+        plain = _bits([e, *np.flatnonzero(self.encloses[:, e])])
         why = self.missing([plain])
         if why is not None:
-            return _Estimate(reason=head + why)
+            return float("nan"), why
         alpha = self.tap(lum_p, self.y[self.mask(plain)])
         if math.isnan(alpha):
-            return _Estimate(
-                reason=head + f"its plain view {self.label(plain)} has no luminance contrast "
-                "(TAP denominator ~0)"
+            return alpha, (
+                f"its plain view {self.label(plain)} has no luminance contrast (TAP denominator ~0)"
             )
-        return _Estimate(alpha=alpha, method="tap")
+        return alpha, None
+
+    def _tap_without(self, e: int, shown: np.ndarray, lum_p: np.ndarray):
+        """Read D3's TAP against the same pixels without ``e`` (reason "" without a cache)."""
+        if self.recomposite is None:
+            return float("nan"), ""
+        if e not in self._recomposited:
+            self._recomposited[e] = self.recomposite(e)
+        alpha = self.tap(lum_p, self._recomposited[e][shown])
+        if math.isnan(alpha):
+            return alpha, "what it covers has no luminance contrast without it"
+        return alpha, None
 
     def _pair_terms(self, i: int, j: int, base: int) -> tuple:
         """``(metelli, tap, reason)`` of Eq. 8 for ``i`` over ``j``; region-independent, cached."""
@@ -252,7 +326,9 @@ class _Scene:
         """Estimates ``{layer: _Estimate}`` for the layers of one region (Case 1-3).
 
         Which rule applies, and every term except the Eq. 8 weight, depends on the layer set
-        only: that is worked out once per set (:meth:`_template`); a region adds its range.
+        only: that is worked out once per set (:meth:`_template`); a region adds its robust
+        luminance range ``region_range``, whose contrast (Eq. 7, or the range with
+        ``contrast="range"``) gives the Eq. 8 weight ``h = 1 - C``.
         The measure evaluates all regions of a set at once
         (:func:`~dvr_perception.measures._estimates.region_estimates`); this per-region form
         is its reference (``tests/measures/test_estimates.py``).
@@ -261,7 +337,9 @@ class _Scene:
         notes.extend(tpl_notes)
         out = {}
         for k, fixed, met, tap in items:
-            out[k] = fixed if fixed is not None else self._blended(met, tap, region_range)
+            if fixed is None:
+                fixed = self._blended(met, tap, _contrast(*region_range, self.contrast))
+            out[k] = fixed
         return out
 
     def template(self, layers: frozenset) -> tuple[list, list[str]]:
@@ -272,13 +350,12 @@ class _Scene:
         return tpl
 
     @staticmethod
-    def _blended(met: float, tap: float, region_range: tuple) -> _Estimate:
-        """Eq. 8 for one pair's Metelli and TAP terms with the region's luminance range."""
-        lo, hi = region_range
-        alpha = _blend(met, tap, hi - lo)
-        if math.isnan(tap) or hi - lo == 0.0:
+    def _blended(met: float, tap: float, contrast: float) -> _Estimate:
+        """Eq. 8 for one pair's Metelli and TAP terms with the region's contrast ``C``."""
+        alpha = _blend(met, tap, contrast)
+        if math.isnan(tap) or contrast == 0.0:
             method = "metelli"
-        elif math.isnan(met) or hi - lo >= 1.0:
+        elif math.isnan(met) or contrast >= 1.0:
             method = "tap"
         else:
             method = "blend"

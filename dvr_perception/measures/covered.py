@@ -6,9 +6,9 @@ relative to the contrast of the same things seen plainly (Eq. 6-7).  In a volume
 plain view of an *enclosed* or *overlapped* structure rarely exists as a region of the image, so
 :func:`covered_transmittance` renders it: the layer's covered pixels ``P`` (where the layer and
 at least one other layer are present) are compared with the same pixels re-composited from the
-analysis's cache with the layer's opacity set to 0 (``A``).  This is the reading that
-``transparency(..., enclosure="unoccluded")`` uses for enclosing layers, offered for any layer;
-``E_t`` itself is unchanged.
+analysis's cache with the layer's opacity set to 0 (``A``).  :func:`~.transparency.transparency`
+reads an enclosing layer this way where its plain view is missing or uniform (decision D3), or
+always with ``enclosure="auto"`` / ``"unoccluded"``; it is offered here for any layer.
 
 A brighter layer adds the same luminance to every covered pixel, so the Michelson contrast of
 ``P`` falls and the layer reads as *less* transparent, while the luminance range (Eq. 6) and
@@ -56,7 +56,12 @@ class CoveredTransmittance:
 
 
 def _without(analysis, spec, layer: int) -> np.ndarray:
-    """Luminance of the same view with ``layer``'s opacity 0 (from the re-evaluation cache)."""
+    """Luminance of the same view with ``layer``'s opacity 0 (from the re-evaluation cache).
+
+    The other parameters are those the analysis was rendered with (``stats["params"]`` of an
+    engine analysis, so a re-evaluated analysis is re-composited with its own opacities,
+    colours, materials and light), else ``spec``'s opacities and colours.
+    """
     from dvr_perception.rays.engine import RayCache, reevaluate
 
     cache = getattr(analysis, "cache", None)
@@ -65,10 +70,23 @@ def _without(analysis, spec, layer: int) -> np.ndarray:
             "analysis: the view without a layer needs the analysis's re-evaluation cache "
             "(analyze(..., build_cache=True))"
         )
-    ops = [float(s.render_opacity) for s in spec.structures]
-    ops[layer] = 0.0
-    colors = [tuple(s.color) for s in spec.structures]
-    other = reevaluate(cache, opacities=ops, colors=colors, background=spec.background)
+    params = getattr(analysis, "stats", {}).get("params")
+    if params is not None:
+        ops = list(params["opacities"])
+        ops[layer] = 0.0
+        other = reevaluate(
+            cache,
+            opacities=ops,
+            colors=params["colors"],
+            lighting=params["lighting"],
+            light_direction=params["light_direction"],
+            background=spec.background,
+        )
+    else:
+        ops = [float(s.render_opacity) for s in spec.structures]
+        ops[layer] = 0.0
+        colors = [tuple(s.color) for s in spec.structures]
+        other = reevaluate(cache, opacities=ops, colors=colors, background=spec.background)
     y, _ = _image_luminance(other, spec, analysis.accumulated.shape)
     return y
 

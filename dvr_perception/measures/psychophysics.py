@@ -308,12 +308,17 @@ def tap_transmittance(lum_P, lum_A, *, contrast: str = "michelson", i_max: float
     return float(c_p / c_a) if c_a >= eps else float("nan")
 
 
-def blended_transmittance(alpha_met, alpha_tap, lum_range, *, i_max: float = 1.0):
+def blended_transmittance(alpha_met, alpha_tap, contrast, *, i_max: float = 1.0):
     """Blend of Metelli and TAP transmittances by the region's contrast, Eq. 8.
 
-    ``alpha_t = h alpha_met + (1 - h) alpha_tap`` with ``h = (i_max - lum_range) / i_max``, so
-    homogeneous regions (small range) trust Metelli and textured ones TAP.  Where one of the
-    two transmittances is NaN (undetermined) the other is used; both NaN gives NaN.
+    ``alpha_t = h alpha_met + (1 - h) alpha_tap`` with ``h = 1 - C``, ``C`` the evaluated
+    region's contrast of Eq. 7: the Michelson contrast ``(I_max - I_min) / (I_max + I_min)``
+    of its robust luminance range (project decision D2; the paper writes ``h = (I_MAX -
+    I_range) / I_MAX`` with Eq. 7 defining ``I_range`` as that contrast).  So homogeneous
+    regions (``C`` near 0) trust Metelli and contrasted ones TAP.  A luminance range (the
+    Eq. 6 reading) may be passed instead with ``i_max`` the largest luminance: ``h = 1 -
+    contrast / i_max``.  Where one of the two transmittances is NaN (undetermined) the other is
+    used; both NaN gives NaN.
 
     Parameters
     ----------
@@ -321,11 +326,11 @@ def blended_transmittance(alpha_met, alpha_tap, lum_range, *, i_max: float = 1.0
         Metelli transmittance (Eq. 5 or 9); NaN allowed.
     alpha_tap : float or array_like
         TAP transmittance (Eq. 6 or 7); NaN allowed.
-    lum_range : float or array_like
-        Robust luminance range ``I_max - I_min`` of the evaluated region, in ``[0, i_max]``
-        (e.g. from :func:`luminance_range`).
+    contrast : float or array_like
+        Contrast ``C`` of the evaluated region, in ``[0, i_max]``: its Michelson contrast
+        (Eq. 7, in [0, 1], with the default ``i_max``) or its robust luminance range.
     i_max : float, optional
-        Largest displayable luminance (default 1).
+        Largest value of ``contrast`` (default 1, right for the Michelson contrast).
 
     Returns
     -------
@@ -334,11 +339,13 @@ def blended_transmittance(alpha_met, alpha_tap, lum_range, *, i_max: float = 1.0
     Raises
     ------
     DVRInputError
-        If an input contains inf, ``lum_range`` is NaN or outside ``[0, i_max]``, or shapes do
+        If an input contains inf, ``contrast`` is NaN or outside ``[0, i_max]``, or shapes do
         not broadcast.
 
     Examples
     --------
+    A region with robust range [0.3, 0.5] has Michelson contrast 0.2 / 0.8 = 0.25:
+
     >>> round(float(blended_transmittance(0.2, 0.6, 0.25)), 9)  # h = 0.75
     0.3
     >>> float(blended_transmittance(np.nan, 0.6, 0.25))
@@ -347,12 +354,12 @@ def blended_transmittance(alpha_met, alpha_tap, lum_range, *, i_max: float = 1.0
     i_max = _positive(i_max, "i_max")
     met = _nan_ok_array(alpha_met, "alpha_met")
     tap = _nan_ok_array(alpha_tap, "alpha_tap")
-    rng = _finite_array(lum_range, "lum_range")
-    if np.any(rng < 0) or np.any(rng > i_max):
-        raise DVRInputError(f"lum_range must lie in [0, i_max={i_max:g}], got {rng.tolist()!r:.80}")
-    _broadcast({"alpha_met": met, "alpha_tap": tap, "lum_range": rng})
-    met, tap, rng = np.broadcast_arrays(met, tap, rng)
-    h = (i_max - rng) / i_max
+    c = _finite_array(contrast, "contrast")
+    if np.any(c < 0) or np.any(c > i_max):
+        raise DVRInputError(f"contrast must lie in [0, i_max={i_max:g}], got {c.tolist()!r:.80}")
+    _broadcast({"alpha_met": met, "alpha_tap": tap, "contrast": c})
+    met, tap, c = np.broadcast_arrays(met, tap, c)
+    h = 1.0 - c / i_max
     blend = h * np.where(np.isnan(met), 0.0, met) + (1.0 - h) * np.where(np.isnan(tap), 0.0, tap)
     out = np.where(np.isnan(met), tap, np.where(np.isnan(tap), met, blend))
     return _scalar_or_array(np.asarray(out, dtype=np.float64))

@@ -1,6 +1,7 @@
 """Structural layers in the image: footprints, sub-regions and layer relations (Sec. 4.3.2).
 
-* A structure's **footprint** is where its absolute visible opacity exceeds a threshold.
+* A structure's **footprint** is where its absolute visible opacity exceeds a threshold (the
+  transparency measure adds where its occlusion-free opacity does: decision D3).
 * Pixels covered by the same set of layers form **sub-regions** (split into connected
   components), classified as *empty* (no layer), *plain* (one layer) or *overlay* (several).
 * Pairs of layers are related by the region connection calculus as *separate*, *touch*,

@@ -108,8 +108,9 @@ class TransparencyResult:
     Attributes
     ----------
     E_t : float
-        ``sum_r w_r delta_t(r) / |R|`` over the non-empty regions ``R`` (Eq. 11); 0 when no
-        region is non-empty.
+        Area-weighted mean of ``delta_t(r)`` over the non-empty regions ``R`` (Eq. 11) that
+        have a determined layer or no layer needing one (regions whose layers are all
+        undetermined are left out); 0 when there is none.
     deviation : ndarray of float32, shape (H, W)
         ``delta_t`` of the region of every pixel (0 in empty and Case-1 regions).
     region_id : ndarray of int32, shape (H, W)
@@ -120,9 +121,10 @@ class TransparencyResult:
         One dict per sub-region: ``id``, ``layers`` (names), ``kind`` ("empty", "plain",
         "overlay"), ``area_fraction``, ``transmittance`` ``{name: perceived alpha_t}`` (after
         clipping and calibration), ``measured`` ``{name: clipped, uncalibrated alpha}``,
-        ``method`` ``{name: "metelli" | "tap" | "blend" | "generalized"}``, ``clipped``
+        ``method`` ``{name: "metelli" | "tap" | "blend" | "generalized" | "hidden"}``, ``clipped``
         ``{name: raw value}`` for values clipped to [0, 1], ``undetermined`` ``{name:
-        reason}`` and ``delta_t``.
+        reason}``, ``delta_t`` and ``counted`` (whether the region enters ``E_t``: not when
+        it is empty or all its layers are undetermined).
     relations : dict
         ``(name_i, name_j) -> {"kind": ..., "encloser": name or None}`` for every pair of
         visible layers (``i < j`` in structure order).

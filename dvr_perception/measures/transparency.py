@@ -2,10 +2,20 @@ r"""Transparency deviation of a rendering: perceived versus expected layer opaci
 
 Pipeline (all luminances are linear CIE Y of ``rgba`` composited over ``spec.background``):
 
-1. **Layers.** A structure's footprint is where its absolute visible opacity exceeds
-   ``threshold`` (:func:`~.regions.layer_footprints`); pixels with the same layer set form
-   sub-regions (:func:`~.regions.subregions`), and layer pairs are related as *separate*,
-   *touch*, *enclose* or *overlap* (:func:`~.regions.layer_relations`).
+1. **Layers.** A structure's footprint is where it *is* (decision D3), not only where it is
+   seen: where its absolute visible opacity exceeds ``threshold``
+   (:func:`~.regions.layer_footprints`) or its occlusion-free opacity ``assigned`` (the sum
+   of its samples' importance-based opacities, occlusion ignored) exceeds ``threshold``
+   times its importance.  Relative to the importance, that is where the ray crosses a
+   meaningful length of the structure whatever its importance, so the layers, regions and
+   relations do not change with the rendering opacities (a faint skin of importance 0.1
+   rendered at 0.3 would otherwise gain and lose a rim as the optimiser moves its opacity).
+   A structure hidden behind another is hence still a layer of the pixels it lies on, and
+   the hiding layer is read over it (rule 3) instead of standing alone in Case 1.  Analyses
+   without ``assigned`` (hand-made ones) or made with ``occlusion_free=False`` keep the
+   visible footprints.  Pixels with the same layer set form sub-regions
+   (:func:`~.regions.subregions`), and layer pairs are related as *separate*, *touch*,
+   *enclose* or *overlap* (:func:`~.regions.layer_relations`).
 2. **Reference regions** are looked up by layer set: the luminance ``I_X`` of a set ``X`` is the
    mean over the *union of all sub-regions whose layer set is exactly X* (not only those
    adjacent to the evaluated region), and TAP uses all pixels of that union as samples.  A set
@@ -13,15 +23,32 @@ Pipeline (all luminances are linear CIE Y of ``rgba`` composited over ``spec.bac
 3. **Enclosers.** In a region with layer set ``S``, a layer ``e`` of ``S`` that encloses some
    layer and, within ``S``, encloses or is enclosed by every other layer is part of the
    region's *enclosing context* ``E``; the others are its *active* layers.  An encloser's
-   transmittance is the same in all its regions (Case 2 for its plain view, kept in Case 3):
-   following the paper, its plain view (layer set ``{e}`` plus the layers enclosing ``e``) is
-   the background ``A`` and all pixels where ``e`` and a layer it encloses are present are
-   treated as the transparent region ``P``: ``alpha = C(P) / C(A)`` (TAP, Eq. 6-7).
-   With ``enclosure="unoccluded"`` (beyond the paper) ``A`` is instead the same pixels of ``P``
-   rendered without ``e`` (re-composited from the analysis's cache with ``e``'s opacity 0):
-   what is behind the layer, seen with and without it, which is the TAP's own reading of
-   ``A``.  A brighter enclosing layer then lowers the Michelson contrast of what it covers
-   and reads as less transparent (tested against the closed form ``T mu / (T mu + c)``).
+   transmittance is the same in all its regions (Case 2 for its plain view, kept in Case 3).
+   Its transparent region ``P`` is every pixel where ``e`` and a layer it encloses are
+   present, and:
+
+   * **hidden is opaque** (D3): on the pixels of ``P`` where the enclosed layers are hidden
+     (their summed visible opacity is at most ``threshold``), ``e`` lets nothing of them
+     through, transmittance 0;
+   * the rest, ``P'``, is read by TAP, ``alpha = C(P') / C(A)`` (Eq. 6-7).  By default
+     (``enclosure="plain"``) ``A`` is the paper's: the plain view of ``e`` (layer set ``{e}``
+     plus the layers enclosing ``e``).  Where that plain view is not in the image or has no
+     contrast, ``A`` is what ``e`` covers seen *without* it (D3): the same pixels
+     re-composited from the analysis's cache with ``e``'s opacity 0 (and the analysis's own
+     opacities, colours and light), as :func:`~.covered.covered_transmittance` (the Fig. 9
+     reading) does.  Without a cache such a layer reads 0 if part of ``P`` is hidden, else
+     it is undetermined.  ``enclosure="auto"`` reads every encloser against the re-composite
+     when the analysis has a cache (the plain view otherwise), and ``"unoccluded"`` demands
+     it (an error without a cache).  With the re-composite a brighter or more opaque
+     enclosing layer lowers the Michelson contrast of what it covers and reads as less
+     transparent (tested against the closed form ``T mu / (T mu + c)``); the plain view
+     saturates at 1 where what ``e`` covers has more contrast than ``e``'s own plain view
+     (a faint shell around contrasted blobs), and never depends on the cache, which is why
+     it stays the default (``E_t`` of an analysis with a cache and of one without agree
+     unless a plain view is missing or uniform).
+
+   The estimate is the mean over ``P``: ``|P'| / |P| * C(P') / C(A)``, so hiding more of what
+   it covers makes a layer more opaque, and hiding all of it gives 0 (method ``"hidden"``).
 4. **Active layers** (every reference set below is taken together with ``E``, i.e. enclosing
    layers are ignored as in the paper):
 
@@ -32,13 +59,17 @@ Pipeline (all luminances are linear CIE Y of ``rgba`` composited over ``spec.bac
    * two overlapping active layers (Case 3): the same Eq. 8 for each of them;
    * three or more active layers (Case 3): the generalised Metelli Eq. 9 for each.
 
-   In Eq. 8, ``h`` comes from the robust luminance range of the evaluated region; when one of
+   In Eq. 8, ``h = 1 - C`` with ``C`` the contrast (Eq. 7) of the evaluated region's robust
+   luminance range: the Michelson contrast ``(I_max - I_min) / (I_max + I_min)`` (decision
+   D2; with ``contrast="range"`` the range ``I_max - I_min``, the Eq. 6 reading); when one of
    Metelli and TAP is undetermined (denominator below ``1e-3``) the other is used alone.
 5. Transmittances are clipped to [0, 1] (reported), mapped through the ``calibration`` curve
    and compared with each structure's expected opacity (``Structure.target_opacity``):
-   ``delta_t = sum_i (1 - alpha_t(i) - o_i)^2`` (Eq. 10), and
+   ``delta_t = sum_i (1 - alpha_t(i) - o_i)^2`` (Eq. 10) over the determined layers, and
    ``E_t = sum_r w_r delta_t(r)`` (Eq. 11) over the non-empty regions ``R``, with ``w_r`` the
-   region's share of the non-empty area.  The paper writes both ``1/|R|`` and area weights; taken
+   region's share of their area.  A region whose layers that need a transmittance are all
+   undetermined is left out of ``R`` (its record says ``counted: False``): an undetermined
+   layer must never lower ``E_t``.  The paper writes both ``1/|R|`` and area weights; taken
    literally that double normalisation makes ``E_t`` shrink as the image splits into more regions,
    so the project reads Eq. 11 as the area-weighted mean (issue: "E_t weights regions by area").
 """
@@ -59,12 +90,17 @@ from dvr_perception.measures.regions import _relations, layer_footprints, subreg
 from dvr_perception.measures.results import (
     TransparencyResult,
     _accumulated,
+    _assigned,
     _image_luminance,
     _names,
     _visible,
 )
+from dvr_perception.rays._results import RayCache, engine_made
 
 __all__ = ["transparency"]
+
+#: TAP backgrounds of an enclosing layer (see the module docstring, rule 3).
+ENCLOSURES = ("plain", "auto", "unoccluded")
 
 
 def _check_options(spec, contrast, calibration):
@@ -82,30 +118,55 @@ def _check_options(spec, contrast, calibration):
 def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure):
     """Check the inputs; find layers, regions, relations and every region's estimates."""
     _check_options(spec, contrast, calibration)
-    if enclosure not in ("plain", "unoccluded"):
-        raise DVRInputError(f"enclosure must be 'plain' or 'unoccluded', got {enclosure!r}")
+    if enclosure not in ENCLOSURES:
+        raise DVRInputError(
+            f"enclosure must be one of {', '.join(map(repr, ENCLOSURES))}, got {enclosure!r}"
+        )
     accumulated = _accumulated(analysis)
     visible = _visible(analysis, accumulated)
     names = _names(analysis, spec, visible.shape[0])
     expected = [float(s.target_opacity) for s in spec.structures]
     y, notes = _image_luminance(analysis, spec, accumulated.shape)
     footprints = layer_footprints(visible, threshold=threshold)
+    assigned = _occlusion_free(analysis, accumulated.shape)
+    if assigned is not None:  # D3: where a structure is, not only where it is visible
+        importance = np.array([float(s.importance) for s in spec.structures])
+        footprints |= assigned > threshold * importance[:, None, None]
     rmap = subregions(footprints, geometry=False)  # no bounding boxes: not reported
     relations = _relations(rmap.layer_set, len(names), tolerance)  # = layer_relations
     scene = _Scene(y, rmap, relations, names, contrast)
+    if assigned is not None:
+        scene.visible, scene.threshold = visible, float(threshold)
     if enclosure == "unoccluded":
         enclosers = sorted({r.encloser for r in relations.values() if r.kind == "enclose"})
         scene.without = {e: _luminance_without(analysis, spec, e) for e in enclosers}
+    elif isinstance(getattr(analysis, "cache", None), RayCache):
+        scene.recomposite = partial(_luminance_without, analysis, spec)
+        scene.prefer_recomposite = enclosure == "auto"
     est = region_estimates(scene, rmap, y, expected, calibration, notes)
     return names, expected, rmap, relations, est, notes
+
+
+def _occlusion_free(analysis, shape) -> np.ndarray | None:
+    """Return the (K, H, W) occlusion-free opacity ``assigned``, or ``None`` without one.
+
+    Hand-made analyses without the field, and engine analyses made with
+    ``occlusion_free=False`` (``assigned`` is NaN there), keep visible footprints.
+    """
+    if getattr(analysis, "assigned", None) is None:
+        return None
+    if engine_made(analysis) and not analysis.stats.get("occlusion_free", True):
+        return None
+    return _assigned(analysis, shape)
 
 
 def transparency_table(analysis, spec, *, calibration=None):
     """E_t's ingredients as arrays, without the per-region records (for the optimiser).
 
-    Returns ``(region_id, deltas, alpha_t, empty)``: the (H, W) region map, Eq. 10 per region,
+    Returns ``(region_id, deltas, alpha_t, skip)``: the (H, W) region map, Eq. 10 per region,
     the (regions, K) calibrated transmittances (NaN: layer absent or undetermined) and the
-    empty-region mask; the other options are :func:`transparency`'s defaults.
+    mask of the regions left out of ``E_t`` (empty, or all their layers undetermined); the
+    other options are :func:`transparency`'s defaults.
     """
     names, _, rmap, _, est, _ = _core(
         analysis, spec, 0.05, calibration, 0.02, "michelson", "plain"
@@ -130,13 +191,16 @@ def transparency(
     ----------
     analysis : RayAnalysis
         Ray analysis with ``visible`` (K, H, W), ``accumulated`` (H, W), ``rgba`` (H, W, 4,
-        premultiplied; or ``image``) and ``names``.
+        premultiplied; or ``image``) and ``names``; with ``assigned`` (K, H, W) footprints
+        are where the structures are (D3), and with ``cache`` an encloser without a usable
+        plain view is read against the view without it.
     spec : StructureSpec
         Structures (names must match ``analysis.names``; ``target_opacity`` is the expected
         opacity) and the background colour entering the luminance.
     threshold : float, optional
-        A structure is a layer of a pixel where its visible opacity exceeds this (default
-        0.05, see :func:`~.regions.layer_footprints`).
+        A structure is a layer of a pixel where its visible or its occlusion-free opacity
+        exceeds this (default 0.05, see :func:`~.regions.layer_footprints`); an enclosed layer
+        whose visible opacity is at most this is hidden there.
     calibration : pair of array_like (x, y), optional
         Knots of a monotone curve mapping measured to perceived transmittance (see
         :func:`~.psychophysics.calibrate`); ``None`` is the identity.
@@ -144,10 +208,13 @@ def transparency(
         Footprint fraction forgiven by the layer relations (default 0.02).
     contrast : {"michelson", "range"}, optional
         TAP contrast: Michelson (Eq. 7, default) or luminance range (Eq. 6).
-    enclosure : {"plain", "unoccluded"}, optional
-        TAP background ``A`` of an enclosing layer: its plain view (default, the paper's
-        Case 2) or the covered pixels rendered without the layer (needs ``analysis.cache``,
-        i.e. an engine analysis made with ``build_cache=True``); see the module docstring.
+    enclosure : {"plain", "auto", "unoccluded"}, optional
+        TAP background ``A`` of an enclosing layer: its plain view (default, the paper's Case
+        2), or, where that is missing or uniform and the analysis has a re-evaluation cache,
+        the covered pixels re-composited without the layer (D3); the re-composite first when
+        there is a cache (``"auto"``); or always the re-composite (``"unoccluded"``, needs
+        ``analysis.cache``, i.e. an engine analysis made with ``build_cache=True``).  See the
+        module docstring, rule 3.
 
     Returns
     -------
@@ -195,12 +262,15 @@ def transparency(
     if n_clipped:
         notes.append(f"{n_clipped} transmittance(s) outside [0, 1] were clipped (see 'clipped')")
     nonempty = [r for r in rmap.regions if r.kind != "empty"]
+    counted = [r for r in nonempty if not est.undetermined[r.id]]
     if not nonempty:
         e_t = 0.0
         notes.append("no non-empty region (no layer above the threshold); E_t = 0")
+    elif not counted:
+        e_t = 0.0
     else:
-        total_area = sum(r.area_fraction for r in nonempty)
-        e_t = float(sum(r.area_fraction * delta_list[r.id] for r in nonempty) / total_area)
+        total_area = sum(r.area_fraction for r in counted)
+        e_t = float(sum(r.area_fraction * delta_list[r.id] for r in counted) / total_area)
     if not any(determined.values()):
         notes.append("no region has a determinable layer transmittance; E_t = 0")
 
@@ -266,6 +336,7 @@ def _records(rmap, est, names, delta_list) -> list:
             "clipped": {},
             "undetermined": {},
             "delta_t": delta_list[rid],
+            "counted": region.kind != "empty" and not bool(est.undetermined[rid]),
         }
         p = positions[rid]
         for lay in est.layers[rid]:

@@ -328,6 +328,7 @@ def analyze(
             "backend": "numpy" if nk is None else "numba",
             "sample_distance": step,
             "occlusion_free": bool(occlusion_free),
+            "params": _params(ops, cols, mats, rs.light_direction),
         }
         if not occlusion_free:  # not computed past early ray termination: no number at all
             asg = np.full((k, nrays), np.nan, np.float32)
@@ -554,6 +555,16 @@ def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, mod
     return rgba, vis, asg, present, cimg, start, count, entries, int(walked.sum())
 
 
+def _params(ops, cols, mats, direction) -> dict:
+    """Return an analysis's rendering parameters as :func:`reevaluate` takes them (``stats``)."""
+    return {
+        "opacities": tuple(float(o) for o in ops),
+        "colors": tuple(tuple(float(c) for c in row) for row in np.asarray(cols)),
+        "lighting": tuple(mats),
+        "light_direction": tuple(float(d) for d in np.asarray(direction, np.float64).ravel()),
+    }
+
+
 def reevaluate(
     cache: RayCache,
     *,
@@ -653,6 +664,7 @@ def reevaluate(
             _tables.ERT, out,
         )  # fmt: skip
         stats = {"backend": cache.backend, "rays": h * w, "reevaluated": True}
+        stats["params"] = _params(ops, cols, mats, direction)
         stats["cache_entries"] = len(cache.lut)
         res = _analysis(*out[1:4], out[4], cache.assigned, cache.present, out[5], spec, camera,
                         stats, cache, cache.importance_accumulated)  # fmt: skip
@@ -660,6 +672,7 @@ def reevaluate(
         return res
     seconds = time.perf_counter() - t_start
     stats = {"seconds": seconds, "backend": cache.backend, "rays": h * w, "reevaluated": True}
+    stats["params"] = _params(ops, cols, mats, direction)
     stats["cache_entries"] = len(cache.lut)
     return _finish(
         rgba,

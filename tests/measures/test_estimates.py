@@ -81,7 +81,11 @@ def test_table_holds_what_the_records_say(phantom_view):
     assert alpha.shape == (len(res.regions), len(names))
     for r in res.regions:
         assert deltas[r["id"]] == r["delta_t"]
-        assert empty[r["id"]] == (r["kind"] == "empty")
+        # left out of E_t: empty regions and those whose layers are all undetermined (D3)
+        assert empty[r["id"]] == (not r["counted"])
+        assert r["counted"] == (
+            r["kind"] != "empty" and not (r["undetermined"] and not r["transmittance"])
+        )
         for k, name in enumerate(names):
             if name in r["transmittance"]:
                 assert alpha[r["id"], k] == r["transmittance"][name]

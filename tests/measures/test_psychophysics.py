@@ -160,9 +160,15 @@ def test_tap_rejects_bad_input():
 
 
 # -- blend, Eq. 8 ----------------------------------------------------------------------------
-def test_blend_weights_by_range():
+def test_blend_weights_by_contrast():
     assert blended_transmittance(0.2, 0.6, 0.0) == pytest.approx(0.2)  # homogeneous: Metelli
-    assert blended_transmittance(0.2, 0.6, 1.0) == pytest.approx(0.6)  # full range: TAP
+    assert blended_transmittance(0.2, 0.6, 1.0) == pytest.approx(0.6)  # full contrast: TAP
+    # D2: h = 1 - C with C the Michelson contrast of the region's robust range [0.2, 0.6]
+    lo, hi = luminance_range([0.3, 0.5])  # mu 0.4, sigma 0.1
+    c = (hi - lo) / (hi + lo)
+    assert c == pytest.approx(0.5)
+    assert blended_transmittance(0.2, 0.6, c) == pytest.approx(0.5 * 0.2 + 0.5 * 0.6)
+    # a luminance range with the largest luminance (the Eq. 6 reading): h = 1 - range / i_max
     assert blended_transmittance(0.2, 0.6, 0.5, i_max=2.0) == pytest.approx(0.75 * 0.2 + 0.25 * 0.6)
 
 
@@ -172,10 +178,10 @@ def test_blend_nan_handling_arrays():
     assert np.isnan(out[2])
 
 
-def test_blend_rejects_bad_range():
-    with pytest.raises(DVRInputError, match="lum_range"):
+def test_blend_rejects_bad_contrast():
+    with pytest.raises(DVRInputError, match="contrast"):
         blended_transmittance(0.2, 0.6, 1.2)
-    with pytest.raises(DVRInputError, match="lum_range"):
+    with pytest.raises(DVRInputError, match="contrast"):
         blended_transmittance(0.2, 0.6, np.nan)
 
 

@@ -463,6 +463,11 @@ def test_unoccluded_enclosure_gives_the_tap_of_what_the_layer_covers(grey):
     res = transparency(a, spec, enclosure="unoccluded")
     assert res.relations[("shell", "light")]["kind"] == "enclose"
     assert res.per_structure["shell"]["perceived_transparency"] == pytest.approx(expected, abs=0.02)
+    # "auto" reads the shell the same way when the analysis has a cache (D3)
+    auto = transparency(a, spec, enclosure="auto")
+    assert auto.per_structure["shell"]["perceived_transparency"] == pytest.approx(
+        res.per_structure["shell"]["perceived_transparency"], abs=1e-3
+    )
     plain = transparency(a, spec)  # the paper's Case 2 reference: the shell's plain view
     assert plain.per_structure["shell"]["perceived_transparency"] != pytest.approx(
         expected, abs=0.02

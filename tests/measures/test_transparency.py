@@ -138,15 +138,46 @@ def test_textured_backdrop_blends_metelli_and_tap(contrast):
     res = transparency(ana, spec, contrast=contrast)
     overlay = regions_with(res, ["band", "backdrop"])[0]
     # Metelli on the means is exact; TAP "range" is exact for a uniform layer; Michelson
-    # gives alpha mu_A / (alpha mu_A + (1 - alpha) t); h = 1 - range(P) = 1 - 4 alpha sigma_A
+    # gives alpha mu_A / (alpha mu_A + (1 - alpha) t).  Eq. 8's h = 1 - C(P) (D2): P has
+    # mu_P = alpha 0.5 + (1 - alpha) t and sigma_P = alpha 0.1 (no clipping), so its range is
+    # 4 sigma_P and its Michelson contrast 4 sigma_P / (2 mu_P)
     tap = alpha if contrast == "range" else alpha * 0.5 / (alpha * 0.5 + (1 - alpha) * t)
-    h_blend = 1.0 - 4 * alpha * 0.1
+    mu_p, sigma_p = alpha * 0.5 + (1 - alpha) * t, alpha * 0.1
+    c_p = 4 * sigma_p if contrast == "range" else 4 * sigma_p / (2 * mu_p)
+    h_blend = 1.0 - c_p
     assert overlay["method"]["band"] == "blend"
     expected = h_blend * alpha + (1 - h_blend) * tap
     assert overlay["transmittance"]["band"] == pytest.approx(expected, abs=1e-6)
     plain = regions_with(res, ["band"])[0]  # uniform: h = 1, Metelli alone
     assert plain["method"]["band"] == "metelli"
     assert plain["transmittance"]["band"] == pytest.approx(alpha, abs=1e-6)
+
+
+def test_eq8_weight_is_one_minus_the_michelson_contrast_of_the_region():
+    """D2 by hand: h = 1 - C with C = (I_max - I_min) / (I_max + I_min) of the region.
+
+    An opaque backdrop of stripes 0.2 / 0.6 (mu_A 0.4, sigma_A 0.2) on the left, background
+    0.1 on the right; a band of transmittance 0.5 and luminance 0.2 in front.  Overlay P =
+    0.5 A + 0.1: stripes 0.2 / 0.4, mu 0.3, sigma 0.1, robust range [0.1, 0.5], C = 0.4 / 0.6
+    = 2/3 (the range would give h = 0.6, Michelson gives h = 1/3).  Metelli on the means:
+    (0.3 - 0.15) / (0.4 - 0.1) = 0.5; TAP: C(P) / C(A) = (2/3) / 1 (A's range [0, 0.8]).
+    """
+    h, w = 8, 8
+    stripes = np.where(np.arange(w) % 2 == 0, 0.2, 0.6)[None, :].repeat(h, axis=0)
+    band = np.zeros((h, w), bool)
+    band[3:5, :] = True
+    left = np.zeros((h, w), bool)
+    left[:, :4] = True
+    layers = [(band, 0.5, 0.2), (left, 1.0, stripes)]
+    ana, spec = analysis_and_spec((h, w), layers, ["band", "backdrop"], [0.5, 1.0], (0.1,) * 3)
+    res = transparency(ana, spec)
+    overlay = regions_with(res, ["band", "backdrop"])[0]
+    assert overlay["method"]["band"] == "blend"
+    met, tap, h_d2 = 0.5, 2.0 / 3.0, 1.0 - 2.0 / 3.0
+    expected = h_d2 * met + (1 - h_d2) * tap
+    assert overlay["transmittance"]["band"] == pytest.approx(expected, abs=1e-6)
+    # = 0.6111..., not the range-weighted 0.6 * 0.5 + 0.4 * (2/3) = 0.5667
+    assert overlay["transmittance"]["band"] == pytest.approx(11.0 / 18.0, abs=1e-6)
 
 
 def test_darker_of_two_equal_opacity_layers_is_less_transparent():
