@@ -220,12 +220,12 @@ def optimize(
         opacity (mean over views).  Both ``E`` and ``S`` are reported either way.  The
         opacity stage's SLSQP minimises ``E_v`` in both modes; its candidates are judged on
         the objective.  The default is ``"mean"`` (decision D4, benchmark report section
-        4b): on engine, cthead and lidc_chest at 512² both give the same opacities (the
-        opacity stage leads), so the images differ only through lighting and colour, and
-        there the mean reveals as much or more: on the engine the least-squares lighting
-        brightens the block's surfaces, which hides the inserts a little more, while cthead
-        and lidc_chest look the same; the mean is also cheaper (no full coarse evaluation
-        per finite-difference gradient).
+        4b): on engine, cthead and lidc_chest at 512² both find (nearly) the same opacities
+        (the opacity stage leads), so the images differ only through lighting and colour,
+        and there the mean reveals as much or more: on the engine the least-squares run
+        makes the inserts' face more saturated and solid, so what lies behind it shows a
+        little less; cthead and lidc_chest look alike.  The mean is also cheaper (no full
+        coarse evaluation per finite-difference gradient).
 
     Returns
     -------

@@ -105,12 +105,7 @@ def test_quick_report_checks_cover_the_acceptance(quick_report):
 
 #: Checks of the reduced run that fail today, with why (issue 8 stays open until they hold).
 #: Each must still fail: when a fix makes one pass, this test says so and it leaves the list.
-KNOWN_GAPS = {
-    "saturation series (neghip)": "the E_t measure's Eq. 8 blend keeps the desaturated outer "
-    "layer's transparency flat (with h from the robust range, Metelli holds the physical "
-    "transmittance); decision D2 (h = 1 - C) fixes it on another branch, not yet on main. "
-    "Its TAP reading, the paper's for Fig. 9, falls as it should (checked separately)",
-}
+KNOWN_GAPS: dict[str, str] = {}
 
 
 def _gap(name: str) -> str | None:
