@@ -88,11 +88,7 @@ BACKTRACK = 3  # opacity stage: halvings towards the current point when a tolera
 STARTS = 3  # opacity stage: SLSQP runs per iteration (the current point and annealing moves)
 COVERAGE_MARGIN = 2e-3  # opacity stage: coverage kept this far above the floor (resolution)
 VERIFY = 4  # opacity stage: steps up the coverage gradient until the user's floor holds
-#: Opacity stage: guarded shares are kept this far inside their bounds (at most a quarter of
-#: the bounds' width), so that the bounds still hold at the user's resolution: on the engine
-#: at 512² a share on its bound at 96 px missed it by 3e-4 beyond the guard's slack, the
-#: step was halved and the lighting and colour stages undone.
-SHARE_MARGIN = 3e-3
+SHARE_MARGIN = 0.0  # opacity stage: guarded shares kept this far inside their bounds
 
 
 @dataclass
@@ -272,10 +268,8 @@ def _run_exact(run, x0, groups, group_structures, max_iter, info, history):
     # share bounds (D6): the structures below their target share only move toward it
     bounds = stage.share_bounds(run.terms0) if hasattr(stage, "share_bounds") else {}
     guarded = np.array([problem.names.index(n) for n in bounds], np.int64)
-    share_lo = np.array([b[0] for b in bounds.values()], float)
-    share_hi = np.array([min(b[1], 2.0) for b in bounds.values()], float)
-    margin = np.minimum(SHARE_MARGIN, 0.25 * (share_hi - share_lo))  # narrow bounds: less
-    share_lo, share_hi = share_lo + margin, share_hi - margin
+    share_lo = np.array([b[0] for b in bounds.values()], float) + SHARE_MARGIN
+    share_hi = np.array([min(b[1], 2.0) for b in bounds.values()], float) - SHARE_MARGIN
     user = None
     if run.verify is not None:  # the coverage at the user's resolution, exactly
         user = (OpacityModel(run.verify[0], params0), stage.floor(run.verify[1]))

@@ -374,7 +374,7 @@ def _most_important(spec, active) -> str | None:
 def _holds(t, full0, done, k, key="E") -> bool:
     """``key`` (``E`` or ``S``) not above the start and the first ``k`` stages' guards held."""
     return t[key] <= full0[key] + 1e-12 and all(
-        np.all(st.guards(t, full0) <= GUARD_SLACK) for st, *_ in done[:k] if st.recheck
+        np.all(st.guards(t, full0, full=True) <= GUARD_SLACK) for st, *_ in done[:k] if st.recheck
     )
 
 

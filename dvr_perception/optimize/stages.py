@@ -147,7 +147,7 @@ class Stage:
                 out.append(terms[t] - start[t] - self.tolerance - self.trade * gain)
         return np.array(out, float)
 
-    def guards(self, terms: dict, start: dict) -> np.ndarray:
+    def guards(self, terms: dict, start: dict, *, full: bool = False) -> np.ndarray:
         """Hard rules of the stage relative to ``start`` (feasible where all <= 0; none here)."""
         return np.zeros(0)
 
@@ -207,8 +207,11 @@ class OpacityStage(Stage):
 
     #: The most important structure (set by :func:`~dvr_perception.optimize.optimize`).
     protect: str | None = None
-    #: Share of the picture a guarded structure may lose (float rounding, resolution).
+    #: Share of the picture a guarded structure may lose at the optimisation resolution, and
+    #: at the user's (``full``: the re-check of the final result; a share found at 96 px moves
+    #: by a few thousandths at 512 px).
     SHARE_SLACK = 1e-3
+    SHARE_SLACK_FULL = 5e-3
 
     def share_bounds(self, start: dict) -> dict:
         """Bounds on shares of the picture (decision D6): ``{name: (low, high)}``.
@@ -228,17 +231,19 @@ class OpacityStage(Stage):
                 out[name] = (target, np.inf)
         return out
 
-    def guards(self, terms, start):
+    def guards(self, terms, start, *, full=False):
         """``floor - coverage`` (see :meth:`floor`) and the share bounds, two per structure.
 
-        The share bounds (:meth:`share_bounds`, widened by :attr:`SHARE_SLACK`) keep every
+        The share bounds (:meth:`share_bounds`, widened by :attr:`SHARE_SLACK`, or by
+        :attr:`SHARE_SLACK_FULL` for the re-check at the user's resolution) keep every
         structure that has less of the picture than its target moving toward it, and what
         the user marked most important from falling below its start or target.
         """
         out = [self.floor(start) - terms["coverage"]]
+        slack = self.SHARE_SLACK_FULL if full else self.SHARE_SLACK
         for name, (low, high) in self.share_bounds(start).items():
             share = terms["visible_share"][name]
-            out += [low - share - self.SHARE_SLACK, share - high - self.SHARE_SLACK]
+            out += [low - share - slack, share - high - slack]
         return np.array(out)
 
     def constraints(self, terms, start, weights):
