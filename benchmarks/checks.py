@@ -12,7 +12,15 @@ import itertools
 import math
 from collections.abc import Sequence
 
-__all__ = ["all_passed", "failed", "lowered", "monotone", "moves_toward", "share_distance"]
+__all__ = [
+    "all_passed",
+    "failed",
+    "lowered",
+    "lowered_or_declined",
+    "monotone",
+    "moves_toward",
+    "share_distance",
+]
 
 
 def _record(name: str, passed: bool, detail: str, values: dict) -> dict:
@@ -73,6 +81,34 @@ def lowered(name: str, before: float, after: float, *, margin: float = 0.0) -> d
     change = float(after) - float(before)
     rel = change / float(before) if float(before) else float("nan")
     return _record(name, ok, f"{before:.4f} -> {after:.4f} ({change:+.4f}, {rel:+.1%})", values)
+
+
+def lowered_or_declined(name: str, before: float, after: float, changed: bool) -> dict:
+    """Check a stage of the pipeline under decision D4's rule.
+
+    Passes when the lead term fell (``after < before``), or when the stage kept no change
+    (``changed`` False: it found no improving move, or its move was undone at the user's
+    resolution, and said so) and the term is unchanged.  Fails when the term rose, or when
+    the stage changed the rendering without lowering its lead term.
+
+    Examples
+    --------
+    >>> lowered_or_declined("t", 0.5, 0.4, True)["passed"]
+    True
+    >>> lowered_or_declined("t", 0.5, 0.5, False)["passed"]
+    True
+    >>> lowered_or_declined("t", 0.5, 0.5, True)["passed"]
+    False
+    >>> lowered_or_declined("t", 0.5, 0.6, False)["passed"]
+    False
+    """
+    rec = lowered(name, before, after)
+    rec["values"]["changed"] = bool(changed)
+    if rec["passed"] or not _finite([before, after]):
+        return rec
+    if not changed and float(after) == float(before):
+        rec.update(passed=True, detail=rec["detail"] + "; the stage kept no change (D4)")
+    return rec
 
 
 def share_distance(shares: Sequence[float], target: Sequence[float]) -> float:

@@ -12,6 +12,7 @@ from dvr_perception.cli._plots import EMPTY_COLOUR as EMPTY
 
 __all__ = [
     "equalisation_figure",
+    "objectives_figure",
     "performance_figure",
     "pipeline_figure",
     "saturation_figure",
@@ -64,48 +65,56 @@ def _show_map(ax, values, mask, title, vmax, cmap="viridis"):
 
 
 def equalisation_figure(path, exp: dict) -> Path:
-    """Rows: importance ratios; columns: before, after, delta_v before, delta_v after."""
+    """Rows: importance ratios; columns: before, after under each composition, delta_v maps.
+
+    The delta_v maps are those of the default (importance x presence) composition.
+    """
     runs = exp["runs"]
     p = _panel(runs[0]["before"]["_images"]["image"])
-    fig = _figure(4 * p + 1.2, (p + 0.45) * len(runs) + 0.4)
-    axes = fig.subplots(len(runs), 4, squeeze=False)
+    fig = _figure(5 * p + 1.2, (p + 0.6) * len(runs) + 0.4)
+    axes = fig.subplots(len(runs), 5, squeeze=False)
     im = None
     for row, run in zip(axes, runs, strict=True):
         ratio = "/".join(f"{v:g}" for v in run["importance"].values())
-        b, a = run["before"], run["after"]
-        _show_image(row[0], b["_images"]["image"], f"{ratio} before (E_v {b['E_v']:.3f})")
-        _show_image(row[1], a["_images"]["image"], f"{ratio} after (E_v {a['E_v']:.3f})")
-        _show_map(row[2], b["_images"]["dv"], b["_images"]["dv_mask"], "δ_v before", 2.0)
-        im = _show_map(row[3], a["_images"]["dv"], a["_images"]["dv_mask"], "δ_v after", 2.0)
-    fig.colorbar(im, ax=axes[:, 3], shrink=0.6, label="δ_v (0 = visible shares = assigned)")
+        b, a, t = run["before"], run["after"], run["thickness"]["after"]
+        _show_image(row[0], b["_images"]["image"], f"{ratio} before\n(E_v {b['E_v']:.3f})")
+        _show_image(row[1], a["_images"]["image"], f"after, importance\n(E_v {a['E_v']:.3f})")
+        _show_image(row[2], t["_images"]["image"], f"after, thickness\n(E_v {t['E_v']:.3f})")
+        _show_map(row[3], b["_images"]["dv"], b["_images"]["dv_mask"], "δ_v before", 2.0)
+        im = _show_map(row[4], a["_images"]["dv"], a["_images"]["dv_mask"], "δ_v after", 2.0)
+    fig.colorbar(im, ax=axes[:, 4], shrink=0.6, label="δ_v (importance x presence target)")
     names = " / ".join(exp["structures"])
     fig.suptitle(f"{exp['dataset']}: visibility equalisation ({names} importance)", fontsize=10)
     return _save(fig, path)
 
 
+def _inner_share(shares: dict, inner: str) -> float:
+    return shares[inner] / max(sum(shares.values()), 1e-12)
+
+
 def shares_figure(path, experiments: list) -> Path:
-    """Per dataset and ratio: importance, importance composition, visible shares before/after."""
-    fig = _figure(4.6 * len(experiments), 3.6)
+    """Per dataset and ratio: the inner structure's target and visible shares, both targets."""
+    fig = _figure(5.2 * len(experiments), 3.8)
     axes = np.atleast_1d(fig.subplots(1, len(experiments), squeeze=False)).ravel()
     bars = (
-        ("importance ratio", "#8c8c8c"),
-        ("importance composition (assigned share)", "#4c72b0"),
-        ("visible share before", "#c44e52"),
-        ("visible share after", "#55a868"),
+        ("importance ratio", "#8c8c8c", lambda r: r["importance"]),
+        ("target: importance x presence", "#4c72b0", lambda r: r["composition"]),
+        ("target: thickness", "#64b5cd", lambda r: r["thickness_composition"]),
+        ("visible before", "#c44e52", lambda r: r["before"]["visible_share"]),
+        ("visible after (importance)", "#55a868", lambda r: r["after"]["visible_share"]),
+        (
+            "visible after (thickness)",
+            "#ccb974",
+            lambda r: r["thickness"]["after"]["visible_share"],
+        ),
     )
+    width = 0.8 / len(bars)
     for ax, exp in zip(axes, experiments, strict=True):
         inner = exp["structures"][1]
         xs = np.arange(len(exp["runs"]))
-        cols = [[], [], [], []]
-        for run in exp["runs"]:
-            w = run["importance"]
-            cols[0].append(w[inner] / sum(w.values()))
-            cols[1].append(run["composition"][inner] / max(sum(run["composition"].values()), 1e-12))
-            for lst, key in ((cols[2], "before"), (cols[3], "after")):
-                share = run[key]["visible_share"]
-                lst.append(share[inner] / max(sum(share.values()), 1e-12))
-        for j, ((label, colour), ys) in enumerate(zip(bars, cols, strict=True)):
-            ax.bar(xs + (j - 1.5) * 0.2, ys, 0.2, color=colour, label=label)
+        for j, (label, colour, get) in enumerate(bars):
+            ys = [_inner_share(get(run), inner) for run in exp["runs"]]
+            ax.bar(xs + (j - (len(bars) - 1) / 2) * width, ys, width, color=colour, label=label)
         ax.set_xticks(
             xs, ["/".join(f"{v:g}" for v in r["importance"].values()) for r in exp["runs"]]
         )
@@ -114,8 +123,31 @@ def shares_figure(path, experiments: list) -> Path:
         ax.set_ylabel(f"image-wide share of '{inner}' (inner)", fontsize=8)
         ax.set_title(exp["dataset"], fontsize=9)
         ax.tick_params(labelsize=7)
-    axes[0].legend(fontsize=6, loc="upper right")
+    axes[0].legend(fontsize=6, loc="upper left")
     return _save(fig, path)
+
+
+def objectives_figure(path, comparison: dict) -> Path:
+    """Rows: datasets; columns: the original and the final image of each objective."""
+    runs = comparison["runs"]
+    objectives = list(next(iter(runs.values())))
+    first = next(iter(next(iter(runs.values())).values()))
+    p = _panel(first["steps"][0]["_images"]["image"])
+    cols = 1 + len(objectives)
+    fig = _figure(cols * p + 0.4, (p + 0.75) * len(runs) + 0.4)
+    axes = fig.subplots(len(runs), cols, squeeze=False)
+    for row, (name, by) in zip(axes, runs.items(), strict=True):
+        st0 = next(iter(by.values()))["steps"][0]
+        _show_image(row[0], st0["_images"]["image"], f"{name} original\n{_terms_title(st0)}")
+        for ax, obj in zip(row[1:], objectives, strict=True):
+            st = by[obj]["steps"][-1]
+            _show_image(ax, st["_images"]["image"], f"{obj}\n{_terms_title(st)}")
+    fig.suptitle("full pipeline: image-mean E vs Eq. 13 least squares", fontsize=10)
+    return _save(fig, path)
+
+
+def _terms_title(st: dict) -> str:
+    return f"E_v {st['E_v']:.3f} E_s {st['E_s']:.3f} E_t {st['E_t']:.3f} S {st['S']:.3f}"
 
 
 def shape_figure(path, exp: dict) -> Path:

@@ -145,9 +145,8 @@ def build(cfg: Config, out, *, log=_log) -> dict:
     start = eq_cthead["runs"][0]["result_spec"]  # skin/bone at 0.2/0.8, equalised
     shp = step("shape_cthead", experiments.run_shape, cfg, start)
     sat = step("saturation_neghip", experiments.run_saturation, cfg)
-    pipes = [
-        step(f"pipeline_{n}", experiments.run_pipeline, cfg, n) for n in ("engine", "lidc_chest")
-    ]
+    objectives = step("objectives", experiments.run_objectives, cfg)
+    pipes = [objectives["runs"][n][objectives["default"]] for n in ("engine", "lidc_chest")]
     perf = step("performance", experiments.run_performance, cfg)
 
     log("figures ...")
@@ -162,6 +161,7 @@ def build(cfg: Config, out, *, log=_log) -> dict:
             images / "equalisation_shares.png", [eq_cthead, eq_engine]
         ),
         "shape_cthead": figures.shape_figure(images / "shape_cthead.png", shp),
+        "objectives": figures.objectives_figure(images / "objectives.png", objectives),
         "saturation_neghip": figures.saturation_figure(images / "saturation_neghip.png", sat),
         "performance": figures.performance_figure(images / "performance.png", perf),
     }
@@ -188,6 +188,7 @@ def build(cfg: Config, out, *, log=_log) -> dict:
         "shape": _plain(shp),
         "saturation": _plain(sat),
         "pipeline": [_plain(p) for p in pipes],
+        "objectives": _objectives_table(objectives),
         "performance": perf,
     }
     write_json(out / "summary.json", summary)
@@ -196,6 +197,30 @@ def build(cfg: Config, out, *, log=_log) -> dict:
         tmp.write_text(text, encoding="utf-8")
     log(f"wrote {out / 'REPORT.md'} ({summary['seconds']:.0f} s)")
     return summary
+
+
+def _objectives_table(comparison: dict) -> dict:
+    """Return the objective comparison for ``summary.json``.
+
+    Per dataset and objective: the terms and shares of the original and final image, the
+    stages' messages, the opacities found and the time.
+    """
+    out = {"default": comparison["default"], "runs": {}}
+    for name, by in comparison["runs"].items():
+        out["runs"][name] = {
+            obj: {
+                "original": _plain(p["steps"][0]),
+                "final": _plain(p["steps"][-1]),
+                "stages": [
+                    {k: st[k] for k in ("name", "accepted", "message", "iterations")}
+                    for st in p["stages"]
+                ],
+                "opacity": {s.name: float(s.render_opacity) for s in p["final_spec"].structures},
+                "seconds": p["seconds"],
+            }
+            for obj, p in by.items()
+        }
+    return out
 
 
 def rerender(out) -> Path:
@@ -260,10 +285,15 @@ def _shares(run, key) -> str:
     return " / ".join(f"{v / tot:.2f}" for v in share.values())
 
 
-def _comp(run) -> str:
-    comp = run["composition"]
+def _norm(comp) -> str:
+    if not comp:
+        return "–"
     tot = sum(comp.values()) or 1.0
     return " / ".join(f"{v / tot:.2f}" for v in comp.values())
+
+
+def _comp(run) -> str:
+    return _norm(run["composition"])
 
 
 def _paper_rows(s: dict) -> list[list[str]]:
@@ -275,13 +305,13 @@ def _paper_rows(s: dict) -> list[list[str]]:
             "carp 256×256×512, skin/bone: overall deviation lowered, bones revealed "
             "according to the importance ratio (no numbers given)",
             f"cthead skin/bone: E_v {c['before']['E_v']:.3f} → {c['after']['E_v']:.3f}; "
-            f"visible shares {_shares(c, 'before')} → {_shares(c, 'after')} (importance "
-            f"composition {_comp(c)}); engine block/inserts: E_v "
+            f"visible shares {_shares(c, 'before')} → {_shares(c, 'after')} (target shares, "
+            f"importance × presence, {_comp(c)}); engine block/inserts: E_v "
             f"{eq['engine']['runs'][0]['before']['E_v']:.3f} → "
             f"{eq['engine']['runs'][0]['after']['E_v']:.3f}",
-            "carp unavailable. The shares move toward the importance *composition* of the rays "
-            "(what E_v compares with), which differs from the bare ratio where one structure "
-            "is much thicker (engine)",
+            "carp unavailable. The shares move toward the target shares of D1 (importance × "
+            "presence per ray, times A_imp): the bare ratio only where both structures lie "
+            "on the same rays",
         ]
     ]
     shp = s["shape"]
@@ -444,36 +474,39 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
     L += ["## 1. Visibility equalisation (paper Fig. 7)", ""]
     L += [
         "The carp is not available; the cthead skin/bone pair and the engine's block "
-        "(90–180) / inserts (190–255) stand in. Only the opacity stage runs. Per ratio: the "
-        "rendering before (opacity = importance) and after, and the visibility deviation "
-        "δ_v (grey: empty rays).",
+        "(90–180) / inserts (190–255) stand in. Only the opacity stage runs, without a "
+        "coverage floor (decision D1: fading raises E_v by itself), once under each target "
+        "composition of E_v: **importance** (importance × presence, the default; the checks "
+        "are on it) and **thickness** (assigned / Σ assigned, the paper-literal reading). Per "
+        "ratio: the rendering before (the original: both structures at opacity "
+        f"{s['equalisation'][0].get('start_opacity', 'importance')}, the inner one occluded, "
+        "one original for every ratio as in the paper's figure; under D1 the target is the "
+        "composition of the rendering at the importances, so starting there starts at the "
+        "optimum), after under each composition, "
+        "and the visibility deviation δ_v (importance target; grey: empty rays).",
         "",
-        f"The stage runs with `coverage_keep={s['equalisation'][0].get('coverage_keep')}`: "
-        "the mean accumulated opacity of the covered rays may fall by at most 20 %. The "
-        "optimiser's default (no fading at all) cannot make an enclosing skin semi-transparent, "
-        "which is what the paper's Fig. 7 does; the full pipeline (section 4) keeps the "
-        "default.",
-        "",
-        "*Importance composition* is the image-wide share of each structure in the "
-        "importance-based opacity of the rays with occlusion ignored (the engine's "
-        "`assigned` buffer, Eq. 1): it is what the visibility measure compares the visible "
-        "shares with, ray by ray, and the target of the check. It equals the bare importance "
-        "ratio only when both structures are equally thick along the rays. Shares are "
-        "written outer / inner.",
+        "*Target share* is the image-wide share of each structure in the target opacity "
+        "α_o = c · A_imp (Σ_r α_o(s, r) over the structures' sum, decision D6): it is what "
+        "the visibility measure aims the visible opacity at, ray by ray, and the target of the "
+        "check. Shares are written outer / inner; E_v and the shares after are each under "
+        "their own composition.",
         "",
     ]
     for e in s["equalisation"]:
         rows = []
         for r in e["runs"]:
+            t = r.get("thickness")
             rows.append(
                 [
                     " / ".join(f"{v:g}" for v in r["importance"].values()),
                     _comp(r),
+                    _norm(r.get("thickness_composition")),
                     " / ".join(f"{v:.3f}" for v in r["opacity_found"].values()),
                     _shares(r, "before"),
                     _shares(r, "after"),
-                    " → ".join(f"{d:.3f}" for d in r["distance_to_ratio"]),
+                    "–" if t is None else _shares(t, "after"),
                     f"{r['before']['E_v']:.3f} → {r['after']['E_v']:.3f}",
+                    "–" if t is None else f"{t['before']['E_v']:.3f} → {t['after']['E_v']:.3f}",
                     f"{r['before']['coverage']:.3f} → {r['after']['coverage']:.3f}",
                     _s(r["seconds"]),
                 ]
@@ -483,13 +516,15 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
         L += _table(
             [
                 "importance",
-                "importance composition",
-                "opacity found",
-                "visible shares before",
-                "after",
-                "L1 to the bare ratio",
-                "E_v",
-                "coverage",
+                "target shares (importance)",
+                "target shares (thickness)",
+                "opacity found (importance)",
+                "visible before",
+                "after (importance)",
+                "after (thickness)",
+                "E_v (importance)",
+                "E_v (thickness)",
+                "coverage (importance)",
                 "s",
             ],
             rows,
@@ -500,8 +535,8 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
     L += [
         f"![visible shares vs importance]({s['images']['equalisation_shares']})",
         "",
-        "Share of the inner structure in the image-wide visible opacity, against its share "
-        "of the importance.",
+        "Share of the inner structure in the image-wide visible opacity before and after "
+        "(under each composition), against its importance ratio and its target shares.",
         "",
     ]
     L += _observed(obs, "equalisation_shares")
@@ -510,7 +545,9 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
     shp = s["shape"]
     L += ["## 2. Shape enhancement (paper Fig. 8)", ""]
     L += [
-        "cthead skin/bone after the 0.2/0.8 equalisation above, then the lighting stage alone. "
+        "cthead skin/bone after the 0.2/0.8 equalisation above, then the lighting stage alone "
+        f"with weights {tuple(shp.get('weights', (1, 1, 1)))} (shape isolated as in the paper, "
+        "decision D4). "
         f"E_s {shp['before']['E_s']:.4f} → {shp['after']['E_s']:.4f} "
         f"({_s(shp['seconds'])} s). Light direction (camera coordinates) "
         f"{[round(v, 3) for v in shp['light_before']]} → "
@@ -583,8 +620,9 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
     # 4. pipeline
     L += ["## 4. Full pipeline (paper Figs. 10–11)", ""]
     L += [
-        "All three stages with the presets of `state_files/` and the optimiser's defaults (the "
-        "opacity stage may not lower the coverage at all). Terms after each stage, measured "
+        "All three stages with the presets of `state_files/` and the optimiser's defaults "
+        f"(objective `{s.get('objectives', {}).get('default', 'mean')}`, no coverage floor). "
+        "Terms after each stage, measured "
         "at the image size (the stage records of the optimiser are at its 96-px optimisation "
         "resolution and are not used here). A stage undone by the optimiser's final check "
         "changes nothing.",
@@ -623,6 +661,8 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
         L += [f"![{p['dataset']} pipeline]({img})", ""]
         L += _observed(obs, f"pipeline_{p['dataset']}")
 
+    L += _objectives_section(s, obs)
+
     # 5. performance
     perf = s["performance"]
     L += ["## 5. Performance", ""]
@@ -650,6 +690,19 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
                     p["iterations"],
                 ]
             )
+    big = [
+        f"{name} {p['optimize_s']:.2f} s = {p['optimize_vtk_frames']:.1f} VTK frames"
+        for name, points in perf["image_size"].items()
+        for p in points
+        if p["size"][0] == n and p.get("optimize_vtk_frames") is not None
+    ]
+    if big:
+        L += [
+            f"**Whole default optimisation at {n}²** (ray analyses at full size included, "
+            "curvature volume excluded), in warm VTK CPU frames of the same view and size "
+            "(target ≤ 25): " + "; ".join(big) + ".",
+            "",
+        ]
     L += ["**Against image size**", ""]
     L += _table(
         [
@@ -751,6 +804,47 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
     L += ["## Experiment run times", ""]
     L += _table(["experiment", "s"], [[k, _s(v)] for k, v in s["experiment_seconds"].items()])
     return "\n".join(L).rstrip() + "\n"
+
+
+def _objectives_section(s: dict, obs: dict) -> list[str]:
+    """Section 4b: the full pipeline under the image-mean E and under Eq. 13 (D4)."""
+    comp = s.get("objectives")
+    if not comp:
+        return []
+    L = ["## 4b. Objectives: image-mean E against Eq. 13's least squares", ""]
+    L += [
+        "The full default pipeline under both objectives of `optimize(objective=...)`: "
+        "**mean** (every stage minimises the image-mean E = w · (E_v, E_s, E_t), its lead "
+        "term boosted) and **least_squares** (Eq. 13: the mean over the rays of "
+        "(w · (δ_v, δ_s, δ_t))², the same boost). Both never raise their own objective at "
+        "the user's resolution. S is Eq. 13 per pixel with unit weights, measured on the "
+        f"final image. Default: **{comp['default']}**.",
+        "",
+    ]
+    rows = []
+    for name, by in comp["runs"].items():
+        first = next(iter(by.values()))["original"]
+        names = list(first["visible_share"])
+        rows.append([name, "original", *_objective_cells(first, names), "–"])
+        for obj, r in by.items():
+            changed = [st["name"] for st in r["stages"] if st["message"].startswith("improved")]
+            kept = ", ".join(changed) or "none"
+            rows.append([name, obj, *_objective_cells(r["final"], names), kept])
+    L += _table(
+        ["volume", "image", "E_v", "E_s", "E_t", "S", "coverage", "visible shares",
+         "target shares", "stages that changed"],
+        rows,
+    )  # fmt: skip
+    L += [f"![objectives]({s['images']['objectives']})", ""]
+    L += _observed(obs, "objectives")
+    return L
+
+
+def _objective_cells(t: dict, names) -> list[str]:
+    share = ", ".join(f"{n} {t['visible_share'][n]:.2f}" for n in names)
+    target = ", ".join(f"{n} {t['target_share'][n]:.2f}" for n in names)
+    cells = [f"{t[k]:.4f}" for k in ("E_v", "E_s", "E_t", "S")]
+    return [*cells, f"{t['coverage']:.3f}", share, target]
 
 
 def cfg_stage_sizes(cfg: dict) -> tuple[int, ...]:

@@ -108,6 +108,14 @@ def add_parser(subparsers, parents) -> None:
         help="share of the starting mean opacity the opacity stage must keep, in [0, 1] "
         "(default: no floor, E_v itself penalises fading; e.g. 1 forbids any fading)",
     )
+    p.add_argument(
+        "--objective",
+        choices=("mean", "least_squares"),  # optimize.core.OBJECTIVES (imported lazily)
+        default=None,
+        help="what each stage minimises and may never raise: the weighted image means E "
+        "(mean) or Eq. 13's least squares over the per-pixel deviations S (least_squares); "
+        "default: the optimiser's",
+    )
     p.set_defaults(run=run)
 
 
@@ -282,16 +290,18 @@ def _why(res, initial: dict, final: dict) -> dict:
 
 
 def _terms(d: dict) -> dict:
-    return {k: float(d[k]) for k in (*TERMS, "E")}
+    return {k: float(d[k]) for k in (*TERMS, "E", "S") if k in d}
 
 
 def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lighting", "colour"),
                    weights=(1.0, 1.0, 1.0), region=None, views=1, seed=0, max_iter=10,
-                   resolution=None, coverage_keep=None, progress=None) -> dict:  # fmt: skip
+                   resolution=None, coverage_keep=None, progress=None,
+                   objective=None) -> dict:  # fmt: skip
     """Optimise ``spec`` for ``camera``, write every output into ``out_dir``, return the report.
 
     ``region`` is ``(x0, y0, x1, y1)`` in pixels or ``None``; ``progress`` a :class:`Progress`
-    (or any callback).  See the module docstring for the files and the report.
+    (or any callback); ``objective`` ``"mean"`` or ``"least_squares"`` (``None``: the
+    optimiser's default).  See the module docstring for the files and the report.
     """
     from dvr_perception.cli import _plots
     from dvr_perception.export import save_paraview_preset, save_slicer_vp
@@ -315,6 +325,7 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
         max_iter=max_iter,
         resolution=resolution,
         coverage_keep=coverage_keep,
+        **({} if objective is None else {"objective": objective}),
     )
     if isinstance(progress, Progress):
         progress.close()
@@ -368,6 +379,7 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
         "seed": seed,
         "initial": initial,
         "final": final,
+        "objective": objective,
         "optimizer": {"initial": _terms(res.initial), "final": _terms(res.final)},
         "stages": stages_out,
         "structures": why,
@@ -407,7 +419,8 @@ def run(args: argparse.Namespace) -> int:
         report = optimize_scene(scene.volume, scene.spec, cam, out_dir, stages=stages,
                                 weights=weights, region=region, views=args.views, seed=args.seed,
                                 max_iter=args.max_iter, resolution=args.resolution,
-                                coverage_keep=args.coverage_keep, progress=progress)  # fmt: skip
+                                coverage_keep=args.coverage_keep, progress=progress,
+                                objective=args.objective)  # fmt: skip
     report = {"volume": scene.volume_source, "spec": scene.spec_source, **report}
     write_json(out_dir / "result.json", report)
     if args.json:
@@ -432,6 +445,11 @@ def print_summary(report: dict, *, indent: str = "  ") -> None:
         )
     for entry in report.get("structures", {}).values():
         print(f"{indent}{entry['line']}")
+    opt = report.get("optimizer", {})
+    if "S" in opt.get("initial", {}):
+        which = report.get("objective") or "default"
+        print(f"{indent}S (Eq. 13) {opt['initial']['S']:.4f} -> {opt['final']['S']:.4f}; "
+              f"objective {which}")  # fmt: skip
     print(f"{indent}status {report['status']}: {report['message']}")
     for note in report["notes"]:
         print(f"{indent}note: {note}")

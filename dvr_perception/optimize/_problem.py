@@ -27,6 +27,15 @@ replaces its composition ``c`` by ``t`` on the rays where it is present; the oth
 compositions are rescaled to fill ``1 - t`` (and all are renormalised to sum to 1).  A
 transparency target ``a`` sets the expected opacity of ``s`` to ``1 - a``.  With several views every
 term is the mean over the views.
+
+**Eq. 13.**  Every full evaluation also returns ``S``, the least-squares residue of Eq. 13
+normalised by the pixel count: ``S = mean_r (w_v d_v(r) + w_s d_s(r) + w_t d_t(r))^2`` over
+the counted rays (those that carry assigned opacity, inside the mask), with ``d_v(r)`` the
+ray's visibility deviation ``sum_s |alpha_o - alpha_v|``, ``d_s`` the shape measure's
+per-pixel deviation and ``d_t`` the ``delta_t`` of the pixel's region (0 outside the pixels
+each measure counts), and the mean over the views.  The private entry ``_stack`` keeps, per
+view, the (3, rays) deviations so that a stage can weigh them with its own (boosted) weights
+(:func:`residue`).
 """
 
 from __future__ import annotations
@@ -44,7 +53,7 @@ from dvr_perception.measures.visibility import target_composition
 from dvr_perception.rays.engine import reevaluate
 from dvr_perception.structures.spec import Lighting, StructureSpec
 
-__all__ = ["TERMS", "Params", "Problem"]
+__all__ = ["TERMS", "Params", "Problem", "residue"]
 
 TERMS = ("E_v", "E_s", "E_t")
 
@@ -213,12 +222,12 @@ class Problem:
         )
 
     def terms(self, params: Params, *, whole=False, need=TERMS, analyses=None) -> dict:
-        """Terms ``{E_v, E_s, E_t, E, coverage, luminance, visible_share, badness}``.
+        """Terms ``{E_v, E_s, E_t, E, S, coverage, luminance, visible_share, badness}``.
 
         Averaged over the views.  ``badness`` maps each term to a (K,) array of per-structure
         deviations (used by the annealing moves).  ``whole=True`` ignores the region masks;
         ``need`` names the measures to compute (the others, and ``E`` unless all three are
-        computed, are ``nan``); ``analyses`` (one per view) are renderings of ``params``
+        computed, and ``S``, are ``nan``); ``analyses`` (one per view) are renderings of ``params``
         already at hand (e.g. from :func:`~dvr_perception.rays.engine.analyze`).
         """
         self.nfev += 1
@@ -232,6 +241,8 @@ class Problem:
                 per_view.append(self._view_terms(analysis, fixed, set(need)))
         out = {key: float(np.mean([t[key] for t in per_view])) for key in (*TERMS, "coverage")}
         out["E"] = float(np.dot(self.weights, [out[t] for t in TERMS]))
+        out["_stack"] = [t["stack"] for t in per_view]
+        out["S"] = residue(out["_stack"], self.weights)
         out["luminance"] = np.mean([t["luminance"] for t in per_view], axis=0)
         if set(need) != set(TERMS):  # keep the renderings: complete() adds the other terms
             out["_analyses"], out["_whole"] = analyses_used, whole
@@ -290,18 +301,21 @@ class Problem:
         visible = np.asarray(analysis.visible, float)
         acc_r = acc[rays]
         dev = np.abs(fixed["target"] - visible[:, rays])
-        e_v = float(dev.sum(axis=0).mean()) if acc_r.size else 0.0
+        d_v = dev.sum(axis=0)
+        e_v = float(d_v.mean()) if acc_r.size else 0.0
         coverage = float(acc_r.mean()) if acc_r.size else 0.0
         present = fixed["present"]
         cnt = present.sum(axis=1)
         bad_v = np.where(cnt > 0, (dev * present).sum(axis=1) / np.maximum(cnt, 1), 0.0)
         if "E_s" in need:
             v_share = np.clip(np.asarray(analysis.visible_share, float), 0.0, 1.0)
-            e_s, bad_s = self._shape(analysis, m, v_share)
+            e_s, bad_s, d_s = self._shape(analysis, m, v_share)
         else:
-            e_s, bad_s = np.nan, np.full(k, np.nan)
-        e_t, bad_t = (self._transparency(analysis, m) if "E_t" in need
-                      else (np.nan, np.full(k, np.nan)))  # fmt: skip
+            e_s, bad_s, d_s = np.nan, np.full(k, np.nan), np.full(acc.shape, np.nan)
+        if "E_t" in need:
+            e_t, bad_t, d_t = self._transparency(analysis, m)
+        else:
+            e_t, bad_t, d_t = np.nan, np.full(k, np.nan), np.full(acc.shape, np.nan)
         acc_sum = float(acc[m].sum())
         shares = {
             n: (float(visible[i][m].sum()) / acc_sum if acc_sum > 0 else 0.0)
@@ -320,6 +334,7 @@ class Problem:
             "visible_share": shares,
             "target_share": dict(zip(self.names, fixed["target_share"].tolist(), strict=True)),
             "badness": {"E_v": bad_v, "E_s": bad_s, "E_t": bad_t},
+            "stack": np.stack([d_v, d_s[rays], d_t[rays]]),
         }
 
     def _shape(self, analysis, m, v_share):
@@ -332,10 +347,13 @@ class Problem:
             (wts * sh.deviation[pix]).sum(axis=1) / np.maximum(wts.sum(axis=1), 1e-12),
             0.0,
         )
-        return e_s, bad_s
+        return e_s, bad_s, np.where(pix, sh.deviation, 0.0)
 
     def _transparency(self, analysis, m):
-        """E_t and per-structure badness over the pixels of ``m`` (region areas counted there).
+        """E_t, per-structure badness and per-pixel ``delta_t`` over the pixels of ``m``.
+
+        Region areas are counted inside ``m``; the per-pixel map is the ``delta_t`` of the
+        pixel's region (0 in empty regions and outside ``m``).
 
         Sums run region after region in id order (``np.add.accumulate`` adds in sequence), so
         the figures equal a loop over ``transparency(...).regions`` to the last bit.
@@ -356,7 +374,30 @@ class Problem:
             s_den[i] = _in_order_sum(counts[sel])
         e_t = num / den if den > 0 else 0.0
         bad_t = np.where(s_den > 0, s_num / np.maximum(s_den, 1e-12), 0.0)
-        return e_t, bad_t
+        per_pixel = np.where(m & ~empty[region_id], deltas[region_id], 0.0)
+        return e_t, bad_t, per_pixel
+
+
+def residue(stacks, weights) -> float:
+    """Eq. 13 per ray, normalised: the mean over views of ``mean_r (weights . d(r))^2``.
+
+    ``stacks`` is the ``_stack`` entry of :meth:`Problem.terms` (per view, the (3, rays)
+    deviations ``d_v``, ``d_s``, ``d_t``); ``weights`` the three term weights.  A view
+    without counted rays contributes 0; ``nan`` when a needed deviation is missing.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> residue([np.array([[0.5, 0.0], [0.2, 0.4], [0.0, 0.0]])], (1.0, 1.0, 1.0))
+    0.325...
+    """
+    w = np.asarray(weights, float)
+    out = []
+    for st in stacks:
+        used = np.asarray(st)[w > 0]
+        r = w[w > 0] @ used if used.size else np.zeros(np.asarray(st).shape[1])
+        out.append(float(np.mean(r**2)) if r.size else 0.0)
+    return float(np.mean(out)) if out else 0.0
 
 
 def _in_order_sum(x: np.ndarray) -> float:

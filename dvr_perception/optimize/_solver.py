@@ -1,7 +1,11 @@
 """The per-stage solver: Polak-Ribiere conjugate gradients with annealing moves (Sec. 5).
 
-The stage objective ``f(x) = w' . (E_v, E_s, E_t) + PENALTY * penalty(x)`` is minimised over the
-stage's unbounded vector ``x`` (see :mod:`~dvr_perception.optimize.stages`).
+The stage objective ``f(x) = F(x) + PENALTY * penalty(x)`` is minimised over the stage's
+unbounded vector ``x`` (see :mod:`~dvr_perception.optimize.stages`), with ``w'`` the stage's
+weights (the lead term boosted) and ``F`` either the image-mean ``w' . (E_v, E_s, E_t)``
+(``objective="mean"``) or Eq. 13's least-squares residue per pixel, ``mean_r (w' . d(r))^2``
+over the per-pixel deviations (``objective="least_squares"``,
+:func:`~dvr_perception.optimize._problem.residue`).
 
 **Opacity stage** (stages with ``exact = True``, :func:`_run_exact`): ``E_v`` and the coverage
 and their exact gradients in the opacities come from :class:`~._exact.OpacityModel` (about a
@@ -15,7 +19,9 @@ floor, a result is moved up the coverage gradient until it holds (at most :data:
 doubling steps). The results get the full terms (one rendering each) in order of ``E_v`` until
 one keeps the other terms' tolerances; the last one tried is moved halfway back towards the
 current point when it breaks them (at most :data:`BACKTRACK` times, never below the coverage
-floor).
+floor).  SLSQP minimises the lead term ``E_v`` alone in both objectives (its exact gradient is
+the cheap part); the candidate it returns is judged, accepted and kept on the stage objective
+``f`` (least squares included) like any other point.
 
 **Other stages** (conjugate gradients):
 
@@ -61,7 +67,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from dvr_perception.optimize._exact import OpacityModel
-from dvr_perception.optimize._problem import TERMS, public_terms
+from dvr_perception.optimize._problem import TERMS, public_terms, residue
 
 __all__ = ["run_stage"]
 
@@ -107,9 +113,10 @@ class _Run:
     """State of one stage run (the closure over the problem, stage and counters)."""
 
     def __init__(self, stage, problem, params0, terms0, active, weights, rng, notify,
-                 coarse=None, verify=None):  # fmt: skip
+                 coarse=None, verify=None, objective="mean"):  # fmt: skip
         self.stage, self.problem, self.params0, self.active = stage, problem, params0, active
         self.coarse, self.verify = coarse, verify
+        self.squares = objective == "least_squares"
         self.terms0, self.weights, self.rng, self.notify = terms0, weights, rng, notify
         self.w = stage.weights(weights)
         self.nfev = 0
@@ -126,12 +133,19 @@ class _Run:
             terms = (problem or self.problem).terms(params, need=need)
             self.nfev += 1
             if ref is not None:
-                for t in TERMS:
-                    if t not in need:
-                        terms[t] = ref.terms[t]
+                held = [i for i, t in enumerate(TERMS) if t not in need]
+                for i in held:
+                    terms[TERMS[i]] = ref.terms[TERMS[i]]
+                if self.squares:  # the held deviations of ref, per pixel (same rays)
+                    terms["_stack"] = [s.copy() for s in terms["_stack"]]
+                    for s, r in zip(terms["_stack"], ref.terms["_stack"], strict=True):
+                        s[held] = r[held]
         cons = self.stage.constraints(terms, self.terms0, self.weights)
         pen = float(np.maximum(cons, 0.0).sum())
-        smooth = float(np.dot(self.w, [terms[t] for t in TERMS]))
+        if self.squares:
+            smooth = residue(terms["_stack"], self.w)
+        else:
+            smooth = float(np.dot(self.w, [terms[t] for t in TERMS]))
         return _Point(np.array(x, float), smooth + PENALTY * pen, pen, terms, params, smooth, cons)
 
     def gradient(self, p: _Point, groups) -> tuple[np.ndarray, np.ndarray]:
@@ -148,7 +162,9 @@ class _Run:
             sign = self.rng.choice([-1.0, 1.0], p.x.size)
             dirs = [np.where(groups == k, sign, 0.0) for k in np.unique(groups)]
         if self.coarse is not None:  # differences on the coarse rays: p again there first
-            p = self.point(p.x, params=p.params, ref=p, problem=self.coarse)
+            # (least squares: in full, the held deviations are needed per coarse pixel)
+            ref = None if self.squares else p
+            p = self.point(p.x, params=p.params, ref=ref, problem=self.coarse)
         for v in dirs:
             q = self.point(p.x + FD_STEP * v, ref=p, problem=self.coarse)
             g += v * (q.smooth - p.smooth) / FD_STEP
@@ -406,9 +422,11 @@ def _run_exact(run, x0, groups, group_structures, max_iter, info, history):
 
 
 def run_stage(stage, problem, params0, terms0, active, *, weights, rng, max_iter, notify,
-              coarse=None, verify=None):  # fmt: skip
+              coarse=None, verify=None, objective="mean"):  # fmt: skip
     """Optimise ``stage``'s parameters from ``params0`` (terms ``terms0``).
 
+    ``objective``: ``"mean"`` (the weighted image means) or ``"least_squares"`` (Eq. 13 per
+    pixel, see the module docstring) as the stage's smooth objective.
     ``coarse``: a :class:`~._problem.Problem` of the same views on fewer rays, for the
     finite differences of the gradient (``None``: ``problem``).  ``verify``: ``(problem,
     terms)`` at the user's resolution, where the opacity stage checks its coverage floor
@@ -420,7 +438,8 @@ def run_stage(stage, problem, params0, terms0, active, *, weights, rng, max_iter
     ``evaluations``, ``seconds``, ``history``, ``converged``, ``stopped``.
     """
     t0 = time.perf_counter()
-    run = _Run(stage, problem, params0, terms0, active, weights, rng, notify, coarse, verify)
+    run = _Run(stage, problem, params0, terms0, active, weights, rng, notify, coarse, verify,
+               objective)  # fmt: skip
     x0, groups, group_structures = stage.encode(params0, active)
     frac = problem.presence_fraction()
     share = np.array([1.0 if s is None else max(frac[s], 0.01) for s in group_structures])

@@ -27,7 +27,13 @@ from dvr_perception.rays.engine import analyze
 from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.volume.volume import Volume
 
-__all__ = ["DEFAULT_RESOLUTION", "optimize"]
+__all__ = ["DEFAULT_RESOLUTION", "OBJECTIVES", "optimize"]
+
+#: The scalar each stage minimises and the final check guards (decision D4): the weighted
+#: image means ``E`` (Eq. 12) or Eq. 13's least-squares residue ``S`` per pixel.
+OBJECTIVES = ("mean", "least_squares")
+#: objective -> the terms key that may never rise.
+_KEY = {"mean": "E", "least_squares": "S"}
 
 #: Slack of the re-check of the stages' guards at the user's resolution (the opacity stage
 #: checks its coverage floor there exactly, so only float rounding).
@@ -115,7 +121,7 @@ def _reduced(camera: Camera, resolution: int) -> Camera:
 def _report(problem: Problem, params: Params, region: bool, terms: dict) -> dict:
     out = public_terms(terms, problem.names)
     whole = problem.terms(params, whole=True) if region else terms
-    out["whole"] = {k: whole[k] for k in ("E_v", "E_s", "E_t", "E")}
+    out["whole"] = {k: whole[k] for k in ("E_v", "E_s", "E_t", "E", "S")}
     return out
 
 
@@ -139,6 +145,7 @@ def optimize(
     allow_hue=False,
     curvature=None,
     composition="importance",
+    objective="mean",
 ) -> OptimizationResult:
     """Optimise opacity, lighting and colour of ``spec`` for a readable rendering (Eq. 12-15).
 
@@ -151,11 +158,12 @@ def optimize(
     ``resolution`` pixels (default :data:`DEFAULT_RESOLUTION`, 96: "sampling the image"; an
     evaluation there costs a few hundredths of a second); the finite differences of the
     lighting and colour stages use one of :data:`FD_RESOLUTION` (48) pixels.  The result is
-    then checked at the user's resolution: the last stages are undone until ``E`` has not
-    risen and the re-checked guards (the opacity stage's coverage, within :data:`GUARD_SLACK`)
-    hold, so
-    ``final["E"] <= initial["E"]``.  Only the initial and final terms are computed at the
-    user's resolution (the stage records hold the optimisation resolution's terms).
+    then checked at the user's resolution: the last stages are undone until the objective
+    (``E``, or ``S`` with ``objective="least_squares"``) has not risen and the re-checked
+    guards (the opacity stage's coverage, within :data:`GUARD_SLACK`) hold, so
+    ``final["E"] <= initial["E"]`` (with least squares ``final["S"] <= initial["S"]``).
+    Only the initial and final terms are computed at the user's resolution (the stage
+    records hold the optimisation resolution's terms).
 
     Parameters
     ----------
@@ -204,6 +212,20 @@ def optimize(
     composition : {"importance", "thickness"}
         Target composition of ``E_v`` (:func:`~dvr_perception.measures.visibility`): each
         structure's share of a ray by importance and presence (default), or by thickness.
+    objective : {"mean", "least_squares"}
+        What every stage minimises (with its lead term's weight boosted) and what may never
+        rise: ``"mean"``, the image-mean ``E = w_v E_v + w_s E_s + w_t E_t`` (Eq. 12), or
+        ``"least_squares"``, Eq. 13's residue per pixel ``S = mean_r E(f, r)^2`` with
+        ``E(f, r) = w_v d_v(r) + w_s d_s(r) + w_t d_t(r)`` over the rays that carry assigned
+        opacity (mean over views).  Both ``E`` and ``S`` are reported either way.  The
+        opacity stage's SLSQP minimises ``E_v`` in both modes; its candidates are judged on
+        the objective.  The default is ``"mean"`` (decision D4, benchmark report section
+        4b): on engine, cthead and lidc_chest at 512² both find (nearly) the same opacities
+        (the opacity stage leads), so the images differ only through lighting and colour,
+        and there the mean reveals as much or more: on the engine the least-squares run
+        makes the inserts' face more saturated and solid, so what lies behind it shows a
+        little less; cthead and lidc_chest look alike.  The mean is also cheaper (no full
+        coarse evaluation per finite-difference gradient).
 
     Returns
     -------
@@ -212,7 +234,7 @@ def optimize(
     Raises
     ------
     DVRInputError
-        Bad weights, stage names, region, targets, calibration or options.
+        Bad weights, stage names, region, targets, calibration, objective or options.
 
     Examples
     --------
@@ -228,6 +250,9 @@ def optimize(
                max_iter, resolution, opacity_floor, coverage_keep)  # fmt: skip
     if composition not in COMPOSITIONS:
         raise DVRInputError(f"composition: expected one of {COMPOSITIONS}, got {composition!r}")
+    if not isinstance(objective, str) or objective not in OBJECTIVES:
+        raise DVRInputError(f"objective: expected one of {OBJECTIVES}, got {objective!r}")
+    key = _KEY[objective]
     goals = parse_targets(targets, spec.names)
     mask = parse_region(region, camera.height, camera.width)
     views = [camera, *(cameras or [])]
@@ -300,8 +325,9 @@ def optimize(
         best, snapshots, info = run_stage(
             stage, problem, params, terms, active, weights=w, rng=rng, max_iter=int(max_iter),
             notify=notify, coarse=coarse, verify=None if same else (full_problem, full0),
+            objective=objective,
         )  # fmt: skip
-        chosen = _pick(params, terms, best, snapshots)
+        chosen = _pick(params, terms, best, snapshots, key)
         after = terms if chosen is None else chosen.terms
         done.append((stage, info, params, terms, chosen, after))
         params, terms = (params, terms) if chosen is None else (chosen.params, chosen.terms)
@@ -310,7 +336,7 @@ def optimize(
             break
         if not info["converged"]:
             status = 2
-    kept, params, final_terms, frac = _full_size_check(done, full0, full_problem, same)
+    kept, params, final_terms, frac = _full_size_check(done, full0, full_problem, same, key)
     if params is None:
         params = Params.from_spec(spec)
     if frac is not None:  # record the shortened step as the stage's result
@@ -345,17 +371,18 @@ def _most_important(spec, active) -> str | None:
     return max(on, key=lambda s: s.importance).name if on else None
 
 
-def _holds(t, full0, done, k) -> bool:
-    """``E`` not above the start and the re-checked guards of the first ``k`` stages held."""
-    return t["E"] <= full0["E"] + 1e-12 and all(
+def _holds(t, full0, done, k, key="E") -> bool:
+    """``key`` (``E`` or ``S``) not above the start and the first ``k`` stages' guards held."""
+    return t[key] <= full0[key] + 1e-12 and all(
         np.all(st.guards(t, full0, full=True) <= GUARD_SLACK) for st, *_ in done[:k] if st.recheck
     )
 
 
-def _full_size_check(done, full0, full_problem, same):
+def _full_size_check(done, full0, full_problem, same, key="E"):
     """Run the hard check at the user's resolution: ``(kept, params, terms, fraction)``.
 
-    Stages are undone from the last until ``E`` and the guards hold at full size; a stage
+    Stages are undone from the last until ``key`` (``E``, or ``S`` for least squares) and the
+    guards hold at full size; a stage
     whose whole step fails there is first retried with its step cut to each of
     :data:`SHORTER` (``fraction``; ``None`` for a whole step).  ``params`` is ``None`` when
     every stage is undone.
@@ -365,22 +392,22 @@ def _full_size_check(done, full0, full_problem, same):
         if chosen is None:
             continue
         t = after if same else full_problem.terms(chosen.params)
-        if _holds(t, full0, done, kept):
+        if _holds(t, full0, done, kept, key):
             return kept, chosen.params, t, None
         for frac in () if same else SHORTER:
             p_short = before.toward(chosen.params, frac)
             t = full_problem.terms(p_short)
-            if _holds(t, full0, done, kept) and t["E"] < full0["E"] - 1e-12:
+            if _holds(t, full0, done, kept, key) and t[key] < full0[key] - 1e-12:
                 return kept, p_short, t, frac
     return 0, None, full0, None
 
 
-def _pick(params, terms, best, snapshots):
-    """Return the newest best point of a stage whose weighted ``E`` has not risen (or None)."""
+def _pick(params, terms, best, snapshots, key="E"):
+    """Return the newest best point of a stage whose ``key`` (E or S) has not risen (or None)."""
     for point in [best, *reversed(snapshots[-3:])]:
         if point.params is params or point.params.same(params):
             return None
-        if point.terms["E"] <= terms["E"] + 1e-12:
+        if point.terms[key] <= terms[key] + 1e-12:
             return point
     return None
 
@@ -404,7 +431,7 @@ def _record(entry, names, spec, kept) -> StageRecord:
     elif kept:
         message = "improved"
     else:
-        message = "undone: E or a guard broken at the user's resolution"
+        message = "undone: the objective (E or S) or a guard broken at the user's resolution"
     return StageRecord(
         name=stage.name,
         params_before=stage.describe(before, names),

@@ -3,7 +3,7 @@
 The reduced run (``dvr-perception report --quick``, 128² images) regenerates the whole report
 into a temporary folder and must pass every acceptance check it records in ``summary.json``:
 the saturation series is monotone as the paper reports, each stage lowers its own term,
-equalisation moves the visible shares toward the importance composition.
+equalisation moves the visible shares toward the target shares (D1).
 """
 
 from __future__ import annotations
@@ -105,15 +105,7 @@ def test_quick_report_checks_cover_the_acceptance(quick_report):
 
 #: Checks of the reduced run that fail today, with why (issue 8 stays open until they hold).
 #: Each must still fail: when a fix makes one pass, this test says so and it leaves the list.
-KNOWN_GAPS = {
-    "lighting stage lowers E_s: cthead skin/bone": "no lighting step lowers E_s on the "
-    "equalised CT head at 128 px (the stage keeps the preset)",
-    "saturation series (neghip)": "the E_t measure's Eq. 8 blend keeps the desaturated outer "
-    "layer's transparency flat (Metelli holds the physical transmittance); its TAP reading, "
-    "the paper's for Fig. 9, falls as it should (checked separately)",
-    "opacity stage lowers E_v: lidc_chest": "under the no-fading rule no per-structure opacity "
-    "lowers E_v on the chest (see the optimiser's --floors figures)",
-}
+KNOWN_GAPS: dict[str, str] = {}
 
 
 def _gap(name: str) -> str | None:

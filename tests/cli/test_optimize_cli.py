@@ -165,6 +165,7 @@ def test_ctrl_c_saves_best_so_far(capsys, tmp_path, monkeypatch):
         (["--views", "0"], "--views"),
         (["--seed", "-1"], "seed"),
         (["--coverage-keep", "1.5"], "--coverage-keep"),
+        (["--objective", "squares"], "--objective"),
     ],
 )
 def test_bad_input_exits_2(capsys, tmp_path, option, message):
@@ -184,3 +185,14 @@ def test_coverage_keep_lets_the_opacity_stage_fade_only_that_far(capsys, tmp_pat
     rep = json.loads((tmp_path / "o" / "result.json").read_text())
     before, after = rep["initial"]["coverage"], rep["final"]["coverage"]
     assert after >= 0.7 * before - 0.01
+
+
+def test_least_squares_objective_reports_S_and_never_raises_it(capsys, tmp_path):
+    argv = ["optimize", "phantom", "--size", "40", "--stages", "opacity", "--max-iter", "2"]
+    out_dir = tmp_path / "ls"
+    code, out, err = _run(capsys, [*argv, "--objective", "least_squares", "--out", str(out_dir)])
+    assert code == 0, err
+    assert "S (Eq. 13)" in out
+    rep = json.loads((out_dir / "result.json").read_text())
+    assert rep["objective"] == "least_squares"
+    assert rep["optimizer"]["final"]["S"] <= rep["optimizer"]["initial"]["S"] + 1e-12
