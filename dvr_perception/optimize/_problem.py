@@ -388,8 +388,8 @@ def residue(stacks, weights) -> float:
     Examples
     --------
     >>> import numpy as np
-    >>> residue([np.array([[0.5, 0.0], [0.2, 0.4], [0.0, 0.0]])], (1.0, 1.0, 1.0))
-    0.325...
+    >>> round(residue([np.array([[0.5, 0.0], [0.2, 0.4], [0.0, 0.0]])], (1.0, 1.0, 1.0)), 6)
+    0.325
     """
     w = np.asarray(weights, float)
     out = []
