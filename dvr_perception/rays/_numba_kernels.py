@@ -223,7 +223,7 @@ def _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz):
 
 @njit(cache=True, fastmath=_FM, inline="always")
 def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n,
-          step, shade, has_curv, build, base, cnt, walked, bits, asg, out, ti, ert):  # fmt: skip
+          step, shade, has_curv, build, base, cnt, walked, bits, asg, out, ti, ert, geo):  # fmt: skip
     """Walk the rest of a ray after early ray termination: only each sample's table index.
 
     Accumulates the occlusion-free ``asg``, the ``present`` bits and the transmittance ``ti`` at
@@ -244,6 +244,7 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
     c_lut, c_j, c_sh, c_curv = out
     spare = asg.shape[0] - 1
     lab_end = (lab_base if lab_base >= 0 else len(tids) - 1) - 1
+    gnx, gny, gnz, ox, oy, oz = geo
     nz, ny, nx = tix.shape
     tf = tix.reshape(tix.size)
     cf = cells.reshape(cells.size)
@@ -253,19 +254,22 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
     nxy = nx * ny
     binv = _jump_scale(bx, by, bz, step) * _BLOCK
     while j < n:
-        px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz)
+        px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, gnx, gny, gnz)
         walked += 1
-        d = bf[(z >> 2) * bnxy + (y >> 2) * bnx + (x >> 2)]
+        lx = x - ox
+        ly = y - oy
+        lz = z - oz
+        d = bf[(lz >> 2) * bnxy + (ly >> 2) * bnx + (lx >> 2)]
         if d > 1:
             j += max(int((d - 1) * binv), 1)
             continue
-        o = z * nxy + y * nx + x
+        o = lz * nxy + ly * nx + lx
         cl = cf[o]
         k = kmap[cl]
         if cl == _CELL_MIXED:
             lv = 0
             if lab_base >= 0:
-                lv = lab[int(pz + 0.5), int(py + 0.5), int(px + 0.5)]
+                lv = lab[int(pz + 0.5) - oz, int(py + 0.5) - oy, int(px + 0.5) - ox]
                 k = lab_base + lv - 1
             if lv == 0:
                 fx = min(max(px - x, 0.0), 1.0)
@@ -292,8 +296,8 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
 
 @njit(cache=True, fastmath=_FM, inline="always")
 def _walk_ray(
-    r, vol, maps, curv, a, b, t_first, n, step, ids, memb, alpha_r, alpha_w, col, light, tab,
-    shade, has_curv, build, tail, base, ert, rgba, vis, asg, present, cimg, out,
+    r, vol, maps, curv, a, b, t_first, jr, step, ids, memb, alpha_r, alpha_w, col, light, tab,
+    shade, has_curv, build, tail, base, ert, vis, asg, sta, sbits, geo, out,
 ):  # fmt: skip
     """Walk one ray, compositing until early ray termination.
 
@@ -306,13 +310,24 @@ def _walk_ray(
     (table index, sample index, shading and curvature; the last two marked "not yet computed"
     (-1) for samples that compositing did not reach).
 
-    Returns ``(entries, samples walked, ti)``: ``ti`` is the ray's transmittance at the
-    importance opacities ``alpha_w`` with early ray termination (``1 - ti`` is the
+    The ray walks its samples ``jr = (j0, j1)`` and continues its state: row ``r`` of
+    ``sta`` holds ``cr, cg, cb, tr, ti, num, den`` (premultiplied
+    colour, transmittance, transmittance at the importances, curvature numerator and weight),
+    ``sbits[r]`` the present bits; ``vis`` and ``asg`` are added to.  A whole ray starts from
+    ``(0, 0, 0, 1, 1, 0, 0)`` and no bits at ``(0, n)``; a brick of a
+    bricked analysis (:mod:`dvr_perception.rays.bricks`) walks the samples in its cells and
+    hands the state on.  ``geo = (nx, ny, nz, ox, oy, oz)``: the whole volume's voxel counts
+    (sample positions and cells are the whole volume's, so every brick samples where the whole
+    walk does) and the global index of ``vol[0, 0, 0]`` (all volumes here are the brick's).
+
+    Returns ``(entries, samples walked)``; the state's ``ti`` is the ray's transmittance
+    at the importance opacities ``alpha_w`` with early ray termination (``1 - ti`` is the
     accumulated opacity of the ray rendered at the importances).
     """
     c_lut, c_j, c_sh, c_curv = out
     tix, cells, blocks, rep, lab, lab_base, tail_maps = maps
     lab_end = (lab_base if lab_base >= 0 else len(ids)) - 1
+    gnx, gny, gnz, ox, oy, oz = geo
     nz, ny, nx = vol.shape
     volf = vol.reshape(vol.size)
     clf = cells.reshape(cells.size)
@@ -322,27 +337,27 @@ def _walk_ray(
     ka, kd, ks = light[0], light[1], light[2]
     ax, ay, az = a[r, 0], a[r, 1], a[r, 2]
     bx, by, bz = b[r, 0], b[r, 1], b[r, 2]
-    bits = np.uint32(0)
+    cr = sta[r, 0]
+    cg = sta[r, 1]
+    cb = sta[r, 2]
+    tr = sta[r, 3]
+    ti = sta[r, 4]
+    num = sta[r, 5]
+    den = sta[r, 6]
+    bits = sbits[r]
     cnt = 0
     walked = 0
-    alive = True
-    tr = 1.0
-    ti = 1.0
-    cr = 0.0
-    cg = 0.0
-    cb = 0.0
-    num = 0.0
-    den = 0.0
-    j = 0
+    alive = tr >= ert
+    j, n = jr
     binv = _jump_scale(bx, by, bz, step) * _BLOCK
     while j < n and alive:
-        px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz)
+        px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, gnx, gny, gnz)
         walked += 1
-        skip = _block_skip(blocks, x, y, z, binv)
+        skip = _block_skip(blocks, x - ox, y - oy, z - oz, binv)
         if skip:
             j += skip
             continue
-        o = np.uint64(z * nxy + y * nx + x)
+        o = np.uint64((z - oz) * nxy + (y - oy) * nx + (x - ox))
         cl = clf[o]
         if cl == _CELL_EMPTY:
             j += 1
@@ -354,7 +369,7 @@ def _walk_ray(
         if cl != _CELL_MIXED:
             k = rep[cl - 1]
         elif lab_base >= 0:
-            lv = lab[int(pz + 0.5), int(py + 0.5), int(px + 0.5)]
+            lv = lab[int(pz + 0.5) - oz, int(py + 0.5) - oy, int(px + 0.5) - ox]
             k = lab_base + lv - 1
         if cl == _CELL_MIXED and lv == 0:
             k = _table_index(volf, o, isy, isz, _U1, fx, fy, fz, lab_end)
@@ -391,7 +406,7 @@ def _walk_ray(
             spec = ks[s] * (sp * _IQS)
         hc = 0.0
         if has_curv:
-            hc = curv[int(pz + 0.5), int(py + 0.5), int(px + 0.5)]
+            hc = curv[int(pz + 0.5) - oz, int(py + 0.5) - oy, int(px + 0.5) - ox]
             if build:
                 c_curv[e] = hc
         w = al * tr
@@ -408,34 +423,40 @@ def _walk_ray(
     if j < n and tail:
         cnt, walked, bits, ti = _tail(
             r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j,
-            n, step, shade, has_curv, build, base, cnt, walked, bits, asg, out, ti, ert,
+            n, step, shade, has_curv, build, base, cnt, walked, bits, asg, out, ti, ert, geo,
         )  # fmt: skip
-    present[r] = bits
-    rgba[r, 0] = min(cr, 1.0)
-    rgba[r, 1] = min(cg, 1.0)
-    rgba[r, 2] = min(cb, 1.0)
-    rgba[r, 3] = 1.0 - tr
-    cimg[r] = num / den if den > 0.0 else 0.0
-    return cnt, walked, ti
+    sta[r, 0] = cr
+    sta[r, 1] = cg
+    sta[r, 2] = cb
+    sta[r, 3] = tr
+    sta[r, 4] = ti
+    sta[r, 5] = num
+    sta[r, 6] = den
+    sbits[r] = bits
+    return cnt, walked
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
 def _fill(e, j, ax, ay, az, bx, by, bz, t_first, step, vol, curv, tab, s, shade, has_curv,
-          c_sh, c_curv):  # fmt: skip
-    """Compute entry ``e``'s shading and curvature from its sample index, as the walk would."""
+          c_sh, c_curv, geo):  # fmt: skip
+    """Compute entry ``e``'s shading and curvature from its sample index, as the walk would.
+
+    ``geo``: as in :func:`_walk_ray` (the whole volume's voxel counts, ``vol``'s offset).
+    """
+    gnx, gny, gnz, ox, oy, oz = geo
     nz, ny, nx = vol.shape
-    px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz)
+    px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, gnx, gny, gnz)
     if shade:
         volf = vol.reshape(vol.size)
         fx = min(max(px - x, 0.0), 1.0)
         fy = min(max(py - y, 0.0), 1.0)
         fz = min(max(pz - z, 0.0), 1.0)
-        o = np.uint64(z * (nx * ny) + y * nx + x)
+        o = np.uint64((z - oz) * (nx * ny) + (y - oy) * nx + (x - ox))
         dl, sp = _shade_at(volf, o, np.uint64(nx), np.uint64(nx * ny), fx, fy, fz, tab, s)
         c_sh[e, 0] = dl
         c_sh[e, 1] = sp
     if has_curv:
-        c_curv[e] = curv[int(pz + 0.5), int(py + 0.5), int(px + 0.5)]
+        c_curv[e] = curv[int(pz + 0.5) - oz, int(py + 0.5) - oy, int(px + 0.5) - ox]
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
@@ -469,8 +490,10 @@ def _composite_ray(
         # shading and curvature are set together (walk, _fill); only a change of light unsets
         # shading alone, so with shading on its marker is the one to test
         if (c_sh[e, 0] == _UNSET) if shade else (has_curv and c_curv[e] < 0.0):
+            nz, ny, nx = vol.shape
             _fill(e, c_j[e], a[r, 0], a[r, 1], a[r, 2], b[r, 0], b[r, 1], b[r, 2], t_first[r],
-                  step, vol, curv, tab, s, shade, has_curv, c_sh, c_curv)  # fmt: skip
+                  step, vol, curv, tab, s, shade, has_curv, c_sh, c_curv,
+                  (nx, ny, nz, 0, 0, 0))  # fmt: skip
         dfac = 1.0
         spec = 0.0
         if shade:
@@ -506,12 +529,12 @@ def walk(
     vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, curv, a, b,
     t_first, nsteps, step, order, chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light, tab,
     shade, has_curv, build, tail, chunk_base, ert, rgba, vis, asg, present, cimg, c_lut, c_j,
-    c_sh, c_curv, start, count, chunk_end, walked, aimp,
+    c_sh, c_curv, start, count, chunk_end, walked, aimp, state,
 ):  # fmt: skip
     """March and composite all rays; see the module docstring.  Outputs are flat per ray.
 
     ``aimp``: per ray, the accumulated opacity at the importance opacities (``1 - ti`` of
-    :func:`_walk_ray`).
+    :func:`_walk_ray`); ``state``: (R, 7) float64 scratch for :func:`_walk_ray`'s state.
 
     ``tix``, ``cells`` and ``blocks``: :func:`_grid.compact_index`, :func:`_grid.cell_map` and
     :func:`_grid.block_map`; ``order`` and ``chunk_ptr``: :func:`engine.ray_order`; ``tail``
@@ -528,6 +551,7 @@ def walk(
     for c in prange(nchunk):
         # built here: a tuple holding a tuple of arrays cannot enter a parallel loop
         maps = (tix, cells, blocks, rep, lab, lab_base, (kmap, tids, t_alpha, t_bit))
+        geo = (vol.shape[2], vol.shape[1], vol.shape[0], 0, 0, 0)
         e = chunk_base[c]
         for i in range(chunk_ptr[c], chunk_ptr[c + 1]):
             r = order[i]
@@ -547,14 +571,23 @@ def walk(
                 walked[r] = 0
                 aimp[r] = 0.0
                 continue
-            cnt, wk, ti = _walk_ray(
-                r, vol, maps, curv, a, b, t_first[r], nsteps[r], step, ids, memb,
-                alpha_r, alpha_w, col, light, tab, shade, has_curv, build, tail, e, ert,
-                rgba, vis, asg, present, cimg, (c_lut, c_j, c_sh, c_curv),
+            for q in range(7):
+                state[r, q] = 1.0 if q == 3 or q == 4 else 0.0
+            present[r] = 0
+            cnt, wk = _walk_ray(
+                r, vol, maps, curv, a, b, t_first[r], (0, np.int64(nsteps[r])), step, ids,
+                memb, alpha_r, alpha_w, col, light, tab, shade, has_curv, build, tail, e, ert,
+                vis, asg, state, present, geo, (c_lut, c_j, c_sh, c_curv),
             )  # fmt: skip
+            rgba[r, 0] = min(state[r, 0], 1.0)
+            rgba[r, 1] = min(state[r, 1], 1.0)
+            rgba[r, 2] = min(state[r, 2], 1.0)
+            rgba[r, 3] = 1.0 - state[r, 3]
+            den = state[r, 6]
+            cimg[r] = state[r, 5] / den if den > 0.0 else 0.0
             count[r] = cnt
             walked[r] = wk
-            aimp[r] = 1.0 - ti
+            aimp[r] = 1.0 - state[r, 4]
             e += cnt
         chunk_end[c] = e
 

@@ -456,8 +456,8 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     layout = (order, chunk_ptr, h, w)
     out = _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args,
                         (build, tail), chunk_base, rgba, vis, asg_all, present, cimg, src_lut,
-                        src_j, src_sh, src_curv, start, count, chunk_end, walked,
-                        aimp)  # fmt: skip
+                        src_j, src_sh, src_curv, start, count, chunk_end, walked, aimp,
+                        _scratch("state", nrays, (7,), np.float64, locked))  # fmt: skip
     return (out[0], out[1], asg_all[:k], *out[3:], aimp)
 
 
@@ -520,7 +520,7 @@ def _scratch(name, n, tail, dtype, shared):
 
 def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, modes,
                   chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j, src_sh, src_curv,
-                  start, count, chunk_end, walked, aimp):  # fmt: skip
+                  start, count, chunk_end, walked, aimp, state):  # fmt: skip
     ids, alpha_r, cols, light, tab, shade, has_curv, ert = args
     build, tail = modes
     n = seg["n"]
@@ -530,7 +530,7 @@ def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, mod
         vol, *maps, cv, seg["a"], seg["b"], seg["t"], n, step, order, chunk_ptr, nchunk, ids,
         memb, alpha_r, alpha_w, cols, light, tab, shade, has_curv, build, tail, chunk_base, ert,
         rgba, vis, asg, present, cimg, src_lut, src_j, src_sh, src_curv, start, count, chunk_end,
-        walked, aimp,
+        walked, aimp, state,
     )  # fmt: skip
     entries = None
     if build:
@@ -642,6 +642,8 @@ def reevaluate(
             )  # fmt: skip
         else:
             nk.invalidate(cache.shading)
+            if z.get("refill") is not None:  # a bricked cache: no whole volume to fill from
+                z["refill"](cache, tab)
         z["shading_key"] = key
     if nk is None:
         rgba, vis, cimg = _npk.composite(

@@ -1,0 +1,175 @@
+"""numba kernels of the bricked analysis (:mod:`dvr_perception.rays.bricks`).
+
+A brick owns a box of the whole volume's cells; a ray's samples in it are one run ``[j0, j1)``
+of its sample indices (the ray is straight and the box convex).  :func:`brick_ranges` finds
+that run exactly: per axis, the first sample whose cell (as :func:`_numba_kernels._sample_at`
+computes it, the whole volume's cell) reaches the box's bounds, by an analytic estimate made
+exact by stepping.  Neighbouring bricks evaluate the same test at their shared plane, so every
+sample of a ray belongs to exactly one brick.  :func:`walk_brick` walks those samples with
+:func:`_numba_kernels._walk_ray`, continuing the per-ray state handed on from the bricks in
+front; :func:`fill_range` computes the shading and curvature of cache entries in a brick's
+runs (the bricked cache has no whole volume to fill them from later); :func:`place` copies a
+brick's cache entries behind the entries of the bricks in front of it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from dvr_perception.rays._numba_kernels import _FM, _UNSET, _fill, _sample_at, _walk_ray
+
+__all__ = ["brick_ranges", "fill_range", "place", "walk_brick"]
+
+
+@njit(cache=True, fastmath=_FM, inline="always")
+def _cell(j, t_first, step, ax, ay, az, bx, by, bz, gnx, gny, gnz, axis):
+    _, _, _, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, gnx, gny, gnz)
+    return x if axis == 0 else (y if axis == 1 else z)
+
+
+@njit(cache=True, fastmath=_FM, inline="always")
+def _first(c, axis, rising, t_first, step, n, ax, ay, az, bx, by, bz, gnx, gny, gnz):
+    """First sample index in ``[0, n]`` whose cell along ``axis`` has passed plane ``c``.
+
+    ``rising``: the cell index grows along the ray (test ``cell >= c``), else it falls (test
+    ``cell < c``).  The test is monotone along the ray, so stepping from the estimate is exact.
+    """
+    ai = ax if axis == 0 else (ay if axis == 1 else az)
+    bi = bx if axis == 0 else (by if axis == 1 else bz)
+    est = ((c - ai) / bi - t_first) / step
+    j = 0
+    if est >= n:
+        j = n
+    elif est > 0.0:
+        j = int(math.ceil(est))
+    while j > 0:
+        cj = _cell(j - 1, t_first, step, ax, ay, az, bx, by, bz, gnx, gny, gnz, axis)
+        if (cj >= c) if rising else (cj < c):
+            j -= 1
+        else:
+            break
+    while j < n:
+        cj = _cell(j, t_first, step, ax, ay, az, bx, by, bz, gnx, gny, gnz, axis)
+        if (cj >= c) if rising else (cj < c):
+            break
+        j += 1
+    return j
+
+
+@njit(parallel=True, cache=True, fastmath=_FM)
+def brick_ranges(a, b, t_first, nsteps, step, lo, hi, gdims, j0, j1):
+    """Per ray, the run ``[j0, j1)`` of its samples whose cell is in ``[lo, hi)`` (x, y, z)."""
+    gnx, gny, gnz = gdims[0], gdims[1], gdims[2]
+    for r in prange(len(nsteps)):
+        n = nsteps[r]
+        s0 = 0
+        s1 = n
+        if n > 0:
+            ax, ay, az = a[r, 0], a[r, 1], a[r, 2]
+            bx, by, bz = b[r, 0], b[r, 1], b[r, 2]
+            tf = t_first[r]
+            for axis in range(3):
+                bi = bx if axis == 0 else (by if axis == 1 else bz)
+                if lo[axis] <= 0 and hi[axis] >= gdims[axis] - 1:
+                    continue  # the brick spans the axis: no bound
+                if bi == 0.0:
+                    c = _cell(0, tf, step, ax, ay, az, bx, by, bz, gnx, gny, gnz, axis)
+                    if c < lo[axis] or c >= hi[axis]:
+                        s1 = 0
+                    continue
+                up = bi > 0.0
+                c_in = lo[axis] if up else hi[axis]
+                c_out = hi[axis] if up else lo[axis]
+                f_in = _first(c_in, axis, up, tf, step, n, ax, ay, az, bx, by, bz, gnx, gny, gnz)
+                f_out = _first(c_out, axis, up, tf, step, n, ax, ay, az, bx, by, bz, gnx, gny,
+                               gnz)  # fmt: skip
+                s0 = max(s0, f_in)
+                s1 = min(s1, f_out)
+        j0[r] = s0
+        j1[r] = max(s1, s0)
+
+
+@njit(parallel=True, cache=True, fastmath=_FM)
+def walk_brick(
+    vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, curv, a, b,
+    t_first, j0, j1, step, order, chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light, tab,
+    shade, has_curv, build, tail, chunk_base, ert, geo, st, bits, vis, asg, c_lut, c_j, c_sh,
+    c_curv, start, count, walked,
+):  # fmt: skip
+    """Walk every ray's run ``[j0, j1)`` in this brick, continuing the state ``st``/``bits``.
+
+    ``st`` (R, 7) float64 holds ``cr, cg, cb, tr, ti, num, den`` per ray, ``bits`` the present
+    bits; ``vis`` (K, R) and ``asg`` (K + 1, R) are added to.  Otherwise as
+    :func:`_numba_kernels.walk` (chunk ``c`` packs its cache entries from ``chunk_base[c]``).
+    """
+    for c in prange(nchunk):
+        maps = (tix, cells, blocks, rep, lab, lab_base, (kmap, tids, t_alpha, t_bit))
+        g = (geo[0], geo[1], geo[2], geo[3], geo[4], geo[5])
+        e = chunk_base[c]
+        for i in range(chunk_ptr[c], chunk_ptr[c + 1]):
+            r = order[i]
+            start[r] = e
+            count[r] = 0
+            walked[r] = 0
+            if j1[r] <= j0[r]:
+                continue
+            cnt, wk = _walk_ray(
+                r, vol, maps, curv, a, b, t_first[r], (j0[r], j1[r]), step, ids, memb,
+                alpha_r, alpha_w, col, light, tab, shade, has_curv, build, tail, e, ert,
+                vis, asg, st, bits, g, (c_lut, c_j, c_sh, c_curv),
+            )  # fmt: skip
+            count[r] = cnt
+            walked[r] = wk
+            e += cnt
+
+
+@njit(parallel=True, cache=True, fastmath=_FM)
+def fill_range(start, count, c_lut, c_j, c_sh, c_curv, a, b, t_first, step, j0, j1, vol, curv,
+               geo, ids, tab, shade, has_curv):  # fmt: skip
+    """Compute shading and curvature of the unset entries whose sample is in ``[j0, j1)``.
+
+    ``vol``/``curv`` are the brick's (global index of their first voxel in ``geo[3:]``); a
+    ray's entries are in sample order, so its run starts at a binary-searched entry.
+    """
+    g = (geo[0], geo[1], geo[2], geo[3], geo[4], geo[5])
+    for r in prange(len(start)):
+        if j1[r] <= j0[r] or count[r] == 0:
+            continue
+        lo = start[r]
+        hi = start[r] + count[r]
+        while lo < hi:  # first entry with sample index >= j0
+            mid = (lo + hi) // 2
+            if c_j[mid] < j0[r]:
+                lo = mid + 1
+            else:
+                hi = mid
+        end = start[r] + count[r]
+        for e in range(lo, end):
+            j = c_j[e]
+            if j >= j1[r]:
+                break
+            unset = (shade and c_sh[e, 0] == _UNSET) or (has_curv and c_curv[e] < 0.0)
+            if unset:
+                _fill(e, j, a[r, 0], a[r, 1], a[r, 2], b[r, 0], b[r, 1], b[r, 2], t_first[r],
+                      step, vol, curv, tab, ids[c_lut[e]], shade, has_curv, c_sh, c_curv,
+                      g)  # fmt: skip
+
+
+@njit(parallel=True, cache=True)
+def place(dest, fill, start, count, lut, j_, sh, curv, m_lut, m_j, m_sh, m_curv, shade, has_curv):
+    """Append every ray's entries of one brick behind those already placed (``fill[r]``)."""
+    for r in prange(len(dest)):
+        d0 = dest[r] + fill[r]
+        s0 = start[r]
+        for q in range(count[r]):
+            m_lut[d0 + q] = lut[s0 + q]
+            m_j[d0 + q] = j_[s0 + q]
+            if shade:
+                m_sh[d0 + q, 0] = sh[s0 + q, 0]
+                m_sh[d0 + q, 1] = sh[s0 + q, 1]
+            if has_curv:
+                m_curv[d0 + q] = curv[s0 + q]
+        fill[r] += count[r]

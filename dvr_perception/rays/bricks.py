@@ -1,0 +1,621 @@
+"""Bricked ray analysis: the engine's result, computed one box of the volume at a time.
+
+A :class:`Brick` owns a box of the whole volume's cells.  Every ray's samples in a brick are one
+run of its sample indices, so walking the bricks in view order and handing each ray's state on
+(premultiplied colour, transmittance, the transmittance at the importances, curvature sums,
+present bits; visible and assigned opacities add up) reproduces the whole walk sample by sample,
+early ray termination included: a bricked analysis equals :func:`~dvr_perception.rays.engine.
+analyze` up to float rounding (in practice bit for bit).  Each brick reads only its voxels plus
+one ghost layer (the normals' central differences), so the derived volumes (table indices,
+normal codes, cell and block maps) exist for one brick at a time.
+
+The pieces are public so that ParaView's MPI ranks can each walk their own piece:
+
+* :class:`Geometry` - the whole volume's grid (no data); :class:`RayState` - every ray's state,
+  started with :meth:`RayState.start` and shipped between processes with
+  :meth:`RayState.arrays` / :meth:`RayState.load`;
+* :func:`split`, :func:`from_piece_extent` and :func:`view_order` - bricks and their order;
+* :func:`walk` - one brick (its :class:`BrickCache` for re-evaluation);
+* :func:`finish` - the :class:`~dvr_perception.rays.engine.RayAnalysis`, with the bricks'
+  caches merged into one :class:`~dvr_perception.rays.engine.RayCache` that
+  :func:`~dvr_perception.rays.engine.reevaluate` and the optimiser use as usual.
+
+:func:`analyze_bricked` does all of it in one process.  Needs numba.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import weakref
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dvr_perception._numba import kernels
+from dvr_perception.errors import DVRInputError
+from dvr_perception.rays import _grid, _tables
+from dvr_perception.rays._results import RayAnalysis, RayCache
+from dvr_perception.rays.camera import Camera
+from dvr_perception.structures.spec import StructureSpec
+from dvr_perception.structures.transfer import build_lut
+from dvr_perception.volume.volume import Volume
+
+__all__ = [
+    "Brick",
+    "BrickCache",
+    "Geometry",
+    "RayState",
+    "analyze_bricked",
+    "finish",
+    "from_piece_extent",
+    "split",
+    "view_order",
+    "walk",
+]
+
+#: Voxels a brick reads around its cells: the central differences of the normals at its
+#: cells' corners.
+GHOST = 1
+
+
+def _kernels():
+    nk = kernels("dvr_perception.rays._numba_kernels")
+    nb = kernels("dvr_perception.rays._numba_bricks")
+    if nk is None or nb is None:
+        raise DVRInputError(
+            "bricked analysis needs numba (not importable, or DVR_PERCEPTION_NO_NUMBA is set); "
+            "analyse the volume whole (no brick size / memory limit)"
+        )
+    return nk, nb
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """The whole volume's grid: what every brick must agree on (no voxel data).
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Voxels ``(z, y, x)``.
+    spacing, origin : tuple of float
+        As :class:`~dvr_perception.volume.volume.Volume` (x, y, z).
+    dtype : numpy.dtype
+        The scalar type (the transfer table's layout depends on it).
+
+    Examples
+    --------
+    >>> g = Geometry((2, 3, 4), (1.0, 1.0, 2.0), (0.0, 0.0, 0.0), np.dtype(np.uint8))
+    >>> g.dims, g.bounds
+    ((4, 3, 2), (0.0, 3.0, 0.0, 2.0, 0.0, 2.0))
+    """
+
+    shape: tuple[int, int, int]
+    spacing: tuple[float, float, float]
+    origin: tuple[float, float, float]
+    dtype: np.dtype
+
+    @classmethod
+    def of(cls, volume: Volume) -> Geometry:
+        """The geometry of ``volume``."""
+        return cls(tuple(volume.data.shape), volume.spacing, volume.origin, volume.data.dtype)
+
+    @property
+    def dims(self) -> tuple[int, int, int]:
+        """Voxels along x, y, z."""
+        z, y, x = self.shape
+        return (x, y, z)
+
+    @property
+    def bounds(self) -> tuple[float, ...]:
+        """World bounds of the voxel centres ``(xmin, xmax, ymin, ymax, zmin, zmax)``."""
+        out: list[float] = []
+        for n, s, o in zip(self.dims, self.spacing, self.origin, strict=True):
+            out += [o, o + (n - 1) * s]
+        return tuple(out)
+
+
+@dataclass(frozen=True)
+class Brick:
+    """A box of cells ``((z0, z1), (y0, y1), (x0, x1))``, half-open (cell ``i`` lies between
+    voxels ``i`` and ``i + 1``; an axis of ``n`` voxels has cells ``0 .. n - 2``).
+
+    Examples
+    --------
+    >>> Brick(((0, 4), (0, 9), (3, 9))).voxels((5, 10, 10))
+    ((0, 5), (0, 10), (2, 10))
+    """
+
+    cells: tuple[tuple[int, int], tuple[int, int], tuple[int, int]]
+
+    def voxels(self, shape, ghost: int = GHOST) -> tuple[tuple[int, int], ...]:
+        """Voxel ranges ``(z, y, x)`` the brick reads: its cells' corners and ``ghost`` more."""
+        return tuple(
+            (max(c0 - ghost, 0), min(c1 + 1 + ghost, n))
+            for (c0, c1), n in zip(self.cells, shape, strict=True)
+        )
+
+    @property
+    def ncells(self) -> int:
+        """Number of cells."""
+        return math.prod(c1 - c0 for c0, c1 in self.cells)
+
+
+def split(shape, cells) -> list[Brick]:
+    """Cut a volume of ``shape`` voxels ``(z, y, x)`` into bricks of at most ``cells`` cells.
+
+    Examples
+    --------
+    >>> [b.cells for b in split((3, 4, 10), (8, 8, 5))]
+    [((0, 2), (0, 3), (0, 5)), ((0, 2), (0, 3), (5, 9))]
+    """
+    try:
+        size = tuple(int(c) for c in cells)
+    except (TypeError, ValueError):
+        size = ()
+    if len(size) != 3 or min(size) < 1:
+        raise DVRInputError(f"brick: expected three positive cell counts (z, y, x), got {cells!r}")
+    edges = [list(range(0, n - 1, s)) + [n - 1] for n, s in zip(shape, size, strict=True)]
+    return [
+        Brick(((z0, z1), (y0, y1), (x0, x1)))
+        for z0, z1 in zip(edges[0][:-1], edges[0][1:], strict=True)
+        for y0, y1 in zip(edges[1][:-1], edges[1][1:], strict=True)
+        for x0, x1 in zip(edges[2][:-1], edges[2][1:], strict=True)
+    ]
+
+
+def from_piece_extent(extent, whole_extent) -> Brick:
+    """The brick owning the cells of a VTK piece extent (without ghost levels).
+
+    ``extent`` and ``whole_extent`` are VTK's ``(x0, x1, y0, y1, z0, z1)`` inclusive point
+    indices; pieces split by VTK share their boundary planes, so their cells do not overlap.
+
+    Examples
+    --------
+    >>> from_piece_extent((0, 9, 0, 9, 4, 9), (0, 9, 0, 9, 0, 9)).cells
+    ((4, 9), (0, 9), (0, 9))
+    """
+    e = [int(v) for v in extent]
+    w = [int(v) for v in whole_extent]
+    cells = []
+    for axis in (2, 1, 0):
+        lo, hi = e[2 * axis] - w[2 * axis], e[2 * axis + 1] - w[2 * axis]
+        cells.append((lo, max(hi, lo)))
+    return Brick(tuple(cells))
+
+
+@dataclass(eq=False)
+class BrickCache:
+    """One brick's cache entries, rays in row-major order (as :class:`RayCache`'s)."""
+
+    brick: Brick
+    start: np.ndarray
+    count: np.ndarray
+    lut: np.ndarray
+    steps: np.ndarray
+    shading: np.ndarray
+    curvature: np.ndarray
+
+
+@dataclass(eq=False)
+class RayState:
+    """Every ray's state between bricks, with the tables the bricks share.
+
+    ``st`` (R, 7) float64: premultiplied r, g, b, transmittance, transmittance at the
+    importances, curvature numerator and weight; ``bits`` (R,) present bits; ``vis`` (K, R)
+    and ``asg`` (K + 1, R; the last row counts samples outside every structure) float64.
+    """
+
+    geometry: Geometry
+    spec: StructureSpec
+    camera: Camera
+    opacities: np.ndarray
+    occlusion_free: bool
+    seg: dict
+    tables: dict
+    st: np.ndarray
+    bits: np.ndarray
+    vis: np.ndarray
+    asg: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+    @classmethod
+    def start(cls, geometry, spec, camera, *, scalar_range, opacities=None, occlusion_free=True):
+        """Fresh rays for ``camera`` through the whole volume ``geometry``.
+
+        ``scalar_range`` must be the whole volume's ``(min, max)`` (the transfer table spans
+        it).
+        """
+        from dvr_perception.rays import engine
+
+        if not isinstance(geometry, Geometry):
+            raise DVRInputError(f"geometry: expected a Geometry, got {type(geometry).__name__}")
+        probe = Volume(np.zeros((2, 2, 2), geometry.dtype), geometry.spacing, geometry.origin)
+        engine._check_inputs(probe, spec, camera, "numba")
+        nk, _ = _kernels()
+        k = len(spec.structures)
+        imp = _tables.check_opacities([s.importance for s in spec.structures], k, "importance")
+        ops = _tables.check_opacities(
+            [s.render_opacity for s in spec.structures] if opacities is None else opacities, k
+        )
+        step, unit = _tables.step_and_unit(spec, geometry)
+        cols, mats = _tables.material(spec)
+        rs = spec.rendering
+        light = _tables.light_array(camera, mats, rs.light_direction, rs.light_intensity)
+        lut = build_lut(spec, scalar_range=tuple(scalar_range), dtype=geometry.dtype)
+        lab_s = [i for i, s in enumerate(spec.structures) if s.label is not None]
+        ids = np.ascontiguousarray(np.concatenate([lut.ids, np.asarray(lab_s, lut.ids.dtype)]))
+        memb = np.ascontiguousarray(
+            np.concatenate([lut.membership, np.ones(len(lab_s), lut.membership.dtype)])
+        )
+        ratio = step / unit
+        alpha_w = _tables.alpha_table(ids, memb, imp, ratio)
+        shade = bool(rs.shade)
+        tables = {
+            "lut": lut,
+            "labels": tuple(spec.structures[i].label for i in lab_s),
+            "ids": ids,
+            "memb": memb,
+            "ratio": ratio,
+            "step": float(step),
+            "alpha_w": alpha_w,
+            "alpha_r": _tables.alpha_table(ids, memb, ops, ratio),
+            "cols": cols,
+            "mats": mats,
+            "light": light,
+            "tab": _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16),
+            "shade": shade,
+            "rep": engine._plateau_entries(ids, memb, k),
+        }
+        tables["tail"] = engine._tail_tables(ids, memb, alpha_w, tables["rep"], k)
+        seg = engine._segments(nk, camera, geometry, step)
+        nrays = camera.width * camera.height
+        st = np.zeros((nrays, 7))
+        st[:, 3:5] = 1.0
+        return cls(
+            geometry, spec, camera, ops, bool(occlusion_free), seg, tables, st,
+            np.zeros(nrays, np.uint32), np.zeros((k, nrays)), np.zeros((k + 1, nrays)),
+            {"samples_walked": 0, "bricks": 0, "t_start": time.perf_counter()},
+        )  # fmt: skip
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The per-ray state, to hand to another process."""
+        return {"st": self.st, "bits": self.bits, "vis": self.vis, "asg": self.asg}
+
+    def load(self, arrays: dict) -> None:
+        """Take over a state from :meth:`arrays` (of the same camera and spec)."""
+        for name, mine in self.arrays().items():
+            got = np.asarray(arrays[name])
+            if got.shape != mine.shape:
+                raise DVRInputError(
+                    f"state {name!r}: expected shape {mine.shape}, got {got.shape}"
+                )
+            mine[...] = got
+
+
+def view_order(bricks, state: RayState) -> list[int]:
+    """Indices of ``bricks`` front to back: an order every ray meets them in.
+
+    Along each axis a ray moves away from the camera's position (perspective) or in the view
+    direction (parallel), so a brick is met only after every brick closer to the camera's
+    brick on each axis; ordering by the summed distance in cells respects that for all rays.
+    """
+    cam, geo = state.camera, state.geometry
+    fwd = cam.basis()[0]
+    pos = (np.asarray(cam.position, float) - np.asarray(geo.origin)) / np.asarray(geo.spacing)
+    keys = []
+    for i, br in enumerate(bricks):
+        key = 0.0
+        for axis in range(3):  # x, y, z
+            c0, c1 = br.cells[2 - axis]
+            if cam.parallel_projection:
+                key += fwd[axis] / geo.spacing[axis] * (c0 + c1) / 2.0
+            else:
+                p = pos[axis]
+                key += max(c0 - p, p - c1, 0.0)
+        keys.append((key, i))
+    return [i for _, i in sorted(keys)]
+
+
+def _piece_arrays(piece: Volume, state: RayState, curvature):
+    """Per-brick derived volumes (:mod:`_grid`), computed on the brick's own voxels."""
+    t = state.tables
+    lut = t["lut"]
+    idx = _grid.index_volume(piece, lut.lo, lut.scale, lut.size)
+    labmap = _grid.label_map(piece, t["labels"]) if t["labels"] else None
+    lab = (labmap, lut.size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8), -1)
+    vol = _grid.voxel_records(piece, idx) if t["shade"] else idx
+    cells = _grid.cell_map(piece, idx, t["ids"], t["memb"], labmap)
+    maps = (_grid.compact_index(piece, idx), cells, _grid.block_map(piece, cells), t["rep"], *lab,
+            *t["tail"])  # fmt: skip
+    cv = np.zeros((2, 2, 2), np.float32) if curvature is None else curvature
+    return vol, maps, cv
+
+
+def _check_piece(piece, brick, offset, state, curvature):
+    if not isinstance(piece, Volume):
+        raise DVRInputError(f"piece: expected a Volume, got {type(piece).__name__}")
+    if not isinstance(brick, Brick):
+        raise DVRInputError(f"brick: expected a Brick, got {type(brick).__name__}")
+    off = tuple(int(o) for o in offset)
+    need = brick.voxels(state.geometry.shape)
+    for axis, ((v0, v1), o, n) in enumerate(zip(need, off, piece.data.shape, strict=True)):
+        if v0 < o or v1 > o + n:
+            raise DVRInputError(
+                f"piece: axis {'zyx'[axis]} holds voxels {o}..{o + n - 1}, but brick "
+                f"{brick.cells} needs {v0}..{v1 - 1} (its cells and {GHOST} ghost layer)"
+            )
+    if curvature is not None:
+        c = np.asarray(curvature)
+        if c.shape != piece.data.shape or c.dtype != np.float32:
+            raise DVRInputError(
+                f"curvature: expected float32 of the piece's shape {piece.data.shape}, "
+                f"got {c.dtype} {c.shape}"
+            )
+    return off
+
+
+def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curvature=None,
+         build_cache: bool = True) -> BrickCache | None:  # fmt: skip
+    """Walk ``brick``'s samples of every ray, continuing ``state`` (changed in place).
+
+    Parameters
+    ----------
+    state : RayState
+        Every ray's state after the bricks in front of this one (:func:`view_order`).
+    piece : Volume
+        Voxels holding the brick and its ghost layer (:meth:`Brick.voxels`); the whole volume
+        is fine too.
+    brick : Brick
+        The cells to walk.
+    offset : tuple of int
+        Global voxel index ``(z, y, x)`` of ``piece.data[0, 0, 0]``.
+    curvature : numpy.ndarray, optional
+        float32 ``|H|`` on ``piece``'s voxels (see :func:`~dvr_perception.rays.engine.analyze`).
+    build_cache : bool
+        Return the brick's cache entries, shading and curvature computed for every entry.
+
+    Returns
+    -------
+    BrickCache or None
+    """
+    nk, nb = _kernels()
+    off = _check_piece(piece, brick, offset, state, curvature)
+    if build_cache and not state.occlusion_free:
+        raise DVRInputError("build_cache: needs an occlusion-free state (occlusion_free=True)")
+    t, seg, cam = state.tables, state.seg, state.camera
+    gz, gy, gx = state.geometry.shape
+    lo = np.array([c[0] for c in brick.cells[::-1]], np.int64)
+    hi = np.array([c[1] for c in brick.cells[::-1]], np.int64)
+    gdims = np.array([gx, gy, gz], np.int64)
+    nrays = cam.width * cam.height
+    j0 = np.empty(nrays, np.int64)
+    j1 = np.empty(nrays, np.int64)
+    nb.brick_ranges(seg["a"], seg["b"], seg["t"], seg["n"], t["step"], lo, hi, gdims, j0, j1)
+    vol, maps, cv = _piece_arrays(piece, state, curvature)
+    has_curv = curvature is not None
+    shade = t["shade"]
+    from dvr_perception.rays.engine import ray_order
+
+    order, chunk_ptr = ray_order(cam.height, cam.width)
+    nchunk = len(chunk_ptr) - 1
+    runs = (j1 - j0)[order]
+    per_chunk = np.add.reduceat(runs, chunk_ptr[:-1]) if build_cache else np.zeros(nchunk, int)
+    chunk_base = np.ascontiguousarray(np.concatenate([[0], np.cumsum(per_chunk)])[:-1])
+    cap = max(int(per_chunk.sum()), 1)
+    src = (
+        np.empty(cap, np.uint16),
+        np.empty(cap, np.int32),
+        np.empty((cap if shade else 1, 2), np.uint16),
+        np.empty(cap if has_curv else 1, np.float32),
+    )
+    start = np.empty(nrays, np.int64)
+    count = np.empty(nrays, np.int64)
+    walked = np.empty(nrays, np.int64)
+    geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
+    nb.walk_brick(
+        vol, *maps, cv, seg["a"], seg["b"], seg["t"], j0, j1, t["step"], order, chunk_ptr,
+        nchunk, t["ids"], t["memb"], t["alpha_r"], t["alpha_w"], t["cols"], t["light"], t["tab"],
+        shade, has_curv, build_cache, state.occlusion_free, chunk_base, _tables.ERT, geo,
+        state.st, state.bits, state.vis, state.asg, *src, start, count, walked,
+    )  # fmt: skip
+    state.stats["samples_walked"] += int(walked.sum())
+    state.stats["bricks"] += 1
+    if not build_cache:
+        return None
+    dest = np.zeros(nrays, np.int64)
+    np.cumsum(count[:-1], out=dest[1:])
+    e = int(dest[-1] + count[-1])
+    out = (
+        np.empty(e, np.uint16),
+        np.empty(e, np.int32),
+        np.empty((e if shade else 0, 2), np.uint16),
+        np.empty(e if has_curv else 0, np.float32),
+    )
+    rows, row_ptr = ray_order(cam.height, cam.width, tile=(1, cam.width))
+    nk.compact(rows, row_ptr, len(row_ptr) - 1, start, count, dest, *src, *out, shade, has_curv)
+    del src
+    if shade or has_curv:  # behind early ray termination: not composited yet, no volume later
+        nb.fill_range(dest, count, out[0], out[1], out[2], out[3], seg["a"], seg["b"], seg["t"],
+                      t["step"], j0, j1, vol, cv, geo, t["ids"], t["tab"], shade,
+                      has_curv)  # fmt: skip
+    return BrickCache(brick, dest, count, *out)
+
+
+def _merge(caches, state) -> dict:
+    """The bricks' entries per ray, in view order (= the whole walk's order)."""
+    _, nb = _kernels()
+    nrays = len(state.st)
+    total = np.zeros(nrays, np.int64)
+    for c in caches:
+        total += c.count
+    dest = np.zeros(nrays, np.int64)
+    np.cumsum(total[:-1], out=dest[1:])
+    e = int(dest[-1] + total[-1]) if nrays else 0
+    shade = state.tables["shade"]
+    has_curv = any(c.curvature.size for c in caches)
+    m = {
+        "lut": np.empty(e, np.uint16),
+        "steps": np.empty(e, np.int32),
+        "shading": np.empty((e if shade else 0, 2), np.uint16),
+        "curvature": np.empty(e if has_curv else 0, np.float32),
+    }
+    fill = np.zeros(nrays, np.int64)
+    while caches:
+        c = caches.pop(0)  # dropped as soon as copied
+        nb.place(dest, fill, c.start, c.count, c.lut, c.steps, c.shading, c.curvature, m["lut"],
+                 m["steps"], m["shading"], m["curvature"], shade, has_curv)  # fmt: skip
+    return {"start": dest, "count": total, **m}
+
+
+def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAnalysis:
+    """The analysis of the walked rays (every brick walked once, in view order).
+
+    ``caches``: the bricks' :class:`BrickCache` in view order (consumed); merged into the
+    result's :class:`RayCache`.  ``refill(cache, tab)``: recomputes shading after a change of
+    light (:func:`analyze_bricked` passes one that re-reads the bricks).
+    """
+    from dvr_perception.rays import engine
+
+    spec, cam = state.spec, state.camera
+    k = len(spec.structures)
+    st = state.st
+    rgba = np.empty((len(st), 4))
+    np.minimum(st[:, :3], 1.0, out=rgba[:, :3])
+    rgba[:, 3] = 1.0 - st[:, 3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cimg = np.where(st[:, 6] > 0.0, st[:, 5] / np.where(st[:, 6] > 0, st[:, 6], 1.0), 0.0)
+    aimp = 1.0 - st[:, 4]
+    asg = state.asg[:k]
+    nsamp = int(state.seg["n"].sum())
+    secs = time.perf_counter() - state.stats["t_start"] if seconds is None else seconds
+    stats = {
+        "rays": len(st),
+        "rays_hit": int(np.count_nonzero(state.seg["n"])),
+        "samples": nsamp,
+        "samples_walked": state.stats["samples_walked"],
+        "samples_per_second": nsamp / secs if secs > 0 else 0.0,
+        "seconds": secs,
+        "backend": "numba",
+        "sample_distance": state.tables["step"],
+        "occlusion_free": state.occlusion_free,
+        "bricks": state.stats["bricks"],
+        "params": engine._params(state.opacities, state.tables["cols"], state.tables["mats"],
+                                 spec.rendering.light_direction),  # fmt: skip
+    }
+    if not state.occlusion_free:
+        asg = np.full((k, len(st)), np.nan, np.float32)
+        aimp = np.full(len(st), np.nan, np.float32)
+    cache = None
+    if caches is not None:
+        m = _merge(list(caches), state)
+        h, w = cam.height, cam.width
+        t = state.tables
+        dummy = np.zeros((2, 2, 2), np.uint32 if t["shade"] else np.uint16)
+        lazy = {
+            "steps": m["steps"],
+            "a": state.seg["a"],
+            "b": state.seg["b"],
+            "t": state.seg["t"],
+            "step": t["step"],
+            "volume": dummy,  # every entry is filled: compositing never reads it
+            "curvature_volume": np.zeros((2, 2, 2), np.float32),
+            "shading_key": _tables.shading_key(t["light"], k) if t["shade"] else b"",
+            "refill": refill,
+        }
+        cache = RayCache(
+            spec=spec.with_opacities(state.opacities), camera=cam, ids=t["ids"],
+            membership=t["memb"], ratio=t["ratio"], start=m["start"], count=m["count"],
+            lut=m["lut"], shading=m["shading"], curvature=m["curvature"],
+            assigned=np.asarray(asg, np.float32).reshape(k, h, w),
+            present=state.bits.reshape(h, w).copy(), backend="numba", stats=dict(stats),
+            lazy=lazy, importance_accumulated=np.asarray(aimp, np.float32).reshape(h, w),
+        )  # fmt: skip
+        stats["cache_entries"] = len(m["lut"])
+        stats["cache_bytes"] = cache.nbytes
+    vis = np.ascontiguousarray(state.vis)
+    return engine._finish(rgba, vis, asg, state.bits.copy(), cimg, spec, cam, stats, cache, aimp)
+
+
+def _pieces(volume: Volume, bricks, curvature):
+    """Each brick's piece of ``volume`` (a view, copied by :class:`Volume`) and its offset."""
+    for br in bricks:
+        (z0, z1), (y0, y1), (x0, x1) = br.voxels(volume.data.shape)
+        sl = (slice(z0, z1), slice(y0, y1), slice(x0, x1))
+        labels = None if volume.labels is None else volume.labels[sl]
+        piece = Volume(volume.data[sl], volume.spacing, volume.origin, labels=labels)
+        cv = None if curvature is None else np.ascontiguousarray(curvature[sl], np.float32)
+        yield br, piece, (z0, y0, x0), cv
+
+
+def _refiller(volume_ref, bricks, curvature, state):
+    """Recompute every entry's shading brick by brick (after a change of light)."""
+
+    def refill(cache, tab):
+        _, nb = _kernels()
+        volume = volume_ref()
+        if volume is None:
+            raise DVRInputError(
+                "cache: the volume of this bricked analysis is gone; a new light needs it"
+            )
+        seg, t = state.seg, state.tables
+        gz, gy, gx = state.geometry.shape
+        for br, piece, off, cv in _pieces(volume, bricks, curvature):
+            lo = np.array([c[0] for c in br.cells[::-1]], np.int64)
+            hi = np.array([c[1] for c in br.cells[::-1]], np.int64)
+            j0 = np.empty(len(seg["n"]), np.int64)
+            j1 = np.empty(len(seg["n"]), np.int64)
+            nb.brick_ranges(seg["a"], seg["b"], seg["t"], seg["n"], t["step"], lo, hi,
+                            np.array([gx, gy, gz], np.int64), j0, j1)  # fmt: skip
+            vol, _, cvp = _piece_arrays(piece, state, cv)
+            geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
+            nb.fill_range(cache.start, cache.count, cache.lut, cache.lazy["steps"], cache.shading,
+                          cache.curvature, seg["a"], seg["b"], seg["t"], t["step"], j0, j1, vol,
+                          cvp, geo, cache.ids, tab, True, cv is not None)  # fmt: skip
+
+    return refill
+
+
+def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, brick=(64, 64, 64),
+                    opacities=None, curvature=None, build_cache: bool = True,
+                    occlusion_free: bool = True) -> RayAnalysis:  # fmt: skip
+    """:func:`~dvr_perception.rays.engine.analyze`, walking the volume brick by brick.
+
+    Parameters
+    ----------
+    brick : tuple of int
+        Cells per brick ``(z, y, x)``.
+    volume, spec, camera, opacities, curvature, build_cache, occlusion_free
+        As :func:`~dvr_perception.rays.engine.analyze` (``curvature``: a whole-volume array,
+        or ``None``).
+
+    Examples
+    --------
+    >>> from dvr_perception.rays.engine import analyze
+    >>> from dvr_perception.volume.phantom import make_phantom
+    >>> vol, spec = make_phantom(size=24)
+    >>> cam = Camera.from_view(vol.bounds, width=16, height=16)
+    >>> whole = analyze(vol, spec, cam)
+    >>> parts = analyze_bricked(vol, spec, cam, brick=(5, 7, 9))
+    >>> bool(np.array_equal(whole.rgba, parts.rgba))
+    True
+    """
+    from dvr_perception.rays import engine
+
+    t0 = time.perf_counter()
+    engine._check_inputs(volume, spec, camera, "numba")
+    curv = engine._check_curvature(curvature, volume)
+    bricks = split(volume.data.shape, brick)
+    state = RayState.start(
+        Geometry.of(volume), spec, camera, scalar_range=_grid.scalar_range(volume),
+        opacities=opacities, occlusion_free=occlusion_free,
+    )  # fmt: skip
+    order = view_order(bricks, state)
+    bricks = [bricks[i] for i in order]
+    caches = [] if build_cache else None
+    for br, piece, off, cv in _pieces(volume, bricks, curv):
+        c = walk(state, piece, br, offset=off, curvature=cv, build_cache=build_cache)
+        if caches is not None and c is not None:
+            caches.append(c)
+    refill = _refiller(weakref.ref(volume), bricks, curv, state) if build_cache else None
+    return finish(state, caches, refill=refill, seconds=time.perf_counter() - t0)
