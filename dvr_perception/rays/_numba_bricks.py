@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 from numba import njit, prange
 
 from dvr_perception.rays._numba_kernels import _FM, _UNSET, _fill, _sample_at, _walk_ray
@@ -44,7 +43,7 @@ def _first(c, axis, rising, t_first, step, n, ax, ay, az, bx, by, bz, gnx, gny, 
     if est >= n:
         j = n
     elif est > 0.0:
-        j = int(math.ceil(est))
+        j = math.ceil(est)
     while j > 0:
         cj = _cell(j - 1, t_first, step, ax, ay, az, bx, by, bz, gnx, gny, gnz, axis)
         if (cj >= c) if rising else (cj < c):

@@ -223,7 +223,8 @@ def _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz):
 
 @njit(cache=True, fastmath=_FM, inline="always")
 def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n,
-          step, shade, has_curv, build, base, cnt, walked, bits, asg, out, ti, ert, geo):  # fmt: skip
+          step, shade, has_curv, build, base, cnt, walked, bits, asg, out, ti, ert,
+          geo):  # fmt: skip
     """Walk the rest of a ray after early ray termination: only each sample's table index.
 
     Accumulates the occlusion-free ``asg``, the ``present`` bits and the transmittance ``ti`` at
@@ -245,7 +246,7 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
     spare = asg.shape[0] - 1
     lab_end = (lab_base if lab_base >= 0 else len(tids) - 1) - 1
     gnx, gny, gnz, ox, oy, oz = geo
-    nz, ny, nx = tix.shape
+    ny, nx = tix.shape[1], tix.shape[2]
     tf = tix.reshape(tix.size)
     cf = cells.reshape(cells.size)
     bf = blocks.reshape(blocks.size)
@@ -328,7 +329,7 @@ def _walk_ray(
     tix, cells, blocks, rep, lab, lab_base, tail_maps = maps
     lab_end = (lab_base if lab_base >= 0 else len(ids)) - 1
     gnx, gny, gnz, ox, oy, oz = geo
-    nz, ny, nx = vol.shape
+    ny, nx = vol.shape[1], vol.shape[2]
     volf = vol.reshape(vol.size)
     clf = cells.reshape(cells.size)
     isy = np.uint64(nx)
@@ -444,7 +445,7 @@ def _fill(e, j, ax, ay, az, bx, by, bz, t_first, step, vol, curv, tab, s, shade,
     ``geo``: as in :func:`_walk_ray` (the whole volume's voxel counts, ``vol``'s offset).
     """
     gnx, gny, gnz, ox, oy, oz = geo
-    nz, ny, nx = vol.shape
+    ny, nx = vol.shape[1], vol.shape[2]
     px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, gnx, gny, gnz)
     if shade:
         volf = vol.reshape(vol.size)

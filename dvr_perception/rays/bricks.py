@@ -97,7 +97,7 @@ class Geometry:
 
     @classmethod
     def of(cls, volume: Volume) -> Geometry:
-        """The geometry of ``volume``."""
+        """Return the geometry of ``volume``."""
         return cls(tuple(volume.data.shape), volume.spacing, volume.origin, volume.data.dtype)
 
     @property
@@ -117,8 +117,10 @@ class Geometry:
 
 @dataclass(frozen=True)
 class Brick:
-    """A box of cells ``((z0, z1), (y0, y1), (x0, x1))``, half-open (cell ``i`` lies between
-    voxels ``i`` and ``i + 1``; an axis of ``n`` voxels has cells ``0 .. n - 2``).
+    """A box of cells ``((z0, z1), (y0, y1), (x0, x1))``, half-open.
+
+    Cell ``i`` lies between voxels ``i`` and ``i + 1``; an axis of ``n`` voxels has cells
+    ``0 .. n - 2``.
 
     Examples
     --------
@@ -155,7 +157,7 @@ def split(shape, cells) -> list[Brick]:
         size = ()
     if len(size) != 3 or min(size) < 1:
         raise DVRInputError(f"brick: expected three positive cell counts (z, y, x), got {cells!r}")
-    edges = [list(range(0, n - 1, s)) + [n - 1] for n, s in zip(shape, size, strict=True)]
+    edges = [[*range(0, n - 1, s), n - 1] for n, s in zip(shape, size, strict=True)]
     return [
         Brick(((z0, z1), (y0, y1), (x0, x1)))
         for z0, z1 in zip(edges[0][:-1], edges[0][1:], strict=True)
@@ -165,7 +167,7 @@ def split(shape, cells) -> list[Brick]:
 
 
 def from_piece_extent(extent, whole_extent) -> Brick:
-    """The brick owning the cells of a VTK piece extent (without ghost levels).
+    """Return the brick owning the cells of a VTK piece extent (without ghost levels).
 
     ``extent`` and ``whole_extent`` are VTK's ``(x0, x1, y0, y1, z0, z1)`` inclusive point
     indices; pieces split by VTK share their boundary planes, so their cells do not overlap.
@@ -279,7 +281,7 @@ class RayState:
         )  # fmt: skip
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The per-ray state, to hand to another process."""
+        """Return the per-ray state, to hand to another process."""
         return {"st": self.st, "bits": self.bits, "vis": self.vis, "asg": self.asg}
 
     def load(self, arrays: dict) -> None:
@@ -287,14 +289,12 @@ class RayState:
         for name, mine in self.arrays().items():
             got = np.asarray(arrays[name])
             if got.shape != mine.shape:
-                raise DVRInputError(
-                    f"state {name!r}: expected shape {mine.shape}, got {got.shape}"
-                )
+                raise DVRInputError(f"state {name!r}: expected shape {mine.shape}, got {got.shape}")
             mine[...] = got
 
 
 def view_order(bricks, state: RayState) -> list[int]:
-    """Indices of ``bricks`` front to back: an order every ray meets them in.
+    """Return the indices of ``bricks`` front to back: an order every ray meets them in.
 
     Along each axis a ray moves away from the camera's position (perspective) or in the view
     direction (parallel), so a brick is met only after every brick closer to the camera's
@@ -443,7 +443,7 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
 
 
 def _merge(caches, state) -> dict:
-    """The bricks' entries per ray, in view order (= the whole walk's order)."""
+    """Return the bricks' entries per ray, in view order (= the whole walk's order)."""
     _, nb = _kernels()
     nrays = len(state.st)
     total = np.zeros(nrays, np.int64)
@@ -469,7 +469,7 @@ def _merge(caches, state) -> dict:
 
 
 def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAnalysis:
-    """The analysis of the walked rays (every brick walked once, in view order).
+    """Return the analysis of the walked rays (every brick walked once, in view order).
 
     ``caches``: the bricks' :class:`BrickCache` in view order (consumed); merged into the
     result's :class:`RayCache`.  ``refill(cache, tab)``: recomputes shading after a change of
@@ -500,9 +500,11 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
         "sample_distance": state.tables["step"],
         "occlusion_free": state.occlusion_free,
         "bricks": state.stats["bricks"],
-        "params": engine._params(state.opacities, state.tables["cols"], state.tables["mats"],
-                                 spec.rendering.light_direction),  # fmt: skip
     }
+    t = state.tables
+    stats["params"] = engine._params(
+        state.opacities, t["cols"], t["mats"], spec.rendering.light_direction
+    )
     if not state.occlusion_free:
         asg = np.full((k, len(st)), np.nan, np.float32)
         aimp = np.full(len(st), np.nan, np.float32)
@@ -510,7 +512,6 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
     if caches is not None:
         m = _merge(list(caches), state)
         h, w = cam.height, cam.width
-        t = state.tables
         dummy = np.zeros((2, 2, 2), np.uint32 if t["shade"] else np.uint16)
         lazy = {
             "steps": m["steps"],

@@ -1,0 +1,166 @@
+"""Bricked analysis (issue 17): brick by brick in view order equals the whole walk."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from dvr_perception.errors import DVRInputError
+from dvr_perception.measures.combined import all_measures
+from dvr_perception.rays import bricks
+from dvr_perception.rays.camera import Camera
+from dvr_perception.rays.curvature import curvature_volume
+from dvr_perception.rays.engine import analyze, reevaluate
+from dvr_perception.structures.io import load_spec
+from dvr_perception.volume.io import load_volume
+from dvr_perception.volume.phantom import make_phantom
+
+pytest.importorskip("numba")
+
+BUFFERS = ("rgba", "image", "visible", "assigned", "present", "curvature",
+           "importance_accumulated")  # fmt: skip
+
+
+def _max_diff(a, b) -> float:
+    return max(
+        float(np.abs(getattr(a, f).astype(np.float64) - getattr(b, f).astype(np.float64)).max())
+        for f in BUFFERS
+        if getattr(a, f) is not None
+    )
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    vol, spec = make_phantom(size=40)
+    return vol, spec, curvature_volume(vol, spec)[0]
+
+
+@pytest.mark.parametrize("brick", [(39, 39, 39), (20, 39, 39), (7, 9, 11), (3, 40, 5)])
+@pytest.mark.parametrize("view", [(35.0, 25.0, False), (-120.0, -40.0, True)])
+def test_bricked_equals_whole_on_the_phantom(phantom, brick, view):
+    vol, spec, curv = phantom
+    cam = Camera.from_view(vol.bounds, width=48, height=40, azimuth=view[0], elevation=view[1])
+    if view[2]:
+        cam = Camera(cam.position, cam.focal_point, cam.view_up, parallel_projection=True,
+                     parallel_scale=30.0, width=48, height=40)  # fmt: skip
+    whole = analyze(vol, spec, cam, curvature=curv)
+    parts = bricks.analyze_bricked(vol, spec, cam, brick=brick, curvature=curv)
+    assert whole.accumulated.max() > 0.5  # the view sees the phantom
+    assert _max_diff(whole, parts) <= 1e-6
+    assert np.array_equal(whole.cache.count, parts.cache.count)
+    assert np.array_equal(whole.cache.lut, parts.cache.lut)
+    # a re-evaluation after new opacities, and after a new light (shading re-read per brick)
+    ops = np.linspace(0.9, 0.05, len(spec.structures))
+    assert _max_diff(reevaluate(whole.cache, opacities=ops),
+                     reevaluate(parts.cache, opacities=ops)) <= 1e-6  # fmt: skip
+    light = (0.4, -0.3, 0.8)
+    assert _max_diff(reevaluate(whole.cache, light_direction=light),
+                     reevaluate(parts.cache, light_direction=light)) <= 1e-6  # fmt: skip
+
+
+def test_every_sample_belongs_to_exactly_one_brick(phantom):
+    vol, spec, _ = phantom
+    cam = Camera.from_view(vol.bounds, width=32, height=32, azimuth=33.0, elevation=-61.0)
+    state = bricks.RayState.start(bricks.Geometry.of(vol), spec, cam,
+                                  scalar_range=vol.scalar_range)  # fmt: skip
+    _, nb = bricks._kernels()
+    seg = state.seg
+    n = seg["n"].astype(np.int64)
+    covered = np.zeros(len(n), np.int64)
+    runs = []
+    for br in bricks.split(vol.data.shape, (6, 13, 8)):
+        lo = np.array([c[0] for c in br.cells[::-1]], np.int64)
+        hi = np.array([c[1] for c in br.cells[::-1]], np.int64)
+        j0 = np.empty(len(n), np.int64)
+        j1 = np.empty(len(n), np.int64)
+        nb.brick_ranges(seg["a"], seg["b"], seg["t"], seg["n"], state.tables["step"], lo, hi,
+                        np.array(vol.dims, np.int64), j0, j1)  # fmt: skip
+        covered += j1 - j0
+        runs.append((j0, j1))
+    assert np.array_equal(covered, n)  # no sample twice, none left out
+    # and the runs of one ray do not overlap (they tile [0, n))
+    r = int(np.argmax(n))
+    spans = sorted((int(a[r]), int(b[r])) for a, b in runs if b[r] > a[r])
+    assert spans[0][0] == 0
+    assert spans[-1][1] == n[r]
+    assert all(s1[1] == s2[0] for s1, s2 in itertools.pairwise(spans))
+
+
+def test_the_state_travels_between_processes(phantom):
+    """Half the bricks in one state, its arrays loaded into another for the rest (MPI ranks)."""
+    vol, spec, curv = phantom
+    cam = Camera.from_view(vol.bounds, width=40, height=40, azimuth=70.0, elevation=10.0)
+    whole = analyze(vol, spec, cam, curvature=curv, build_cache=False)
+    geo = bricks.Geometry.of(vol)
+    first = bricks.RayState.start(geo, spec, cam, scalar_range=vol.scalar_range)
+    pieces = bricks.split(vol.data.shape, (39, 20, 39))
+    pieces = [pieces[i] for i in bricks.view_order(pieces, first)]
+    cut = len(pieces) // 2
+    for br, piece, off, cv in bricks._pieces(vol, pieces[:cut], curv):
+        bricks.walk(first, piece, br, offset=off, curvature=cv, build_cache=False)
+    second = bricks.RayState.start(geo, spec, cam, scalar_range=vol.scalar_range)
+    second.load({k: v.copy() for k, v in first.arrays().items()})
+    for br, piece, off, cv in bricks._pieces(vol, pieces[cut:], curv):
+        bricks.walk(second, piece, br, offset=off, curvature=cv, build_cache=False)
+    assert _max_diff(whole, bricks.finish(second)) <= 1e-6
+    with pytest.raises(DVRInputError, match="state 'st'"):
+        second.load({**first.arrays(), "st": np.zeros((3, 7))})
+
+
+def test_bad_pieces_and_bricks_are_named(phantom):
+    vol, spec, _ = phantom
+    cam = Camera.from_view(vol.bounds, width=8, height=8)
+    state = bricks.RayState.start(bricks.Geometry.of(vol), spec, cam,
+                                  scalar_range=vol.scalar_range)  # fmt: skip
+    br = bricks.Brick(((10, 20), (0, 39), (0, 39)))
+    small = bricks.Volume(vol.data[10:21], vol.spacing, vol.origin)
+    with pytest.raises(DVRInputError, match=r"piece: axis z holds voxels 10\.\.20"):
+        bricks.walk(state, small, br, offset=(10, 0, 0))
+    with pytest.raises(DVRInputError, match="brick: expected three positive"):
+        bricks.split(vol.data.shape, (0, 4, 4))
+    with pytest.raises(DVRInputError, match="curvature: expected float32"):
+        bricks.walk(state, vol, br, curvature=np.zeros((2, 2, 2), np.float32))
+
+
+def test_piece_extent_maps_to_the_cells_it_owns():
+    whole = (0, 63, 0, 63, 0, 63)
+    a = bricks.from_piece_extent((0, 63, 0, 63, 0, 32), whole)
+    b = bricks.from_piece_extent((0, 63, 0, 63, 32, 63), whole)
+    assert a.cells == ((0, 32), (0, 63), (0, 63))
+    assert b.cells == ((32, 63), (0, 63), (0, 63))
+    assert a.ncells + b.ncells == 63**3  # every cell once
+    assert a.voxels((64, 64, 64)) == ((0, 34), (0, 64), (0, 64))  # one ghost layer past 32
+
+
+VIEWS = ((35.0, 25.0), (-120.0, -40.0))
+
+
+@pytest.mark.parametrize("name", ["engine", "cthead", "tooth"])
+def test_bricked_equals_whole_on_shared_volumes(shared_data, name):
+    """Issue 17's check: two oblique views, three brick sizes (the last cuts every structure)."""
+    vol = load_volume(shared_data / f"{name}.nhdr")
+    spec = load_spec(f"state_files/{name}.json")
+    curv = curvature_volume(vol, spec)[0]
+    z, y, x = vol.data.shape
+    sizes = ((z, y // 2, x), (64, 64, 64), (23, 29, 31))
+    for az, el in VIEWS:
+        cam = Camera.from_view(vol.bounds, width=64, height=64, azimuth=az, elevation=el)
+        whole = analyze(vol, spec, cam, curvature=curv)
+        e_whole = all_measures(whole, spec)
+        for size in sizes:
+            parts = bricks.analyze_bricked(vol, spec, cam, brick=size, curvature=curv)
+            assert parts.stats["bricks"] > 1
+            assert _max_diff(whole, parts) <= 1e-5, (name, az, size)
+            e_parts = all_measures(parts, spec)
+            for term in ("E_v", "E_s", "E_t"):
+                a = getattr(getattr(e_whole, _RESULT[term]), term)
+                b = getattr(getattr(e_parts, _RESULT[term]), term)
+                assert abs(a - b) <= 1e-6, (name, az, size, term)
+        ops = np.linspace(0.8, 0.2, len(spec.structures))
+        assert _max_diff(reevaluate(whole.cache, opacities=ops),
+                         reevaluate(parts.cache, opacities=ops)) <= 1e-5  # fmt: skip
+
+
+_RESULT = {"E_v": "visibility", "E_s": "shape", "E_t": "transparency"}
