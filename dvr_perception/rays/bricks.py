@@ -324,8 +324,8 @@ def _piece_arrays(piece: Volume, state: RayState, curvature):
     idx = _grid.index_volume(piece, lut.lo, lut.scale, lut.size)
     labmap = _grid.label_map(piece, t["labels"]) if t["labels"] else None
     lab = (labmap, lut.size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8), -1)
-    vol = _grid.voxel_records(piece, idx) if t["shade"] else idx
     cells = _grid.cell_map(piece, idx, t["ids"], t["memb"], labmap)
+    vol = _grid.voxel_records(piece, idx, cells) if t["shade"] else idx
     maps = (_grid.compact_index(piece, idx), cells, _grid.block_map(piece, cells), t["rep"], *lab,
             *t["tail"])  # fmt: skip
     cv = np.zeros((2, 2, 2), np.float32) if curvature is None else curvature

@@ -280,7 +280,8 @@ def analyze(
             stacklevel=2,
         )
     idx = _grid.index_volume(volume, lut.lo, lut.scale, lut.size)
-    vol = _grid.voxel_records(volume, idx) if shade else idx
+    cells = None if nk is None else _grid.cell_map(volume, idx, ids, memb, labmap)
+    vol = _grid.voxel_records(volume, idx, cells) if shade else idx
     cv = curv if has_curv else np.zeros((2, 2, 2), np.float32)
     lab = (labmap, lut.size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8), -1)
     tab = _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16)

@@ -1,0 +1,138 @@
+"""numba twins of the per-volume arrays of :mod:`dvr_perception.rays._grid`.
+
+Each kernel computes exactly what its numpy original does, value for value (the same float32
+and float64 operations in the same order, no fast-math), one z-plane per parallel work item:
+:func:`index_volume`, :func:`normal_codes`, :func:`cell_classes` and, fused, the voxel
+records where shading reads them (:func:`records_where`).  Tested equal on every
+shared volume (``tests/rays/test_grid_numba.py``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+__all__ = ["cell_classes", "index_volume", "normal_codes", "records_where"]
+
+_W_SCALE = 32765.0 / 32768.0
+_W_BIAS = 32767.0 / 32768.0
+_RAD2DEG = 180.0 / math.pi
+_ZERO_CODE = 255 * 256
+
+
+@njit(parallel=True, cache=True)
+def index_volume(data, lo, scale, size, out):
+    """``clip(floor((v - lo) * scale), 0, size - 1)`` per voxel, as uint16."""
+    nz, ny, nx = data.shape
+    top = float(size - 1)
+    for z in prange(nz):
+        for y in range(ny):
+            for x in range(nx):
+                v = math.floor((np.float64(data[z, y, x]) - lo) * scale)
+                out[z, y, x] = np.uint16(min(max(v, 0.0), top))
+
+
+@njit(cache=True, inline="always")
+def _code(data, z, y, x, nz, ny, nx, ax, ay, az):
+    """One voxel's code, as :func:`normal_codes` computes it."""
+    z0 = max(z - 1, 0)
+    z1 = min(z + 1, nz - 1)
+    y0 = max(y - 1, 0)
+    y1 = min(y + 1, ny - 1)
+    x0 = max(x - 1, 0)
+    x1 = min(x + 1, nx - 1)
+    gx = np.float64((np.float32(data[z, y, x0]) - np.float32(data[z, y, x1])) / ax)
+    gy = np.float64((np.float32(data[z, y0, x]) - np.float32(data[z, y1, x])) / ay)
+    gz = np.float64((np.float32(data[z0, y, x]) - np.float32(data[z1, y, x])) / az)
+    mag = math.sqrt(gx * gx + gy * gy + gz * gz)
+    if mag == 0.0:
+        return _ZERO_CODE
+    theta = math.atan2(gy, gx) * _RAD2DEG
+    if theta < 0.0:
+        theta += 360.0
+    phi = math.asin(min(max(gz / mag, -1.0), 1.0)) * _RAD2DEG
+    lo = min(max(math.floor(theta * (255.0 / 359.0) + 0.5), 0.0), 255.0)
+    hi = min(max(math.floor((phi + 90.0) * (254.0 / 180.0) + 0.5), 0.0), 254.0)
+    return np.int64(lo + 256.0 * hi)
+
+
+@njit(parallel=True, cache=True)
+def normal_codes(data, aspect, out):
+    """VTK's encoded central-difference normals (``_grid.normal_codes``), uint16 per voxel.
+
+    A missing neighbour at the border is the voxel itself.
+    """
+    nz, ny, nx = data.shape
+    ax, ay, az = aspect[0], aspect[1], aspect[2]
+    for zz in prange(nz):
+        z = np.int64(zz)
+        for y in range(ny):
+            for x in range(nx):
+                out[z, y, x] = _code(data, z, y, x, nz, ny, nx, ax, ay, az)
+
+
+@njit(parallel=True, cache=True)
+def cell_classes(index, cat, run, labels, has_labels, out):
+    """Class of every cell from its 8 corners' table indices (``_grid.cell_map``).
+
+    Per row of cells, the 4 corners shared by neighbouring cells along x are reduced once.
+    """
+    nz, ny, nx = index.shape
+    n = len(cat)
+    for zz in prange(nz):
+        z = np.int64(zz)
+        cmin = np.empty(nx, np.int64)
+        cmax = np.empty(nx, np.int64)
+        clab = np.zeros(nx, np.bool_)
+        for y in range(ny):
+            if z == nz - 1 or y == ny - 1:
+                for x in range(nx):
+                    out[z, y, x] = 0
+                continue
+            for x in range(nx):
+                a = np.int64(index[z, y, x])
+                b = np.int64(index[z, y + 1, x])
+                c = np.int64(index[z + 1, y, x])
+                d = np.int64(index[z + 1, y + 1, x])
+                cmin[x] = min(min(a, b), min(c, d))
+                cmax[x] = max(max(a, b), max(c, d))
+                if has_labels:
+                    lab_a = labels[z, y, x] > 0 or labels[z, y + 1, x] > 0
+                    clab[x] = lab_a or labels[z + 1, y, x] > 0 or labels[z + 1, y + 1, x] > 0
+            for x in range(nx - 1):
+                lo = min(cmin[x], cmin[x + 1])
+                hi = max(cmax[x], cmax[x + 1])
+                klo = min(max(np.int64(math.floor(lo * _W_SCALE + _W_BIAS)) - 2, 0), n - 1)
+                khi = min(max(np.int64(math.floor(hi * _W_SCALE + _W_BIAS)) + 1, 0), n - 1)
+                if (has_labels and (clab[x] or clab[x + 1])) or run[klo] != run[khi]:
+                    out[z, y, x] = 255
+                else:
+                    out[z, y, x] = cat[klo]
+            out[z, y, nx - 1] = 0
+
+
+@njit(parallel=True, cache=True)
+def records_where(data, aspect, index, cells, out):
+    """``index | code << 16`` per voxel, the code computed only where shading can read it.
+
+    Shading reads the 8 corners of cells that are not empty (``cells`` != 0); every other
+    voxel gets the zero-gradient code.
+    """
+    nz, ny, nx = data.shape
+    ax, ay, az = aspect[0], aspect[1], aspect[2]
+    for zz in prange(nz):
+        z = np.int64(zz)
+        for y in range(ny):
+            for x in range(nx):
+                need = False
+                for cz in range(max(z - 1, 0), z + 1):
+                    for cy in range(max(y - 1, 0), y + 1):
+                        for cx in range(max(x - 1, 0), x + 1):
+                            if cells[cz, cy, cx] != 0:
+                                need = True
+                code = _ZERO_CODE
+                if need:
+                    code = _code(data, z, y, x, nz, ny, nx, ax, ay, az)
+                out[z, y, x] = np.uint32(index[z, y, x]) | (np.uint32(code) << np.uint32(16))
