@@ -43,7 +43,7 @@ import numpy as np
 
 from dvr_perception._numba import kernels
 from dvr_perception.errors import DVRInputError, DVRWarning
-from dvr_perception.rays import _grid, _tables
+from dvr_perception.rays import _grid, _tables, memory
 from dvr_perception.rays import _numpy_kernels as _npk
 from dvr_perception.rays._results import RayAnalysis, RayCache, engine_made
 from dvr_perception.rays.camera import Camera
@@ -200,6 +200,8 @@ def analyze(
     backend: str = "auto",
     build_cache: bool = True,
     occlusion_free: bool = True,
+    brick=None,
+    memory_limit=None,
 ) -> RayAnalysis:
     """Render ``volume`` with ``spec`` from ``camera`` and measure every structure per pixel.
 
@@ -229,6 +231,15 @@ def analyze(
         renderer does (about half the time on dense volumes); ``assigned`` is then NaN and
         ``present`` lists only the structures met before termination.  Needs
         ``build_cache=False``.
+    brick : tuple of int, optional
+        Analyse in bricks of this many cells ``(z, y, x)`` (:mod:`~dvr_perception.rays.
+        bricks`; the same result).  By default the whole volume is analysed at once when it
+        is small and fits, else in bricks sized by the memory limit
+        (:func:`~dvr_perception.rays.memory.plan`).
+    memory_limit : int or str, optional
+        Bytes (or ``"8G"``) the analysis may use; default
+        :func:`dvr_perception.rays.memory.limit`.  An analysis that cannot fit raises
+        :class:`~dvr_perception.errors.DVRInputError` before allocating.
 
     Returns
     -------
@@ -279,6 +290,18 @@ def analyze(
             DVRWarning,
             stacklevel=2,
         )
+    need = memory.plan(
+        volume, nrays, int(seg["n"].sum()), k=k, shade=shade, curvature=has_curv,
+        build_cache=build_cache, lut=lut, membership=memb, memory_limit=memory_limit,
+        brick=brick,
+    )  # fmt: skip
+    if need["mode"] == "bricks":
+        from dvr_perception.rays.bricks import analyze_bricked
+
+        return analyze_bricked(
+            volume, spec, camera, brick=need["brick"], opacities=ops, curvature=curv,
+            build_cache=build_cache, occlusion_free=occlusion_free,
+        )  # fmt: skip
     idx = _grid.index_volume(volume, lut.lo, lut.scale, lut.size)
     cells = None if nk is None else _grid.cell_map(volume, idx, ids, memb, labmap)
     vol = _grid.voxel_records(volume, idx, cells) if shade else idx

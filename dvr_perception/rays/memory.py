@@ -1,0 +1,159 @@
+"""How much memory an analysis needs, the limit it must stay under, and whether to brick.
+
+:func:`plan` estimates, before anything large is allocated, what a whole-volume analysis
+(:func:`~dvr_perception.rays.engine.analyze`'s usual path) and a bricked one
+(:mod:`~dvr_perception.rays.bricks`) would hold at their peak: the derived volumes (table
+index, voxel records with the normal codes, cell map, compact index, label map), the cache of
+per-ray samples and the walk's scratch, and the per-ray buffers.  The whole volume is used
+when it is small (at most :data:`WHOLE_VOXELS` voxels) and fits; otherwise bricks whose
+derived volumes and scratch take a small share of the limit.  When even bricks do not fit,
+:func:`plan` raises one error naming ``--memory-limit`` instead of letting the operating system
+kill the process.
+
+The limit is, in order: the ``memory_limit`` argument, :func:`set_limit` (the command line's
+``--memory-limit``), the environment variable ``DVR_PERCEPTION_MEMORY_LIMIT`` and
+:data:`DEFAULT_FRACTION` of the machine's memory.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+
+import numpy as np
+
+from dvr_perception.errors import DVRInputError
+
+__all__ = ["DEFAULT_FRACTION", "WHOLE_VOXELS", "Plan", "limit", "parse_size", "plan", "set_limit"]
+
+#: Share of the machine's memory an analysis may use by default.
+DEFAULT_FRACTION = 0.5
+#: Volumes with more voxels than this (e.g. 512 x 512 x 256) are analysed in bricks.
+WHOLE_VOXELS = 64 * 2**20
+#: A brick's derived volumes and scratch may take this share of the limit.
+BRICK_SHARE = 0.125
+ENV = "DVR_PERCEPTION_MEMORY_LIMIT"
+_LIMIT: list[int | None] = [None]
+_UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+
+
+def parse_size(text, name: str = "--memory-limit") -> int:
+    """Bytes of ``"8G"``, ``"512M"``, ``"1.5GB"`` or a plain number of bytes.
+
+    Examples
+    --------
+    >>> parse_size("1.5G"), parse_size("512MiB"), parse_size(4096)
+    (1610612736, 536870912, 4096)
+    """
+    m = re.fullmatch(r"\s*([0-9]+(?:\.[0-9]*)?)\s*([KMGT]?)(?:I?B)?\s*", str(text), re.IGNORECASE)
+    value = float(m.group(1)) * _UNITS[m.group(2).upper()] if m else math.nan
+    if not (math.isfinite(value) and value >= 2**20):
+        raise DVRInputError(
+            f"{name}: expected a memory size of at least 1M such as 8G or 512M, got {text!r}"
+        )
+    return int(value)
+
+
+def machine_memory() -> int:
+    """Bytes of physical memory."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - not POSIX
+        return 8 * 2**30
+
+
+def set_limit(value) -> None:
+    """Set this process's limit (bytes, or a size text); ``None`` restores the default."""
+    _LIMIT[0] = None if value is None else parse_size(value)
+
+
+def limit(value=None) -> int:
+    """Return the memory limit in bytes (see the module docstring for the order)."""
+    if value is not None:
+        return parse_size(value, "memory_limit")
+    if _LIMIT[0] is not None:
+        return _LIMIT[0]
+    env = os.environ.get(ENV, "").strip()
+    if env:
+        return parse_size(env, ENV)
+    return int(DEFAULT_FRACTION * machine_memory())
+
+
+def _gb(n: float) -> str:
+    return f"{n / 2**30:.2f} GB"
+
+
+class Plan(dict):
+    """What :func:`plan` decided.
+
+    ``mode`` ("whole" or "bricks"), ``brick`` (cells, z y x), ``limit`` and the estimated
+    peak bytes of both ways (``whole``, ``bricked``).
+    """
+
+
+def _filled_fraction(volume, lut, memb, stride: int = 4) -> float:
+    """Share of voxels whose table entry belongs to a structure (every ``stride``-th voxel)."""
+    d = volume.data[::stride, ::stride, ::stride].astype(np.float64)
+    idx = np.clip(np.floor((d - lut.lo) * lut.scale), 0, lut.size - 1).astype(np.int64)
+    inside = np.asarray(memb[: lut.size]) > 0
+    frac = float(inside[idx].mean()) if idx.size else 1.0
+    if volume.labels is not None:
+        frac = max(frac, float(np.mean(volume.labels[::stride, ::stride, ::stride] > 0)))
+    return frac
+
+
+def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bool,
+         build_cache: bool, lut, membership, memory_limit=None, brick=None) -> Plan:  # fmt: skip
+    """Choose whole or bricked and check the estimate against the limit.
+
+    ``samples`` is the number of samples of all rays (the walk's segments), ``lut`` the
+    transfer table and ``membership`` its per-entry membership.  ``brick`` forces bricks of
+    that many cells.  Raises :class:`~dvr_perception.errors.DVRInputError` when the analysis
+    cannot fit.
+    """
+    cap = limit(memory_limit)
+    voxels = int(volume.data.size)
+    per_voxel = 2 + (4 if shade else 0) + (1 if lut.size <= 256 else 0) + 1
+    per_voxel += 1 if volume.labels is not None else 0
+    entry = 2 + 4 + (4 if shade else 0) + (4 if curvature else 0)
+    filled = _filled_fraction(volume, lut, membership) if build_cache else 0.0
+    entries = samples * min(1.0, filled * 1.25 + 0.01)
+    per_ray = 8 * (4 + 1 + 2 * k + 1 + 8 + 7) + 4 * (9 + 2 * k)
+    rays_bytes = nrays * per_ray
+    cache = entries * entry if build_cache else 0.0
+    scratch_whole = samples * entry if build_cache else 0.0
+    whole = voxels * per_voxel + scratch_whole + cache + rays_bytes
+    if brick is None:
+        budget = BRICK_SHARE * cap
+        edge = 256
+        while edge > 32:
+            bvox = (edge + 3) ** 3
+            bscratch = scratch_whole * min(1.0, bvox / max(voxels, 1)) * 2.0
+            if bvox * (per_voxel + volume.data.itemsize) + bscratch <= budget:
+                break
+            edge //= 2
+        cells = tuple(min(edge, max(n - 1, 1)) for n in volume.data.shape)
+    else:
+        cells = tuple(int(c) for c in brick)
+    bvox = math.prod(c + 3 for c in cells)
+    bricked = (
+        bvox * (per_voxel + volume.data.itemsize)
+        + scratch_whole * min(1.0, bvox / max(voxels, 1)) * 2.0
+        + 2.0 * cache  # the bricks' entries and their merged copy
+        + rays_bytes
+    )
+    out = Plan(limit=cap, whole=whole, bricked=bricked, brick=cells, entries=entries)
+    if brick is None and voxels <= WHOLE_VOXELS and whole <= cap:
+        out["mode"] = "whole"
+        return out
+    if bricked > cap:
+        raise DVRInputError(
+            f"memory: analysing volume {getattr(volume, 'name', '')!r} "
+            f"({'x'.join(str(n) for n in volume.data.shape[::-1])} voxels) at {nrays} rays "
+            f"needs about {_gb(bricked)} even in bricks (of which {_gb(2.0 * cache)} for the "
+            f"cache of samples), more than the memory limit of {_gb(cap)}; raise it with "
+            f"--memory-limit (or {ENV}), or use a smaller image size"
+        )
+    out["mode"] = "bricks"
+    return out
