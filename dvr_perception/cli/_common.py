@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import re
 import sys
 import time
@@ -90,6 +91,13 @@ def add_scene_args(parser: argparse.ArgumentParser, *, volume_optional: bool = F
         action=argparse.BooleanOptionalAction,
         default=None,
         help="Phong shading on/off (default: the spec's rendering.shade)",
+    )
+    parser.add_argument(
+        "--memory-limit",
+        metavar="SIZE",
+        help="memory the analysis may use, e.g. 8G or 512M (default: half the machine's "
+        "memory); larger volumes are analysed in bricks, and a run that cannot fit stops "
+        "before it starts",
     )
 
 
@@ -173,6 +181,11 @@ def load_scene(args: argparse.Namespace) -> Scene:
     fail fast.
     """
     size = parse_size(args.size) if args.size is not None else None
+    if getattr(args, "memory_limit", None) is not None:
+        from dvr_perception.rays import memory
+
+        memory.set_limit(args.memory_limit)  # checked here, before the volume is read
+        os.environ[memory.ENV] = str(args.memory_limit)  # and for child processes
     view = parse_view(args.view) if args.view is not None else None
     camera = _read_camera(args.camera, size) if args.camera is not None else None
     from dvr_perception.structures.io import attach_labels, check_spec_for_volume, load_spec

@@ -80,8 +80,8 @@ def limit(value=None) -> int:
     return int(DEFAULT_FRACTION * machine_memory())
 
 
-def _gb(n: float) -> str:
-    return f"{n / 2**30:.2f} GB"
+def _human(n: float) -> str:
+    return f"{n / 2**30:.2f} GB" if n >= 2**30 else f"{n / 2**20:.0f} MB"
 
 
 class Plan(dict):
@@ -151,8 +151,8 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
         raise DVRInputError(
             f"memory: analysing volume {getattr(volume, 'name', '')!r} "
             f"({'x'.join(str(n) for n in volume.data.shape[::-1])} voxels) at {nrays} rays "
-            f"needs about {_gb(bricked)} even in bricks (of which {_gb(2.0 * cache)} for the "
-            f"cache of samples), more than the memory limit of {_gb(cap)}; raise it with "
+            f"needs about {_human(bricked)} even in bricks (of which {_human(2.0 * cache)} for the "
+            f"cache of samples), more than the memory limit of {_human(cap)}; raise it with "
             f"--memory-limit (or {ENV}), or use a smaller image size"
         )
     out["mode"] = "bricks"
