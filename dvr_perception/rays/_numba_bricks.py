@@ -127,11 +127,12 @@ def walk_brick(
 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def fill_range(start, count, c_lut, c_j, c_sh, c_curv, a, b, t_first, step, j0, j1, vol, curv,
-               geo, ids, tab, shade, has_curv):  # fmt: skip
+               geo, ids, tab, shade, has_curv, shift):  # fmt: skip
     """Compute shading and curvature of the unset entries whose sample is in ``[j0, j1)``.
 
-    ``vol``/``curv`` are the brick's (global index of their first voxel in ``geo[3:]``); a
-    ray's entries are in sample order, so its run starts at a binary-searched entry.
+    ``vol``/``curv`` are the brick's (global index of their first voxel in ``geo[3:]``;
+    ``vol``: voxel records, ``shift`` 16, or bare normal codes, 0); a ray's entries are in
+    sample order, so its run starts at a binary-searched entry.
     """
     g = (geo[0], geo[1], geo[2], geo[3], geo[4], geo[5])
     for r in prange(len(start)):
@@ -153,8 +154,8 @@ def fill_range(start, count, c_lut, c_j, c_sh, c_curv, a, b, t_first, step, j0, 
             unset = (shade and c_sh[e, 0] == _UNSET) or (has_curv and c_curv[e] < 0.0)
             if unset:
                 _fill(e, j, a[r, 0], a[r, 1], a[r, 2], b[r, 0], b[r, 1], b[r, 2], t_first[r],
-                      step, vol, curv, tab, ids[c_lut[e]], shade, has_curv, c_sh, c_curv,
-                      g)  # fmt: skip
+                      step, vol, curv, tab, ids[c_lut[e]], shade, has_curv, c_sh, c_curv, g,
+                      shift)  # fmt: skip
 
 
 @njit(parallel=True, cache=True)

@@ -130,10 +130,11 @@ def segments(cam, a, b, t_first, nsteps):
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
-def _shade_at(volf, o, isy, isz, fx, fy, fz, tab, s):
+def _shade_at(volf, o, isy, isz, fx, fy, fz, tab, s, shift):
     """VTK's shading of a sample: the 8 corners' table entries, trilinearly mixed.
 
-    ``volf`` holds ``index | code << 16`` per voxel, ``o`` is the cell's first corner and
+    ``volf`` holds ``index | code << 16`` per voxel (``shift`` 16; or bare codes, 0), ``o``
+    is the cell's first corner and
     ``tab`` is :func:`dvr_perception.rays._tables.shading_table`.  Returns the lit diffuse
     cosine and the specular power term, both tabulated and returned as ``round(x * 65534)``
     (uint16, as stored in the cache; 65535 marks "not yet computed").
@@ -144,14 +145,14 @@ def _shade_at(volf, o, isy, isz, fx, fy, fz, tab, s):
     o1 = o + isy
     o2 = o + isz
     o3 = o2 + isy
-    c0 = volf[o] >> _U16
-    c1 = volf[o + _U1] >> _U16
-    c2 = volf[o1] >> _U16
-    c3 = volf[o1 + _U1] >> _U16
-    c4 = volf[o2] >> _U16
-    c5 = volf[o2 + _U1] >> _U16
-    c6 = volf[o3] >> _U16
-    c7 = volf[o3 + _U1] >> _U16
+    c0 = volf[o] >> shift
+    c1 = volf[o + _U1] >> shift
+    c2 = volf[o1] >> shift
+    c3 = volf[o1 + _U1] >> shift
+    c4 = volf[o2] >> shift
+    c5 = volf[o2 + _U1] >> shift
+    c6 = volf[o3] >> shift
+    c7 = volf[o3 + _U1] >> shift
     w0 = gz * gy * gx
     w1 = gz * gy * fx
     w2 = gz * fy * gx
@@ -399,7 +400,7 @@ def _walk_ray(
         dfac = 1.0
         spec = 0.0
         if shade:
-            dl, sp = _shade_at(volf, o, isy, isz, fx, fy, fz, tab, s)
+            dl, sp = _shade_at(volf, o, isy, isz, fx, fy, fz, tab, s, _U16)
             if build:
                 c_sh[e, 0] = dl
                 c_sh[e, 1] = sp
@@ -439,10 +440,11 @@ def _walk_ray(
 
 @njit(cache=True, fastmath=_FM, inline="always")
 def _fill(e, j, ax, ay, az, bx, by, bz, t_first, step, vol, curv, tab, s, shade, has_curv,
-          c_sh, c_curv, geo):  # fmt: skip
+          c_sh, c_curv, geo, shift):  # fmt: skip
     """Compute entry ``e``'s shading and curvature from its sample index, as the walk would.
 
-    ``geo``: as in :func:`_walk_ray` (the whole volume's voxel counts, ``vol``'s offset).
+    ``geo``: as in :func:`_walk_ray` (the whole volume's voxel counts, ``vol``'s offset);
+    ``vol`` holds the normal code ``>> shift``: voxel records (16) or bare codes (0).
     """
     gnx, gny, gnz, ox, oy, oz = geo
     ny, nx = vol.shape[1], vol.shape[2]
@@ -453,7 +455,7 @@ def _fill(e, j, ax, ay, az, bx, by, bz, t_first, step, vol, curv, tab, s, shade,
         fy = min(max(py - y, 0.0), 1.0)
         fz = min(max(pz - z, 0.0), 1.0)
         o = np.uint64((z - oz) * (nx * ny) + (y - oy) * nx + (x - ox))
-        dl, sp = _shade_at(volf, o, np.uint64(nx), np.uint64(nx * ny), fx, fy, fz, tab, s)
+        dl, sp = _shade_at(volf, o, np.uint64(nx), np.uint64(nx * ny), fx, fy, fz, tab, s, shift)
         c_sh[e, 0] = dl
         c_sh[e, 1] = sp
     if has_curv:
@@ -494,7 +496,7 @@ def _composite_ray(
             nz, ny, nx = vol.shape
             _fill(e, c_j[e], a[r, 0], a[r, 1], a[r, 2], b[r, 0], b[r, 1], b[r, 2], t_first[r],
                   step, vol, curv, tab, s, shade, has_curv, c_sh, c_curv,
-                  (nx, ny, nz, 0, 0, 0))  # fmt: skip
+                  (nx, ny, nz, 0, 0, 0), _U16)  # fmt: skip
         dfac = 1.0
         spec = 0.0
         if shade:

@@ -197,6 +197,9 @@ class BrickCache:
     steps: np.ndarray
     shading: np.ndarray
     curvature: np.ndarray
+    #: The brick's normal codes (uint16, its piece's voxels) when kept for a change of light.
+    codes: np.ndarray | None = None
+    offset: tuple = (0, 0, 0)
 
 
 @dataclass(eq=False)
@@ -356,7 +359,7 @@ def _check_piece(piece, brick, offset, state, curvature):
 
 
 def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curvature=None,
-         build_cache: bool = True) -> BrickCache | None:  # fmt: skip
+         build_cache: bool = True, keep_codes: bool = False) -> BrickCache | None:  # fmt: skip
     """Walk ``brick``'s samples of every ray, continuing ``state`` (changed in place).
 
     Parameters
@@ -374,6 +377,9 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
         float32 ``|H|`` on ``piece``'s voxels (see :func:`~dvr_perception.rays.engine.analyze`).
     build_cache : bool
         Return the brick's cache entries, shading and curvature computed for every entry.
+    keep_codes : bool
+        Keep the brick's normal codes in its cache (2 bytes per voxel): a change of light
+        then re-shades from them instead of re-reading the volume.
 
     Returns
     -------
@@ -437,9 +443,10 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     del src
     if shade or has_curv:  # behind early ray termination: not composited yet, no volume later
         nb.fill_range(dest, count, out[0], out[1], out[2], out[3], seg["a"], seg["b"], seg["t"],
-                      t["step"], j0, j1, vol, cv, geo, t["ids"], t["tab"], shade,
-                      has_curv)  # fmt: skip
-    return BrickCache(brick, dest, count, *out)
+                      t["step"], j0, j1, vol, cv, geo, t["ids"], t["tab"], shade, has_curv,
+                      np.uint32(16))  # fmt: skip
+    codes = (vol >> np.uint32(16)).astype(np.uint16) if keep_codes and shade else None
+    return BrickCache(brick, dest, count, *out, codes=codes, offset=off)
 
 
 def _merge(caches, state) -> dict:
@@ -510,7 +517,7 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
         aimp = np.full(len(st), np.nan, np.float32)
     cache = None
     if caches is not None:
-        m = _merge(list(caches), state)
+        m = _merge(caches, state)
         h, w = cam.height, cam.width
         dummy = np.zeros((2, 2, 2), np.uint32 if t["shade"] else np.uint16)
         lazy = {
@@ -549,37 +556,56 @@ def _pieces(volume: Volume, bricks, curvature):
         yield br, piece, (z0, y0, x0), cv
 
 
-def _refiller(volume_ref, bricks, curvature, state):
-    """Recompute every entry's shading brick by brick (after a change of light)."""
+def _refiller(volume_ref, bricks, kept, state):
+    """Recompute every entry's shading brick by brick (after a change of light).
+
+    ``kept``: per brick its normal codes and offset (:func:`walk`'s ``keep_codes``), or
+    ``None`` to re-derive them from the volume (slow: done on every change of light).
+    """
 
     def refill(cache, tab):
         _, nb = _kernels()
-        volume = volume_ref()
-        if volume is None:
-            raise DVRInputError(
-                "cache: the volume of this bricked analysis is gone; a new light needs it"
-            )
         seg, t = state.seg, state.tables
         gz, gy, gx = state.geometry.shape
-        for br, piece, off, cv in _pieces(volume, bricks, curvature):
+        if kept is not None:
+            todo = [(br, codes, off) for br, (codes, off) in zip(bricks, kept, strict=True)]
+            shift = np.uint32(0)
+        else:
+            volume = volume_ref()
+            if volume is None:
+                raise DVRInputError(
+                    "cache: the volume of this bricked analysis is gone; a new light needs it"
+                )
+            todo = (
+                (br, _piece_arrays(piece, state, None)[0], off)
+                for br, piece, off, _ in _pieces(volume, bricks, None)
+            )
+            shift = np.uint32(16)
+        nrays = len(seg["n"])
+        for br, vol, off in todo:
             lo = np.array([c[0] for c in br.cells[::-1]], np.int64)
             hi = np.array([c[1] for c in br.cells[::-1]], np.int64)
-            j0 = np.empty(len(seg["n"]), np.int64)
-            j1 = np.empty(len(seg["n"]), np.int64)
+            j0 = np.empty(nrays, np.int64)
+            j1 = np.empty(nrays, np.int64)
             nb.brick_ranges(seg["a"], seg["b"], seg["t"], seg["n"], t["step"], lo, hi,
                             np.array([gx, gy, gz], np.int64), j0, j1)  # fmt: skip
-            vol, _, cvp = _piece_arrays(piece, state, cv)
             geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
             nb.fill_range(cache.start, cache.count, cache.lut, cache.lazy["steps"], cache.shading,
                           cache.curvature, seg["a"], seg["b"], seg["t"], t["step"], j0, j1, vol,
-                          cvp, geo, cache.ids, tab, True, cv is not None)  # fmt: skip
+                          np.zeros((2, 2, 2), np.float32), geo, cache.ids, tab, True, False,
+                          shift)  # fmt: skip
 
     return refill
 
 
+#: Keep the bricks' normal codes for a change of light while they take at most this share
+#: of the memory limit.
+KEEP_CODES_SHARE = 0.25
+
+
 def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, brick=(64, 64, 64),
                     opacities=None, curvature=None, build_cache: bool = True,
-                    occlusion_free: bool = True) -> RayAnalysis:  # fmt: skip
+                    occlusion_free: bool = True, memory_limit=None) -> RayAnalysis:  # fmt: skip
     """:func:`~dvr_perception.rays.engine.analyze`, walking the volume brick by brick.
 
     Parameters
@@ -614,9 +640,17 @@ def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, bric
     order = view_order(bricks, state)
     bricks = [bricks[i] for i in order]
     caches = [] if build_cache else None
+    from dvr_perception.rays import memory
+
+    held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
+    keep = build_cache and 2 * held <= KEEP_CODES_SHARE * memory.limit(memory_limit)
     for br, piece, off, cv in _pieces(volume, bricks, curv):
-        c = walk(state, piece, br, offset=off, curvature=cv, build_cache=build_cache)
+        c = walk(state, piece, br, offset=off, curvature=cv, build_cache=build_cache,
+                 keep_codes=keep)  # fmt: skip
         if caches is not None and c is not None:
             caches.append(c)
-    refill = _refiller(weakref.ref(volume), bricks, curv, state) if build_cache else None
+    refill = None
+    if build_cache and state.tables["shade"]:
+        kept = [(c.codes, c.offset) for c in caches] if keep else None
+        refill = _refiller(weakref.ref(volume), bricks, kept, state)
     return finish(state, caches, refill=refill, seconds=time.perf_counter() - t0)

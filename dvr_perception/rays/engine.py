@@ -300,7 +300,7 @@ def analyze(
 
         return analyze_bricked(
             volume, spec, camera, brick=need["brick"], opacities=ops, curvature=curv,
-            build_cache=build_cache, occlusion_free=occlusion_free,
+            build_cache=build_cache, occlusion_free=occlusion_free, memory_limit=memory_limit,
         )  # fmt: skip
     idx = _grid.index_volume(volume, lut.lo, lut.scale, lut.size)
     cells = None if nk is None else _grid.cell_map(volume, idx, ids, memb, labmap)

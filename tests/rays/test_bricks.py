@@ -60,6 +60,17 @@ def test_bricked_equals_whole_on_the_phantom(phantom, brick, view):
                      reevaluate(parts.cache, light_direction=light)) <= 1e-6  # fmt: skip
 
 
+def test_a_new_light_without_kept_codes_rereads_the_bricks(phantom, monkeypatch):
+    vol, spec, curv = phantom
+    monkeypatch.setattr(bricks, "KEEP_CODES_SHARE", 0.0)  # as if the codes did not fit
+    cam = Camera.from_view(vol.bounds, width=40, height=40, azimuth=-20.0, elevation=35.0)
+    whole = analyze(vol, spec, cam, curvature=curv)
+    parts = bricks.analyze_bricked(vol, spec, cam, brick=(9, 13, 20), curvature=curv)
+    light = (-0.5, 0.2, 0.7)
+    assert _max_diff(reevaluate(whole.cache, light_direction=light),
+                     reevaluate(parts.cache, light_direction=light)) <= 1e-6  # fmt: skip
+
+
 def test_every_sample_belongs_to_exactly_one_brick(phantom):
     vol, spec, _ = phantom
     cam = Camera.from_view(vol.bounds, width=32, height=32, azimuth=33.0, elevation=-61.0)
