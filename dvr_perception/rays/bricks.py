@@ -320,22 +320,35 @@ def view_order(bricks, state: RayState) -> list[int]:
     return [i for _, i in sorted(keys)]
 
 
-def _piece_arrays(piece: Volume, state: RayState, curvature):
-    """Per-brick derived volumes (:mod:`_grid`), computed on the brick's own voxels."""
+def derive(piece: Volume, state: RayState) -> tuple:
+    """Return the brick's derived volumes ``(vol, tix, cells, blocks, labmap)`` (:mod:`_grid`).
+
+    ``vol`` is the voxel records (table index and normal code) when shading, else the table
+    index; computed on the brick's own voxels.
+    """
     t = state.tables
     lut = t["lut"]
     idx = _grid.index_volume(piece, lut.lo, lut.scale, lut.size)
     labmap = _grid.label_map(piece, t["labels"]) if t["labels"] else None
-    lab = (labmap, lut.size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8), -1)
     cells = _grid.cell_map(piece, idx, t["ids"], t["memb"], labmap)
     vol = _grid.voxel_records(piece, idx, cells) if t["shade"] else idx
-    maps = (_grid.compact_index(piece, idx), cells, _grid.block_map(piece, cells), t["rep"], *lab,
-            *t["tail"])  # fmt: skip
+    return vol, _grid.compact_index(piece, idx), cells, _grid.block_map(piece, cells), labmap
+
+
+def _piece_arrays(piece: Volume, state: RayState, curvature, derived=None):
+    """Per-brick arrays the walk reads: ``vol``, the ``maps`` tuple and the curvature."""
+    t = state.tables
+    vol, tix, cells, blocks, labmap = derive(piece, state) if derived is None else derived
+    size = t["lut"].size
+    lab = (labmap, size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8), -1)
+    maps = (tix, cells, blocks, t["rep"], *lab, *t["tail"])
     cv = np.zeros((2, 2, 2), np.float32) if curvature is None else curvature
     return vol, maps, cv
 
 
 def _check_piece(piece, brick, offset, state, curvature):
+    if piece is None:  # derived volumes given: only the offset is needed
+        return tuple(int(o) for o in offset)
     if not isinstance(piece, Volume):
         raise DVRInputError(f"piece: expected a Volume, got {type(piece).__name__}")
     if not isinstance(brick, Brick):
@@ -359,7 +372,8 @@ def _check_piece(piece, brick, offset, state, curvature):
 
 
 def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curvature=None,
-         build_cache: bool = True, keep_codes: bool = False) -> BrickCache | None:  # fmt: skip
+         build_cache: bool = True, keep_codes: bool = False,
+         derived=None) -> BrickCache | None:  # fmt: skip
     """Walk ``brick``'s samples of every ray, continuing ``state`` (changed in place).
 
     Parameters
@@ -380,6 +394,9 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     keep_codes : bool
         Keep the brick's normal codes in its cache (2 bytes per voxel): a change of light
         then re-shades from them instead of re-reading the volume.
+    derived : tuple, optional
+        The brick's derived volumes from an earlier walk (:func:`derive`); ``piece`` is then
+        only checked, not read.
 
     Returns
     -------
@@ -398,7 +415,7 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     j0 = np.empty(nrays, np.int64)
     j1 = np.empty(nrays, np.int64)
     nb.brick_ranges(seg["a"], seg["b"], seg["t"], seg["n"], t["step"], lo, hi, gdims, j0, j1)
-    vol, maps, cv = _piece_arrays(piece, state, curvature)
+    vol, maps, cv = _piece_arrays(piece, state, curvature, derived)
     has_curv = curvature is not None
     shade = t["shade"]
     from dvr_perception.rays.engine import ray_order
@@ -545,15 +562,46 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
     return engine._finish(rgba, vis, asg, state.bits.copy(), cimg, spec, cam, stats, cache, aimp)
 
 
-def _pieces(volume: Volume, bricks, curvature):
-    """Each brick's piece of ``volume`` (a view, copied by :class:`Volume`) and its offset."""
+def _pieces(volume: Volume, bricks, curvature, skip=()):
+    """Each brick's piece of ``volume`` (a copy), its offset and curvature piece.
+
+    The piece is ``None`` for bricks in ``skip`` (their derived volumes are known).
+    """
     for br in bricks:
         (z0, z1), (y0, y1), (x0, x1) = br.voxels(volume.data.shape)
         sl = (slice(z0, z1), slice(y0, y1), slice(x0, x1))
-        labels = None if volume.labels is None else volume.labels[sl]
-        piece = Volume(volume.data[sl], volume.spacing, volume.origin, labels=labels)
+        piece = None
+        if br not in skip:
+            labels = None if volume.labels is None else volume.labels[sl]
+            piece = Volume(volume.data[sl], volume.spacing, volume.origin, labels=labels)
         cv = None if curvature is None else np.ascontiguousarray(curvature[sl], np.float32)
         yield br, piece, (z0, y0, x0), cv
+
+
+#: Derived volumes of recent bricked analyses, per volume (while the memory limit allows).
+_MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+#: The bricks' derived volumes are kept between analyses of a volume while they take at most
+#: this share of the memory limit (about 7 bytes a voxel).
+MEMO_SHARE = 0.125
+
+
+def _memo(volume, state, bricks, cap) -> dict | None:
+    """Return the memo of ``volume``'s brick-derived volumes for these tables, or None."""
+    t = state.tables
+    lut = t["lut"]
+    key = (
+        float(lut.lo), float(lut.scale), int(lut.size), t["ids"].tobytes(), t["memb"].tobytes(),
+        t["labels"], t["shade"], tuple(br.cells for br in bricks),
+    )  # fmt: skip
+    held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
+    if 7 * held > MEMO_SHARE * cap:
+        _MEMO.pop(volume, None)
+        return None
+    hit = _MEMO.get(volume)
+    if hit is None or hit["key"] != key:
+        hit = {"key": key, "bricks": {}}
+        _MEMO[volume] = hit  # the newest tables only
+    return hit["bricks"]
 
 
 def _refiller(volume_ref, bricks, kept, state):
@@ -567,9 +615,8 @@ def _refiller(volume_ref, bricks, kept, state):
         _, nb = _kernels()
         seg, t = state.seg, state.tables
         gz, gy, gx = state.geometry.shape
-        if kept is not None:
-            todo = [(br, codes, off) for br, (codes, off) in zip(bricks, kept, strict=True)]
-            shift = np.uint32(0)
+        if kept is not None:  # (codes or records, their shift, offset) per brick
+            todo = [(br, *k) for br, k in zip(bricks, kept, strict=True)]
         else:
             volume = volume_ref()
             if volume is None:
@@ -577,12 +624,11 @@ def _refiller(volume_ref, bricks, kept, state):
                     "cache: the volume of this bricked analysis is gone; a new light needs it"
                 )
             todo = (
-                (br, _piece_arrays(piece, state, None)[0], off)
+                (br, derive(piece, state)[0], 16, off)
                 for br, piece, off, _ in _pieces(volume, bricks, None)
             )
-            shift = np.uint32(16)
         nrays = len(seg["n"])
-        for br, vol, off in todo:
+        for br, vol, shift, off in todo:
             lo = np.array([c[0] for c in br.cells[::-1]], np.int64)
             hi = np.array([c[1] for c in br.cells[::-1]], np.int64)
             j0 = np.empty(nrays, np.int64)
@@ -593,7 +639,7 @@ def _refiller(volume_ref, bricks, kept, state):
             nb.fill_range(cache.start, cache.count, cache.lut, cache.lazy["steps"], cache.shading,
                           cache.curvature, seg["a"], seg["b"], seg["t"], t["step"], j0, j1, vol,
                           np.zeros((2, 2, 2), np.float32), geo, cache.ids, tab, True, False,
-                          shift)  # fmt: skip
+                          np.uint32(shift))  # fmt: skip
 
     return refill
 
@@ -642,15 +688,24 @@ def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, bric
     caches = [] if build_cache else None
     from dvr_perception.rays import memory
 
+    cap = memory.limit(memory_limit)
+    memo = _memo(volume, state, bricks, cap)
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
-    keep = build_cache and 2 * held <= KEEP_CODES_SHARE * memory.limit(memory_limit)
-    for br, piece, off, cv in _pieces(volume, bricks, curv):
+    keep = build_cache and memo is None and 2 * held <= KEEP_CODES_SHARE * cap
+    known = set(memo) if memo is not None else set()
+    kept = []
+    for br, piece, off, cv in _pieces(volume, bricks, curv, skip=known):
+        derived = memo.get(br) if memo is not None else None
+        if memo is not None and derived is None:
+            derived = memo[br] = derive(piece, state)
         c = walk(state, piece, br, offset=off, curvature=cv, build_cache=build_cache,
-                 keep_codes=keep)  # fmt: skip
+                 keep_codes=keep, derived=derived)  # fmt: skip
         if caches is not None and c is not None:
             caches.append(c)
+            kept.append((c.codes, 0) if keep else (derived[0], 16) if derived else None)
+            kept[-1] = None if kept[-1] is None else (*kept[-1], off)
     refill = None
     if build_cache and state.tables["shade"]:
-        kept = [(c.codes, c.offset) for c in caches] if keep else None
+        kept = None if any(k is None for k in kept) else kept
         refill = _refiller(weakref.ref(volume), bricks, kept, state)
     return finish(state, caches, refill=refill, seconds=time.perf_counter() - t0)

@@ -60,15 +60,24 @@ def test_bricked_equals_whole_on_the_phantom(phantom, brick, view):
                      reevaluate(parts.cache, light_direction=light)) <= 1e-6  # fmt: skip
 
 
-def test_a_new_light_without_kept_codes_rereads_the_bricks(phantom, monkeypatch):
+@pytest.mark.parametrize("room", ["memo", "codes", "none"])
+def test_a_new_light_reshades_from_what_memory_allows(phantom, monkeypatch, room):
+    """Derived volumes kept between analyses, or only normal codes, or nothing (re-read)."""
     vol, spec, curv = phantom
-    monkeypatch.setattr(bricks, "KEEP_CODES_SHARE", 0.0)  # as if the codes did not fit
+    if room != "memo":
+        monkeypatch.setattr(bricks, "MEMO_SHARE", 0.0)
+    if room == "none":
+        monkeypatch.setattr(bricks, "KEEP_CODES_SHARE", 0.0)
     cam = Camera.from_view(vol.bounds, width=40, height=40, azimuth=-20.0, elevation=35.0)
     whole = analyze(vol, spec, cam, curvature=curv)
-    parts = bricks.analyze_bricked(vol, spec, cam, brick=(9, 13, 20), curvature=curv)
+    for _ in range(2):  # the second analysis reuses the memo when there is one
+        parts = bricks.analyze_bricked(vol, spec, cam, brick=(9, 13, 20), curvature=curv)
+        assert _max_diff(whole, parts) <= 1e-6
+    assert (vol in bricks._MEMO) == (room == "memo")
     light = (-0.5, 0.2, 0.7)
     assert _max_diff(reevaluate(whole.cache, light_direction=light),
                      reevaluate(parts.cache, light_direction=light)) <= 1e-6  # fmt: skip
+    bricks._MEMO.pop(vol, None)
 
 
 def test_every_sample_belongs_to_exactly_one_brick(phantom):
