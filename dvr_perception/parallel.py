@@ -86,7 +86,8 @@ def pack_arrays(arrays: dict) -> np.ndarray:
     """
     header, chunks = [], []
     for name, value in arrays.items():
-        a = np.ascontiguousarray(value)
+        a = np.asarray(value)
+        a = np.ascontiguousarray(a) if a.ndim else a.reshape(())  # keeps 0-d arrays 0-d
         if a.dtype.hasobject:
             raise DVRInputError(f"pack_arrays: {name!r} holds Python objects, not numbers")
         header.append([str(name), a.dtype.str, list(a.shape)])
@@ -104,7 +105,7 @@ def unpack_arrays(buffer) -> dict:
     for name, dtype, shape in json.loads(buf[8:pos].tobytes().decode()):
         dt = np.dtype(dtype)
         size = dt.itemsize * int(np.prod(shape, dtype=np.int64))
-        out[name] = buf[pos : pos + size].view(dt).reshape(shape).copy()
+        out[name] = buf[pos : pos + size].view(dt).reshape(tuple(shape)).copy()
         pos += size
     if pos != buf.size:
         raise DVRInputError(f"unpack_arrays: {buf.size - pos} bytes left over (corrupt message)")

@@ -90,7 +90,7 @@ def block_split(shape, n: int) -> list:
     Examples
     --------
     >>> [b.cells for b in block_split((5, 9, 9), 2)]
-    [((0, 4), (0, 8), (0, 4)), ((0, 4), (0, 8), (4, 8))]
+    [((0, 4), (0, 4), (0, 8)), ((0, 4), (4, 8), (0, 8))]
     """
     from dvr_perception.rays.bricks import Brick
 
