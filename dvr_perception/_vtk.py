@@ -35,7 +35,11 @@ from vtkmodules.vtkCommonDataModel import (
     vtkPiecewiseFunction,
     vtkTable,
 )
-from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
+from vtkmodules.vtkCommonExecutionModel import (
+    vtkAlgorithm,
+    vtkExtentTranslator,
+    vtkStreamingDemandDrivenPipeline,
+)
 from vtkmodules.vtkIOImage import (
     vtkDICOMImageReader,
     vtkMetaImageReader,
@@ -70,6 +74,7 @@ __all__ = [
     "vtkDataObject",
     "vtkDataSetReader",
     "vtkDoubleArray",
+    "vtkExtentTranslator",
     "vtkFloatArray",
     "vtkImageData",
     "vtkIntArray",

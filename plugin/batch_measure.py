@@ -20,6 +20,12 @@ through ``paraview.simple``.  Written into DIR:
 ``result.json``
     ``E_v``, ``E_s``, ``E_t``, per-structure shares, the camera and the files written.
 
+Under ``mpiexec -n N pvbatch ... --ranks N`` (what ``dvr-perception pvbatch --ranks N`` runs)
+the volume is opened with ParaView's reader instead, so each rank reads only its piece, the
+camera comes from the reader's header information (the volume is never loaded whole; a spec is
+required: ``--structures`` or the one paired with the volume), and ``result.json`` adds
+``ranks``: one record per rank (``rank``, ``extent``, ``voxels``, ``peak_rss_mb``, ...).
+
 Errors print one line ``dvr-perception: error: ...`` on stderr and exit with status 2.
 """
 
@@ -65,6 +71,9 @@ def parse_args(argv):
     add_scene_args(parser)
     parser.add_argument("--sigma", type=float, default=1.0, help="curvature scale (default 1)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    parser.add_argument(
+        "--ranks", type=int, default=1, help="MPI ranks pvbatch runs on (mpiexec -n N)"
+    )
     return parser.parse_args(argv)
 
 
@@ -197,16 +206,23 @@ def field_values(output):
 
 def run(args):
     t0 = time.perf_counter()
+    from paraview import simple as pvs
+
     from dvr_perception._files import write_json
     from dvr_perception.cli._common import load_scene, make_output_dir
     from dvr_perception.structures.io import spec_to_dict
 
-    scene = load_scene(args)
+    ranks = check_ranks(args.ranks)
+    if ranks > 1:
+        source, scene = reader_scene(pvs, args)
+    else:
+        scene = load_scene(args)
     out_dir = str(make_output_dir(args.out))
-    from paraview import simple as pvs
-
     pvs.LoadPlugin(PLUGIN)  # adds the filters to paraview.simple
-    source, array = volume_source(pvs, scene.volume, args.volume)
+    if ranks == 1:
+        source, array = volume_source(pvs, scene.volume, args.volume)
+    else:
+        array = ""  # the reader's active scalars
     measures = pvs.PerceptionMeasures(
         Input=source,
         ScalarArray=array,
@@ -217,6 +233,9 @@ def run(args):
     measures.UpdatePipeline()
     output = pvs.servermanager.Fetch(measures)
     result = field_values(output)
+    if ranks > 1:
+        array = source.PointData.keys()[0]
+        result["ranks"] = rank_records(output, ranks)
     shot = os.path.join(out_dir, "screenshot.png")
     screenshot(pvs, source, array, scene, shot)
     files = [shot, *measure_images(pvs, output, scene.spec.background, out_dir)]
@@ -234,6 +253,86 @@ def run(args):
     write_json(os.path.join(out_dir, "result.json"), result)
     print(json.dumps({k: result[k] for k in ("E_v", "E_s", "E_t")} | {"out": out_dir}))
     return 0
+
+
+def check_ranks(ranks):
+    """The number of ranks: ``--ranks`` must be ParaView's number of MPI processes."""
+    from paraview.modules.vtkRemotingCore import vtkProcessModule
+
+    running = vtkProcessModule.GetProcessModule().GetNumberOfLocalPartitions()
+    if ranks < 1 or ranks != running:
+        raise BatchError(
+            f"--ranks {ranks}: pvbatch runs on {running} MPI rank(s); start it with "
+            f"'mpiexec -n {ranks} pvbatch' (dvr-perception pvbatch --ranks does)"
+        )
+    return ranks
+
+
+def reader_scene(pvs, args):
+    """ParaView's reader of ``args.volume`` and the scene, from the reader's header only."""
+    from types import SimpleNamespace
+
+    from dvr_perception.cli._common import (
+        DEFAULT_SIZE,
+        Scene,
+        _read_camera,
+        parse_size,
+        state_files_dir,
+    )
+    from dvr_perception.rays.camera import Camera, parse_view
+    from dvr_perception.structures.io import load_spec
+
+    size = parse_size(args.size) if args.size is not None else None
+    view = parse_view(args.view) if args.view is not None else None
+    camera = _read_camera(args.camera, size) if args.camera is not None else None
+    path = os.path.abspath(args.volume)
+    if not os.path.isfile(path):
+        raise BatchError(f"{args.volume}: file not found")
+    paired = os.path.join(str(state_files_dir()), os.path.basename(path).split(".")[0] + ".json")
+    spec_source = args.structures or (paired if os.path.isfile(paired) else None)
+    if spec_source is None:
+        raise BatchError(
+            f"--ranks {args.ranks}: needs --structures (no spec is paired with {args.volume}, "
+            "and proposing one would read the whole volume)"
+        )
+    spec = load_spec(spec_source)
+    if args.shade is not None:
+        from dataclasses import replace
+
+        spec = replace(spec, rendering=replace(spec.rendering, shade=bool(args.shade)))
+    reader = pvs.OpenDataFile(path)
+    if reader is None:
+        raise BatchError(f"{args.volume}: ParaView has no reader for it")
+    reader.UpdatePipelineInformation()
+    algo = reader.GetClientSideObject()
+    from vtkmodules.vtkCommonDataModel import vtkDataObject
+    from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
+
+    info = algo.GetOutputInformation(0)
+    whole = info.Get(sddp.WHOLE_EXTENT())
+    spacing = info.Get(vtkDataObject.SPACING())
+    origin = info.Get(vtkDataObject.ORIGIN())
+    if whole is None or spacing is None or origin is None:
+        raise BatchError(f"{args.volume}: not image data ({algo.GetClassName()})")
+    bounds = []
+    for a in range(3):
+        bounds += [origin[a] + whole[2 * a] * spacing[a], origin[a] + whole[2 * a + 1] * spacing[a]]
+    grid = SimpleNamespace(spacing=tuple(spacing), bounds=tuple(bounds), extent=tuple(whole))
+    if camera is None:
+        az, el, zoom = view if view is not None else (spec.view or (0.0, 0.0, 1.0))
+        w, h = size if size is not None else (DEFAULT_SIZE, DEFAULT_SIZE)
+        camera = Camera.from_view(
+            tuple(bounds), azimuth=az, elevation=el, zoom=zoom, width=w, height=h
+        )
+    return reader, Scene(grid, spec, camera, path, str(spec_source), 0.0)
+
+
+def rank_records(output, ranks):
+    """The per-rank records of the filter's field data (string array ``ranks``)."""
+    arr = output.GetFieldData().GetAbstractArray("ranks")
+    if arr is None or arr.GetNumberOfValues() != ranks:
+        raise BatchError(f"Perception Measures did not run on {ranks} ranks together")
+    return [json.loads(arr.GetValue(i)) for i in range(ranks)]
 
 
 def volume_source(pvs, volume, path):

@@ -8,8 +8,11 @@ The three proxies are shells: they declare the properties ParaView shows and han
 pass to the library's VTK filter (:mod:`dvr_perception.filters`), which is imported only when
 the filter first executes.  Parameter values are validated by the library when the filter
 runs, so a bad value (e.g. a negative sigma typed in Python) becomes an error message in
-*Output Messages*, never an exception inside ParaView.  With several MPI ranks every rank reads
-the whole volume and only piece 0 (rank 0) computes; the other pieces are empty.
+*Output Messages*, never an exception inside ParaView.  With several MPI ranks, *Perception
+Measures* reads one piece (plus ghost layers) per rank and the ranks compute the serial result
+together (``dvr_perception.rays.ranks``); *Structural Layers* and *Optimize Transfer Function*
+read the whole volume on every rank and compute on piece 0 (rank 0).  Either way piece 0 holds
+the whole output and the other pieces are empty.
 """
 
 import os
@@ -94,8 +97,15 @@ class _LibraryShell(VTKPythonAlgorithmBase):
         impl = self._library_filter()
         return 0 if impl is None else impl.RequestInformation(request, in_info, out_info)
 
+    @staticmethod
+    def _ranks_together(impl, out_info):
+        """Whether the library filter computes with every rank on its piece (MPI)."""
+        return hasattr(impl, "pieces") and impl.pieces(out_info)[1] > 1
+
     def RequestUpdateExtent(self, request, in_info, out_info):
         impl = self._library_filter()
+        if impl is not None and self._ranks_together(impl, out_info):
+            return impl.RequestUpdateExtent(request, in_info, out_info)  # piece + ghost layers
         if impl is None or not impl.RequestUpdateExtent(request, in_info, out_info):
             return 0
         # The whole volume, unsplit, on every rank: the library asks for the whole extent, but
@@ -111,6 +121,9 @@ class _LibraryShell(VTKPythonAlgorithmBase):
         return 1
 
     def RequestData(self, request, in_info, out_info):
+        impl = self._library_filter()
+        if impl is not None and self._ranks_together(impl, out_info):
+            return impl.RequestData(request, in_info, out_info)  # every rank, collectively
         if _requested_piece(out_info) > 0:
             # several MPI ranks: piece 0 (rank 0) computes everything, the others stay empty
             from vtkmodules.vtkCommonDataModel import vtkDataObject

@@ -30,16 +30,27 @@ Field data
     measure; **NaN** where it could not be determined, e.g. a structure that is not visible)
     and ``expected_opacity`` (the opacity the transparency measure expects).
 
+Several MPI ranks
+    When the pipeline asks for piece ``r`` of ``N`` and there are ``N`` MPI ranks (ParaView's
+    ``mpiexec -n N pvbatch`` / ``pvserver``), each rank asks its input for the extent of its
+    piece (VTK's block split, :func:`piece_extent`) plus the ghost layers the normals and the
+    curvature need, so no rank reads the whole volume; the ranks then compute the serial
+    result together (:func:`~dvr_perception.rays.ranks.analyze_ranks`) and piece 0 holds the
+    whole output image, the other pieces are empty.  Rank 0's field data adds the string
+    array ``ranks``: one JSON record per rank (``rank``, ``extent``, ``voxels``, ``cells``,
+    ``order``, ``seconds``, ``peak_rss_mb``).
+
 Errors are reported through VTK's error mechanism (see :mod:`dvr_perception.filters._base`).
 """
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 
-from dvr_perception._vtk import vtkDataObject, vtkStreamingDemandDrivenPipeline
+from dvr_perception._vtk import vtkDataObject, vtkExtentTranslator, vtkStreamingDemandDrivenPipeline
 from dvr_perception.errors import DVRInputError
 from dvr_perception.filters._base import (
     DVRFilterBase,
@@ -58,7 +69,7 @@ from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
 from dvr_perception.structures.io import check_spec_for_volume
 
-__all__ = ["PerceptionMeasures"]
+__all__ = ["PerceptionMeasures", "piece_extent"]
 
 
 def as_view(value, name: str):
@@ -167,6 +178,99 @@ class PerceptionMeasures(DVRFilterBase):
         self.UpdateProgress(0.3)
         result = analyze(volume, spec, camera, curvature=curvature, build_cache=False)
         self.UpdateProgress(0.7)
+        self._fill(output, result, spec, camera)
+
+    # -- several MPI ranks ------------------------------------------------------------------------
+    def pieces(self, out_info, comm=None) -> tuple[int, int, object]:
+        """Return ``(piece, pieces, communicator)``, or ``(0, 1, None)`` for one process.
+
+        The ranks compute together when the pipeline asks for piece ``r`` of ``N`` and there
+        are ``N`` MPI ranks.
+        """
+        info = out_info.GetInformationObject(0)
+        key = vtkStreamingDemandDrivenPipeline
+        if info is None or not info.Has(key.UPDATE_NUMBER_OF_PIECES()):
+            return 0, 1, None
+        n = int(info.Get(key.UPDATE_NUMBER_OF_PIECES()))
+        if n < 2:
+            return 0, 1, None
+        from dvr_perception.parallel import communicator
+
+        comm = comm or communicator()
+        if comm.size != n:
+            return 0, 1, None
+        return int(info.Get(key.UPDATE_PIECE_NUMBER())), n, comm
+
+    def RequestUpdateExtent(self, request, in_info, out_info):
+        """Pipeline pass: the whole input, or with several ranks this rank's piece + ghosts."""
+        piece, n, _ = self.pieces(out_info)
+        if n == 1:
+            return super().RequestUpdateExtent(request, in_info, out_info)
+        return self._guarded(self._request_piece, in_info, piece, n)
+
+    def _request_piece(self, in_info, piece: int, n: int) -> None:
+        from dvr_perception.rays.ranks import ghost_levels
+
+        info = in_info[0].GetInformationObject(0)
+        key = vtkStreamingDemandDrivenPipeline
+        whole = info.Get(key.WHOLE_EXTENT())
+        spacing = info.Get(vtkDataObject.SPACING()) if info.Has(vtkDataObject.SPACING()) else None
+        ghost = ghost_levels(spacing or (1.0, 1.0, 1.0), self.sigma)
+        # the extent as ONE piece: asked for piece r of N, ParaView's NRRD reader
+        # (vtkPNrrdReader) splits the requested extent once more
+        info.Set(key.UPDATE_EXTENT(), piece_extent(whole, piece, n, ghost), 6)
+        info.Set(key.UPDATE_PIECE_NUMBER(), 0)
+        info.Set(key.UPDATE_NUMBER_OF_PIECES(), 1)
+        info.Set(key.UPDATE_NUMBER_OF_GHOST_LEVELS(), 0)
+
+    def RequestData(self, request, in_info, out_info):
+        """Pipeline pass: :meth:`execute`, or with several ranks :meth:`execute_piece`."""
+        piece, n, comm = self.pieces(out_info)
+        if n == 1:
+            return super().RequestData(request, in_info, out_info)
+        self.warning_messages = []
+        key = vtkDataObject.DATA_OBJECT()
+        output = out_info.GetInformationObject(0).Get(key)
+        image = in_info[0].GetInformationObject(0).Get(key)
+        whole = (
+            in_info[0].GetInformationObject(0).Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT())
+        )
+        status = self._guarded(self.execute_piece, image, output, comm, piece, whole)
+        if not status and output is not None:
+            output.Initialize()
+        return status
+
+    def execute_piece(self, image, output, comm, piece: int, whole) -> None:
+        """Compute this rank's part of the output (collective; see *Several MPI ranks*)."""
+        from dvr_perception.rays import bricks
+        from dvr_perception.rays.ranks import Piece, analyze_ranks
+
+        if comm.rank != piece:
+            raise DVRInputError(f"{self.label}: rank {comm.rank} was asked for piece {piece}")
+        volume = self.load_input(image)
+        spec = self.load_spec_parameters()
+        ext = image.GetExtent()
+        offset = tuple(int(ext[2 * a] - whole[2 * a]) for a in (2, 1, 0))
+        shape = tuple(int(whole[2 * a + 1] - whole[2 * a] + 1) for a in (2, 1, 0))
+        origin = tuple(
+            o + w * sp
+            for o, w, sp in zip(image.GetOrigin(), whole[::2], volume.spacing, strict=True)
+        )
+        geometry = bricks.Geometry(shape, volume.spacing, origin, volume.data.dtype)
+        owned = piece_extent(whole, piece, comm.size, 0)
+        brick = bricks.from_piece_extent(owned, whole)
+        camera = self.make_camera(geometry, spec)
+        result, records = analyze_ranks(
+            comm, Piece(volume, offset, brick, geometry), spec, camera, sigma=self.sigma
+        )
+        if result is None:
+            output.Initialize()
+            return
+        self._fill(output, result, spec, camera)
+        output.GetFieldData().AddArray(string_array([json.dumps(r) for r in records], "ranks"))
+
+    def _fill(self, output, result, spec, camera) -> None:
+        """Measure ``result`` and fill the output image and its field data."""
         vis, shp, trn = all_measures(result, spec)
         self.UpdateProgress(0.95)
         lum = composite_luminance(result.rgba, background=spec.background)
@@ -206,6 +310,27 @@ class PerceptionMeasures(DVRFilterBase):
             )
         )
         fd.AddArray(double_array([per_t[n]["expected_opacity"] for n in names], "expected_opacity"))
+
+
+def piece_extent(whole, piece: int, pieces: int, ghost: int = 0) -> tuple[int, ...]:
+    """Return VTK's extent of piece ``piece`` of ``pieces`` of the extent ``whole``.
+
+    ``ghost`` layers are added (clamped to ``whole``); ``vtkExtentTranslator``'s block split,
+    as VTK's pipeline splits image data.
+
+    Examples
+    --------
+    >>> piece_extent((0, 63, 0, 63, 0, 63), 1, 2), piece_extent((0, 63, 0, 63, 0, 63), 1, 2, 4)
+    ((0, 63, 0, 63, 31, 63), (0, 63, 0, 63, 27, 63))
+    """
+    t = vtkExtentTranslator()
+    t.SetWholeExtent(*[int(v) for v in whole])
+    t.SetPiece(int(piece))
+    t.SetNumberOfPieces(int(pieces))
+    t.SetGhostLevel(int(ghost))
+    t.SetSplitModeToBlock()
+    t.PieceToExtent()
+    return tuple(int(v) for v in t.GetExtent())
 
 
 def _rows_up(values, dtype) -> np.ndarray:

@@ -83,7 +83,9 @@ def _derivatives(f: np.ndarray, sigmas: tuple[float, float, float]) -> dict[tupl
     return out
 
 
-def _mean_curvature(f: np.ndarray, spacing, sigma: float, min_gradient: float) -> np.ndarray:
+def _mean_curvature(
+    f: np.ndarray, spacing, sigma: float, min_gradient: float, gradient_max=None
+) -> np.ndarray:
     sx, sy, sz = spacing
     step = min(spacing) * sigma
     sigmas = (step / sz, step / sy, step / sx)  # per array axis (z, y, x), in voxels
@@ -124,7 +126,7 @@ def _mean_curvature(f: np.ndarray, spacing, sigma: float, min_gradient: float) -
     mag2 += g[1] * g[1]
     mag2 += g[2] * g[2]
     del g
-    gmax2 = float(mag2.max())
+    gmax2 = float(mag2.max()) if gradient_max is None else float(gradient_max(mag2))
     thresh2 = max(min_gradient**2 * gmax2, np.finfo(np.float32).tiny)
     flat = mag2 <= thresh2
     mag2[flat] = 1.0
@@ -139,7 +141,13 @@ def _mean_curvature(f: np.ndarray, spacing, sigma: float, min_gradient: float) -
 
 
 def mean_curvature(
-    data, *, spacing=(1.0, 1.0, 1.0), sigma: float = 1.0, min_gradient: float = 1e-4
+    data,
+    *,
+    spacing=(1.0, 1.0, 1.0),
+    sigma: float = 1.0,
+    min_gradient: float = 1e-4,
+    offset=None,
+    gradient_max=None,
 ) -> np.ndarray:
     """Absolute mean curvature ``|H|`` of the iso-surfaces of a Gaussian-smoothed field.
 
@@ -155,6 +163,13 @@ def mean_curvature(
     min_gradient : float
         Where ``|grad f|`` is at most this fraction of its maximum the iso-surface is undefined
         and ``0`` is returned.
+    offset, gradient_max : callable, optional
+        For a piece of a larger volume (MPI ranks, :mod:`dvr_perception.rays.ranks`): the
+        whole volume's values of two global quantities, so the piece's curvature equals the
+        whole volume's bit for bit.  ``offset(f)`` gets the piece as float32 and returns the
+        value subtracted from it (default: the median of ``f[::max(1, nz // 8)]``);
+        ``gradient_max(mag2)`` gets ``|grad f|^2`` of the piece and returns its maximum over
+        the whole volume (default: ``mag2.max()``).
 
     Returns
     -------
@@ -193,8 +208,11 @@ def mean_curvature(
     if not np.all(np.isfinite(f)):
         raise DVRInputError("mean_curvature: data contains NaN or infinite values")
     # remove the offset so float32 keeps precision in the derivatives
-    f -= np.float32(np.median(f[:: max(1, f.shape[0] // 8)]))
-    out = _mean_curvature(f, sp, float(sigma), float(min_gradient))
+    if offset is None:
+        f -= np.float32(np.median(f[:: max(1, f.shape[0] // 8)]))
+    else:
+        f -= np.float32(offset(f))
+    out = _mean_curvature(f, sp, float(sigma), float(min_gradient), gradient_max)
     return np.ascontiguousarray(out, dtype=np.float32)
 
 
