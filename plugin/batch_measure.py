@@ -229,6 +229,7 @@ def run(args):
         SpecJSON=json.dumps(spec_to_dict(scene.spec)),
         CameraJSON=json.dumps(scene.camera.to_dict()),
         Sigma=args.sigma,
+        Distributed=int(ranks > 1),
     )
     measures.UpdatePipeline()
     output = pvs.servermanager.Fetch(measures)

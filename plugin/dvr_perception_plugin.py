@@ -8,11 +8,12 @@ The three proxies are shells: they declare the properties ParaView shows and han
 pass to the library's VTK filter (:mod:`dvr_perception.filters`), which is imported only when
 the filter first executes.  Parameter values are validated by the library when the filter
 runs, so a bad value (e.g. a negative sigma typed in Python) becomes an error message in
-*Output Messages*, never an exception inside ParaView.  With several MPI ranks, *Perception
-Measures* reads one piece (plus ghost layers) per rank and the ranks compute the serial result
-together (``dvr_perception.rays.ranks``); *Structural Layers* and *Optimize Transfer Function*
-read the whole volume on every rank and compute on piece 0 (rank 0).  Either way piece 0 holds
-the whole output and the other pieces are empty.
+*Output Messages*, never an exception inside ParaView.  With several MPI ranks, the filters
+read the whole volume on every rank and compute on piece 0 (rank 0); *Perception Measures*
+with *Distributed* on (what ``dvr-perception pvbatch --ranks N`` sets) reads one piece (plus
+ghost layers) per rank and the ranks compute the serial result together
+(``dvr_perception.rays.ranks``; every rank must execute the filter together, so it is off by
+default in the GUI).  Either way piece 0 holds the whole output and the other pieces are empty.
 """
 
 import os
@@ -217,10 +218,12 @@ class PerceptionMeasures(_LibraryShell):
             "zoom": 1.0,
             "width": 512,
             "height": 512,
+            "distributed": 0,
         }
 
     def _parameters(self):
         v = dict(self._values)
+        v["distributed"] = bool(v["distributed"])
         view = (v.pop("azimuth"), v.pop("elevation"), v.pop("zoom"))
         v["view"] = None if v.pop("use_spec_view") else view
         return v
@@ -235,6 +238,12 @@ class PerceptionMeasures(_LibraryShell):
     @smhint.xml(_MULTI_LINE)
     def SetCameraJSON(self, value):
         self._set("camera_json", value)
+
+    @smproperty.intvector(name="Distributed", default_values=0, panel_visibility="advanced")
+    @smdomain.xml('<BooleanDomain name="bool" />')
+    def SetDistributed(self, value):
+        """Each MPI rank reads and analyses its own piece (all ranks execute together)."""
+        self._set("distributed", int(value))
 
     @smproperty.intvector(name="UseSpecView", default_values=1)
     @smdomain.xml('<BooleanDomain name="bool" />')

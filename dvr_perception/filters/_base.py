@@ -135,6 +135,13 @@ def as_positive_int(value, name: str) -> int:
     return v
 
 
+def as_flag(value, name: str) -> bool:
+    """Accept a bool or 0/1."""
+    if isinstance(value, bool) or value in (0, 1):
+        return bool(value)
+    raise DVRInputError(f"{name}: expected true/false (or 1/0), got {value!r}")
+
+
 # -- the base class ----------------------------------------------------------------------------
 class DVRFilterBase(VTKPythonAlgorithmBase):
     """One ``vtkImageData`` input, one output; library errors become VTK errors.

@@ -31,7 +31,8 @@ Field data
     and ``expected_opacity`` (the opacity the transparency measure expects).
 
 Several MPI ranks
-    When the pipeline asks for piece ``r`` of ``N`` and there are ``N`` MPI ranks (ParaView's
+    With ``distributed`` on, when the pipeline asks for piece ``r`` of ``N`` and there are
+    ``N`` MPI ranks (ParaView's
     ``mpiexec -n N pvbatch`` / ``pvserver``), each rank asks its input for the extent of its
     piece (VTK's block split, :func:`piece_extent`) plus the ghost layers the normals and the
     curvature need, so no rank reads the whole volume; the ranks then compute the serial
@@ -55,6 +56,7 @@ from dvr_perception.errors import DVRInputError
 from dvr_perception.filters._base import (
     DVRFilterBase,
     Parameter,
+    as_flag,
     as_positive_float,
     as_positive_int,
     as_text,
@@ -115,9 +117,14 @@ class PerceptionMeasures(DVRFilterBase):
         Gaussian scale of the boundary curvature (default 1.0).
     input_array : str
         Point array to render (default "": the active scalars).
+    distributed : bool
+        With several MPI ranks, each rank reads and analyses its own piece (see *Several MPI
+        ranks*; every rank must execute the filter together, as pvbatch's scripts do).  Off
+        (default): every rank reads the whole volume and rank 0 computes.
     """
 
     camera_json = Parameter("", as_text)
+    distributed = Parameter(False, as_flag)
     view = Parameter(None, as_view)
     width = Parameter(512, as_positive_int)
     height = Parameter(512, as_positive_int)
@@ -189,7 +196,7 @@ class PerceptionMeasures(DVRFilterBase):
         """
         info = out_info.GetInformationObject(0)
         key = vtkStreamingDemandDrivenPipeline
-        if info is None or not info.Has(key.UPDATE_NUMBER_OF_PIECES()):
+        if not self.distributed or info is None or not info.Has(key.UPDATE_NUMBER_OF_PIECES()):
             return 0, 1, None
         n = int(info.Get(key.UPDATE_NUMBER_OF_PIECES()))
         if n < 2:

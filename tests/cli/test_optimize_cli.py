@@ -166,9 +166,15 @@ def test_ctrl_c_saves_best_so_far(capsys, tmp_path, monkeypatch):
         (["--seed", "-1"], "seed"),
         (["--coverage-keep", "1.5"], "--coverage-keep"),
         (["--objective", "squares"], "--objective"),
+        (["--memory-limit", "lots"], "--memory-limit"),
+        (["--memory-limit", "1M"], "--memory-limit"),  # cannot fit: refused before the run
     ],
 )
-def test_bad_input_exits_2(capsys, tmp_path, option, message):
+def test_bad_input_exits_2(capsys, tmp_path, option, message, monkeypatch):
+    from dvr_perception.rays import memory
+
+    monkeypatch.setattr(memory, "_LIMIT", [None])  # --memory-limit's settings are undone
+    monkeypatch.setenv(memory.ENV, "")  # after the test
     argv = ["optimize", "phantom", "--size", "32", "--out", str(tmp_path / "o"), *option]
     code, out, err = _run(capsys, argv)
     assert code == 2
