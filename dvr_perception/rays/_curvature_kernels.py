@@ -358,30 +358,32 @@ def cell_diffs(src, match, offset, size, z0, y0, x0, nz, ny, nx, out):
     """Largest absolute difference of neighbouring voxels along z, y, x in each cell.
 
     Cell ``(i, j, k)`` covers voxels ``z0 + size * i ...`` (clipped to ``[z0, z0 + nz)`` and
-    so on); the pair ``(v, v + e)`` counts for the cell of ``v`` when ``v + e`` is in the
-    volume.  The field is ``src - offset``, or ``src == match`` when ``match >= 0``.
+    so on); the pair ``(v, v + e)`` counts for the cell of ``v`` (the neighbour index is
+    clamped to the volume, so pairs leaving it count 0).  The field is ``src - offset``, or
+    ``src == match`` when ``match >= 0``.
     """
-    cz, cy, cx = out.shape[:3]
+    cz, _, cx = out.shape[:3]
     vz, vy, vx = src.shape
+    out[:, :, :, :] = 0.0
     for i in prange(cz):
-        for j in range(cy):
-            for k in range(cx):
-                dz = np.float32(0.0)
-                dy = np.float32(0.0)
-                dx = np.float32(0.0)
-                for z in range(z0 + size * i, min(z0 + size * (i + 1), z0 + nz)):
-                    for y in range(y0 + size * j, min(y0 + size * (j + 1), y0 + ny)):
-                        for x in range(x0 + size * k, min(x0 + size * (k + 1), x0 + nx)):
-                            v = _value(src, z, y, x, match, offset)
-                            if z + 1 < vz:
-                                dz = max(dz, abs(_value(src, z + 1, y, x, match, offset) - v))
-                            if y + 1 < vy:
-                                dy = max(dy, abs(_value(src, z, y + 1, x, match, offset) - v))
-                            if x + 1 < vx:
-                                dx = max(dx, abs(_value(src, z, y, x + 1, match, offset) - v))
-                out[i, j, k, 0] = dz
-                out[i, j, k, 1] = dy
-                out[i, j, k, 2] = dx
+        for z in range(z0 + size * i, min(z0 + size * (i + 1), z0 + nz)):
+            zn = min(z + 1, vz - 1)
+            for y in range(y0, y0 + ny):
+                yn = min(y + 1, vy - 1)
+                j = (y - y0) // size
+                for k in range(cx):
+                    dz = out[i, j, k, 0]
+                    dy = out[i, j, k, 1]
+                    dx = out[i, j, k, 2]
+                    for x in range(x0 + size * k, min(x0 + size * (k + 1), x0 + nx)):
+                        v = _value(src, z, y, x, match, offset)
+                        dz = max(dz, abs(_value(src, zn, y, x, match, offset) - v))
+                        dy = max(dy, abs(_value(src, z, yn, x, match, offset) - v))
+                        xn = min(x + 1, vx - 1)
+                        dx = max(dx, abs(_value(src, z, y, xn, match, offset) - v))
+                    out[i, j, k, 0] = dz
+                    out[i, j, k, 1] = dy
+                    out[i, j, k, 2] = dx
 
 
 @njit(parallel=True, cache=True)

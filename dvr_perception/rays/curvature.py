@@ -216,8 +216,16 @@ def _curvature_kernels():
     return kernels("dvr_perception.rays._curvature_kernels")
 
 
-def _classify(data: np.ndarray, labels, spec, nk=None) -> np.ndarray:
-    """Structure ids of ``data`` (any shape) and its ``labels`` (same shape, or None)."""
+def _classify(data: np.ndarray, labels, spec, nk=None, lut=None) -> np.ndarray:
+    """Structure ids of ``data`` (any shape) and its ``labels`` (same shape, or None).
+
+    ``lut`` (from :func:`_lookup_table`) gives the range structures' ids by value.
+    """
+    if lut is not None:
+        ids = lut[data]
+        for lab, k in _label_structures(spec):
+            ids[labels == lab] = k
+        return ids
     ids = np.full(data.shape, -1, dtype=np.int16)
     ranged = sorted((s.range[0], s.range[1], k) for k, s in enumerate(spec.structures) if s.range)
     touches = [
@@ -233,12 +241,30 @@ def _classify(data: np.ndarray, labels, spec, nk=None) -> np.ndarray:
             ids,
         )
     else:
-        for (lo, hi, k), touches_next in zip(ranged, touches, strict=True):
-            inside = data >= lo
-            inside &= (data < hi) if touches_next else (data <= hi)
-            ids[inside] = k
+        _range_ids(data, spec, ids)
     for lab, k in _label_structures(spec):
         ids[labels == lab] = k
+    return ids
+
+
+def _range_ids(data: np.ndarray, spec, ids: np.ndarray) -> None:
+    """Write the range structures' ids of ``data`` into ``ids`` (numpy)."""
+    ranged = sorted((s.range[0], s.range[1], k) for k, s in enumerate(spec.structures) if s.range)
+    for n, (lo, hi, k) in enumerate(ranged):
+        touches_next = n + 1 < len(ranged) and ranged[n + 1][0] <= hi
+        inside = data >= lo
+        inside &= (data < hi) if touches_next else (data <= hi)
+        ids[inside] = k
+
+
+def _lookup_table(spec, dtype) -> np.ndarray | None:
+    """Range-structure id of every value of an unsigned type of at most 16 bits, else None."""
+    dtype = np.dtype(dtype)
+    if dtype.kind != "u" or dtype.itemsize > 2:
+        return None
+    values = np.arange(2 ** (8 * dtype.itemsize), dtype=np.int64).astype(dtype)
+    ids = np.full(values.shape, -1, dtype=np.int16)
+    _range_ids(values, spec, ids)
     return ids
 
 
@@ -284,6 +310,9 @@ _MIN_GRADIENT = 1e-4
 _TINY = float(np.finfo(np.float32).tiny)
 #: Side of the cells of the branch and bound of the gradient maximum.
 _CELL = 16
+#: Voxels of a y band's ring of y-pass slices (6 planes of float32 each): about 1M fits the
+#: processor's cache.
+_BAND_VOXELS = 1 << 18
 
 
 def _axis_sigmas(sigma: float, spacing) -> tuple[float, float, float]:
@@ -518,11 +547,12 @@ def _pass_boundary(volume, spec, geo: _Geometry, nk, boundary: np.ndarray):
     rowhi = np.full((nze, nyb), -1, np.int64)
     label_points: dict[int, dict[int, np.ndarray]] = {k: {} for _, k in owners}
     ids_cache: dict[int, np.ndarray] = {}
+    lut = _lookup_table(spec, volume.data.dtype)
 
     def ids_of(z):
         if z not in ids_cache:
             lab = labels[z][yx] if labels is not None else None
-            ids_cache[z] = _classify(volume.data[z][yx], lab, spec, nk)
+            ids_cache[z] = _classify(volume.data[z][yx], lab, spec, nk, lut)
             for old in [k for k in ids_cache if k < z - 1]:
                 del ids_cache[old]
         return ids_cache[z]
@@ -963,26 +993,28 @@ def curvature_volume(
             fld.bound2 = (float(data.max()) - float(data.min())) ** 2 * sum_inv2 * (1 + 1e-5)
         else:
             fld.bound2 = sum_inv2 * (1 + 1e-5)  # an indicator's differences are at most 1
-    (ez0, ez1), _, _ = ext
-    nze = ez1 - ez0
-    parts = max(1, min(_threads(), nze // 8))
-    cuts = [ez0 + (nze * i) // parts for i in range(parts + 1)]
-    chunks = [((a, b), ext[1], ext[2]) for a, b in itertools.pairwise(cuts)]
+    _, (ey0, ey1), (ex0, ex1) = ext
+    # y bands (the ring of a band stays in the processor's cache), run by a pool of threads
+    rows = max(_BAND_VOXELS // ((ex1 - ex0) * (2 * geo.radii[0] + 1)), 8)
+    bands = max(1, round((ey1 - ey0) / rows))
+    cuts = [ey0 + ((ey1 - ey0) * i) // bands for i in range(bands + 1)]
+    chunks = [(ext[0], (a, b), ext[2]) for a, b in itertools.pairwise(cuts)]
 
     def run(chunk):
-        z0 = chunk[0][0] - ez0
-        z1 = chunk[0][1] - ez0
-        return _chunk(volume, spec, geo.with_extent(chunk), nk, fields, out[z0:z1], boundary[z0:z1])
+        wy = slice(chunk[1][0] - ey0, chunk[1][1] - ey0)
+        sub = geo.with_extent(chunk)
+        return _chunk(volume, spec, sub, nk, fields, out[:, wy], boundary[:, wy])
 
-    if parts == 1:
-        results = [run(chunks[0])]
+    workers = min(_threads(), len(chunks))
+    if workers == 1:
+        results = [run(c) for c in chunks]
     else:
-        with ThreadPoolExecutor(parts) as pool:
+        with ThreadPoolExecutor(workers) as pool:
             results = list(pool.map(run, chunks))
     for n, fld in enumerate(fields):
         seen = max(r[n][0] for r in results)
         maybe = [
-            (k + chunk[0][0] - ez0, ys, xs, mag2)
+            (k, ys + chunk[1][0] - ey0, xs, mag2)
             for r, chunk in zip(results, chunks, strict=True)
             for k, ys, xs, mag2 in r[n][1]
         ]
