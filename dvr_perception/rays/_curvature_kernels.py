@@ -1,7 +1,7 @@
 """numba kernels of :mod:`dvr_perception.rays.curvature` (numpy computes the same without numba).
 
 The curvature is computed slice by slice (see :func:`dvr_perception.rays.curvature`'s notes),
-by one Python thread per z chunk (the slice kernels are serial and release the GIL):
+by one Python thread per y band (the slice kernels are serial and release the GIL):
 
 * :func:`classify_slice` and :func:`boundary_slice` give the structure ids and boundary voxels
   of one z slice, with the x range of the boundary voxels of every row.

@@ -944,17 +944,23 @@ def curvature_volume(
 
     Notes
     -----
-    ``|H|`` is evaluated only at boundary voxels.  The volume is streamed in z slices: each
-    slice is classified, then filtered along x and y (on the rows the boundary voxels read)
-    into a ring of ``2 r_z + 1`` slices, from which the derivatives along z are finished at the
-    boundary voxels; temporaries are a few slices of the block.
+    ``|H|`` is evaluated only at boundary voxels.  The extent is cut into bands along y
+    (handed to one thread per numba thread) and each band is streamed in z slices: a slice is
+    classified, then filtered along x and y (on the rows the boundary voxels read) into a ring
+    of ``2 r_z + 1`` slices, from which the derivatives along z are finished on the rows with
+    boundary voxels; the numerator and ``|H|`` are evaluated at those voxels only.
+    Temporaries are a few slices of a band (about 1/4 M voxels of ring per thread), besides
+    the two outputs.  The filters are the same as :func:`mean_curvature`'s, in float32 (sums
+    in a fixed order, so a brick gives exactly the bits of the full result); the numerator is
+    formed in float64.
 
-    Where ``|grad f| <= 1e-4 * gradient_max`` the iso-surface is undefined and ``|H|`` is 0.
-    Without ``gradient_max`` that test is decided without the maximum whenever possible: it
+    Where ``|grad f| <= 1e-4 * gradient_max`` the iso-surface is undefined and ``|H|`` is 0
+    (``gradient_max`` is the whole volume's, as in :func:`mean_curvature`).  Without
+    ``gradient_max`` the test is decided without the maximum whenever possible: the maximum
     lies between the largest gradient of the boundary voxels computed and a bound from the
-    data range; only boundary voxels with a gradient between those two thresholds (almost
-    never) make the exact maximum be computed (:func:`curvature_globals`).  Results are the
-    same either way, and bit for bit the same for a brick and the full volume.
+    data range; only boundary voxels with a gradient between those two thresholds make the
+    maximum be searched for, and only as far as it decides them (branch and bound, see
+    :func:`curvature_globals`).  Results are the same either way.
     """
     sig = _check_sigma(sigma)
     _check_labels(volume, spec)
