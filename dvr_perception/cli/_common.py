@@ -33,6 +33,7 @@ __all__ = [
     "common_parent",
     "emit_json",
     "load_scene",
+    "parse_factors",
     "parse_size",
     "save_buffers",
 ]
@@ -122,6 +123,28 @@ def parse_size(text) -> tuple[int, int]:
     return w, h
 
 
+_FACTORS = re.compile(r"^\s*(\d+)\s*(?:,\s*(\d+)\s*,\s*(\d+)\s*)?$")
+
+
+def parse_factors(text) -> tuple[int, int, int]:
+    """Parse ``--resample``: ``"F"`` (all axes) or ``"FX,FY,FZ"``, each between 1 and 64.
+
+    Examples
+    --------
+    >>> parse_factors("2,2,4"), parse_factors("3")
+    ((2, 2, 4), (3, 3, 3))
+    """
+    m = _FACTORS.match(str(text))
+    if m is None:
+        raise DVRInputError(
+            f"--resample: expected F or FX,FY,FZ (positive integers along x, y, z), got {text!r}"
+        )
+    f = tuple(int(g) for g in m.groups()) if m.group(2) is not None else (int(m.group(1)),) * 3
+    if not all(1 <= k <= 64 for k in f):
+        raise DVRInputError(f"--resample: factors must be in 1..64, got {text!r}")
+    return f  # type: ignore[return-value]
+
+
 @dataclass
 class Scene:
     """A resolved volume, spec and camera, with where they came from."""
@@ -178,7 +201,8 @@ def load_scene(args: argparse.Namespace) -> Scene:
     """Resolve the scene options of :func:`add_scene_args` into a :class:`Scene`.
 
     Cheap checks (size, view, camera file) run before the volume is loaded, so bad options
-    fail fast.
+    fail fast.  A command that declares ``--resample`` gets the volume (and labels) up-sampled
+    (:func:`dvr_perception.volume.resample.upsample`) before the camera is fitted to it.
     """
     size = parse_size(args.size) if args.size is not None else None
     if getattr(args, "memory_limit", None) is not None:
@@ -186,6 +210,8 @@ def load_scene(args: argparse.Namespace) -> Scene:
 
         memory.set_limit(args.memory_limit)  # checked here, before the volume is read
         os.environ[memory.ENV] = str(args.memory_limit)  # and for child processes
+    resample = getattr(args, "resample", None)  # only commands that declare --resample
+    factors = parse_factors(resample) if resample is not None else None
     view = parse_view(args.view) if args.view is not None else None
     camera = _read_camera(args.camera, size) if args.camera is not None else None
     from dvr_perception.structures.io import attach_labels, check_spec_for_volume, load_spec
@@ -203,6 +229,13 @@ def load_scene(args: argparse.Namespace) -> Scene:
         log.info("no spec given or paired with %s: proposing structures", args.volume)
         spec, spec_source = propose_structures(volume), "proposed"
     volume = attach_labels(volume, spec)
+    if factors is not None and factors != (1, 1, 1):
+        from dvr_perception.volume.resample import upsample
+
+        log.info("up-sampling by %s (x, y, z)", factors)
+        t0 = time.perf_counter()
+        volume = upsample(volume, factors)
+        load_s += time.perf_counter() - t0
     check_spec_for_volume(spec, volume)
     if args.shade is not None:
         spec = replace(spec, rendering=replace(spec.rendering, shade=bool(args.shade)))

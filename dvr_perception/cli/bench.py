@@ -2,7 +2,14 @@
 
 Reported figures (seconds unless stated):
 
-* ``load_s`` – reading (or generating) the volume; ``curvature_s`` – the curvature volume.
+* ``load_s`` – reading (or generating) the volume, and up-sampling it with ``--resample
+  FX,FY,FZ`` (integer factors along x, y, z, trilinear; e.g. ``--resample 2,2,4`` turns
+  cthead's 256×256×113 into 512×512×452); ``--save-volume PATH`` also writes that volume
+  (e.g. ``big/cthead.nhdr``, which pairs with ``state_files/cthead.json``) for the other
+  commands.
+* ``curvature_s`` – the curvature volume; ``curvature_vtk_frames`` = ``curvature_s /
+  vtk_frame_s``.
+* ``peak_rss_mb`` – the process's peak resident memory (``ru_maxrss``) at the end, MiB.
 * ``compile_s`` – the first, warm-up :func:`~dvr_perception.rays.engine.analyze` call (numba
   compilation included); ``frame_s`` – median of ``--repeat`` further full calls.
 * ``vtk_frame_s`` – median of ``--repeat`` warm frames of VTK's fixed-point ray caster, same
@@ -43,13 +50,22 @@ import time
 
 import numpy as np
 
-from dvr_perception.cli._common import add_scene_args, emit_json, load_scene, log
+from dvr_perception.cli._common import (
+    add_scene_args,
+    check_output_file,
+    emit_json,
+    load_scene,
+    log,
+    parse_factors,
+)
 
 __all__ = ["add_parser", "run"]
 
 EXAMPLE = """examples:
   dvr-perception bench --json
   dvr-perception bench ../shared/data/engine.nhdr --size 512 --repeat 3 --json
+  dvr-perception bench ../shared/data/cthead.nhdr --resample 2,2,4 --repeat 1 --json
+  dvr-perception bench ../shared/data/cthead.nhdr --resample 2,2,4 --save-volume big/cthead.nhdr
 """
 
 
@@ -67,6 +83,16 @@ def add_parser(subparsers, parents) -> None:
     p.add_argument("--repeat", type=int, default=5, metavar="R", help="timed repeats (default 5)")
     p.add_argument(
         "--seed", type=int, default=0, help="seed of the opacity perturbation (default 0)"
+    )
+    p.add_argument(
+        "--resample",
+        metavar="FX,FY,FZ",
+        help="up-sample the volume by integer factors along x, y, z (or one factor F)",
+    )
+    p.add_argument(
+        "--save-volume",
+        metavar="PATH",
+        help="also write the (up-sampled) volume to PATH (.nhdr, .nrrd, .vti, ...)",
     )
     p.add_argument(
         "--optimize",
@@ -97,6 +123,15 @@ def _nbytes(obj, seen=None) -> int:
     else:
         return 0
     return sum(_nbytes(v, seen) for v in items)
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this process in MiB (``ru_maxrss``: KiB on Linux, B on macOS)."""
+    import resource
+    import sys
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == "darwin" else peak / 2**10
 
 
 def _median_time(fn, repeat: int) -> float:
@@ -213,8 +248,15 @@ def run(args: argparse.Namespace) -> int:
     from dvr_perception.rays.curvature import curvature_volume
     from dvr_perception.rays.engine import analyze, reevaluate
 
+    if args.save_volume is not None:
+        check_output_file(args.save_volume)
     scene = load_scene(args)
     vol, spec, cam = scene.volume, scene.spec, scene.camera
+    if args.save_volume is not None:
+        from dvr_perception.volume.io import save_volume
+
+        log.info("writing %s", args.save_volume)
+        save_volume(vol, args.save_volume)
     log.info("curvature volume")
     t0 = time.perf_counter()
     curv, _ = curvature_volume(vol, spec)
@@ -281,6 +323,8 @@ def run(args: argparse.Namespace) -> int:
         "measure_total_s": measure_total_s,
         "measure_vtk_frames": measure_total_s / vtk_frame_s if vtk_frame_s else None,
         "repeat": args.repeat,
+        "resample": list(parse_factors(args.resample)) if args.resample is not None else None,
+        "curvature_vtk_frames": curvature_s / vtk_frame_s if vtk_frame_s else None,
     }
     if vtk_error is not None:
         report["vtk_error"] = vtk_error
@@ -290,6 +334,7 @@ def run(args: argparse.Namespace) -> int:
         opt["optimize_vtk_frames"] = frames
         opt["optimize_with_curvature_s"] = opt["optimize_s"] + curvature_s
         report.update(opt)
+    report["peak_rss_mb"] = _peak_rss_mb()
     if args.json:
         emit_json(report)
     else:
