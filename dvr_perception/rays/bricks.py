@@ -565,16 +565,23 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
 def _pieces(volume: Volume, bricks, curvature, skip=()):
     """Each brick's piece of ``volume`` (a copy), its offset and curvature piece.
 
-    The piece is ``None`` for bricks in ``skip`` (their derived volumes are known).
+    The piece (and a field's curvature) are ``None`` for bricks in ``skip`` (known from the
+    memo).
+    ``curvature``: a whole-volume array or a :class:`~dvr_perception.rays.curvature_field.
+    CurvatureField` (its piece computed here).
     """
     for br in bricks:
-        (z0, z1), (y0, y1), (x0, x1) = br.voxels(volume.data.shape)
+        ranges = br.voxels(volume.data.shape)
+        (z0, z1), (y0, y1), (x0, x1) = ranges
         sl = (slice(z0, z1), slice(y0, y1), slice(x0, x1))
-        piece = None
+        piece = cv = None
+        if isinstance(curvature, np.ndarray):
+            cv = np.ascontiguousarray(curvature[sl], np.float32)
         if br not in skip:
             labels = None if volume.labels is None else volume.labels[sl]
             piece = Volume(volume.data[sl], volume.spacing, volume.origin, labels=labels)
-        cv = None if curvature is None else np.ascontiguousarray(curvature[sl], np.float32)
+            if curvature is not None and cv is None:
+                cv = curvature.piece(ranges)
         yield br, piece, (z0, y0, x0), cv
 
 
@@ -585,16 +592,23 @@ _MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 MEMO_SHARE = 0.125
 
 
-def _memo(volume, state, bricks, cap) -> dict | None:
+def _curvature_key(curvature):
+    """Return what identifies the curvature pieces a memo holds (arrays are sliced, not kept)."""
+    if curvature is None or isinstance(curvature, np.ndarray):
+        return None
+    return (id(curvature), curvature.sigma)
+
+
+def _memo(volume, state, bricks, cap, curvature=None) -> dict | None:
     """Return the memo of ``volume``'s brick-derived volumes for these tables, or None."""
     t = state.tables
     lut = t["lut"]
     key = (
         float(lut.lo), float(lut.scale), int(lut.size), t["ids"].tobytes(), t["memb"].tobytes(),
-        t["labels"], t["shade"], tuple(br.cells for br in bricks),
+        t["labels"], t["shade"], tuple(br.cells for br in bricks), _curvature_key(curvature),
     )  # fmt: skip
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
-    if 7 * held > MEMO_SHARE * cap:
+    if (7 + (4 if curvature is not None else 0)) * held > MEMO_SHARE * cap:
         _MEMO.pop(volume, None)
         return None
     hit = _MEMO.get(volume)
@@ -689,15 +703,19 @@ def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, bric
     from dvr_perception.rays import memory
 
     cap = memory.limit(memory_limit)
-    memo = _memo(volume, state, bricks, cap)
+    memo = _memo(volume, state, bricks, cap, curv)
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
     keep = build_cache and memo is None and 2 * held <= KEEP_CODES_SHARE * cap
     known = set(memo) if memo is not None else set()
+    field = curv is not None and not isinstance(curv, np.ndarray)
     kept = []
     for br, piece, off, cv in _pieces(volume, bricks, curv, skip=known):
         derived = memo.get(br) if memo is not None else None
         if memo is not None and derived is None:
-            derived = memo[br] = derive(piece, state)
+            derived = memo[br] = (*derive(piece, state), cv if field else None)
+        if derived is not None:
+            cv = derived[5] if field else cv
+            derived = derived[:5]
         c = walk(state, piece, br, offset=off, curvature=cv, build_cache=build_cache,
                  keep_codes=keep, derived=derived)  # fmt: skip
         if caches is not None and c is not None:

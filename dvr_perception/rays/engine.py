@@ -79,6 +79,15 @@ def _check_inputs(volume, spec, camera, backend) -> None:
 def _check_curvature(curvature, volume) -> np.ndarray | None:
     if curvature is None:
         return None
+    from dvr_perception.rays.curvature_field import CurvatureField
+
+    if isinstance(curvature, CurvatureField):
+        if curvature.shape != volume.data.shape:
+            raise DVRInputError(
+                f"curvature: a field of shape {curvature.shape}, the volume is "
+                f"{volume.data.shape} (z, y, x)"
+            )
+        return curvature  # computed piece by piece (bricks) or whole (below)
     try:
         c = np.asarray(curvature, dtype=np.float32)
     except (TypeError, ValueError):
@@ -295,6 +304,8 @@ def analyze(
         build_cache=build_cache, lut=lut, membership=memb, memory_limit=memory_limit,
         brick=brick,
     )  # fmt: skip
+    if need["mode"] == "whole" and curv is not None and not isinstance(curv, np.ndarray):
+        curv = _check_curvature(np.asarray(curv), volume)  # a field, read whole
     if need["mode"] == "bricks":
         from dvr_perception.rays.bricks import analyze_bricked
 

@@ -21,7 +21,6 @@ than one process.  The communication is a :class:`~dvr_perception.parallel.Commu
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from dataclasses import dataclass
@@ -47,22 +46,21 @@ __all__ = [
 def ghost_levels(spacing, sigma: float | None) -> int:
     """Voxel layers a piece needs around its cells' voxels.
 
-    One for the normals' central differences; with curvature (``sigma`` not None) the radius
-    of the Gaussian derivative kernels of :func:`~dvr_perception.rays.curvature.mean_curvature`
-    along the axis where it is largest.
+    One for the normals' central differences; with curvature (``sigma`` not None) the
+    Gaussian kernels' largest radius (:func:`~dvr_perception.rays.curvature.curvature_ghost`
+    less its layer for the boundary test: the voxels a brick reads, its cells' corners, have
+    their neighbours inside the radius; tested equal to the whole volume's curvature).
 
     Examples
     --------
     >>> ghost_levels((1.0, 1.0, 1.0), 1.0), ghost_levels((1.0, 1.0, 2.0), None)
     (4, 1)
     """
-    from dvr_perception.rays import curvature
+    from dvr_perception.rays.curvature import curvature_ghost
 
     if sigma is None:
         return 1
-    step = min(spacing) * float(sigma)
-    radius = [max(1, math.ceil(curvature._TRUNCATE * step / s)) for s in spacing]
-    return max(1, *radius)
+    return max(1, curvature_ghost(float(sigma), spacing) - 1)
 
 
 def owned_voxels(brick, shape) -> tuple[tuple[int, int], ...]:
@@ -169,38 +167,48 @@ def piece_curvature(comm: Communicator, piece: Piece, spec, sigma: float) -> np.
     """``|H|`` on the boundary voxels of the structures, on the piece's voxels (float32).
 
     Equals :func:`~dvr_perception.rays.curvature.curvature_volume` of the whole volume on the
-    piece's brick voxels when the piece has :func:`ghost_levels` layers; collective (every
-    rank calls it).  Range structures only (a ParaView volume has no label volume).
+    voxels the piece's brick reads (its cells' corners) when the piece has
+    :func:`ghost_levels` layers; 0 on the other voxels.  Collective (every rank calls it):
+    the whole volume's data offset (median of every ``nz // 8``-th slice) is gathered on rank 0
+    and broadcast, the largest gradient is a max reduction
+    (:func:`~dvr_perception.rays.curvature.curvature_globals` over the voxels each rank
+    owns).  Range structures only (a ParaView volume has no label volume).
     """
-    from dvr_perception.rays.curvature import _boundary, classify_structures, mean_curvature
+    from dvr_perception.rays.curvature import (
+        CurvatureGlobals,
+        curvature_globals,
+        curvature_volume,
+    )
 
     if any(s.label is not None for s in spec.structures):
         raise DVRInputError("MPI ranks: label structures are not supported (range structures)")
     shape = piece.geometry.shape
-    own = piece.local(owned_voxels(piece.brick, shape))
+    owned = owned_voxels(piece.brick, shape)
+    own = piece.local(owned)
     step = max(1, shape[0] // 8)
-
-    def offset(f):
-        (z0, z1), _, _ = owned_voxels(piece.brick, shape)
-        zs = range(-(-z0 // step) * step, z1, step)
-        local = [z - piece.offset[0] for z in zs]
-        mine = f[local][:, own[1], own[2]].reshape(-1) if local else np.zeros(0, f.dtype)
-        every = _gather_values(comm, mine)
-        med = np.float32(np.median(every)) if comm.rank == 0 else None
-        got = comm.broadcast({"m": np.asarray([med], np.float32)} if comm.rank == 0 else None)
-        return got["m"][0]
-
-    def gradient_max(mag2):
-        return comm.allreduce_max([float(mag2[own].max())])[0]
-
-    vol = piece.volume
-    ids = classify_structures(vol, spec)
-    boundary = _boundary(ids)
-    h = mean_curvature(
-        vol.data, spacing=vol.spacing, sigma=sigma, offset=offset, gradient_max=gradient_max
+    (z0, z1), _, _ = owned
+    local = [z - piece.offset[0] for z in range(-(-z0 // step) * step, z1, step)]
+    data = piece.volume.data
+    mine = (
+        data[local][:, own[1], own[2]].astype(np.float32).reshape(-1)
+        if local
+        else np.zeros(0, np.float32)
     )
-    out = np.zeros(ids.shape, np.float32)
-    out[boundary] = h[boundary]
+    every = _gather_values(comm, mine)
+    med = np.float32(np.median(every)) if comm.rank == 0 else None
+    got = comm.broadcast({"m": np.asarray([med], np.float32)} if comm.rank == 0 else None)
+    mine_globals = curvature_globals(
+        piece.volume, spec, sigma=sigma, extent=tuple((o.start, o.stop) for o in own)
+    )
+    top = mine_globals.gradient_max
+    gmax = comm.allreduce_max([-1.0 if top is None else float(top)])[0]
+    globals_ = CurvatureGlobals(float(sigma), float(got["m"][0]), None if gmax < 0 else gmax)
+    need = piece.local(piece.brick.voxels(shape, 0))  # the corners of the brick's cells
+    out = np.zeros(data.shape, np.float32)
+    out[need] = curvature_volume(
+        piece.volume, spec, sigma=sigma, extent=tuple((o.start, o.stop) for o in need),
+        gradient_max=globals_,
+    )[0]  # fmt: skip
     return out
 
 
