@@ -201,12 +201,12 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args)  # validates the options and the spec before anything is written
     out_dir = make_output_dir(args.out_dir) if args.out_dir else None
     from dvr_perception.measures import all_measures
-    from dvr_perception.rays.curvature import curvature_volume
+    from dvr_perception.rays.curvature_field import curvature_source
     from dvr_perception.rays.engine import analyze
 
     log.info("computing the curvature volume")
     t0 = time.perf_counter()
-    curvature, _ = curvature_volume(scene.volume, scene.spec)
+    curvature = curvature_source(scene.volume, scene.spec)
     t_curv = time.perf_counter() - t0
     log.info("analysing %dx%d rays", scene.camera.width, scene.camera.height)
     t0 = time.perf_counter()

@@ -306,7 +306,7 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
     from dvr_perception.cli import _plots
     from dvr_perception.export import save_paraview_preset, save_slicer_vp
     from dvr_perception.optimize import optimize
-    from dvr_perception.rays.curvature import curvature_volume
+    from dvr_perception.rays.curvature_field import curvature_source
     from dvr_perception.structures.io import save_spec
 
     t_start = time.perf_counter()
@@ -330,7 +330,7 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
     if isinstance(progress, Progress):
         progress.close()
     log.info("measuring before and after")
-    curvature, _ = curvature_volume(volume, spec)
+    curvature = curvature_source(volume, spec)
     before, m_before, initial = _measure(volume, spec, camera, curvature, weights)
     after, m_after, final = _measure(volume, res.spec, camera, curvature, weights)
     d = Path(out_dir)

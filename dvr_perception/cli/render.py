@@ -57,9 +57,9 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     curvature = None
     if buffers is not None:  # the curvature buffer needs the curvature volume (~2 s at 256^3)
-        from dvr_perception.rays.curvature import curvature_volume
+        from dvr_perception.rays.curvature_field import curvature_source
 
-        curvature, _ = curvature_volume(scene.volume, scene.spec)
+        curvature = curvature_source(scene.volume, scene.spec)
     # the image alone needs no sample behind early ray termination; the buffers' assigned
     # (occlusion-free) opacities need every sample of every ray
     result = analyze(

@@ -22,7 +22,7 @@ from dvr_perception.optimize.results import (
 )
 from dvr_perception.optimize.stages import STAGES
 from dvr_perception.rays.camera import Camera
-from dvr_perception.rays.curvature import curvature_volume
+from dvr_perception.rays.curvature_field import curvature_source
 from dvr_perception.rays.engine import analyze
 from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.volume.volume import Volume
@@ -258,7 +258,7 @@ def optimize(
     views = [camera, *(cameras or [])]
     res = DEFAULT_RESOLUTION if resolution is None else int(resolution)
     if curvature is None:
-        curvature, _ = curvature_volume(volume, spec)
+        curvature = curvature_source(volume, spec)
     full_analyses, opt_analyses, opt_masks = [], [], []
     for cam in views:
         small = _reduced(cam, res)
