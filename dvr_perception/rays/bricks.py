@@ -371,6 +371,31 @@ def _check_piece(piece, brick, offset, state, curvature):
     return off
 
 
+#: Keep the bricks' sample runs (for re-shading after a change of light) up to this many bytes.
+RUNS_BYTES = 256 * 2**20
+
+
+def _runs(state: RayState, brick: Brick) -> tuple[np.ndarray, np.ndarray]:
+    """Every ray's run ``[j0, j1)`` of samples in ``brick`` (kept while small enough)."""
+    runs = state.stats.setdefault("runs", {})
+    hit = runs.get(brick)
+    if hit is not None:
+        return hit
+    _, nb = _kernels()
+    seg = state.seg
+    gz, gy, gx = state.geometry.shape
+    lo = np.array([c[0] for c in brick.cells[::-1]], np.int64)
+    hi = np.array([c[1] for c in brick.cells[::-1]], np.int64)
+    nrays = len(seg["n"])
+    j0 = np.empty(nrays, np.int64)
+    j1 = np.empty(nrays, np.int64)
+    nb.brick_ranges(seg["a"], seg["b"], seg["t"], seg["n"], state.tables["step"], lo, hi,
+                    np.array([gx, gy, gz], np.int64), j0, j1)  # fmt: skip
+    if (len(runs) + 1) * 16 * nrays <= RUNS_BYTES:
+        runs[brick] = (j0, j1)
+    return j0, j1
+
+
 def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curvature=None,
          build_cache: bool = True, keep_codes: bool = False,
          derived=None) -> BrickCache | None:  # fmt: skip
@@ -408,13 +433,8 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
         raise DVRInputError("build_cache: needs an occlusion-free state (occlusion_free=True)")
     t, seg, cam = state.tables, state.seg, state.camera
     gz, gy, gx = state.geometry.shape
-    lo = np.array([c[0] for c in brick.cells[::-1]], np.int64)
-    hi = np.array([c[1] for c in brick.cells[::-1]], np.int64)
-    gdims = np.array([gx, gy, gz], np.int64)
     nrays = cam.width * cam.height
-    j0 = np.empty(nrays, np.int64)
-    j1 = np.empty(nrays, np.int64)
-    nb.brick_ranges(seg["a"], seg["b"], seg["t"], seg["n"], t["step"], lo, hi, gdims, j0, j1)
+    j0, j1 = _runs(state, brick)
     vol, maps, cv = _piece_arrays(piece, state, curvature, derived)
     has_curv = curvature is not None
     shade = t["shade"]
@@ -593,10 +613,14 @@ MEMO_SHARE = 0.125
 
 
 def _curvature_key(curvature):
-    """Return what identifies the curvature pieces a memo holds (arrays are sliced, not kept)."""
+    """Return what identifies the curvature pieces a memo holds (arrays are sliced, not kept).
+
+    A field of the same volume, sigma and structure ranges/labels gives the same pieces.
+    """
     if curvature is None or isinstance(curvature, np.ndarray):
         return None
-    return (id(curvature), curvature.sigma)
+    structures = tuple((s.range, s.label) for s in curvature.spec.structures)
+    return (curvature.sigma, structures)
 
 
 def _memo(volume, state, bricks, cap, curvature=None) -> dict | None:
@@ -641,14 +665,8 @@ def _refiller(volume_ref, bricks, kept, state):
                 (br, derive(piece, state)[0], 16, off)
                 for br, piece, off, _ in _pieces(volume, bricks, None)
             )
-        nrays = len(seg["n"])
         for br, vol, shift, off in todo:
-            lo = np.array([c[0] for c in br.cells[::-1]], np.int64)
-            hi = np.array([c[1] for c in br.cells[::-1]], np.int64)
-            j0 = np.empty(nrays, np.int64)
-            j1 = np.empty(nrays, np.int64)
-            nb.brick_ranges(seg["a"], seg["b"], seg["t"], seg["n"], t["step"], lo, hi,
-                            np.array([gx, gy, gz], np.int64), j0, j1)  # fmt: skip
+            j0, j1 = _runs(state, br)
             geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
             nb.fill_range(cache.start, cache.count, cache.lut, cache.lazy["steps"], cache.shading,
                           cache.curvature, seg["a"], seg["b"], seg["t"], t["step"], j0, j1, vol,

@@ -129,8 +129,9 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
         edge = 256
         while edge > 32:
             bvox = (edge + 3) ** 3
-            bscratch = scratch_whole * min(1.0, bvox / max(voxels, 1)) * 2.0
-            if bvox * (per_voxel + volume.data.itemsize) + bscratch <= budget:
+            # the derived volumes only: the same bricks for every image size and cache
+            # setting, so a volume's analyses share their memoised bricks
+            if bvox * (per_voxel + volume.data.itemsize + 4) <= budget:
                 break
             edge //= 2
         cells = tuple(min(edge, max(n - 1, 1)) for n in volume.data.shape)
