@@ -207,6 +207,23 @@ def _failure(returncode: int, stderr: str) -> Exception:
     return RuntimeError(f"pvbatch failed with exit code {returncode}: {last} (rerun with -v)")
 
 
+def _warm_up(pvbatch: Path, env: dict) -> None:
+    """Compile the ranks' kernels in one pvbatch process first (:func:`ranks.warm_up`)."""
+    import tempfile
+
+    log.info("compiling the ranks' kernels once (seconds when cached)")
+    with tempfile.TemporaryDirectory(prefix="dvr-warm-") as tmp:
+        script = Path(tmp) / "warm_up.py"
+        script.write_text(
+            "from dvr_perception.rays.ranks import warm_up\nwarm_up()\n", encoding="utf-8"
+        )
+        proc = subprocess.run(
+            [str(pvbatch), str(script)], env=env, capture_output=True, text=True, check=False
+        )
+    if proc.returncode != 0:
+        raise _failure(proc.returncode, proc.stderr)
+
+
 def run(args: argparse.Namespace) -> int:
     """Execute ``pvbatch``."""
     if args.size is not None:
@@ -221,6 +238,8 @@ def run(args: argparse.Namespace) -> int:
     script = _paraview_compat.repo_root() / "plugin" / "batch_measure.py"
     env = paraview_env()
     prefix = mpi_command(args.ranks, pvbatch, env) if args.ranks > 1 else []
+    if prefix:
+        _warm_up(pvbatch, env)
     for attempt in (1, 2):
         with virtual_display() as display:
             env["DISPLAY"] = display

@@ -304,3 +304,22 @@ def analyze_in_threads(volume: Volume, spec, camera, n: int, *, sigma: float | N
         if isinstance(out.get(r), BaseException):
             raise out[r]
     return out[0]
+
+
+def warm_up() -> None:
+    """Compile the kernels a rank runs, once, in this process (numba caches them on disk).
+
+    ``mpiexec -n N`` starts N processes that would otherwise compile the same kernels at the
+    same time on a cold cache, each slowed by the others' waiting (minutes on 2 cores);
+    ``dvr-perception pvbatch --ranks N`` calls this in one process first.  Covers 8- and
+    16-bit volumes.
+    """
+    from dvr_perception.measures import all_measures
+    from dvr_perception.rays.camera import Camera
+    from dvr_perception.volume.phantom import make_phantom
+
+    vol, spec = make_phantom(size=16)
+    cam = Camera.from_view(vol.bounds, width=8, height=8)
+    for data in (vol.data, vol.data.astype(np.uint16)):
+        got, _ = analyze_in_threads(Volume(data, vol.spacing, vol.origin), spec, cam, 2)
+        all_measures(got, spec)

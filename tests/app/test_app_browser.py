@@ -37,7 +37,7 @@ CHROMIUM_ARGS = [
     "--disable-sync",
 ]
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
-START_TIMEOUT_S = 60
+START_TIMEOUT_S = 240  # a fresh clone compiles the numba kernels (cold cache) before listening
 ACTION_TIMEOUT_MS = 60_000
 SCREENSHOTS = os.environ.get("DVR_APP_SCREENSHOTS", "")
 PHANTOM_SIZE = int(os.environ.get("DVR_APP_PHANTOM_SIZE", "40"))
