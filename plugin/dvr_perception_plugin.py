@@ -223,7 +223,8 @@ class PerceptionMeasures(_LibraryShell):
 
     def _parameters(self):
         v = dict(self._values)
-        v["distributed"] = bool(v["distributed"])
+        if "distributed" in v:  # Perception Measures only (Optimize shares this method)
+            v["distributed"] = bool(v["distributed"])
         view = (v.pop("azimuth"), v.pop("elevation"), v.pop("zoom"))
         v["view"] = None if v.pop("use_spec_view") else view
         return v
