@@ -43,8 +43,8 @@ def parse_size(text, name: str = "--memory-limit") -> int:
 
     Examples
     --------
-    >>> parse_size("1.5G"), parse_size("512MiB"), parse_size(4096)
-    (1610612736, 536870912, 4096)
+    >>> parse_size("1.5G"), parse_size("512MiB"), parse_size(2097152)
+    (1610612736, 536870912, 2097152)
     """
     m = re.fullmatch(r"\s*([0-9]+(?:\.[0-9]*)?)\s*([KMGT]?)(?:I?B)?\s*", str(text), re.IGNORECASE)
     value = float(m.group(1)) * _UNITS[m.group(2).upper()] if m else math.nan
