@@ -29,12 +29,16 @@ EMPTY_COLOUR = "#d0d0d0"
 DPI = 100
 
 
-def _figure(width: float, height: float):
-    """Return a constrained-layout figure attached to an Agg canvas."""
+def _figure(width: float, height: float, *, layout: str | None = "constrained"):
+    """Return a figure attached to an Agg canvas (constrained layout unless ``layout=None``).
+
+    Constrained layout doubles the time of a simple figure: the image maps and the
+    histograms place their axes themselves.
+    """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(width, height), layout="constrained")
+    fig = Figure(figsize=(width, height), layout=layout)
     FigureCanvasAgg(fig)
     return fig
 
@@ -93,12 +97,19 @@ def save_deviation_map(
     values = np.asarray(deviation, dtype=float)
     shown = values if mask is None else np.ma.masked_where(~np.asarray(mask, bool), values)
     colours = mpl.colormaps[cmap].with_extremes(bad=EMPTY_COLOUR)
-    fig = _figure(*_image_size(values.shape))
-    ax = fig.add_subplot()
+    fw, fh = _image_size(values.shape)
+    h, w = values.shape[:2]
+    scale = 5.0 / max(h, w)
+    iw, ih = w * scale, h * scale  # the image panel, inches; margins as _image_size gives
+    fig = _figure(fw, fh, layout=None)
+    left = (fw - 1.4 - iw) / 2 + 0.1
+    ax = fig.add_axes((left / fw, 0.15 / fh, iw / fw, ih / fh))
     im = ax.imshow(shown, cmap=colours, vmin=vmin, vmax=vmax, interpolation="nearest")
     ax.set_axis_off()
     ax.set_title(title, fontsize=10)
-    fig.colorbar(im, ax=ax, shrink=0.85, label=label)
+    bar = fig.add_axes(((left + iw + 0.25) / fw, (0.15 + 0.075 * ih) / fh, 0.18 / fw,
+                        0.85 * ih / fh))  # fmt: skip
+    fig.colorbar(im, cax=bar, label=label)
     return _save(fig, path)
 
 
@@ -127,13 +138,14 @@ def save_visibility_histograms(path, per_structure: dict, bin_edges, *, title: s
         The written path.
     """
     edges = np.asarray(bin_edges, dtype=float)
-    centres = 0.5 * (edges[:-1] + edges[1:])
-    width = np.diff(edges)
     names = list(per_structure)
     k = max(len(names), 1)
     cols = min(k, 3)
     rows = -(-k // cols)
-    fig = _figure(3.6 * cols, 2.8 * rows + 0.5)
+    fw, fh = 3.6 * cols, 2.8 * rows + 0.5
+    fig = _figure(fw, fh, layout=None)
+    fig.subplots_adjust(left=0.55 / fw, right=1 - 0.15 / fw, bottom=0.5 / fh, top=1 - 0.75 / fh,
+                        wspace=0.35, hspace=0.6)  # fmt: skip
     axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
     for ax in axes[len(names) :]:
         ax.set_axis_off()
@@ -144,8 +156,9 @@ def save_visibility_histograms(path, per_structure: dict, bin_edges, *, title: s
         asg = np.asarray(entry["histogram_assigned"], float)
         frac_v = vis / rays if rays else vis
         frac_a = asg / rays if rays else asg
-        ax.bar(centres - width / 4, frac_a, width / 2, color="#4c72b0", label="target opacity")
-        ax.bar(centres + width / 4, frac_v, width / 2, color="#dd8452", label="visible opacity")
+        # one step artist per histogram (hundreds of bar patches drew ten times slower)
+        ax.stairs(frac_a, edges, fill=True, color="#4c72b0", alpha=0.45, label="target opacity")
+        ax.stairs(frac_v, edges, color="#dd8452", linewidth=1.6, label="visible opacity")
         ax.set_xlim(0.0, 1.0)
         ax.set_xlabel("per-ray opacity", fontsize=8)
         ax.set_ylabel("fraction of rays", fontsize=8)

@@ -254,12 +254,13 @@ def stop_on_interrupt(progress: Progress):
 
 
 # -- measuring and writing -----------------------------------------------------------------------
-def _measure(volume, spec, camera, curvature, weights):
+def _measure(volume, spec, camera, curvature, weights, result=None):
     from dvr_perception.cli.measure import _structures
     from dvr_perception.measures import all_measures
     from dvr_perception.rays.engine import analyze
 
-    result = analyze(volume, spec, camera, curvature=curvature, build_cache=False)
+    if result is None:
+        result = analyze(volume, spec, camera, curvature=curvature, build_cache=False)
     vis, shp, trn = all_measures(result, spec)
     terms = {"E_v": float(vis.E_v), "E_s": float(shp.E_s), "E_t": float(trn.E_t)}
     terms["E"] = float(sum(w * terms[k] for w, k in zip(weights, TERMS, strict=True)))
@@ -330,9 +331,11 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
     if isinstance(progress, Progress):
         progress.close()
     log.info("measuring before and after")
-    curvature = curvature_source(volume, spec)
-    before, m_before, initial = _measure(volume, spec, camera, curvature, weights)
-    after, m_after, final = _measure(volume, res.spec, camera, curvature, weights)
+    # the optimiser's renderings of the view (equal to fresh analyses), else analyse again
+    first, last = res.analyses or (None, None)
+    curvature = None if res.analyses else curvature_source(volume, spec)
+    before, m_before, initial = _measure(volume, spec, camera, curvature, weights, first)
+    after, m_after, final = _measure(volume, res.spec, camera, curvature, weights, last)
     d = Path(out_dir)
     files = [write_png(d / "before.png", before.image), write_png(d / "after.png", after.image)]
     titles = [

@@ -23,7 +23,7 @@ from dvr_perception.optimize.results import (
 from dvr_perception.optimize.stages import STAGES
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature_field import curvature_source
-from dvr_perception.rays.engine import analyze
+from dvr_perception.rays.engine import analyze_views
 from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.volume.volume import Volume
 
@@ -259,14 +259,19 @@ def optimize(
     res = DEFAULT_RESOLUTION if resolution is None else int(resolution)
     if curvature is None:
         curvature = curvature_source(volume, spec)
-    full_analyses, opt_analyses, opt_masks = [], [], []
-    for cam in views:
-        small = _reduced(cam, res)
-        full = analyze(volume, spec, cam, curvature=curvature)
-        full_analyses.append(full)
-        opt_analyses.append(full if small is cam else analyze(volume, spec, small,
-                                                              curvature=curvature))  # fmt: skip
-        opt_masks.append(None if mask is None else resample_mask(mask, small.height, small.width))
+    smalls = [_reduced(cam, res) for cam in views]
+    want_coarse = res >= 2 * FD_RESOLUTION and any(
+        max(c.width, c.height) >= 2 * FD_RESOLUTION for c in smalls
+    )
+    coarse_cams = [_reduced(cam, FD_RESOLUTION) for cam in views] if want_coarse else []
+    # every camera of a view in one call: a volume analysed in bricks is read once for all
+    todo = [*views, *(s for s, cam in zip(smalls, views, strict=True) if s is not cam)]
+    got = dict(zip(map(id, todo + coarse_cams),
+                   analyze_views(volume, spec, todo + coarse_cams, curvature=curvature),
+                   strict=True))  # fmt: skip
+    full_analyses = [got[id(cam)] for cam in views]
+    opt_analyses = [got[id(s)] for s in smalls]
+    opt_masks = [None if mask is None else resample_mask(mask, s.height, s.width) for s in smalls]
     full_masks = [mask] + [None] * (len(views) - 1)
     full_problem = Problem([a.cache for a in full_analyses], full_masks, spec, w, goals,
                            calibration, composition)  # fmt: skip
@@ -276,14 +281,10 @@ def optimize(
         caches = [a.cache for a in opt_analyses]
         problem = Problem(caches, opt_masks, spec, w, goals, calibration, composition)
     coarse = None
-    if res >= 2 * FD_RESOLUTION and any(
-        max(a.cache.camera.width, a.cache.camera.height) >= 2 * FD_RESOLUTION for a in opt_analyses
-    ):
-        caches, masks = [], []
-        for cam in views:
-            small = _reduced(cam, FD_RESOLUTION)
-            caches.append(analyze(volume, spec, small, curvature=curvature).cache)
-            masks.append(None if mask is None else resample_mask(mask, small.height, small.width))
+    if want_coarse:
+        caches = [got[id(c)].cache for c in coarse_cams]
+        masks = [None if mask is None else resample_mask(mask, c.height, c.width)
+                 for c in coarse_cams]  # fmt: skip
         coarse = Problem(caches, masks, spec, w, goals, calibration, composition)
 
     params = Params.from_spec(spec)
@@ -362,6 +363,7 @@ def optimize(
         message=STATUS_MESSAGES[status],
         success=status == 0,
         structures=why,
+        analyses=(full_analyses[0], full_problem.render(params, 0)),
     )
 
 

@@ -123,6 +123,10 @@ class OptimizationResult:
     structures : dict
         Per structure, why it changed (:func:`~dvr_perception.optimize.explain.explain`):
         opacity before and after, share of the picture before, target and after, reason.
+    analyses : tuple
+        ``(before, after)``: the first view's :class:`~dvr_perception.rays.engine.RayAnalysis`
+        at the user's resolution with the input spec and with ``spec`` (re-composited from
+        the optimiser's cache: equal to a fresh ``analyze``); empty when not kept.
     """
 
     spec: StructureSpec
@@ -136,3 +140,4 @@ class OptimizationResult:
     message: str
     success: bool
     structures: dict = field(default_factory=dict)
+    analyses: tuple = field(default=(), repr=False, compare=False)

@@ -47,6 +47,7 @@ __all__ = [
     "Geometry",
     "RayState",
     "analyze_bricked",
+    "analyze_bricked_views",
     "finish",
     "from_piece_extent",
     "split",
@@ -582,13 +583,12 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
     return engine._finish(rgba, vis, asg, state.bits.copy(), cimg, spec, cam, stats, cache, aimp)
 
 
-def _pieces(volume: Volume, bricks, curvature, skip=()):
-    """Each brick's piece of ``volume`` (a copy), its offset and curvature piece.
+def _pieces(volume: Volume, bricks, curvature, skip=(), skip_curvature=()):
+    """Each brick's piece of ``volume`` (a view), its offset and curvature piece.
 
-    The piece (and a field's curvature) are ``None`` for bricks in ``skip`` (known from the
-    memo).
-    ``curvature``: a whole-volume array or a :class:`~dvr_perception.rays.curvature_field.
-    CurvatureField` (its piece computed here).
+    The piece is ``None`` for bricks in ``skip`` and the curvature piece for bricks in
+    ``skip_curvature`` (both known from the memo).  ``curvature``: a whole-volume array or
+    a :class:`~dvr_perception.rays.curvature_field.CurvatureField` (its piece computed here).
     """
     for br in bricks:
         ranges = br.voxels(volume.data.shape)
@@ -597,19 +597,20 @@ def _pieces(volume: Volume, bricks, curvature, skip=()):
         piece = cv = None
         if isinstance(curvature, np.ndarray):
             cv = np.ascontiguousarray(curvature[sl], np.float32)
+        elif curvature is not None and br not in skip_curvature:
+            cv = curvature.piece(ranges)
         if br not in skip:
             labels = None if volume.labels is None else volume.labels[sl]
             piece = Volume(volume.data[sl], volume.spacing, volume.origin, labels=labels)
-            if curvature is not None and cv is None:
-                cv = curvature.piece(ranges)
         yield br, piece, (z0, y0, x0), cv
 
 
 #: Derived volumes of recent bricked analyses, per volume (while the memory limit allows).
 _MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-#: The bricks' derived volumes are kept between analyses of a volume while they take at most
-#: this share of the memory limit (about 7 bytes a voxel).
-MEMO_SHARE = 0.125
+#: The bricks' derived volumes (about 7 bytes a voxel) are kept between analyses of a volume
+#: while they take at most this share of the memory limit; their curvature pieces (4 bytes a
+#: voxel) too while both fit.
+MEMO_SHARE = 0.0625
 
 
 def _curvature_key(curvature):
@@ -623,23 +624,35 @@ def _curvature_key(curvature):
     return (curvature.sigma, structures)
 
 
-def _memo(volume, state, bricks, cap, curvature=None) -> dict | None:
-    """Return the memo of ``volume``'s brick-derived volumes for these tables, or None."""
+def _memo(volume, state, bricks, cap, curvature=None) -> tuple[dict | None, dict | None]:
+    """Return the memos of ``volume``'s brick-derived volumes and curvature pieces, or None.
+
+    The derived volumes depend on the tables only, the curvature pieces on the field only:
+    analyses with and without curvature share the derived volumes.
+    """
     t = state.tables
     lut = t["lut"]
     key = (
         float(lut.lo), float(lut.scale), int(lut.size), t["ids"].tobytes(), t["memb"].tobytes(),
-        t["labels"], t["shade"], tuple(br.cells for br in bricks), _curvature_key(curvature),
+        t["labels"], t["shade"], tuple(br.cells for br in bricks),
     )  # fmt: skip
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
-    if (7 + (4 if curvature is not None else 0)) * held > MEMO_SHARE * cap:
+    if 7 * held > MEMO_SHARE * cap:
         _MEMO.pop(volume, None)
-        return None
+        return None, None
     hit = _MEMO.get(volume)
     if hit is None or hit["key"] != key:
-        hit = {"key": key, "bricks": {}}
+        hit = {"key": key, "bricks": {}, "curvature_key": None, "curvature": {}}
         _MEMO[volume] = hit  # the newest tables only
-    return hit["bricks"]
+    field = curvature is not None and not isinstance(curvature, np.ndarray)
+    if not field or 11 * held > MEMO_SHARE * cap:
+        if field:
+            hit["curvature"], hit["curvature_key"] = {}, None
+        return hit["bricks"], None
+    ckey = (_curvature_key(curvature), tuple(br.cells for br in bricks))
+    if hit["curvature_key"] != ckey:
+        hit["curvature"], hit["curvature_key"] = {}, ckey
+    return hit["bricks"], hit["curvature"]
 
 
 def _refiller(volume_ref, bricks, kept, state):
@@ -705,43 +718,110 @@ def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, bric
     >>> bool(np.array_equal(whole.rgba, parts.rgba))
     True
     """
-    from dvr_perception.rays import engine
+    return analyze_bricked_views(
+        volume, spec, [camera], brick=brick, opacities=opacities, curvature=curvature,
+        build_cache=build_cache, occlusion_free=occlusion_free, memory_limit=memory_limit,
+    )[0]  # fmt: skip
+
+
+def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick=(64, 64, 64),
+                          opacities=None, curvature=None, build_cache: bool = True,
+                          occlusion_free: bool = True,
+                          memory_limit=None) -> list[RayAnalysis]:  # fmt: skip
+    """:func:`analyze_bricked` for several cameras, deriving each brick once for all of them.
+
+    Cameras that meet the bricks in the same order (e.g. one view at several resolutions, as
+    the optimiser uses) share one pass over the volume: each brick's derived volumes and
+    curvature are computed once and every camera's rays walk it.  The results equal one
+    :func:`analyze_bricked` per camera.
+
+    Examples
+    --------
+    >>> from dvr_perception.volume.phantom import make_phantom
+    >>> vol, spec = make_phantom(size=24)
+    >>> big = Camera.from_view(vol.bounds, width=16, height=16)
+    >>> small = Camera.from_view(vol.bounds, width=8, height=8)
+    >>> both = analyze_bricked_views(vol, spec, [big, small], brick=(5, 7, 9))
+    >>> one = analyze_bricked(vol, spec, small, brick=(5, 7, 9))
+    >>> bool(np.array_equal(both[1].rgba, one.rgba))
+    True
+    """
+    from dvr_perception.rays import engine, memory
 
     t0 = time.perf_counter()
-    engine._check_inputs(volume, spec, camera, "numba")
+    cameras = list(cameras)
+    for cam in cameras:
+        engine._check_inputs(volume, spec, cam, "numba")
     curv = engine._check_curvature(curvature, volume)
-    bricks = split(volume.data.shape, brick)
-    state = RayState.start(
-        Geometry.of(volume), spec, camera, scalar_range=_grid.scalar_range(volume),
-        opacities=opacities, occlusion_free=occlusion_free,
-    )  # fmt: skip
-    order = view_order(bricks, state)
-    bricks = [bricks[i] for i in order]
-    caches = [] if build_cache else None
-    from dvr_perception.rays import memory
-
+    every = split(volume.data.shape, brick)
+    rng = _grid.scalar_range(volume)
+    states = [
+        RayState.start(
+            Geometry.of(volume),
+            spec,
+            cam,
+            scalar_range=rng,
+            opacities=opacities,
+            occlusion_free=occlusion_free,
+        )
+        for cam in cameras
+    ]
+    groups: dict = {}  # one pass over the volume per order of the bricks
+    for n, st in enumerate(states):
+        groups.setdefault(tuple(view_order(every, st)), []).append(n)
     cap = memory.limit(memory_limit)
-    memo = _memo(volume, state, bricks, cap, curv)
+    out = [None] * len(cameras)
+    for order, members in groups.items():
+        bricks = [every[i] for i in order]
+        got = _pass(volume, [states[n] for n in members], bricks, curv, cap, build_cache)
+        for n, res in zip(members, got, strict=True):
+            out[n] = res
+    seconds = time.perf_counter() - t0
+    return [
+        finish(st, caches, refill=refill, seconds=seconds) for st, (caches, refill) in
+        zip(states, out, strict=True)
+    ]  # fmt: skip
+
+
+def _pass(volume, states, bricks, curv, cap, build_cache) -> list:
+    """Walk ``bricks`` (in the states' common view order) for every state; caches and refill.
+
+    Each brick is read and derived once (or taken from the memo) for all the states.
+    """
+    memo, cmemo = _memo(volume, states[0], bricks, cap, curv)
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
     keep = build_cache and memo is None and 2 * held <= KEEP_CODES_SHARE * cap
     known = set(memo) if memo is not None else set()
-    field = curv is not None and not isinstance(curv, np.ndarray)
-    kept = []
-    for br, piece, off, cv in _pieces(volume, bricks, curv, skip=known):
+    caches = [[] if build_cache else None for _ in states]
+    kept = [[] for _ in states]
+    pieces = _pieces(volume, bricks, curv, skip=known, skip_curvature=set(cmemo or ()))
+    for br, piece, off, cv in pieces:
+        if cmemo is not None:
+            cv = cmemo.setdefault(br, cv)
         derived = memo.get(br) if memo is not None else None
         if memo is not None and derived is None:
-            derived = memo[br] = (*derive(piece, state), cv if field else None)
-        if derived is not None:
-            cv = derived[5] if field else cv
-            derived = derived[:5]
-        c = walk(state, piece, br, offset=off, curvature=cv, build_cache=build_cache,
-                 keep_codes=keep, derived=derived)  # fmt: skip
-        if caches is not None and c is not None:
-            caches.append(c)
-            kept.append((c.codes, 0) if keep else (derived[0], 16) if derived else None)
-            kept[-1] = None if kept[-1] is None else (*kept[-1], off)
-    refill = None
-    if build_cache and state.tables["shade"]:
-        kept = None if any(k is None for k in kept) else kept
-        refill = _refiller(weakref.ref(volume), bricks, kept, state)
-    return finish(state, caches, refill=refill, seconds=time.perf_counter() - t0)
+            derived = memo[br] = derive(piece, states[0])
+        if derived is None and len(states) > 1:
+            derived = derive(piece, states[0])  # once for every state
+        codes = None
+        for n, st in enumerate(states):
+            c = walk(st, piece, br, offset=off, curvature=cv, build_cache=build_cache,
+                     keep_codes=keep and codes is None, derived=derived)  # fmt: skip
+            if not build_cache or c is None:
+                continue
+            caches[n].append(c)
+            if keep:
+                codes = c.codes if codes is None else codes
+                c.codes = None
+                k = (codes, 0)
+            else:
+                k = (derived[0], 16) if derived is not None and memo is not None else None
+            kept[n].append(None if k is None else (*k, off))
+    out = []
+    for st, cs, kp in zip(states, caches, kept, strict=True):
+        refill = None
+        if build_cache and st.tables["shade"]:
+            kp = None if any(k is None for k in kp) else kp
+            refill = _refiller(weakref.ref(volume), bricks, kp, st)
+        out.append((cs, refill))
+    return out

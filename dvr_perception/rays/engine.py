@@ -51,7 +51,7 @@ from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.structures.transfer import build_lut
 from dvr_perception.volume.volume import Volume
 
-__all__ = ["RayAnalysis", "RayCache", "analyze", "reevaluate"]
+__all__ = ["RayAnalysis", "RayCache", "analyze", "analyze_views", "reevaluate"]
 
 BACKENDS = ("auto", "numba", "numpy")
 _MAX_STRUCTURES = 32
@@ -280,17 +280,13 @@ def analyze(
         [s.render_opacity for s in spec.structures] if opacities is None else opacities, k
     )
     curv = _check_curvature(curvature, volume)
-    nk = _pick_backend(backend)
-    step, unit = _tables.step_and_unit(spec, volume)
+    nk, step, unit, lut, labmap, ids, memb, seg = _scene(volume, spec, camera, backend)
     cols, mats = _tables.material(spec)
     rs = spec.rendering
     light = _tables.light_array(camera, mats, rs.light_direction, rs.light_intensity)
-    lut = build_lut(spec, scalar_range=_grid.scalar_range(volume), dtype=volume.data.dtype)
-    labmap, ids, memb = _with_labels(volume, spec, lut)
     ratio = step / unit
     alpha_w = _tables.alpha_table(ids, memb, imp, ratio)
     alpha_r = _tables.alpha_table(ids, memb, ops, ratio)
-    seg = _segments(nk, camera, volume, step)
     shade, has_curv = bool(rs.shade), curv is not None
     nrays = camera.width * camera.height
     if not seg["n"].any():
@@ -299,11 +295,7 @@ def analyze(
             DVRWarning,
             stacklevel=2,
         )
-    need = memory.plan(
-        volume, nrays, int(seg["n"].sum()), k=k, shade=shade, curvature=has_curv,
-        build_cache=build_cache, lut=lut, membership=memb, memory_limit=memory_limit,
-        brick=brick,
-    )  # fmt: skip
+    need = _plan(volume, spec, camera, seg, lut, memb, has_curv, build_cache, memory_limit, brick)
     if need["mode"] == "whole" and curv is not None and not isinstance(curv, np.ndarray):
         curv = _check_curvature(np.asarray(curv), volume)  # a field, read whole
     if need["mode"] == "bricks":
@@ -395,6 +387,70 @@ def analyze(
     finally:
         if locked:
             _SCRATCH_LOCK.release()
+
+
+def _scene(volume: Volume, spec: StructureSpec, camera: Camera, backend: str) -> tuple:
+    """Backend, sample distance, unit, lookup table, label map, ids, membership and rays."""
+    nk = _pick_backend(backend)
+    step, unit = _tables.step_and_unit(spec, volume)
+    lut = build_lut(spec, scalar_range=_grid.scalar_range(volume), dtype=volume.data.dtype)
+    labmap, ids, memb = _with_labels(volume, spec, lut)
+    return nk, step, unit, lut, labmap, ids, memb, _segments(nk, camera, volume, step)
+
+
+def _plan(volume, spec, camera, seg, lut, memb, has_curv, build_cache, memory_limit, brick):
+    """:func:`~dvr_perception.rays.memory.plan` of one analysis."""
+    return memory.plan(
+        volume, camera.width * camera.height, int(seg["n"].sum()), k=len(spec.structures),
+        shade=bool(spec.rendering.shade), curvature=has_curv, build_cache=build_cache, lut=lut,
+        membership=memb, memory_limit=memory_limit, brick=brick,
+    )  # fmt: skip
+
+
+def analyze_views(
+    volume: Volume,
+    spec: StructureSpec,
+    cameras,
+    *,
+    curvature=None,
+    build_cache: bool = True,
+    memory_limit=None,
+) -> list[RayAnalysis]:
+    """:func:`analyze` for each camera; a volume analysed in bricks is read once for all.
+
+    When every camera's analysis goes in bricks of one size (a large volume), the cameras
+    that meet the bricks in the same order (one view at several resolutions) share a pass
+    over the volume (:func:`~dvr_perception.rays.bricks.analyze_bricked_views`): each brick
+    is derived once instead of once per camera.  The results equal separate calls.
+
+    Examples
+    --------
+    >>> from dvr_perception.volume.phantom import make_phantom
+    >>> vol, spec = make_phantom(size=24)
+    >>> cams = [Camera.from_view(vol.bounds, width=n, height=n) for n in (16, 8)]
+    >>> [a.image.shape for a in analyze_views(vol, spec, cams)]
+    [(16, 16, 3), (8, 8, 3)]
+    """
+    cameras = list(cameras)
+    if not cameras:
+        raise DVRInputError("cameras: expected at least one camera")
+    curv = _check_curvature(curvature, volume)
+    plans = []
+    for cam in cameras:
+        _check_inputs(volume, spec, cam, "auto")
+        _, _, _, lut, _, _, memb, seg = _scene(volume, spec, cam, "auto")
+        plans.append(_plan(volume, spec, cam, seg, lut, memb, curv is not None, build_cache,
+                           memory_limit, None))  # fmt: skip
+    bricks = {tuple(p["brick"]) for p in plans if p["mode"] == "bricks"}
+    if len(cameras) > 1 and len(bricks) == 1 and all(p["mode"] == "bricks" for p in plans):
+        from dvr_perception.rays.bricks import analyze_bricked_views
+
+        return analyze_bricked_views(
+            volume, spec, cameras, brick=bricks.pop(), curvature=curv, build_cache=build_cache,
+            memory_limit=memory_limit,
+        )  # fmt: skip
+    kw = {"curvature": curvature, "build_cache": build_cache, "memory_limit": memory_limit}
+    return [analyze(volume, spec, cam, **kw) for cam in cameras]
 
 
 #: The walk casts rays in tiles of this many pixels (rows, columns): neighbouring rays meet

@@ -47,6 +47,20 @@ def _measure(vol, spec, cam):
     return a, visibility(a, spec).E_v, shape(a, spec).E_s, transparency(a, spec).E_t
 
 
+def test_the_kept_renderings_equal_fresh_analyses_of_both_specs(phantom):
+    """``res.analyses``: what the CLI measures before and after, without analysing again."""
+    vol, spec, cam = phantom
+    r = optimize(vol, spec, cam, stages=("opacity", "lighting", "colour"), max_iter=2, seed=1)
+    assert r.final["E"] < r.initial["E"]  # the spec changed, so "after" differs from "before"
+    for got, sp in zip(r.analyses, (spec, r.spec), strict=True):
+        fresh, *terms = _measure(vol, sp, cam)
+        for f in ("rgba", "visible", "assigned", "present", "curvature"):
+            assert np.abs(getattr(got, f).astype(float) - getattr(fresh, f)).max() <= 1e-6, f
+        assert terms == pytest.approx(
+            [visibility(got, sp).E_v, shape(got, sp).E_s, transparency(got, sp).E_t], abs=1e-7
+        )
+
+
 def test_stage1_lowers_visibility_without_washing_out(phantom, stage1):
     vol, spec, cam = phantom
     r = stage1

@@ -80,6 +80,62 @@ def test_a_new_light_reshades_from_what_memory_allows(phantom, monkeypatch, room
     bricks._MEMO.pop(vol, None)
 
 
+@pytest.mark.parametrize("room", ["memo", "codes", "none"])
+def test_several_cameras_share_one_pass_and_equal_their_own_analyses(phantom, monkeypatch,
+                                                                      room):  # fmt: skip
+    """One view at three resolutions (one pass) and an opposite view (a pass of its own)."""
+    vol, spec, curv = phantom
+    if room != "memo":
+        monkeypatch.setattr(bricks, "MEMO_SHARE", 0.0)
+    if room == "none":
+        monkeypatch.setattr(bricks, "KEEP_CODES_SHARE", 0.0)
+    cams = [Camera.from_view(vol.bounds, width=n, height=n, azimuth=30.0, elevation=-25.0)
+            for n in (44, 24, 12)]  # fmt: skip
+    cams.append(Camera.from_view(vol.bounds, width=20, height=20, azimuth=210.0, elevation=25.0))
+    orders = {
+        tuple(bricks.view_order(bricks.split(vol.data.shape, (9, 13, 20)), st))
+        for st in (
+            bricks.RayState.start(bricks.Geometry.of(vol), spec, c, scalar_range=(0.0, 255.0))
+            for c in cams
+        )
+    }
+    assert len(orders) == 2  # the fourth camera meets the bricks in another order
+    together = bricks.analyze_bricked_views(vol, spec, cams, brick=(9, 13, 20), curvature=curv)
+    light = (0.3, 0.5, 0.8)
+    for cam, got in zip(cams, together, strict=True):
+        whole = analyze(vol, spec, cam, curvature=curv)
+        assert _max_diff(whole, got) <= 1e-6
+        assert np.array_equal(whole.cache.lut, got.cache.lut)
+        assert _max_diff(reevaluate(whole.cache, light_direction=light),
+                         reevaluate(got.cache, light_direction=light)) <= 1e-6  # fmt: skip
+    bricks._MEMO.pop(vol, None)
+
+
+def test_the_memo_serves_analyses_with_and_without_curvature(phantom, monkeypatch):
+    """Derived volumes are kept for any curvature; the curvature pieces for their field."""
+    from dvr_perception.rays.curvature_field import CurvatureField
+
+    vol, spec, curv = phantom
+    field = CurvatureField(vol, spec)
+    cam = Camera.from_view(vol.bounds, width=24, height=24, azimuth=15.0, elevation=20.0)
+    calls = []
+    real = bricks.derive
+    monkeypatch.setattr(bricks, "derive", lambda *a: calls.append(1) or real(*a))
+    a1 = bricks.analyze_bricked(vol, spec, cam, brick=(13, 13, 13), curvature=field)
+    first = len(calls)
+    assert first == len(bricks.split(vol.data.shape, (13, 13, 13)))
+    a2 = bricks.analyze_bricked(vol, spec, cam, brick=(13, 13, 13))  # no curvature
+    a3 = bricks.analyze_bricked(vol, spec, cam, brick=(13, 13, 13), curvature=field)
+    assert len(calls) == first  # derived once, for all three analyses
+    assert len(bricks._MEMO[vol]["curvature"]) == first  # the pieces survived the second
+    whole = analyze(vol, spec, cam, curvature=curv)
+    assert _max_diff(whole, a1) <= 1e-6
+    assert _max_diff(whole, a3) <= 1e-6
+    assert np.array_equal(whole.rgba, a2.rgba)
+    assert not a2.curvature.any()
+    bricks._MEMO.pop(vol, None)
+
+
 def test_every_sample_belongs_to_exactly_one_brick(phantom):
     vol, spec, _ = phantom
     cam = Camera.from_view(vol.bounds, width=32, height=32, azimuth=33.0, elevation=-61.0)
