@@ -4,6 +4,7 @@
 #   make test    set up everything, then ruff check, ruff format --check, pytest
 #   make bench   benchmark JSON for the phantom, engine and cthead at 512x512
 #   make report  regenerate benchmarks/REPORT.md (the paper's experiments; REPORT_ARGS=--quick)
+#   make scale   benchmarks/scale.json: time and memory against volume size, MPI ranks
 #   make paraview-setup   ParaView, Xvfb and .pvdeps/ for the plugin and `dvr-perception pvbatch`
 #
 # "setup" installs the EGL/Mesa system libraries VTK needs to render off-screen (with apt-get,
@@ -37,7 +38,7 @@ ifeq ($(strip $(DISPLAY)),)
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
 endif
 
-.PHONY: help setup system-deps browser-deps paraview-setup paraview-system test lint demo bench report clean
+.PHONY: help setup system-deps browser-deps paraview-setup paraview-system test lint demo bench report scale clean
 
 help:
 	@echo "targets: demo, test, bench, report, setup, paraview-setup, lint, clean"
@@ -143,6 +144,11 @@ bench: setup
 
 report: setup
 	$(BIN)/dvr-perception report --data $(DATA) --out benchmarks -v $(REPORT_ARGS)
+
+# time and memory against volume size up to 512x512x452, and MPI ranks 1, 2, 4 (~15 min);
+# then `dvr-perception report --markdown-only --out benchmarks` puts it into the report
+scale: setup
+	$(BIN)/python -m benchmarks.scale --data $(DATA) --out benchmarks/scale.json $(SCALE_ARGS)
 
 clean:
 	rm -rf demo_out bench_out .pytest_cache build

@@ -192,7 +192,7 @@ def build(cfg: Config, out, *, log=_log) -> dict:
         "performance": perf,
     }
     write_json(out / "summary.json", summary)
-    text = render_markdown(summary, read_observations())
+    text = render_markdown(_with_scale(summary, out), read_observations())
     with atomic_path(out / "REPORT.md") as tmp:
         tmp.write_text(text, encoding="utf-8")
     log(f"wrote {out / 'REPORT.md'} ({summary['seconds']:.0f} s)")
@@ -230,8 +230,19 @@ def rerender(out) -> Path:
     out = Path(out)
     summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
     with atomic_path(out / "REPORT.md") as tmp:
-        tmp.write_text(render_markdown(summary, read_observations()), encoding="utf-8")
+        tmp.write_text(render_markdown(_with_scale(summary, out), read_observations()),
+                       encoding="utf-8")  # fmt: skip
     return out / "REPORT.md"
+
+
+def _with_scale(summary: dict, out: Path) -> dict:
+    """``summary`` with ``out/scale.json`` (``python -m benchmarks.scale``) when there is one."""
+    import json
+
+    path = Path(out) / "scale.json"
+    if not path.is_file():
+        return summary
+    return {**summary, "scale": json.loads(path.read_text(encoding="utf-8"))}
 
 
 def read_observations(path=OBSERVATIONS) -> dict:
@@ -433,6 +444,56 @@ def _paper_rows(s: dict) -> list[list[str]]:
         ]
     )
     return rows
+
+
+def _mb(v) -> str:
+    return "–" if v is None else f"{v:,.0f}"
+
+
+def _scale_section(scale: dict | None, obs: dict) -> list[str]:
+    """Time and memory against volume size, and MPI ranks (``scale.json``, issue 17)."""
+    if not scale:
+        return []
+    n = scale["size"]
+    L = ["### 5b. Real-size volumes and MPI ranks", ""]
+    L += [
+        f"`python -m benchmarks.scale` ({scale['when']}, {scale['cpus']} cores, image {n}²; "
+        "each figure from its own process, peak RSS of that process). cthead at every other "
+        "voxel, as stored and up-sampled; volumes above 64 M voxels are analysed in bricks "
+        "(`--memory-limit`, default half the RAM). `bench`: one frame of ours (full "
+        "analysis) and of VTK's CPU ray caster, the curvature, one default optimisation; "
+        "`optimize`: the whole command with its figures.",
+        "",
+    ]
+    rows = [
+        [r["label"], "×".join(map(str, r.get("dims", []))), _f((r.get("voxels") or 0) / 1e6, 1),
+         _s(r.get("curvature_s")), _f(r.get("curvature_vtk_frames"), 1), _s(r.get("frame_s")),
+         _s(r.get("vtk_frame_s")), _s(r.get("optimize_s")), _f(r.get("optimize_vtk_frames"), 1),
+         _mb(r.get("peak_rss_mb")), _s(r.get("optimize_e2e_s")),
+         _mb(r.get("optimize_e2e_peak_rss_mb"))]
+        for r in scale["sizes"]
+    ]  # fmt: skip
+    L += _table(["volume", "dims", "M voxels", "curvature s", "in VTK frames", "our frame s",
+                 "VTK frame s", "optimise s", "in VTK frames", "bench peak MB",
+                 "`optimize` s", "`optimize` peak MB"], rows)  # fmt: skip
+    rows = []
+    for r in scale.get("ranks", []):
+        per = r.get("per_rank", [])
+        share = [p["voxels"] for p in per]
+        total = max(sum(share), 1)
+        rows.append([
+            r["ranks"], _s(r["wall_s"]),
+            " / ".join(f"{100 * v / total:.0f} %" for v in share) if share else "–",
+            " / ".join(_mb(p.get("peak_rss_mb")) for p in per) if per else "–",
+            " ".join(f"{k} {v:.5f}" for k, v in (r.get("E") or {}).items() if v is not None)
+            or r.get("error", "")[-120:],
+        ])  # fmt: skip
+    if rows:
+        L += [f"**MPI ranks** (`dvr-perception pvbatch --ranks N` on {scale['ranks'][0]['volume']}"
+              "; the voxel share counts each rank's piece with its ghost layers)", ""]  # fmt: skip
+        L += _table(["ranks", "wall s", "voxels per rank", "peak MB per rank", "E terms"], rows)
+    L += _observed(obs, "scale")
+    return L
 
 
 def render_markdown(s: dict, obs: dict | None = None) -> str:
@@ -799,6 +860,7 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
     )
     L += [f"![performance]({s['images']['performance']})", ""]
     L += _observed(obs, "performance")
+    L += _scale_section(s.get("scale"), obs)
     L += ["## Where we differ from the paper, and why", ""]
     L += [obs.get("differences", "*See the notes in `benchmarks/observations.md`.*"), ""]
     L += ["## Experiment run times", ""]
