@@ -214,13 +214,13 @@ class Session:
     # -- files -------------------------------------------------------------------------------
     @staticmethod
     def _listed(folder, suffixes) -> list[str]:
-        """Names of the regular files in ``folder`` with one of ``suffixes`` (sorted)."""
+        """Names of the regular, not hidden files in ``folder`` with one of ``suffixes``."""
         if folder is None or not folder.is_dir():
             return []
         return sorted(
             p.name
             for p in folder.iterdir()
-            if p.is_file() and p.name.lower().endswith(suffixes) and _PLAIN.fullmatch(p.name)
+            if p.is_file() and not p.name.startswith(".") and p.name.lower().endswith(suffixes)
         )
 
     def volume_choices(self) -> list[str]:
@@ -249,7 +249,11 @@ class Session:
         return path
 
     def _chosen(self, text, choices: list[str], what: str, saved_prefix: str, saved_dir) -> Path:
-        """Return the file of one of ``choices`` (the server's list); refuse any other name."""
+        """Return the file of one of ``choices`` (the server's list); refuse any other name.
+
+        A listed name is a file directly inside its folder (a folder listing holds no ``/``),
+        so the only ``/`` in a choice is the one of the ``saved/`` or ``uploaded/`` prefix.
+        """
         name = str(text or "").strip()
         if name not in choices:
             shown = ", ".join(choices[:8]) + (", ..." if len(choices) > 8 else "")
@@ -261,7 +265,9 @@ class Session:
             folder, base = saved_dir, name[len(saved_prefix) :]
         else:
             folder, base = self.data_dir, name
-        return folder / plain_name(base, what)
+        if folder is None or "/" in base or base in ("", ".", ".."):
+            raise DVRInputError(f"{name[:80]}: not a file of the app's folders")
+        return folder / base
 
     def writable_dir(self, folder: Path) -> Path:
         """Create ``folder`` (private to the user when it is in the state folder)."""

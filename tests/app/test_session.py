@@ -14,8 +14,10 @@ from dvr_perception.rays import Camera
 
 def test_volume_choices_list_phantom_and_volume_files(session):
     (session.data_dir / "a.nhdr").write_text("x")
+    (session.data_dir / "my head.nrrd").write_text("x")
+    (session.data_dir / ".hidden.nrrd").write_text("x")
     (session.data_dir / "notes.txt").write_text("x")
-    assert session.volume_choices() == [PHANTOM, "a.nhdr"]
+    assert session.volume_choices() == [PHANTOM, "a.nhdr", "my head.nrrd"]
 
 
 @pytest.mark.parametrize("name", ["../x.json", "/etc/passwd", "sub/../../x.json"])
