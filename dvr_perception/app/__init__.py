@@ -31,21 +31,14 @@ def __getattr__(name):
 def serve(app, *, port: int = 8080, host: str = "127.0.0.1") -> None:
     """Serve ``app`` on ``host:port`` until interrupted (blocking; no browser is opened).
 
-    Before the server starts, :class:`~dvr_perception.app.security.ConnectionGuard` is hooked
-    into it: every request needs ``app.token`` (the address printed, ``...?secret=TOKEN``, or
-    the cookie that address sets), websockets only come from the app's own origin, and
-    messages are bounded.  trame would otherwise parse ``sys.argv`` for its own options;
-    ``TRAME_ARGS`` is set to nothing so that only ``port`` and ``host`` apply, and the idle
-    auto-shutdown is off.
+    Prints the address to open, with the app's secret (``...?secret=TOKEN``): the app lets in
+    only requests that carry it (see :mod:`dvr_perception.app.security`, installed by
+    :class:`~dvr_perception.app.core.DVRApp` when its server binds).  trame would otherwise
+    parse ``sys.argv`` for its own options; ``TRAME_ARGS`` is set to nothing so that only
+    ``port`` and ``host`` apply, and the idle auto-shutdown is off.
     """
-    from dvr_perception.app.security import ConnectionGuard, quiet_disconnects
-
     os.environ["TRAME_ARGS"] = ""
-    guard = ConnectionGuard(app.token, host, app.max_message_bytes)
     server = app.server
-
-    def bind(wslink_server, **_):
-        guard.install(wslink_server, server.protocol)
 
     def ready(**_):
         shown = "127.0.0.1" if host in ("", "0.0.0.0", "::") else host
@@ -55,9 +48,7 @@ def serve(app, *, port: int = 8080, host: str = "127.0.0.1") -> None:
             flush=True,
         )
 
-    server.controller.on_server_bind.add(bind)
     server.controller.on_server_ready.add(ready)
-    quiet_disconnects()
     server.start(
         port=int(port), host=host, open_browser=False, timeout=0, show_connection_info=False
     )

@@ -27,7 +27,12 @@ from dvr_perception.app._guard import guard
 from dvr_perception.app.charts import lines_svg
 from dvr_perception.app.lens import LensHandlers, lens_region
 from dvr_perception.app.scene import new_plotter, show_spec
-from dvr_perception.app.security import FRAME_BYTES, new_token
+from dvr_perception.app.security import (
+    FRAME_BYTES,
+    ConnectionGuard,
+    new_token,
+    quiet_disconnects,
+)
 from dvr_perception.app.session import (
     MAX_UPLOAD_BYTES,
     MAX_VOLUME_BYTES,
@@ -154,6 +159,7 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         # re-assembled up to max_message_bytes (see dvr_perception.app.security)
         self.server.options["ws_max_msg_size"] = FRAME_BYTES
         self.max_message_bytes = self.max_upload_bytes + 2**20
+        self.server.controller.on_server_bind.add(self._install_guard)
         self.calibration_test = None
         self.ranking = None
         self._curve = None
@@ -175,13 +181,18 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
 
         self.ui = build_ui(self)
 
+    def _install_guard(self, wslink_server, **_) -> None:
+        """Put the token, origin and size checks into the server before it starts."""
+        guard = ConnectionGuard(self.token, wslink_server.host, self.max_message_bytes)
+        guard.install(wslink_server, self.server.protocol)
+        quiet_disconnects()
+
     # -- helpers -----------------------------------------------------------------------------
     def _init_state(self) -> None:
         s = self.state
         s.volume_choices = self.session.volume_choices()
         s.volume_name = ""
         # the folders are shown, never read back: the server alone chooses paths
-        s.has_data_dir = self.session.data_dir is not None
         s.data_dir_label = str(self.session.data_dir or "")
         s.export_dir_label = str(self.session.export_dir)
         s.state_dir_label = str(self.session.state_dir)
