@@ -117,3 +117,38 @@ def test_unchunker_refuses_and_stops(chunks):
     assert u.refused
     # once refused, nothing more is taken from that connection
     assert u.process_chunk(_chunks({"a": 1}, 9, 100)[0]) is None
+
+
+def test_a_disconnect_traceback_becomes_one_line(caplog):
+    import logging
+
+    from dvr_perception.app.security import _STACK_LOGGERS, quiet_disconnects
+
+    quiet_disconnects()
+    quiet_disconnects()  # once is enough: no second filter
+    try:
+        gone = ConnectionResetError("Cannot write to closing transport")
+        with caplog.at_level(logging.INFO):
+            logging.getLogger("asyncio").error(
+                "Task exception was never retrieved", exc_info=(type(gone), gone, None)
+            )
+            logging.getLogger("wslink.protocol").critical(
+                "wslink is not expecting text message:\n> %s", "hello"
+            )
+            logging.getLogger("asyncio").error("something else")
+        lines = [(r.name, r.getMessage(), r.exc_info) for r in caplog.records]
+        assert lines == [
+            (
+                "dvr_perception.app",
+                "a client disconnected abruptly (ConnectionResetError: Cannot write to closing "
+                "transport)",
+                None,
+            ),
+            ("dvr_perception.app", "websocket client refused: hello", None),
+            ("asyncio", "something else", None),  # other errors pass unchanged
+        ]
+        assert all(len(logging.getLogger(n).filters) == 1 for n in _STACK_LOGGERS)
+    finally:
+        for name in _STACK_LOGGERS:
+            for f in list(logging.getLogger(name).filters):
+                logging.getLogger(name).removeFilter(f)

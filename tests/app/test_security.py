@@ -136,10 +136,10 @@ def _handshake(port: int, *, token=None, origin="own", host=None):
     return sock, head.split(b"\r\n")[0].decode()
 
 
-def _frame(payload: bytes, *, claimed: int | None = None) -> bytes:
-    """One masked binary client frame; ``claimed`` overrides the length in its header."""
+def _frame(payload: bytes, *, claimed: int | None = None, opcode: int = 0x2) -> bytes:
+    """One masked client frame (binary); ``claimed`` overrides the length in its header."""
     n = len(payload) if claimed is None else claimed
-    head = bytes([0x82])
+    head = bytes([0x80 | opcode])
     if n < 126:
         head += bytes([0x80 | n])
     elif n < 65536:
@@ -496,11 +496,14 @@ def test_an_abrupt_disconnect_and_every_refusal_log_one_line(server):
     update = {"wslink": "1.0", "id": "rpc:x:1", "method": "trame.state.update"}
     update["args"] = [[{"key": "show_map", "value": True}]]
     sock.sendall(_frame(_chunk(update, 2)))
+    sock.sendall(_frame(b"plain text", opcode=0x1))  # wslink takes binary frames only
     sock.close()  # gone while the server pushes the new image
     time.sleep(3)
     assert server["proc"].poll() is None
     log = server["log"].read_text()
     assert "Traceback" not in log, log[-3000:]
+    assert "websocket client refused: plain text" in log
+    assert "wslink is not expecting" not in log  # its two-line message, made one line
     refusals = [line for line in log.splitlines() if "refused" in line]
     assert any("origin 'http://evil.example'" in line for line in refusals)
     assert any("claiming 1073741824 bytes" in line for line in refusals)
