@@ -24,6 +24,7 @@ import hmac
 import logging
 import secrets
 import struct
+import time
 from urllib.parse import urlsplit
 
 import msgpack
@@ -155,6 +156,34 @@ class _Unchunkers(dict):
         super().__delitem__(client_id)
 
 
+def _tolerant(send):
+    """Wrap a wslink send so that a client gone meanwhile costs one log line, no traceback.
+
+    wslink logs an exception raised while it answers a client as three error lines (the
+    second a whole traceback); a client that closed its connection is no error of the server.
+    """
+
+    async def send_or_note(*args, **kwargs):
+        try:
+            return await send(*args, **kwargs)
+        except ConnectionError as exc:  # aiohttp's ClientConnectionResetError is one
+            _note_disconnect(exc)
+            return None
+
+    return send_or_note
+
+
+_last_note = [0.0]
+
+
+def _note_disconnect(exc: BaseException) -> None:
+    """Log a client that went away mid-message: one warning line (at most every 5 s)."""
+    now = time.monotonic()
+    level = logging.WARNING if now - _last_note[0] > 5.0 else logging.DEBUG
+    _last_note[0] = now
+    log.log(level, "a client disconnected abruptly (%s: %s)", type(exc).__name__, exc)
+
+
 class ConnectionGuard:
     """The token, origin and message-size checks of one app server.
 
@@ -176,7 +205,11 @@ class ConnectionGuard:
     @staticmethod
     def cookie_name(host_header: str) -> str:
         """Name of the token cookie: one per port (cookies are shared by all ports of a host)."""
-        return f"dvr_perception_token_{urlsplit(f'//{host_header}').port or 80}"
+        try:
+            port = urlsplit(f"//{host_header}").port or 80
+        except ValueError:
+            port = 0
+        return f"dvr_perception_token_{port}"
 
     # -- checks --------------------------------------------------------------------------------
     def valid(self, text) -> bool:
@@ -185,7 +218,12 @@ class ConnectionGuard:
 
     def host_allowed(self, host_header: str) -> bool:
         """Whether a request's ``Host`` names this server (loopback or ``--host``)."""
-        name = (urlsplit(f"//{host_header}").hostname or "").lower()
+        try:
+            parts = urlsplit(f"//{host_header}")
+            name = (parts.hostname or "").lower()
+            _ = parts.port  # a port that is no number raises
+        except ValueError:
+            return False
         if self.host in _ANY_HOST:
             return bool(name)
         return name in _LOOPBACK or name == self.host.lower().strip("[]")
@@ -248,6 +286,8 @@ class ConnectionGuard:
                 msg = "wslink handler without 'unchunkers': cannot bound message sizes"
                 raise RuntimeError(msg)
             handler.unchunkers = _Unchunkers(handler, self.message_bytes)
+            for name in ("sendWrappedMessage", "sendWrappedError"):
+                setattr(handler, name, _tolerant(getattr(handler, name)))
         protocol.updateSecret(self.token)
 
 
@@ -271,7 +311,7 @@ class _OneLine(logging.Filter):
         if isinstance(exc, (ConnectionError, asyncio.CancelledError)) or (
             exc is not None and type(exc).__name__ == "ClientConnectionResetError"
         ):
-            log.warning("a client disconnected abruptly (%s: %s)", type(exc).__name__, exc)
+            _note_disconnect(exc)
             return False
         if str(record.msg).startswith("wslink is not expecting text message"):
             text = record.getMessage().split("\n")[-1].lstrip("> ")

@@ -46,6 +46,8 @@ def test_tokens_are_random_and_compared_whole():
         ("192.168.1.5", "evil.example:8080", False),
         ("0.0.0.0", "my-laptop.lan:8080", True),
         ("0.0.0.0", "", False),
+        ("127.0.0.1", "127.0.0.1:port", False),
+        ("127.0.0.1", "[::1", False),
     ],
 )
 def test_host_names_this_server(bound, host, allowed):
