@@ -9,6 +9,10 @@ measure to the viewer; run the paper's ranking task; export.  Start it with
 ``dvr-perception app`` (:func:`serve`).  Needs the ``app`` extra (trame, trame-vuetify,
 trame-vtk, pyvista).  The state is one per server process, shared by all browser tabs.
 
+The server lets in only the holder of a per-run secret, websockets only from its own page, and
+bounds every message and upload (:mod:`.security`, :mod:`.uploads`); it reads the data folder
+and writes only into a per-user state folder (:mod:`.session`).
+
 This package and :mod:`dvr_perception.plotting` are the only ones importing pyvista/trame;
 importing this package does not import trame (the app class is loaded on first use).
 """
