@@ -9,6 +9,10 @@ measure to the viewer; run the paper's ranking task; export.  Start it with
 ``dvr-perception app`` (:func:`serve`).  Needs the ``app`` extra (trame, trame-vuetify,
 trame-vtk, pyvista).  The state is one per server process, shared by all browser tabs.
 
+The server lets in only the holder of a per-run secret, websockets only from its own page, and
+bounds every message and upload (:mod:`.security`, :mod:`.uploads`); it reads the data folder
+and writes only into a per-user state folder (:mod:`.session`).
+
 This package and :mod:`dvr_perception.plotting` are the only ones importing pyvista/trame;
 importing this package does not import trame (the app class is loaded on first use).
 """
@@ -31,8 +35,24 @@ def __getattr__(name):
 def serve(app, *, port: int = 8080, host: str = "127.0.0.1") -> None:
     """Serve ``app`` on ``host:port`` until interrupted (blocking; no browser is opened).
 
-    trame would otherwise parse ``sys.argv`` for its own options; ``TRAME_ARGS`` is set to
-    nothing so that only ``port`` and ``host`` apply, and the idle auto-shutdown is off.
+    Prints the address to open, with the app's secret (``...?secret=TOKEN``): the app lets in
+    only requests that carry it (see :mod:`dvr_perception.app.security`, installed by
+    :class:`~dvr_perception.app.core.DVRApp` when its server binds).  trame would otherwise
+    parse ``sys.argv`` for its own options; ``TRAME_ARGS`` is set to nothing so that only
+    ``port`` and ``host`` apply, and the idle auto-shutdown is off.
     """
     os.environ["TRAME_ARGS"] = ""
-    app.server.start(port=int(port), host=host, open_browser=False, timeout=0)
+    server = app.server
+
+    def ready(**_):
+        shown = "127.0.0.1" if host in ("", "0.0.0.0", "::") else host
+        shown = f"[{shown}]" if ":" in shown else shown
+        print(
+            f"dvr-perception app: open http://{shown}:{server.port}/?secret={app.token}",
+            flush=True,
+        )
+
+    server.controller.on_server_ready.add(ready)
+    server.start(
+        port=int(port), host=host, open_browser=False, timeout=0, show_connection_info=False
+    )

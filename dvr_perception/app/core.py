@@ -27,9 +27,17 @@ from dvr_perception.app._guard import guard
 from dvr_perception.app.charts import lines_svg
 from dvr_perception.app.lens import LensHandlers, lens_region
 from dvr_perception.app.scene import new_plotter, show_spec
+from dvr_perception.app.security import (
+    FRAME_BYTES,
+    ConnectionGuard,
+    new_token,
+    quiet_disconnects,
+)
 from dvr_perception.app.session import (
     MAX_UPLOAD_BYTES,
+    MAX_VOLUME_BYTES,
     PHANTOM,
+    UPLOADED,
     Session,
     measure_camera,
     rgb_to_hex,
@@ -100,18 +108,26 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
     server : trame server or str, optional
         Server (or its name) to attach to; default trame's default server.
     data_dir : str or Path, optional
-        Folder of volumes and spec JSON files (the only folder specs are read from and saved
-        to); ``None`` offers the phantom only.
+        Folder of volumes and spec JSON files, only read; ``None`` offers the phantom and the
+        app's own files only.
     volume : str, optional
         Volume shown first: ``"phantom"`` (default) or a file name in ``data_dir``.
-    export_dir : str or Path
-        Folder the exports are written to.
+    export_dir : str or Path, optional
+        Folder the exports, calibration curves and ranking answers are written to (default
+        ``exports`` in the state folder).
+    state_dir : str or Path, optional
+        Per-user folder the app writes uploads and saved settings to (default
+        :func:`~dvr_perception.app.session.default_state_dir`).
     phantom_size : int
         Edge length of the built-in phantom.
     max_upload_bytes : int
         Largest volume file the upload field accepts.
+    max_volume_bytes : int
+        Largest voxel data (decompressed) an uploaded volume may hold.
     max_iter : int
         Optimiser iterations per stage.
+    token : str, optional
+        The secret a browser must present (default: a new random one, :attr:`token`).
     """
 
     def __init__(
@@ -120,18 +136,30 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         *,
         data_dir=None,
         volume=None,
-        export_dir="dvr_exports",
+        export_dir=None,
+        state_dir=None,
         phantom_size=96,
         max_upload_bytes=MAX_UPLOAD_BYTES,
+        max_volume_bytes=MAX_VOLUME_BYTES,
         max_iter=MAX_ITER,
+        token=None,
     ):
         super().__init__(server)
         self.max_iter = int(max_iter)
-        self.session = Session(data_dir, export_dir, phantom_size=phantom_size)
+        self.session = Session(
+            data_dir,
+            export_dir,
+            state_dir=state_dir,
+            phantom_size=phantom_size,
+            max_volume_bytes=max_volume_bytes,
+        )
         self.max_upload_bytes = int(max_upload_bytes)
-        # an upload travels in websocket messages: let them hold the largest accepted file
-        limit = int(self.server.options.get("ws_max_msg_size") or 0)
-        self.server.options["ws_max_msg_size"] = max(limit, self.max_upload_bytes + 2**20)
+        self.token = str(token) if token else new_token()
+        # a websocket frame is read whole: bound it; an upload arrives in several frames,
+        # re-assembled up to max_message_bytes (see dvr_perception.app.security)
+        self.server.options["ws_max_msg_size"] = FRAME_BYTES
+        self.max_message_bytes = self.max_upload_bytes + 2**20
+        self.server.controller.on_server_bind.add(self._install_guard)
         self.calibration_test = None
         self.ranking = None
         self._curve = None
@@ -153,15 +181,23 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
 
         self.ui = build_ui(self)
 
+    def _install_guard(self, wslink_server, **_) -> None:
+        """Put the token, origin and size checks into the server before it starts."""
+        guard = ConnectionGuard(self.token, wslink_server.host, self.max_message_bytes)
+        guard.install(wslink_server, self.server.protocol)
+        quiet_disconnects()
+
     # -- helpers -----------------------------------------------------------------------------
     def _init_state(self) -> None:
         s = self.state
         s.volume_choices = self.session.volume_choices()
         s.volume_name = ""
-        s.has_data_dir = self.session.data_dir is not None
-        s.data_dir = str(self.session.data_dir or "")
-        s.export_dir = str(self.session.export_dir)
-        s.spec_path = "spec.json"
+        # the folders are shown, never read back: the server alone chooses paths
+        s.data_dir_label = str(self.session.data_dir or "")
+        s.export_dir_label = str(self.session.export_dir)
+        s.state_dir_label = str(self.session.state_dir)
+        s.spec_name = "spec.json"
+        s.spec_choices = self.session.spec_choices()
         s.spec_source = ""
         s.structures = []
         s.structure_names = []
@@ -197,7 +233,7 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         s.cal_total = 0
         s.cal_url = ""
         s.cal_rating = 0.5
-        s.cal_file = "my_calibration.json"
+        s.cal_name = "my_calibration.json"
         s.cal_svg = ""
         s.cal_saved = ""
         s.calibration_name = ""
@@ -210,7 +246,7 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         s.rank_busy = False
         s.rank_result = ""
         s.rank_saved = False
-        s.rank_file = str(self.session.export_dir / RANKING_FILE)
+        s.rank_file_label = str(self.session.export_dir / RANKING_FILE)
         # upload
         s.upload = None
         s.max_upload_mb = round(self.max_upload_bytes / 1e6, 2)
@@ -425,20 +461,21 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         self._show_spec()
 
     @guard
-    def load_spec(self, path=None):
-        """Load the spec JSON named in the file field (data folder only)."""
-        path = self.state.spec_path if path is None else path
+    def load_spec(self, name=None):
+        """Load the offered spec JSON named in the file field (data folder or ``saved/``)."""
+        name = self.state.spec_name if name is None else name
         self.state.error = ""
-        self.session.load_spec_file(path)
+        self.session.load_spec_file(name)
         self._show_spec(restructured=True)
-        self.state.info = f"loaded {path}"
+        self.state.info = f"loaded {name}"
 
     @guard
-    def save_spec(self, path=None):
-        """Save the current spec as JSON into the data folder."""
+    def save_spec(self, name=None):
+        """Save the current spec as JSON into the app's settings folder."""
         self.state.error = ""
-        path = self.session.save_spec_file(self.state.spec_path if path is None else path)
-        self.state.info = f"saved {path}"
+        saved = self.session.save_spec_file(self.state.spec_name if name is None else name)
+        self.state.spec_choices = self.session.spec_choices()
+        self.state.info = f"saved {saved} (in {self.session.settings_dir})"
 
     @guard
     def undo(self, steps=1):
@@ -625,4 +662,5 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         )
         self.state.volume_choices = self.session.volume_choices()
         self.state.volume_name = name
-        self.state.info = f"uploaded {name} into the data folder"
+        stored = self.session.upload_dir / name.removeprefix(UPLOADED)
+        self.state.info = f"uploaded {stored.name}: listed as {name}, stored as {stored}"

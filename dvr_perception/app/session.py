@@ -1,8 +1,13 @@
 """What the web app works on, without any web framework: scene, undo stack, files, measures.
 
 :class:`Session` holds the volume, the structure spec shown, an undo stack of specs and the
-two folders the app may touch: the *data folder* (volumes and spec JSON files are read from,
-and specs saved to, this folder only) and the *export folder*.  Every method calls the library
+folders the app may touch.  The *data folder* is only read: its volumes and spec JSON files
+are offered by name.  Everything the app writes goes into its *state folder* (per user, see
+:func:`default_state_dir`): uploaded volumes (``uploads/``, offered as ``uploaded/NAME``),
+saved settings (``settings/``, offered as ``saved/NAME``) and, unless another *export folder*
+is chosen when the server starts, the exports (``exports/``).  A client only ever picks one of
+the names offered or gives a plain file name (no folders) to save under; the server resolves
+it inside its folder.  Every method calls the library
 (:mod:`dvr_perception.volume`, :mod:`~dvr_perception.structures`,
 :mod:`~dvr_perception.measures`, :mod:`~dvr_perception.export`) and raises
 :class:`~dvr_perception.errors.DVRInputError` with a one-line message for bad input, which the
@@ -12,6 +17,8 @@ app shows in the page.
 from __future__ import annotations
 
 import math
+import os
+import re
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -26,8 +33,10 @@ __all__ = [
     "VOLUME_SUFFIXES",
     "Measures",
     "Session",
+    "default_state_dir",
     "hex_to_rgb",
     "measure_camera",
+    "plain_name",
     "rgb_to_hex",
 ]
 
@@ -41,6 +50,47 @@ MEASURE_SIZE = 256
 UNDO_DEPTH = 50
 #: Largest volume file accepted by the upload field.
 MAX_UPLOAD_BYTES = 64 * 1024 * 1024
+#: Largest voxel data (decompressed) an uploaded volume may hold.
+MAX_VOLUME_BYTES = 512_000_000
+#: Prefix of the uploaded volumes in the volume list.
+UPLOADED = "uploaded/"
+#: Prefix of the settings saved by the app in the settings list.
+SAVED = "saved/"
+#: A plain file name: no folders, no leading dot, at most 128 characters.
+_PLAIN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,127}")
+
+
+def default_state_dir() -> Path:
+    """Return the per-user folder the app writes into (created when first needed).
+
+    ``platformdirs.user_state_dir`` when installed, else ``$XDG_STATE_HOME/dvr-perception``
+    or ``~/.local/state/dvr-perception``.
+    """
+    try:
+        from platformdirs import user_state_dir
+    except ImportError:
+        base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+        return Path(base) / "dvr-perception"
+    return Path(user_state_dir("dvr-perception", appauthor=False))
+
+
+def plain_name(text, what: str, suffixes=None) -> str:
+    """Check that ``text`` is a plain file name (no folder) with one of ``suffixes``.
+
+    Examples
+    --------
+    >>> plain_name("my_spec.json", "settings file", (".json",))
+    'my_spec.json'
+    """
+    name = str(text or "").strip()
+    if not _PLAIN.fullmatch(name):
+        raise DVRInputError(
+            f"{what} {name[:80]!r}: expected a plain file name (letters, digits, '.', '_', '+', "
+            "'-'; no folders)"
+        )
+    if suffixes and not name.lower().endswith(tuple(suffixes)):
+        raise DVRInputError(f"{what} {name}: expected a name ending in {', '.join(suffixes)}")
+    return name
 
 
 def rgb_to_hex(color) -> str:
@@ -118,20 +168,40 @@ class Session:
     Parameters
     ----------
     data_dir : str or Path, optional
-        Folder of volumes and spec files; ``None`` offers the phantom only and disables
-        loading and saving specs.
-    export_dir : str or Path
-        Folder the exports are written to (created on the first export).
+        Folder of volumes and spec files, only read; ``None`` offers the phantom and the
+        app's own files only.
+    export_dir : str or Path, optional
+        Folder the exports, calibration curves and ranking answers are written to (created
+        when first needed); default ``exports`` in the state folder.
+    state_dir : str or Path, optional
+        Folder the app writes uploads and saved settings to; default
+        :func:`default_state_dir`.
     phantom_size : int
         Edge length of the built-in phantom.
+    max_volume_bytes : int
+        Largest voxel data (decompressed) an uploaded volume may hold.
     """
 
-    def __init__(self, data_dir=None, export_dir="dvr_exports", *, phantom_size: int = 96):
+    def __init__(
+        self,
+        data_dir=None,
+        export_dir=None,
+        *,
+        state_dir=None,
+        phantom_size: int = 96,
+        max_volume_bytes: int = MAX_VOLUME_BYTES,
+    ):
         self.data_dir = Path(data_dir).resolve() if data_dir is not None else None
         if self.data_dir is not None and not self.data_dir.is_dir():
             raise DVRInputError(f"--data-dir {data_dir}: not a directory")
-        self.export_dir = Path(export_dir).resolve()
+        self.state_dir = Path(state_dir if state_dir is not None else default_state_dir())
+        self.state_dir = self.state_dir.resolve()
+        self.upload_dir = self.state_dir / "uploads"
+        self.settings_dir = self.state_dir / "settings"
+        self.export_dir = Path(export_dir if export_dir is not None else self.state_dir / "exports")
+        self.export_dir = self.export_dir.resolve()
         self.phantom_size = int(phantom_size)
+        self.max_volume_bytes = int(max_volume_bytes)
         self.volume = None
         self.volume_name = ""
         self.spec = None
@@ -142,13 +212,26 @@ class Session:
         self.calibration_name = ""
 
     # -- files -------------------------------------------------------------------------------
+    @staticmethod
+    def _listed(folder, suffixes) -> list[str]:
+        """Names of the regular, not hidden files in ``folder`` with one of ``suffixes``."""
+        if folder is None or not folder.is_dir():
+            return []
+        return sorted(
+            p.name
+            for p in folder.iterdir()
+            if p.is_file() and not p.name.startswith(".") and p.name.lower().endswith(suffixes)
+        )
+
     def volume_choices(self) -> list[str]:
-        """List the phantom and the volume files of the data folder (names relative to it)."""
-        names = [PHANTOM]
-        if self.data_dir is not None:
-            files = sorted(p for p in self.data_dir.iterdir() if p.is_file())
-            names += [p.name for p in files if p.name.lower().endswith(VOLUME_SUFFIXES)]
-        return names
+        """List the phantom, the data folder's volumes and the uploaded ones (``uploaded/``)."""
+        names = [PHANTOM, *self._listed(self.data_dir, VOLUME_SUFFIXES)]
+        return names + [UPLOADED + n for n in self._listed(self.upload_dir, VOLUME_SUFFIXES)]
+
+    def spec_choices(self) -> list[str]:
+        """List the data folder's spec JSON files and the saved ones (``saved/``)."""
+        names = self._listed(self.data_dir, (".json",))
+        return names + [SAVED + n for n in self._listed(self.settings_dir, (".json",))]
 
     def data_path(self, text: str, *, must_exist: bool = True) -> Path:
         """Resolve ``text`` inside the data folder; refuse anything outside it."""
@@ -165,8 +248,37 @@ class Session:
             raise DVRInputError(f"{text}: no such file in the data folder {self.data_dir}")
         return path
 
+    def _chosen(self, text, choices: list[str], what: str, saved_prefix: str, saved_dir) -> Path:
+        """Return the file of one of ``choices`` (the server's list); refuse any other name.
+
+        A listed name is a file directly inside its folder (a folder listing holds no ``/``),
+        so the only ``/`` in a choice is the one of the ``saved/`` or ``uploaded/`` prefix.
+        """
+        name = str(text or "").strip()
+        if name not in choices:
+            shown = ", ".join(choices[:8]) + (", ..." if len(choices) > 8 else "")
+            raise DVRInputError(
+                f"{name[:80] or '(nothing)'}: not one of the {what} offered "
+                f"({shown or 'none'}); only these files can be opened"
+            )
+        if name.startswith(saved_prefix):
+            folder, base = saved_dir, name[len(saved_prefix) :]
+        else:
+            folder, base = self.data_dir, name
+        if folder is None or "/" in base or base in ("", ".", ".."):
+            raise DVRInputError(f"{name[:80]}: not a file of the app's folders")
+        return folder / base
+
+    def writable_dir(self, folder: Path) -> Path:
+        """Create ``folder`` (private to the user when it is in the state folder)."""
+        mode = 0o700 if folder.is_relative_to(self.state_dir) else 0o777
+        if folder.is_relative_to(self.state_dir):
+            self.state_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
+        folder.mkdir(parents=True, exist_ok=True, mode=mode)
+        return folder
+
     def load_volume(self, name: str):
-        """Load the phantom or a data-folder volume with its paired spec (else a proposal)."""
+        """Load the phantom or an offered volume with its paired spec (else a proposal)."""
         from dvr_perception.structures import check_spec_for_volume, load_spec
         from dvr_perception.structures import propose_structures as propose
         from dvr_perception.volume import load_volume, make_phantom
@@ -175,7 +287,9 @@ class Session:
             volume, spec = make_phantom(size=self.phantom_size)
             source = "built-in phantom settings"
         else:
-            path = self.data_path(name)
+            path = self._chosen(
+                name, self.volume_choices()[1:], "volumes", UPLOADED, self.upload_dir
+            )
             volume = load_volume(path)
             spec, source = None, ""
             from dvr_perception.cli._common import state_files_dir
@@ -193,31 +307,30 @@ class Session:
         return volume, spec
 
     def load_spec_file(self, text: str):
-        """Read a spec JSON from the data folder and check it against the volume."""
+        """Read an offered spec JSON (data folder or ``saved/``) and check it for the volume."""
         from dvr_perception.structures import check_spec_for_volume, load_spec
 
-        spec = load_spec(self.data_path(text))
+        path = self._chosen(text, self.spec_choices(), "settings files", SAVED, self.settings_dir)
+        spec = load_spec(path)
         check_spec_for_volume(spec, self.volume)
         self.push_undo(f"load {text}")
         self.spec, self.spec_source = spec, str(text)
         return spec
 
-    def save_spec_file(self, text: str) -> Path:
-        """Write the current spec as JSON into the data folder."""
+    def save_spec_file(self, text: str) -> str:
+        """Write the current spec as JSON into the settings folder; return its offered name."""
         from dvr_perception.structures.io import save_spec
 
-        path = self.data_path(text, must_exist=False)
-        if not path.name.endswith(".json"):
-            raise DVRInputError(f"{text}: expected a file name ending in .json")
-        save_spec(self.spec, path)
-        return path
+        name = plain_name(str(text or "").strip().removeprefix(SAVED), "settings file", (".json",))
+        save_spec(self.spec, self.writable_dir(self.settings_dir) / name)
+        return SAVED + name
 
     def export(self, plotter=None) -> list[Path]:
         """Write view PNG, spec JSON, ParaView preset and Slicer ``.vp.json`` to the export dir."""
         from dvr_perception.export import save_paraview_preset, save_slicer_vp
         from dvr_perception.structures.io import save_spec
 
-        self.export_dir.mkdir(parents=True, exist_ok=True)
+        self.writable_dir(self.export_dir)
         stem = self.export_dir / (self.volume.name or "volume")
         out = []
         if plotter is not None:
@@ -371,11 +484,15 @@ class Session:
 
     # -- upload ------------------------------------------------------------------------------
     def store_upload(self, name: str, content: bytes, *, max_bytes: int = MAX_UPLOAD_BYTES):
-        """Check an uploaded volume file, save it into the data folder and return its name.
+        """Check an uploaded volume file, save it into the uploads folder, return its name.
 
-        The file must be no larger than ``max_bytes``, have a volume suffix and load as a
-        volume; otherwise nothing is kept and :class:`DVRInputError` says why.
+        The file must be no larger than ``max_bytes``, have a single-file volume suffix, pass
+        :func:`~dvr_perception.app.uploads.check_volume_bytes` (no detached data file, voxel
+        data within ``max_volume_bytes``, checked without decompressing it into memory) and
+        load as a volume; otherwise nothing is kept and :class:`DVRInputError` says why.
+        The name returned is the one offered in :meth:`volume_choices` (``uploaded/NAME``).
         """
+        from dvr_perception.app.uploads import check_volume_bytes
         from dvr_perception.volume import load_volume
 
         base = Path(str(name or "")).name
@@ -384,18 +501,15 @@ class Session:
                 f"upload {base or '(no name)'}: not a volume file; expected one of "
                 f"{', '.join(VOLUME_SUFFIXES)}"
             )
+        base = plain_name(base, "upload")
         size = len(content)
         if size > max_bytes:
             raise DVRInputError(
                 f"upload {base}: {size / 1e6:.1f} MB is larger than the limit of "
                 f"{max_bytes / 1e6:.1f} MB"
             )
-        if base.lower().endswith(".nhdr"):
-            raise DVRInputError(
-                f"upload {base}: a detached header needs its data file; upload a single-file "
-                "volume (.nrrd, .mha, .vti, .nii, .nii.gz) instead"
-            )
-        path = self.data_path(base, must_exist=False)
+        check_volume_bytes(base, content, max_volume_bytes=self.max_volume_bytes)
+        path = self.writable_dir(self.upload_dir) / base
         tmp = path.with_name(f".upload-{path.name}")
         tmp.write_bytes(content)
         try:
@@ -405,4 +519,4 @@ class Session:
             why = str(exc).replace(f"{tmp}: ", "").replace(str(tmp), base)
             raise DVRInputError(f"upload {base}: not a readable volume ({why})") from None
         tmp.replace(path)
-        return path.name
+        return UPLOADED + path.name

@@ -18,7 +18,7 @@ from trame.decorators import change
 
 from dvr_perception.app._guard import guard
 from dvr_perception.app.charts import calibration_svg
-from dvr_perception.app.session import measure_camera
+from dvr_perception.app.session import measure_camera, plain_name
 from dvr_perception.app.study import CalibrationTest, RankingTask
 from dvr_perception.errors import DVRInputError
 
@@ -65,7 +65,7 @@ class StudyHandlers:
             self._show_stimulus()
             return
         self.state.cal_active = False
-        path = self._results_path(self.state.cal_file, ".json")
+        path = self._results_path(self.state.cal_name, ".json")
         path, curve = t.save(path)
         self._curve = curve
         self.session.use_calibration(curve, path.name)
@@ -86,7 +86,7 @@ class StudyHandlers:
         from dvr_perception.calibration import load_calibration
 
         self.state.error = ""
-        path = self._results_path(self.state.cal_file, ".json", must_exist=True)
+        path = self._results_path(self.state.cal_name, ".json", must_exist=True)
         curve = load_calibration(path)
         self._curve = curve
         self.session.use_calibration(curve, path.name)
@@ -111,20 +111,13 @@ class StudyHandlers:
 
     def _results_path(self, text, suffix: str, *, must_exist: bool = False) -> Path:
         """Resolve a plain file name inside the export folder (no folders, given suffix)."""
-        name = str(text or "").strip()
-        if not name or Path(name).name != name or name in (".", ".."):
-            raise DVRInputError(
-                f"{name or '(empty)'}: expected a plain file name (saved in the export folder)"
-            )
-        if not name.endswith(suffix):
-            raise DVRInputError(f"{name}: expected a file name ending in {suffix}")
+        name = plain_name(text, "calibration file", (suffix,))
         folder = self.session.export_dir
         if must_exist:
             if not (folder / name).is_file():
                 raise DVRInputError(f"{name}: no such file in {folder}")
-        else:
-            folder.mkdir(parents=True, exist_ok=True)
-        return folder / name
+            return folder / name
+        return self.session.writable_dir(folder) / name
 
     # -- ranking task ------------------------------------------------------------------------
     @guard
@@ -176,7 +169,7 @@ class StudyHandlers:
         if self.state.rank_saved:
             raise DVRInputError("ranking: this answer is already saved; press 'New set of images'")
         order = list(self.state.rank_order if order is None else order)
-        path = Path(self.state.rank_file)
+        path = self.session.writable_dir(self.session.export_dir) / RANKING_FILE
         row = self.ranking.record(order, path)
         labels = {r["id"]: r["label"] for r in self.state.rank_images}
         measured = " > ".join(labels[i] for i in row["measured_order"].split())

@@ -114,7 +114,6 @@ def _data_panel(app) -> None:
         id="volume-select",
     )
     v3.VFileInput(
-        v_if="has_data_dir",
         model_value=("upload",),
         # refuse oversized files in the browser already (they would not fit a message)
         update_modelValue=(
@@ -178,11 +177,11 @@ def _data_panel(app) -> None:
                 )
             html.Td("{{ row.opacity.toFixed(2) }}", classes="text-right")
     html.Div("Importance: 0 = may vanish, 1 = must stay clearly visible.", classes="text-caption")
-    with v3.VRow(dense=True, classes="mt-2", align="center", v_if="has_data_dir"):
+    with v3.VRow(dense=True, classes="mt-2", align="center"):
         with v3.VCol(cols=6):
             v3.VTextField(
                 label="Settings file (.json)",
-                v_model=("spec_path",),
+                v_model=("spec_name",),
                 density="compact",
                 hide_details=True,
                 id="spec-path",
@@ -190,17 +189,20 @@ def _data_panel(app) -> None:
         with v3.VCol(cols=3):
             v3.VBtn(
                 "Load",
-                click=(app.load_spec, "[spec_path]"),
+                click=(app.load_spec, "[spec_name]"),
                 block=True,
                 disabled=("busy",),
                 id="load-spec",
             )
         with v3.VCol(cols=3):
-            v3.VBtn("Save", click=(app.save_spec, "[spec_path]"), block=True, id="save-spec")
+            v3.VBtn("Save", click=(app.save_spec, "[spec_name]"), block=True, id="save-spec")
     html.Div(
-        "Settings files are read from and saved to the data folder: {{ data_dir }}",
-        v_if="has_data_dir",
+        "Settings files to load: {{ spec_choices.join(', ') || 'none yet' }}. "
+        "Load reads them from the data folder ({{ data_dir_label || 'none' }}; saved/...: "
+        "the app's folder); Save writes a plain name into the app's folder "
+        "{{ state_dir_label }}/settings.",
         classes="text-caption",
+        id="spec-choices",
     )
 
 
@@ -374,7 +376,7 @@ def _export_panel(app) -> None:
         "ParaView colour/opacity preset and 3D Slicer volume property (.vp.json).",
     )
     v3.VBtn("Export view and settings", click=app.export, block=True, color="primary", id="export")
-    html.Div("Export folder: {{ export_dir }}", classes="text-caption mt-1")
+    html.Div("Export folder: {{ export_dir_label }}", classes="text-caption mt-1")
     html.Div("Written:", v_if="exports.length", classes="text-body-2 mt-2")
     html.Div("{{ name }}", v_for="name in exports", classes="text-body-2 ml-2", id="export-list")
 

@@ -22,7 +22,7 @@ def calibration_panel(app) -> None:
     )
     v3.VTextField(
         label="Calibration file (saved in the export folder)",
-        v_model=("cal_file",),
+        v_model=("cal_name",),
         density="compact",
         hide_details=True,
         id="cal-file",
@@ -129,7 +129,7 @@ def ranking_panel(app) -> None:
         classes="mt-2",
         id="rank-new",
     )
-    html.Div("Answers file: {{ rank_file }}", classes="text-caption mt-2")
+    html.Div("Answers file: {{ rank_file_label }}", classes="text-caption mt-2")
     html.Div("{{ rank_result }}", classes="text-body-2 mt-2", id="rank-result")
 
 

@@ -1,7 +1,9 @@
 """``dvr-perception app``: serve the web app (:mod:`dvr_perception.app`) on the loopback address.
 
 The app needs the ``app`` extra (``pip install 'dvr-perception[app]'``).  It listens on
-127.0.0.1 by default; ``--host 0.0.0.0`` exposes it to the network (there is no login).
+127.0.0.1 by default and prints the address to open, with a random secret made for this run
+(``?secret=...``); without it no page or websocket is served (see README, Security).  It
+reads the data folder only and writes into a per-user state folder (``--state-dir``).
 """
 
 from __future__ import annotations
@@ -47,13 +49,20 @@ def add_parser(subparsers, parents) -> None:
     p.add_argument(
         "--data-dir",
         metavar="DIR",
-        help="folder of volumes and spec files (default $DVR_SHARED_DATA or ../shared/data)",
+        help="folder of volumes and spec files, only read (default $DVR_SHARED_DATA or "
+        "../shared/data)",
+    )
+    p.add_argument(
+        "--state-dir",
+        metavar="DIR",
+        help="per-user folder the app writes uploads, saved settings and (by default) "
+        "exports into (default: the user state folder, e.g. ~/.local/state/dvr-perception)",
     )
     p.add_argument(
         "--export-dir",
-        default="dvr_exports",
         metavar="DIR",
-        help="folder the exports are written to (default dvr_exports)",
+        help="folder the exports, calibration curves and ranking answers are written to "
+        "(default: exports in --state-dir)",
     )
     p.add_argument(
         "--phantom-size",
@@ -68,6 +77,14 @@ def add_parser(subparsers, parents) -> None:
         default=64.0,
         metavar="MB",
         help="largest volume file the upload field accepts, in MB (default 64)",
+    )
+    p.add_argument(
+        "--max-volume-mb",
+        type=float,
+        default=512.0,
+        metavar="MB",
+        help="largest voxel data an uploaded volume may hold once decompressed, in MB "
+        "(default 512)",
     )
     p.add_argument(
         "--iterations",
@@ -104,6 +121,8 @@ def run(args) -> int:
         raise DVRInputError(f"--phantom-size: expected 16 to 512, got {args.phantom_size}")
     if not 0 < args.max_upload_mb <= 4096:
         raise DVRInputError(f"--max-upload-mb: expected 0 to 4096, got {args.max_upload_mb}")
+    if not 0 < args.max_volume_mb <= 65536:
+        raise DVRInputError(f"--max-volume-mb: expected 0 to 65536, got {args.max_volume_mb}")
     if not 1 <= args.iterations <= 200:
         raise DVRInputError(f"--iterations: expected 1 to 200, got {args.iterations}")
     data_dir, volume = _resolve(args)
@@ -119,9 +138,12 @@ def run(args) -> int:
         data_dir=data_dir,
         volume=volume,
         export_dir=args.export_dir,
+        state_dir=args.state_dir,
         phantom_size=args.phantom_size,
         max_upload_bytes=int(args.max_upload_mb * 1e6),
+        max_volume_bytes=int(args.max_volume_mb * 1e6),
         max_iter=args.iterations,
     )
+    log.info("writing into: %s", app.session.state_dir)
     serve(app, port=args.port, host=args.host)
     return 0

@@ -1,7 +1,8 @@
 """Browser tests of the web app: a real server subprocess driven by headless Debian Chromium.
 
-The server (``dvr-perception app``) serves a 40-voxel phantom on a free loopback port; the
-page is loaded once and the tests run in file order on it.  Without Chromium or playwright the
+The server (``dvr-perception app``) serves a 40-voxel phantom on a free loopback port, with a
+read-only data folder; the page is opened at the address the server prints (with its secret
+token), loaded once, and the tests run in file order on it.  Without Chromium or playwright the
 tests skip, except under ``CI=true`` where they fail.
 
 With ``DVR_APP_SCREENSHOTS=DIR`` the tests also save a screenshot of every screen into DIR
@@ -16,10 +17,6 @@ import json
 import os
 import re
 import shutil
-import socket
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +34,6 @@ CHROMIUM_ARGS = [
     "--disable-sync",
 ]
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
-START_TIMEOUT_S = 240  # a fresh clone compiles the numba kernels (cold cache) before listening
 ACTION_TIMEOUT_MS = 60_000
 SCREENSHOTS = os.environ.get("DVR_APP_SCREENSHOTS", "")
 PHANTOM_SIZE = int(os.environ.get("DVR_APP_PHANTOM_SIZE", "40"))
@@ -54,27 +50,8 @@ def _missing(reason: str) -> None:
     pytest.skip(reason)
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _wait_listening(port: int, proc: subprocess.Popen, log: Path) -> None:
-    deadline = time.monotonic() + START_TIMEOUT_S
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            pytest.fail(f"app server exited ({proc.returncode}):\n{log.read_text()[-3000:]}")
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=1):
-                return
-        except OSError:
-            time.sleep(0.3)
-    pytest.fail(f"app server did not listen within {START_TIMEOUT_S} s:\n{log.read_text()[-3000:]}")
-
-
 @pytest.fixture(scope="module")
-def server(tmp_path_factory, vtk_can_render):
+def server(tmp_path_factory, vtk_can_render, app_server):
     root = tmp_path_factory.mktemp("app")
     data, exports = root / "data", root / "exports"
     data.mkdir()
@@ -94,34 +71,27 @@ def server(tmp_path_factory, vtk_can_render):
     save_volume(make_phantom(size=48)[0], uploads / "large.nrrd")
     assert (uploads / "large.nrrd").stat().st_size > MAX_UPLOAD_MB * 1e6
     (uploads / "notes.nrrd").write_text("this is not a volume", encoding="utf-8")
-    port = _free_port()
-    env = dict(os.environ)
-    if not env.get("DISPLAY"):
-        env["VTK_DEFAULT_OPENGL_WINDOW"] = "vtkEGLRenderWindow"
-    cmd = [sys.executable, "-c", "from dvr_perception.cli import main; raise SystemExit(main())"]
-    cmd += ["app", "--port", str(port), "--host", "127.0.0.1", "--data-dir", str(data)]
-    cmd += ["--export-dir", str(exports), "--phantom-size", str(PHANTOM_SIZE)]
-    cmd += ["--max-upload-mb", str(MAX_UPLOAD_MB), "--iterations", "5"]
-    log = root / "server.log"
-    with log.open("w") as out:
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=root)
+    start, stop = app_server
+    args = ["--data-dir", str(data), "--state-dir", str(root / "state")]
+    args += ["--export-dir", str(exports), "--phantom-size", str(PHANTOM_SIZE)]
+    args += ["--max-upload-mb", str(MAX_UPLOAD_MB), "--iterations", "5"]
+    data.chmod(0o555)  # the app only reads the data folder
     try:
-        _wait_listening(port, proc, log)
-        yield {
-            "url": f"http://127.0.0.1:{port}/",
-            "proc": proc,
-            "exports": exports,
-            "log": log,
-            "data": data,
-            "uploads": uploads,
-        }
-    finally:
-        proc.terminate()
+        srv = start(root, args)
         try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=10)
+            yield {
+                "url": srv["url"],
+                "proc": srv["proc"],
+                "exports": exports,
+                "log": srv["log"],
+                "data": data,
+                "uploads": uploads,
+                "state": root / "state",
+            }
+        finally:
+            stop(srv["proc"])
+    finally:
+        data.chmod(0o755)
 
 
 @pytest.fixture(scope="module")
@@ -140,6 +110,7 @@ def page(server):
             pg.set_default_timeout(ACTION_TIMEOUT_MS)
             pg.goto(server["url"])
             pg.wait_for_selector("#view img, #view canvas", state="attached")
+            assert "secret" not in pg.url  # the page drops it from the address bar
             pg.browser_for_tests = browser
             yield pg
         finally:
@@ -491,7 +462,7 @@ def test_path_outside_data_folder_is_a_visible_error(page, server):
     _close_messages(page)
     page.wait_for_selector("#error-message", state="detached")
     _load_spec(page, "../outside.json")
-    assert "outside the data folder" in _error_text(page)
+    assert "not one of the settings files offered" in _error_text(page)
     assert server["proc"].poll() is None
 
 
@@ -535,6 +506,8 @@ def test_two_tabs_share_one_consistent_state(page, server):
     other = page.browser_for_tests.new_page(viewport=VIEWPORT)
     try:
         other.set_default_timeout(ACTION_TIMEOUT_MS)
+        # without the secret of the printed address the page is refused
+        assert other.goto(server["url"].split("?")[0]).status == 403
         other.goto(server["url"])
         other.wait_for_selector("#view img, #view canvas", state="attached")
         for key in ("E_v", "E_s", "E_t"):
@@ -573,6 +546,7 @@ def test_bad_upload_is_a_visible_error(page, server, name, message):
         f"() => document.querySelector('#error-message')?.innerText.includes('{message}')"
     )
     assert not (server["data"] / name).exists()
+    assert not (server["state"] / "uploads" / name).exists()
     assert server["proc"].poll() is None
     assert _value(page, "E_v") >= 0.0
 
@@ -583,7 +557,8 @@ def test_upload_of_a_volume_shows_it(page, server):
     page.wait_for_function(
         "() => document.querySelector('#info-message')?.innerText.includes('uploaded small.nrrd')"
     )
-    assert (server["data"] / "small.nrrd").is_file()
+    assert (server["state"] / "uploads" / "small.nrrd").is_file()
+    assert not (server["data"] / "small.nrrd").exists()  # the data folder is only read
     page.wait_for_selector("#measuring", state="hidden")
     assert _wait_value(page, "E_v") >= 0.0
     assert "small.nrrd" in page.inner_text("header")

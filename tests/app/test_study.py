@@ -148,9 +148,12 @@ def test_upload_checks_type_size_and_content(session, tmp_path):
     with pytest.raises(DVRInputError, match="not a readable volume"):
         session.store_upload("fake.nrrd", b"not a volume at all")
     assert not any(session.data_dir.iterdir())  # nothing kept from the bad uploads
-    assert session.store_upload("../../small.nrrd", content) == "small.nrrd"
-    assert "small.nrrd" in session.volume_choices()
-    session.load_volume("small.nrrd")
+    assert not session.upload_dir.exists() or not any(session.upload_dir.iterdir())
+    assert session.store_upload("../../small.nrrd", content) == "uploaded/small.nrrd"
+    assert (session.upload_dir / "small.nrrd").is_file()
+    assert not any(session.data_dir.iterdir())  # uploads never go into the data folder
+    assert "uploaded/small.nrrd" in session.volume_choices()
+    session.load_volume("uploaded/small.nrrd")
     assert session.volume.data.shape == (16, 16, 16)
 
 
