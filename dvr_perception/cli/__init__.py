@@ -48,8 +48,12 @@ def build_parser() -> CLIParser:
     return parser
 
 
-def _one_line(text: str) -> str:
-    return " ".join(str(text).split())
+def _one_line(text: str, longest: int = 160) -> str:
+    """Join ``text`` into one line and cut any word longer than ``longest`` characters."""
+    words = str(text).split()
+    return " ".join(
+        w if len(w) <= longest else f"{w[: longest - 20]}...({len(w)} characters)" for w in words
+    )
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
