@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[2]
 MAX_SECONDS = 10.0
 MAX_RSS_MB = 400.0
 KILL_AFTER = 60.0
-_MAIN = "import sys; from dvr_perception.cli import main; sys.exit(main(sys.argv[1:]))"
+_MAIN = "import sys; from dvr_perception.cli import main; sys.exit(main())"  # as the script
 
 
 @dataclass
