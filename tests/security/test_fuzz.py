@@ -28,6 +28,7 @@ FUZZ = settings(
     max_examples=100,
     deadline=2000,
     derandomize=True,
+    database=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
 )
 
