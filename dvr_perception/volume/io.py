@@ -8,6 +8,11 @@ NRRD is parsed here (not with ``vtkNrrdReader``): VTK 9.x reads a first axis sho
 samples as vector components, whatever ``kinds`` says, which silently corrupts small volumes.
 Headerless raw files follow the shared-data naming ``NAME_XxYxZ_DTYPE.raw`` (little-endian,
 x fastest).  The other formats go through VTK's readers and writers.
+
+Headers are untrusted (:mod:`dvr_perception.volume._limits`): a detached data file must lie in
+the header's folder (or a folder allowed with ``DVR_PERCEPTION_DATA_ROOTS``), and the sizes,
+spacing, encoding and file size are checked against each other and the memory limit before
+any data is read; compressed data is decompressed with a bound.
 """
 
 from __future__ import annotations
@@ -512,8 +517,10 @@ def save_volume(volume: Volume, path) -> None:
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=parent))
     try:
         written = _write(volume, tmp / path.name, ext)
-        for f in written:  # data files first, the header last
-            os.replace(f, parent / f.name)
+        from dvr_perception._files import commit
+
+        # data file and header together (Ctrl-C held back); a non-regular target is refused
+        commit([(f, parent / f.name) for f in written])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
