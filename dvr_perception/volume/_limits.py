@@ -13,7 +13,7 @@ field, before a byte of data is read or decompressed:
 * the data must fit the memory limit (:func:`dvr_perception.rays.memory.limit`);
 * a gzip stream cannot expand more than :data:`MAX_GZIP_RATIO` times, so a header claiming more
   bytes than that from the compressed size is refused before decompressing, and decompression
-  (gzip, bzip2, zlib) stops as soon as the stream gives more than the header's byte count.
+  (gzip, bzip2) stops as soon as the stream gives more than the header's byte count.
 """
 
 from __future__ import annotations
@@ -219,12 +219,12 @@ def check_ratio(where, compressed: int, expected: int) -> None:
 def read_compressed(src: Path, offset: int, expected: int, encoding: str, where) -> np.ndarray:
     """Decompress ``src`` from byte ``offset`` into exactly ``expected`` bytes (uint8 array).
 
-    ``encoding`` is ``"gzip"``, ``"bzip2"`` or ``"zlib"``.  The stream is read in chunks into
+    ``encoding`` is ``"gzip"`` or ``"bzip2"``.  The stream is read in chunks into
     a buffer of ``expected`` bytes; a stream that would give more (a decompression bomb) or
     less is refused as soon as that is known, so memory stays bounded by ``expected``.
     """
     compressed = src.stat().st_size - offset
-    if encoding in ("gzip", "zlib"):
+    if encoding == "gzip":
         check_ratio(where, compressed, expected)
     out = np.empty(expected, np.uint8)
     view = memoryview(out)
@@ -232,17 +232,14 @@ def read_compressed(src: Path, offset: int, expected: int, encoding: str, where)
     try:
         with open(src, "rb") as raw:
             raw.seek(offset)
-            if encoding == "zlib":
-                got, extra = _inflate(raw, view, expected)
-            else:
-                opener = gzip.GzipFile if encoding == "gzip" else bz2.BZ2File
-                with opener(fileobj=raw, mode="rb") as stream:
-                    while got < expected:
-                        n = stream.readinto(view[got : min(got + _CHUNK, expected)])
-                        if not n:
-                            break
-                        got += n
-                    extra = len(stream.read(1)) if got == expected else 0
+            opened = gzip.GzipFile(fileobj=raw, mode="rb") if encoding == "gzip" else None
+            with opened or bz2.BZ2File(raw, mode="rb") as stream:
+                while got < expected:
+                    n = stream.readinto(view[got : min(got + _CHUNK, expected)])
+                    if not n:
+                        break
+                    got += n
+                extra = len(stream.read(1)) if got == expected else 0
     except (OSError, EOFError, zlib.error, ValueError) as exc:
         raise DVRInputError(f"{where}: corrupt {encoding} data ({exc})") from None
     if got < expected:
@@ -256,22 +253,3 @@ def read_compressed(src: Path, offset: int, expected: int, encoding: str, where)
             "header's sizes need (refused without decompressing further)"
         )
     return out
-
-
-def _inflate(raw, view: memoryview, expected: int) -> tuple[int, int]:
-    dec = zlib.decompressobj()
-    got = 0
-    while True:
-        chunk = raw.read(_CHUNK)
-        if not chunk:
-            break
-        while chunk:
-            part = dec.decompress(chunk, expected - got + 1)
-            if got + len(part) > expected:
-                return expected, 1
-            view[got : got + len(part)] = part
-            got += len(part)
-            chunk = dec.unconsumed_tail
-        if dec.eof:
-            break
-    return got, 0

@@ -8,6 +8,8 @@ allocated).  The runs are bounded (``max_examples``) and derandomised so CI is r
 
 from __future__ import annotations
 
+import bz2
+import gzip
 import json
 import tempfile
 import warnings
@@ -95,17 +97,29 @@ NRRD_FIELDS = {
 }
 
 
+NRRD_VALID = {"type": "uint8", "dimension": "3", "sizes": "8 8 8", "encoding": "raw",
+              "endian": "little", "data file": "d.raw"}  # fmt: skip
+
+
 @st.composite
 def nrrd_headers(draw):
-    keys = draw(st.lists(st.sampled_from(sorted(NRRD_FIELDS)), unique=True, min_size=3))
-    lines = [f"{k}: {draw(NRRD_FIELDS[k])}" for k in keys]
+    """A valid detached header with a few fields replaced, dropped or added (reaches deep)."""
+    fields = dict(NRRD_VALID)
+    for key in draw(st.lists(st.sampled_from(sorted(NRRD_FIELDS)), unique=True, max_size=3)):
+        fields[key] = draw(NRRD_FIELDS[key])
+    for key in draw(st.lists(st.sampled_from(sorted(fields)), unique=True, max_size=1)):
+        del fields[key]
+    lines = [f"{k}: {v}" for k, v in fields.items()]
     if draw(st.booleans()):
         lines.insert(draw(st.integers(0, len(lines))), draw(TEXT))  # a stray line
     return "NRRD0004\n" + "\n".join(lines) + "\n"
 
 
 @FUZZ
-@given(header=nrrd_headers(), data=st.binary(max_size=600))
+@given(
+    header=nrrd_headers(),
+    data=st.one_of(st.binary(min_size=512, max_size=512), st.binary(max_size=600)),
+)
 def test_nrrd_header_fuzz(header, data):
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "vol"
@@ -114,6 +128,22 @@ def test_nrrd_header_fuzz(header, data):
         (Path(tmp) / "d.raw").write_bytes(data)
         path = folder / "h.nhdr"
         path.write_bytes(header.encode("utf-8", "surrogatepass"))
+        _outcome(lambda: load_volume(path))
+
+
+@FUZZ
+@given(encoding=st.sampled_from(["gzip", "bzip2"]), sizes=_tuple(3) | st.just("8 8 8"),
+       payload=st.binary(max_size=700), packed=st.booleans(), cut=st.integers(0, 64),
+       junk=st.binary(max_size=16))  # fmt: skip
+def test_compressed_nrrd_fuzz(encoding, sizes, payload, packed, cut, junk):
+    """Valid, truncated, padded and garbage gzip/bzip2 streams against arbitrary sizes."""
+    if packed:
+        payload = (gzip.compress if encoding == "gzip" else bz2.compress)(payload)
+        payload = payload[: len(payload) - cut] + junk
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "c.nrrd"
+        head = f"NRRD0004\ntype: uint8\ndimension: 3\nsizes: {sizes}\nencoding: {encoding}\n\n"
+        path.write_bytes(head.encode() + payload)
         _outcome(lambda: load_volume(path))
 
 
@@ -142,19 +172,30 @@ MHD_FIELDS = {
 }
 
 
+MHD_VALID = {"NDims": "3", "DimSize": "8 8 8", "ElementType": "MET_UCHAR"}
+
+
 @st.composite
 def mhd_headers(draw):
-    keys = draw(st.lists(st.sampled_from(sorted(MHD_FIELDS)), unique=True, min_size=2))
-    lines = ["ObjectType = Image"] + [f"{k} = {draw(MHD_FIELDS[k])}" for k in keys]
+    """A valid MetaImage header with a few fields replaced, dropped or added."""
+    fields = dict(MHD_VALID)
+    for key in draw(st.lists(st.sampled_from(sorted(MHD_FIELDS)), unique=True, max_size=3)):
+        fields[key] = draw(MHD_FIELDS[key])
+    for key in draw(st.lists(st.sampled_from(sorted(fields)), unique=True, max_size=1)):
+        del fields[key]
+    lines = ["ObjectType = Image"] + [f"{k} = {v}" for k, v in fields.items()]
     lines.append(
         "ElementDataFile = "
-        + draw(st.sampled_from(["d.raw", "../d.raw", "/etc/passwd", "LOCAL", "missing.raw"]))
+        + draw(st.sampled_from(["d.raw", "d.raw", "../d.raw", "/etc/passwd", "LOCAL", "x.raw"]))
     )
     return "\n".join(lines) + "\n"
 
 
 @FUZZ
-@given(header=mhd_headers(), data=st.binary(min_size=0, max_size=600))
+@given(
+    header=mhd_headers(),
+    data=st.one_of(st.binary(min_size=512, max_size=512), st.binary(max_size=600)),
+)
 def test_metaimage_header_fuzz(header, data):
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "vol"
