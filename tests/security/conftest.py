@@ -121,15 +121,27 @@ json.dump(results, open(sys.argv[2], "w"))
 
 
 def run_batch(cases, folder: Path) -> list[Run]:
-    """Run many CLI calls (``{"argv", "env", "cwd"}``) in one child process.
+    """Run many CLI calls (``{"argv", "env", "cwd"[, "alone"]}``) in few child processes.
 
-    Each result's ``rss_mb`` is the child's peak up to and including that call, an upper
-    bound of the call's own peak; ``seconds`` is the call's own time.  The child's whole
-    peak (from ``os.wait4``) is checked too.
+    The calls that fail early share one child: each result's ``rss_mb`` is that child's peak
+    up to and including the call, an upper bound of the call's own peak, and ``seconds`` is
+    the call's own time.  Calls marked ``alone`` (those that render: the engine keeps memos
+    between calls of one process) get a child each.
     """
-    spec, out = folder / "cases.json", folder / "results.json"
-    spec.write_text(json.dumps([{"env": {}, **c, "argv": [str(a) for a in c["argv"]]}
-                                for c in cases]))  # fmt: skip
+    results: dict[int, Run] = {}
+    shared = [i for i, c in enumerate(cases) if not c.get("alone")]
+    groups = [shared] + [[i] for i, c in enumerate(cases) if c.get("alone")]
+    for n, group in enumerate(g for g in groups if g):
+        runs = _run_group([cases[i] for i in group], folder, n)
+        results.update(zip(group, runs, strict=True))
+    return [results[i] for i in range(len(cases))]
+
+
+def _run_group(cases, folder: Path, n: int) -> list[Run]:
+    spec, out = folder / f"cases{n}.json", folder / f"results{n}.json"
+    calls = [{"env": c.get("env", {}), "cwd": c["cwd"], "argv": [str(a) for a in c["argv"]]}
+             for c in cases]  # fmt: skip
+    spec.write_text(json.dumps(calls))
     proc = subprocess.Popen(
         [sys.executable, "-c", _BATCH, str(spec), str(out)],
         cwd=folder,

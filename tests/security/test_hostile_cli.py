@@ -4,7 +4,8 @@ Every case runs ``dvr-perception`` in a child process and must exit 2 within 10 
 ``dvr-perception: error:`` line naming the file, field or option at fault, peak at less than
 400 MB, and leave no file behind (the output folder stays empty).  To keep the suite fast the
 cases run one after another in one child (:func:`run_batch`: the environment and the memory
-limit are reset between calls, and each call's peak is bounded by the child's peak so far).
+limit are reset between calls, and each call's peak is bounded by the child's peak so far;
+the few cases that render run in a child of their own).
 """
 
 from __future__ import annotations
@@ -356,7 +357,8 @@ def results(tmp_path_factory, batch):
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
             held.append(fh)
         built[name] = (spec, run)
-        calls.append({"argv": spec["argv"], "env": spec.get("env", {}), "cwd": str(run)})
+        calls.append({"argv": spec["argv"], "env": spec.get("env", {}), "cwd": str(run),
+                      "alone": spec.get("code", 2) != 2})  # fmt: skip
     null_before = os.stat("/dev/null")
     try:
         runs = batch(calls, root)
