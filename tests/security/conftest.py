@@ -1,13 +1,16 @@
-"""Run the command line in a child process and measure it (exit status, time, peak memory).
+"""Run the command line in child processes and measure it (exit status, time, peak memory).
 
-``run_cli(argv, cwd)`` starts ``dvr-perception`` in a fresh interpreter, waits for it with
-``os.wait4`` (which returns the child's own resource usage, so ``ru_maxrss`` is that run's
-peak, not the largest of all children so far) and returns a :class:`Run`.
+:func:`run_batch` runs the hostile cases in fresh interpreters and reads each call's peak
+memory from the child's own ``VmHWM`` (``/proc/self/status``).  ``ru_maxrss`` is not used:
+Linux carries the spawning process's peak into a child across fork and exec, so a child of a
+large pytest process would report pytest's peak.  ``cli.start``/``cli.finish`` run one call
+for the signal tests (exit status, output and time only).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -82,7 +85,7 @@ def finish(proc: subprocess.Popen) -> Run:
     timer = threading.Timer(KILL_AFTER, lambda: proc.send_signal(signal.SIGKILL))
     timer.start()
     try:
-        _, status, usage = os.wait4(proc.pid, 0)
+        _, status, _usage = os.wait4(proc.pid, 0)
     finally:
         timer.cancel()
     seconds = time.perf_counter() - proc._t0  # type: ignore[attr-defined]
@@ -93,7 +96,7 @@ def finish(proc: subprocess.Popen) -> Run:
         texts.append(f.read().decode("utf-8", "replace"))
         f.close()
         Path(f.name).unlink()
-    return Run(proc.returncode, seconds, usage.ru_maxrss / 1024.0, texts[0], texts[1])
+    return Run(proc.returncode, seconds, math.nan, texts[0], texts[1])  # see the docstring
 
 
 _BATCH = """
@@ -101,6 +104,16 @@ import io, json, os, resource, sys, time
 from contextlib import redirect_stderr, redirect_stdout
 from dvr_perception.cli import main
 from dvr_perception.rays import memory
+def peak_mb():
+    # VmHWM: this process's own peak since exec (ru_maxrss would include the peak of the
+    # process that spawned it, which the kernel carries across fork and exec)
+    try:
+        for line in open("/proc/self/status"):
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 cases = json.load(open(sys.argv[1]))
 env0, cwd0, results = dict(os.environ), os.getcwd(), []
 for case in cases:
@@ -113,7 +126,7 @@ for case in cases:
     with redirect_stdout(out), redirect_stderr(err):
         code = main(case["argv"])
     seconds = time.perf_counter() - t0
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    rss = peak_mb()
     results.append([code, seconds, rss, out.getvalue(), err.getvalue()])
     os.chdir(cwd0)
 json.dump(results, open(sys.argv[2], "w"))
@@ -154,13 +167,12 @@ def _run_group(cases, folder: Path, n: int) -> list[Run]:
     timer.start()
     try:
         err = proc.stderr.read().decode("utf-8", "replace")
-        _, status, usage = os.wait4(proc.pid, 0)
+        _, status, _usage = os.wait4(proc.pid, 0)
     finally:
         timer.cancel()
         proc.stderr.close()
     proc.returncode = os.waitstatus_to_exitcode(status)
     assert proc.returncode == 0, err[-3000:]
-    assert usage.ru_maxrss / 1024.0 < MAX_RSS_MB
     return [Run(*r) for r in json.loads(out.read_text())]
 
 
