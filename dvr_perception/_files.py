@@ -7,20 +7,47 @@ succeeded, so an interrupted or failed write never leaves a partial file behind.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import secrets
+import shutil
+import signal
+import stat
+import tempfile
+import threading
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX
+    fcntl = None  # type: ignore[assignment]
 
 import numpy as np
 
 from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError
 
-__all__ = ["atomic_path", "json_ready", "read_png", "write_json", "write_npz", "write_png"]
+__all__ = [
+    "LOCK_NAME",
+    "StagedFolder",
+    "atomic_path",
+    "check_distinct",
+    "check_target",
+    "check_writable",
+    "commit",
+    "file_mode",
+    "json_ready",
+    "output_folder",
+    "read_png",
+    "staged_files",
+    "write_json",
+    "write_npz",
+    "write_png",
+]
 
 
 @contextmanager
@@ -28,12 +55,13 @@ def atomic_path(path) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; move it onto ``path`` if the block succeeds.
 
     The temporary file does not exist when the block starts; the caller creates it.  If the
-    block raises, the temporary file (if any) is removed and ``path`` is left untouched.
+    block raises, the temporary file (if any) is removed and ``path`` is left untouched.  An
+    ``OSError`` about the temporary file is raised again naming ``path``.
 
     Parameters
     ----------
     path : str or os.PathLike
-        The final file.  Its directory must exist.
+        The final file.  Its directory must exist; if it exists it must be a regular file.
 
     Yields
     ------
@@ -43,7 +71,8 @@ def atomic_path(path) -> Iterator[Path]:
     Raises
     ------
     DVRInputError
-        If the directory of ``path`` does not exist or ``path`` is a directory.
+        If the directory of ``path`` does not exist or ``path`` exists and is not a regular
+        file (a directory, device or pipe).
 
     Examples
     --------
@@ -54,21 +83,303 @@ def atomic_path(path) -> Iterator[Path]:
     >>> target.read_text()
     'hi'
     """
+    final = check_target(path)
+    tmp = final.parent / f".{final.name}.{secrets.token_hex(4)}.tmp{final.suffix}"
+    try:
+        try:
+            yield tmp
+            if not tmp.exists():
+                raise OSError(f"output file {final}: nothing was written")
+            os.replace(tmp, final)
+        except OSError as exc:
+            if exc.filename is not None and exc.strerror:  # name the file, not the temporary
+                raise OSError(exc.errno, exc.strerror, str(final)) from None
+            raise
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def check_target(path) -> Path:
+    """Return ``path`` as a Path if it may be written; refuse a non-regular existing target.
+
+    Examples
+    --------
+    >>> check_target("/dev/null")
+    Traceback (most recent call last):
+    ...
+    dvr_perception.errors.DVRInputError: output file /dev/null: exists and is not a regular file (a device, folder or pipe); refusing to replace it
+    """  # noqa: E501
     final = Path(path)
     parent = final.parent
     if not parent.is_dir():
         raise DVRInputError(f"output file {final}: directory {parent} does not exist")
-    if final.is_dir():
-        raise DVRInputError(f"output file {final}: is a directory; expected a file name")
-    tmp = parent / f".{final.name}.{secrets.token_hex(4)}.tmp{final.suffix}"
     try:
-        yield tmp
-        if not tmp.exists():
-            raise OSError(f"output file {final}: nothing was written")
-        os.replace(tmp, final)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+        st = os.stat(final)
+    except (FileNotFoundError, NotADirectoryError):
+        return final
+    except OSError as exc:
+        raise DVRInputError(f"output file {final}: cannot check it ({exc.strerror})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise DVRInputError(f"output file {final}: is a directory; expected a file name")
+    if not stat.S_ISREG(st.st_mode):
+        raise DVRInputError(
+            f"output file {final}: exists and is not a regular file (a device, folder or pipe); "
+            "refusing to replace it"
+        )
+    return final
+
+
+#: A folder must have this much free space before a run writes into it.
+MIN_FREE_BYTES = 2**20
+
+
+def check_writable(folder, what: str = "output folder") -> Path:
+    """Fail early, naming ``folder``, when no file can be created in it (or it is full).
+
+    A probe file is created and removed at once; nothing is left behind.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> check_writable(tempfile.mkdtemp()).is_dir()
+    True
+    """
+    folder = Path(folder) if str(folder) else Path(".")
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+        st = os.statvfs(folder)
+    except OSError as exc:
+        raise DVRInputError(
+            f"{what} {folder}: cannot write into it ({exc.strerror or exc})"
+        ) from None
+    if st.f_bavail * st.f_frsize < MIN_FREE_BYTES:
+        raise DVRInputError(f"{what} {folder}: the file system is full")
+    return folder
+
+
+def check_distinct(paths: Mapping[str, object]) -> None:
+    """Refuse two outputs that name the same file (``{option: path}``; ``None`` skipped).
+
+    Examples
+    --------
+    >>> check_distinct({"--out": "x.png", "--buffers": "./x.png"})
+    Traceback (most recent call last):
+    ...
+    dvr_perception.errors.DVRInputError: --buffers x.png: the same file as --out x.png; give each output its own path
+    """  # noqa: E501
+    seen: dict[Path, str] = {}
+    for option, path in paths.items():
+        if path is None:
+            continue
+        key = Path(os.path.abspath(path))
+        if key.exists() or key.parent.exists():
+            key = key.parent.resolve() / key.name
+        if key in seen:
+            raise DVRInputError(
+                f"{option} {Path(path)}: the same file as {seen[key]}; give each output its "
+                "own path"
+            )
+        seen[key] = f"{option} {Path(path)}"
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def file_mode() -> int:
+    """Return the mode of a new output file: ``0o666`` less the umask (0644 under umask 022)."""
+    return 0o666 & ~_umask()
+
+
+@contextmanager
+def _deferred_sigint() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) back during the block and deliver it afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list = []
+    old = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(frame))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+    if caught:
+        if callable(old):
+            old(signal.SIGINT, caught[0])
+        elif old == signal.SIG_DFL:
+            raise KeyboardInterrupt
+
+
+def commit(moves) -> None:
+    """Move every ``(staged, final)`` pair into place, all or none, Ctrl-C held back.
+
+    Every target is checked first (a non-regular existing target refuses the whole set), then
+    the renames run with SIGINT deferred, so an interrupt leaves either all files or none.
+    """
+    moves = [(Path(a), Path(b)) for a, b in moves]
+    for _, final in moves:
+        check_target(final)
+    with _deferred_sigint():
+        for staged, final in moves:
+            os.replace(staged, final)
+
+
+@contextmanager
+def staged_files(*paths) -> Iterator[list[Path]]:
+    """Yield a hidden temporary path beside each of ``paths``; move them all in at the end.
+
+    The caller writes every temporary file; when the block succeeds they are moved onto
+    ``paths`` together (:func:`commit`), else removed: all files or none.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> d = Path(tempfile.mkdtemp())
+    >>> with staged_files(d / "a.txt", d / "b.txt") as (a, b):
+    ...     _ = a.write_text("a"), b.write_text("b")
+    >>> sorted(p.name for p in d.iterdir())
+    ['a.txt', 'b.txt']
+    """
+    finals = [check_target(p) for p in paths]
+    token = secrets.token_hex(4)
+    tmps = [f.parent / f".{f.name}.{token}.part{f.suffix}" for f in finals]
+    try:
+        yield tmps
+        for t, f in zip(tmps, finals, strict=True):
+            if not t.is_file():
+                raise OSError(f"output file {f}: nothing was written")
+        commit(zip(tmps, finals, strict=True))
+    finally:
+        for t in tmps:
+            t.unlink(missing_ok=True)
+
+
+class StagedFolder:
+    """A staging folder inside an output folder; see :func:`output_folder`."""
+
+    def __init__(self, final: Path, staging: Path) -> None:
+        self.final = final
+        self.path = staging
+
+    def final_path(self, path) -> Path:
+        """Return where the staged ``path`` ends up."""
+        p = Path(path)
+        try:
+            return self.final / p.relative_to(self.path)
+        except ValueError:
+            return p
+
+    def relocate(self, obj):
+        """Return ``obj`` (JSON-like) with staged paths in its strings pointing to the folder."""
+        if isinstance(obj, str):
+            return obj.replace(str(self.path), str(self.final))
+        if isinstance(obj, dict):
+            return {k: self.relocate(v) for k, v in obj.items()}
+        if isinstance(obj, (list, tuple)):
+            return [self.relocate(v) for v in obj]
+        return obj
+
+
+LOCK_NAME = ".dvr-perception.lock"
+
+
+def _lock(final: Path):
+    """Take the output folder's lock file; return its descriptor (non-blocking)."""
+    lock = final / LOCK_NAME
+    while True:
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise DVRInputError(
+                f"output folder {final}: cannot write into it ({exc.strerror})"
+            ) from None
+        try:
+            if fcntl is not None:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            same = os.fstat(fd).st_ino == os.stat(lock).st_ino
+        except (BlockingIOError, FileNotFoundError) as exc:
+            os.close(fd)
+            if isinstance(exc, FileNotFoundError):
+                continue  # the holder removed it while we opened it: try again
+            try:
+                pid = lock.read_text().strip()[:20]
+            except OSError:
+                pid = "?"
+            raise DVRInputError(
+                f"output folder {final}: another dvr-perception run (pid {pid or '?'}) is "
+                f"writing into it (lock file {lock}); wait for it or choose another folder"
+            ) from None
+        if same:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+            return fd
+        os.close(fd)  # replaced between open and lock: try again
+
+
+@contextmanager
+def output_folder(path) -> Iterator[StagedFolder]:
+    """Write a multi-file output all at once: lock, stage, check, then move everything in.
+
+    The folder is created if needed and must be writable (checked before the caller's work),
+    a lock file (:data:`LOCK_NAME`) keeps a second run out, the caller writes into a hidden
+    staging folder inside it, and when the block succeeds every staged file is moved into the
+    folder with Ctrl-C held back (:func:`commit`).  If the block fails or is interrupted, the
+    staged files are removed, a folder this call created is removed again if empty, and the
+    folder holds exactly what it held before.
+
+    Yields
+    ------
+    StagedFolder
+        ``.path`` is the staging folder to write into; ``.final`` the output folder.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> out = Path(tempfile.mkdtemp()) / "run"
+    >>> with output_folder(out) as staged:
+    ...     _ = (staged.path / "a.txt").write_text("a")
+    >>> sorted(p.name for p in out.iterdir())
+    ['a.txt']
+    """
+    final = Path(path)
+    if final.exists() and not final.is_dir():
+        raise DVRInputError(f"output folder {final}: exists and is not a folder")
+    created = not final.exists()
+    if created:
+        try:
+            final.mkdir(parents=True)
+        except OSError as exc:
+            raise DVRInputError(
+                f"output folder {final}: cannot create it ({exc.strerror})"
+            ) from None
+    staging = None
+    fd = None
+    try:
+        check_writable(final)
+        fd = _lock(final)
+        staging = Path(tempfile.mkdtemp(prefix=".dvr-perception.staging-", dir=final))
+        yield StagedFolder(final, staging)
+        mode = file_mode()
+        moves = []
+        for f in sorted(staging.iterdir()):
+            if f.is_file():
+                os.chmod(f, mode)
+                moves.append((f, final / f.name))
+        commit(moves)
+    finally:
+        with _deferred_sigint():
+            if staging is not None:
+                shutil.rmtree(staging, ignore_errors=True)
+            if fd is not None:
+                (final / LOCK_NAME).unlink(missing_ok=True)
+                os.close(fd)
+            if created:
+                with contextlib.suppress(OSError):
+                    final.rmdir()  # only if empty: a failed run leaves no folder behind
 
 
 def _to_uint8_image(image) -> np.ndarray:
@@ -127,15 +438,18 @@ def write_png(path, image) -> Path:
     vtk_arr = _vtk.numpy_to_vtk(flat, deep=True)
     vtk_arr.SetName("rgba" if c == 4 else "rgb")
     img.GetPointData().SetScalars(vtk_arr)
+    writer = _vtk.vtkPNGWriter()
+    writer.SetWriteToMemory(True)  # encode in memory: file errors are Python's, naming `path`
+    writer.SetInputData(img)
+    writer.Write()
+    result = writer.GetResult()
+    if writer.GetErrorCode() != 0 or result is None or result.GetNumberOfTuples() == 0:
+        raise OSError(
+            f"output file {path}: could not encode PNG (VTK error {writer.GetErrorCode()})"
+        )
+    blob = _vtk.vtk_to_numpy(result).tobytes()
     with atomic_path(path) as tmp:
-        writer = _vtk.vtkPNGWriter()
-        writer.SetFileName(str(tmp))
-        writer.SetInputData(img)
-        writer.Write()
-        if writer.GetErrorCode() != 0 or not tmp.is_file():
-            raise OSError(
-                f"output file {path}: could not write PNG (VTK error code {writer.GetErrorCode()})"
-            )
+        tmp.write_bytes(blob)
     return Path(path)
 
 

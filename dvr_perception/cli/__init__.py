@@ -10,11 +10,12 @@ line ``dvr-perception: warning: ...``.  Progress goes to stderr (``-v``), result
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import signal
 import sys
 import traceback
 import warnings
-from contextlib import contextmanager
 
 from dvr_perception.cli import (
     app,
@@ -48,8 +49,12 @@ def build_parser() -> CLIParser:
     return parser
 
 
-def _one_line(text: str) -> str:
-    return " ".join(str(text).split())
+def _one_line(text: str, longest: int = 160) -> str:
+    """Join ``text`` into one line and cut any word longer than ``longest`` characters."""
+    words = str(text).split()
+    return " ".join(
+        w if len(w) <= longest else f"{w[: longest - 20]}...({len(w)} characters)" for w in words
+    )
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
@@ -59,7 +64,7 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
     print(f"{PROG}: warning: {text}", file=sys.stderr)
 
 
-@contextmanager
+@contextlib.contextmanager
 def _session(verbose: bool):
     """Route logging to stderr and warnings to one-line messages for one CLI call."""
     handler = logging.StreamHandler(sys.stderr)
@@ -76,6 +81,11 @@ def _session(verbose: bool):
     finally:
         logger.removeHandler(handler)
         logger.setLevel(old_level)
+
+
+def _ignore_sigint() -> None:
+    with contextlib.suppress(ValueError):  # not the main thread
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _error(message: str) -> None:
@@ -106,6 +116,7 @@ def main(argv=None) -> int:
     >>> main(["render", "phantom", "--size", "0", "--out", "x.png"])
     2
     """
+    argv_given = argv is not None
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
     verbose = "-v" in argv or "--verbose" in argv
@@ -122,6 +133,8 @@ def main(argv=None) -> int:
             _error(_os_error_message(exc))
             return 2
         except KeyboardInterrupt:
+            if not argv_given:  # the process's own entry: a further Ctrl-C cannot cut the exit
+                _ignore_sigint()
             _error("interrupted")
             return 130
         except Exception as exc:

@@ -12,6 +12,7 @@ import json
 import logging
 import os
 import re
+import stat
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -22,7 +23,7 @@ import numpy as np
 import dvr_perception
 from dvr_perception._files import json_ready, write_npz
 from dvr_perception.errors import DVRInputError
-from dvr_perception.rays.camera import Camera, parse_view
+from dvr_perception.rays.camera import MAX_IMAGE, Camera, parse_view
 
 __all__ = [
     "PROG",
@@ -35,6 +36,7 @@ __all__ = [
     "load_scene",
     "parse_factors",
     "parse_size",
+    "read_json_file",
     "save_buffers",
 ]
 
@@ -100,9 +102,18 @@ def add_scene_args(parser: argparse.ArgumentParser, *, volume_optional: bool = F
         "memory); larger volumes are analysed in bricks, and a run that cannot fit stops "
         "before it starts",
     )
+    parser.add_argument(
+        "--allow-data-root",
+        metavar="DIR",
+        action="append",
+        help="also accept a volume header's detached data file inside DIR (default: only "
+        "inside the header's own folder); repeatable",
+    )
 
 
-_SIZE = re.compile(r"^\s*(\d+)\s*(?:[xX]\s*(\d+))?\s*$")
+_SIZE = re.compile(r"^\s*(\d{1,9})\s*(?:[xX]\s*(\d{1,9}))?\s*$")
+#: Largest camera or spec JSON file read (bytes).
+MAX_JSON_BYTES = 16 * 2**20
 
 
 def parse_size(text) -> tuple[int, int]:
@@ -115,15 +126,56 @@ def parse_size(text) -> tuple[int, int]:
     """
     m = _SIZE.match(str(text))
     if m is None:
-        raise DVRInputError(f"--size: expected N or WxH (positive integers), got {text!r}")
+        raise DVRInputError(f"--size: expected N or WxH (positive integers), got {_cut(text)}")
     w = int(m.group(1))
     h = int(m.group(2)) if m.group(2) is not None else w
-    if not (1 <= w <= 16384 and 1 <= h <= 16384):
-        raise DVRInputError(f"--size: width and height must be in 1..16384, got {text!r}")
+    if not (1 <= w <= MAX_IMAGE and 1 <= h <= MAX_IMAGE):
+        raise DVRInputError(f"--size: width and height must be in 1..{MAX_IMAGE}, got {text!r}")
     return w, h
 
 
-_FACTORS = re.compile(r"^\s*(\d+)\s*(?:,\s*(\d+)\s*,\s*(\d+)\s*)?$")
+def _cut(text, limit: int = 40) -> str:
+    text = str(text)
+    return repr(text) if len(text) <= limit else f"{text[:30]!r}... ({len(text)} characters)"
+
+
+def read_json_file(path, what: str):
+    """Read a small JSON file (a regular file of at most :data:`MAX_JSON_BYTES`).
+
+    ``what`` starts every error message (e.g. ``"--camera cam.json"``).  Devices, FIFOs and
+    folders are refused before anything is read.
+    """
+    p = Path(path)
+    try:
+        st = p.stat()
+    except FileNotFoundError:
+        raise DVRInputError(f"{what}: file not found") from None
+    except OSError as exc:
+        raise DVRInputError(f"{what}: cannot read ({exc.strerror})") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise DVRInputError(f"{what}: not a regular file")
+    if st.st_size > MAX_JSON_BYTES:
+        raise DVRInputError(
+            f"{what}: the file has {st.st_size} bytes, more than the {MAX_JSON_BYTES} allowed"
+        )
+    try:
+        with open(p, encoding="utf-8") as fh:
+            text = fh.read(MAX_JSON_BYTES + 1)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DVRInputError(f"{what}: cannot read ({exc})") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise DVRInputError(
+            f"{what}: not valid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
+        ) from None
+    except RecursionError:
+        raise DVRInputError(f"{what}: JSON nested too deeply") from None
+    except ValueError as exc:  # e.g. an integer of more than 4300 digits
+        raise DVRInputError(f"{what}: not valid JSON ({str(exc)[:80]})") from None
+
+
+_FACTORS = re.compile(r"^\s*(\d{1,9})\s*(?:,\s*(\d{1,9})\s*,\s*(\d{1,9})\s*)?$")
 
 
 def parse_factors(text) -> tuple[int, int, int]:
@@ -137,7 +189,8 @@ def parse_factors(text) -> tuple[int, int, int]:
     m = _FACTORS.match(str(text))
     if m is None:
         raise DVRInputError(
-            f"--resample: expected F or FX,FY,FZ (positive integers along x, y, z), got {text!r}"
+            f"--resample: expected F or FX,FY,FZ (positive integers along x, y, z), got "
+            f"{_cut(text)}"
         )
     f = tuple(int(g) for g in m.groups()) if m.group(2) is not None else (int(m.group(1)),) * 3
     if not all(1 <= k <= 64 for k in f):
@@ -183,16 +236,7 @@ def _load_volume(text: str, *, paired: bool = True):
 
 def _read_camera(path_text: str, size: tuple[int, int] | None) -> Camera:
     path = Path(path_text)
-    try:
-        d = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DVRInputError(f"--camera {path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DVRInputError(f"--camera {path}: cannot read ({exc})") from None
-    except json.JSONDecodeError as exc:
-        raise DVRInputError(
-            f"--camera {path}: not valid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
-        ) from None
+    d = read_json_file(path, f"--camera {path}")
     cam = Camera.from_dict(d, source=f"--camera {path}")
     return cam.with_size(*size) if size is not None else cam
 
@@ -204,12 +248,19 @@ def load_scene(args: argparse.Namespace) -> Scene:
     fail fast.  A command that declares ``--resample`` gets the volume (and labels) up-sampled
     (:func:`dvr_perception.volume.resample.upsample`) before the camera is fitted to it.
     """
+    from dvr_perception.rays import memory
+
     size = parse_size(args.size) if args.size is not None else None
     if getattr(args, "memory_limit", None) is not None:
-        from dvr_perception.rays import memory
-
         memory.set_limit(args.memory_limit)  # checked here, before the volume is read
         os.environ[memory.ENV] = str(args.memory_limit)  # and for child processes
+    if getattr(args, "allow_data_root", None):
+        from dvr_perception.volume._limits import DATA_ROOTS_ENV
+
+        for root in args.allow_data_root:
+            if not Path(root).is_dir():
+                raise DVRInputError(f"--allow-data-root {root}: not a folder")
+        os.environ[DATA_ROOTS_ENV] = os.pathsep.join(args.allow_data_root)
     resample = getattr(args, "resample", None)  # only commands that declare --resample
     factors = parse_factors(resample) if resample is not None else None
     view = parse_view(args.view) if args.view is not None else None
@@ -217,6 +268,11 @@ def load_scene(args: argparse.Namespace) -> Scene:
     from dvr_perception.structures.io import attach_labels, check_spec_for_volume, load_spec
 
     given = load_spec(args.structures) if args.structures is not None else None
+    k = len(given.structures) if given is not None else 1
+    if camera is not None:  # before the volume is read: the image must fit the limit
+        memory.check_image(camera.width, camera.height, k, source=f"--camera {args.camera}")
+    elif size is not None:
+        memory.check_image(*size, k)
     t0 = time.perf_counter()
     log.info("loading volume %s", args.volume)
     volume, spec, spec_source = _load_volume(args.volume, paired=given is None)
@@ -249,12 +305,14 @@ def load_scene(args: argparse.Namespace) -> Scene:
 
 
 def check_output_file(path) -> Path:
-    """Fail early (before any rendering) when an output file cannot be created."""
-    p = Path(path)
-    if p.is_dir():
-        raise DVRInputError(f"output file {p}: is a directory; expected a file name")
-    if not p.parent.is_dir():
-        raise DVRInputError(f"output file {p}: directory {p.parent} does not exist")
+    """Fail early (before any rendering) when an output file cannot be created.
+
+    The folder must exist and be writable, and an existing target must be a regular file.
+    """
+    from dvr_perception._files import check_target, check_writable
+
+    p = check_target(path)
+    check_writable(p.parent)
     return p
 
 

@@ -19,13 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from dvr_perception._files import write_png
+from dvr_perception._files import output_folder, write_png
 from dvr_perception.cli._common import (
     add_scene_args,
     emit_json,
     load_scene,
     log,
-    make_output_dir,
 )
 
 __all__ = ["add_parser", "run"]
@@ -111,7 +110,26 @@ def _compare_one(scene, ours_image, mapper: str, out_dir: Path, stem: str) -> di
 def run(args: argparse.Namespace) -> int:
     """Execute ``check-renderer``."""
     scene = load_scene(args)
-    out_dir = make_output_dir(args.out_dir)
+    with output_folder(args.out_dir) as staged:  # checked and locked before the work
+        report = _check(args, scene, staged.path)
+        report = staged.relocate(report)
+    ours_png, seconds_ours = report["ours_png"], report["seconds_ours"]
+    if args.json:
+        emit_json(report)
+    else:
+        print(f"ours: {ours_png} ({seconds_ours:.2f} s)")
+        for e in report.get("mappers", [report]):
+            if "error" in e:
+                print(f"{e['mapper']}: error: {e['error']}")
+            else:
+                print(
+                    f"{e['mapper']}: ssim {e['ssim']:.4f}, mean |diff| {e['mean_abs_diff']:.4f}, "
+                    f"{e['seconds_vtk']:.2f} s -> {e['vtk_png']}"
+                )
+    return 0
+
+
+def _check(args, scene, out_dir: Path) -> dict:
     from dvr_perception.rays.engine import analyze
 
     t0 = time.perf_counter()
@@ -140,16 +158,4 @@ def run(args: argparse.Namespace) -> int:
         report = {**base, "mapper": "all", "mappers": entries}
     else:
         report = {**base, **_compare_one(scene, result.image, args.mapper, out_dir, stem)}
-    if args.json:
-        emit_json(report)
-    else:
-        print(f"ours: {ours_png} ({seconds_ours:.2f} s)")
-        for e in report.get("mappers", [report]):
-            if "error" in e:
-                print(f"{e['mapper']}: error: {e['error']}")
-            else:
-                print(
-                    f"{e['mapper']}: ssim {e['ssim']:.4f}, mean |diff| {e['mean_abs_diff']:.4f}, "
-                    f"{e['seconds_vtk']:.2f} s -> {e['vtk_png']}"
-                )
-    return 0
+    return report

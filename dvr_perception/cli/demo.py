@@ -15,12 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from dvr_perception._files import atomic_path, write_png
+from dvr_perception._files import atomic_path, output_folder, write_png
 from dvr_perception.cli._common import (
     coverage,
     emit_json,
     log,
-    make_output_dir,
     parse_size,
     save_buffers,
 )
@@ -162,18 +161,21 @@ STAGES = [stage_render, stage_optimize]
 def run(args: argparse.Namespace) -> int:
     """Execute ``demo``."""
     w, h = parse_size(args.size)
-    state = DemoState(out_dir=make_output_dir(args.out), width=w, height=h)
-    t0 = time.perf_counter()
-    for stage in STAGES:
-        stage(state)
-    state.seconds["total"] = time.perf_counter() - t0
-    report = {
-        **state.summary,
-        "size": [w, h],
-        "out_dir": str(state.out_dir),
-        "files": [str(f) for f in state.files],
-        "seconds": state.seconds,
-    }
+    with output_folder(args.out) as staged:  # checked and locked before the work
+        state = DemoState(out_dir=staged.path, width=w, height=h)
+        t0 = time.perf_counter()
+        for stage in STAGES:
+            stage(state)
+        state.seconds["total"] = time.perf_counter() - t0
+        report = {
+            **state.summary,
+            "size": [w, h],
+            "out_dir": str(staged.final),
+            "files": [str(staged.final_path(f)) for f in state.files],
+            "seconds": state.seconds,
+        }
+        report = staged.relocate(report)
+    state.out_dir = staged.final
     if args.json:
         emit_json(report)
         return 0
@@ -193,6 +195,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"    status {opt['status']}: {opt['message']}")
     times = ", ".join(f"{k} {v:.2f}" for k, v in state.seconds.items() if k != "phantom")
     print(f"  seconds: {times}")
-    for f in state.files:
+    for f in report["files"]:
         print(f"  wrote {f}")
     return 0

@@ -18,14 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dvr_perception._files import write_json, write_png
+from dvr_perception._files import output_folder, write_json, write_png
 from dvr_perception.cli._common import (
     add_scene_args,
     coverage,
     emit_json,
     load_scene,
     log,
-    make_output_dir,
 )
 
 __all__ = ["FIGURES", "add_parser", "run"]
@@ -48,12 +47,16 @@ FIGURES = (
 
 
 def _positive_int(text: str) -> int:
+    text = str(text)
+    shown = repr(text) if len(text) <= 20 else f"{text[:15]!r}... ({len(text)} characters)"
     try:
-        value = int(text)
+        value = int(text) if len(text.strip()) <= 9 else 0
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+        value = 0
     if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"expected a positive integer below 10^9, got {shown}"
+        ) from None
     return value
 
 
@@ -199,7 +202,15 @@ def run(args: argparse.Namespace) -> int:
     """Execute ``measure``."""
     t_start = time.perf_counter()
     scene = load_scene(args)  # validates the options and the spec before anything is written
-    out_dir = make_output_dir(args.out_dir) if args.out_dir else None
+    if not args.out_dir:
+        return _run(args, scene, t_start, None)
+    # the folder is checked and locked before the work; the files appear together at the end
+    with output_folder(args.out_dir) as staged:
+        return _run(args, scene, t_start, staged)
+
+
+def _run(args, scene, t_start: float, staged) -> int:
+    out_dir = None if staged is None else staged.path
     from dvr_perception.measures import all_measures
     from dvr_perception.rays.curvature_field import curvature_source
     from dvr_perception.rays.engine import analyze
@@ -245,8 +256,8 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         files = _write_outputs(out_dir, result, vis, shp, trans)
         report["seconds_figures"] = time.perf_counter() - t0
-        report["out_dir"] = str(out_dir)
-        report["files"] = [str(f) for f in [*files, out_dir / "measures.json"]]
+        report["out_dir"] = str(staged.final)
+        report["files"] = [str(staged.final_path(f)) for f in [*files, out_dir / "measures.json"]]
     report["seconds"] = time.perf_counter() - t_start
     if out_dir is not None:
         write_json(out_dir / "measures.json", report)

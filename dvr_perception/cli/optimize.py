@@ -31,14 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dvr_perception._files import write_json, write_png
+from dvr_perception._files import output_folder, write_json, write_png
 from dvr_perception.cli._common import (
     add_scene_args,
     coverage,
     emit_json,
     load_scene,
     log,
-    make_output_dir,
 )
 from dvr_perception.cli.measure import _positive_int
 from dvr_perception.errors import DVRInputError
@@ -53,6 +52,11 @@ EXAMPLE = """examples:
 
 #: Azimuth step (degrees) between the views of ``--views``.
 VIEW_STEP = 20.0
+#: Most views ``--views`` accepts (18 x 20 degrees: the whole orbit).
+MAX_VIEWS = 18
+#: Largest ``--resolution`` and ``--max-iter``.
+MAX_RESOLUTION = 4096
+MAX_ITER = 1000
 TERMS = ("E_v", "E_s", "E_t")
 
 
@@ -89,7 +93,8 @@ def add_parser(subparsers, parents) -> None:
         type=_positive_int,
         default=1,
         metavar="N",
-        help=f"optimise for N views {VIEW_STEP:g} degree azimuth steps apart (default 1)",
+        help=f"optimise for N views {VIEW_STEP:g} degree azimuth steps apart (default 1, at "
+        f"most {MAX_VIEWS})",
     )
     p.add_argument("--seed", type=int, default=0, metavar="N", help="annealing seed (0)")
     p.add_argument(
@@ -413,19 +418,30 @@ def run(args: argparse.Namespace) -> int:
         raise DVRInputError(f"--coverage-keep: expected a number in [0, 1], got {keep:g}")
     if args.region is not None and args.views > 1:
         raise DVRInputError("--region refines one view; use it without --views")
+    for option, value, top in (
+        ("--views", args.views, MAX_VIEWS),
+        ("--resolution", args.resolution, MAX_RESOLUTION),
+        ("--max-iter", args.max_iter, MAX_ITER),
+    ):
+        if value is not None and value > top:
+            raise DVRInputError(f"{option}: expected 1 to {top}, got {value}")
     scene = load_scene(args)
     cam = scene.camera
     region = None if args.region is None else parse_rect(args.region, cam.width, cam.height)
-    out_dir = make_output_dir(args.out)
-    progress = Progress(len(stages) * args.max_iter)
-    with stop_on_interrupt(progress):
-        report = optimize_scene(scene.volume, scene.spec, cam, out_dir, stages=stages,
-                                weights=weights, region=region, views=args.views, seed=args.seed,
-                                max_iter=args.max_iter, resolution=args.resolution,
-                                coverage_keep=args.coverage_keep, progress=progress,
-                                objective=args.objective)  # fmt: skip
-    report = {"volume": scene.volume_source, "spec": scene.spec_source, **report}
-    write_json(out_dir / "result.json", report)
+    # checked and locked before the work; every file appears at the end, all or none
+    with output_folder(args.out) as staged:
+        progress = Progress(len(stages) * args.max_iter)
+        with stop_on_interrupt(progress):
+            report = optimize_scene(scene.volume, scene.spec, cam, staged.path, stages=stages,
+                                    weights=weights, region=region, views=args.views,
+                                    seed=args.seed, max_iter=args.max_iter,
+                                    resolution=args.resolution,
+                                    coverage_keep=args.coverage_keep, progress=progress,
+                                    objective=args.objective)  # fmt: skip
+        report = {"volume": scene.volume_source, "spec": scene.spec_source, **report}
+        report["out_dir"] = str(staged.final)
+        report["files"] = [str(staged.final_path(f)) for f in report["files"]]
+        write_json(staged.path / "result.json", report)
     if args.json:
         emit_json(report)
     else:

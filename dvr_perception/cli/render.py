@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from dvr_perception._files import write_png
+from dvr_perception._files import check_distinct, staged_files, write_png
 from dvr_perception.cli._common import (
     add_scene_args,
     check_output_file,
@@ -48,6 +48,7 @@ def add_parser(subparsers, parents) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Execute ``render``."""
+    check_distinct({"--out": args.out, "--buffers": args.buffers})
     out = check_output_file(args.out)
     buffers = check_output_file(args.buffers) if args.buffers else None
     scene = load_scene(args)
@@ -67,9 +68,10 @@ def run(args: argparse.Namespace) -> int:
         occlusion_free=buffers is not None,
     )  # fmt: skip
     seconds = time.perf_counter() - t0
-    write_png(out, result.image)
-    if buffers is not None:
-        save_buffers(buffers, result)
+    with staged_files(*([out] if buffers is None else [out, buffers])) as tmps:
+        write_png(tmps[0], result.image)  # both files appear together, or neither
+        if buffers is not None:
+            save_buffers(tmps[1], result)
     summary = {
         "out": str(out),
         "buffers": str(buffers) if buffers is not None else None,

@@ -9,10 +9,11 @@ opacities are step-corrected only above 1e-4 and, like colours, rounded to 1/327
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 
-from dvr_perception.errors import DVRInputError
+from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.structures.spec import Lighting
 
 __all__ = [
@@ -21,10 +22,17 @@ __all__ = [
     "check_opacities",
     "light_array",
     "material",
+    "min_step",
     "shading_key",
     "shading_table",
     "step_and_unit",
 ]
+
+#: Smallest sample distance, as a share of the smallest voxel spacing: a smaller
+#: ``rendering.sample_distance`` is clamped to it (with one warning), so a spec cannot ask for
+#: an unbounded number of samples per ray.
+MIN_STEP_FRACTION = 1.0 / 8.0
+_WARNED: set = set()
 
 #: VTK stops a ray once the remaining transmittance drops below 255/32767.
 ERT = 255.0 / 32767.0
@@ -62,7 +70,36 @@ def step_and_unit(spec, volume) -> tuple[float, float]:
         if not (math.isfinite(v) and v > 0):
             raise DVRInputError(f"rendering.{name}: must be a positive number, got {val}")
         out.append(v)
-    return out[0], out[1]
+    return min_step(out[0], volume), out[1]
+
+
+def min_step(step: float, volume) -> float:
+    """Return ``step`` clamped to :data:`MIN_STEP_FRACTION` of the smallest voxel spacing.
+
+    A clamped step is reported once per (step, spacing) as a :class:`DVRWarning`.
+
+    Examples
+    --------
+    >>> from types import SimpleNamespace
+    >>> import warnings
+    >>> with warnings.catch_warnings():
+    ...     warnings.simplefilter("ignore")
+    ...     min_step(1e-9, SimpleNamespace(spacing=(1.0, 2.0, 2.0)))
+    0.125
+    """
+    floor = MIN_STEP_FRACTION * float(min(volume.spacing))
+    if step >= floor:
+        return step
+    key = (step, floor)
+    if key not in _WARNED:
+        _WARNED.add(key)
+        warnings.warn(
+            f"rendering.sample_distance {step:g} is below {MIN_STEP_FRACTION:g} of the smallest "
+            f"voxel spacing; using {floor:g}",
+            DVRWarning,
+            stacklevel=3,
+        )
+    return floor
 
 
 def alpha_table(ids: np.ndarray, memb: np.ndarray, ops: np.ndarray, ratio: float) -> np.ndarray:

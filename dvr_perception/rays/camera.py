@@ -19,7 +19,10 @@ import numpy as np
 
 from dvr_perception.errors import DVRInputError
 
-__all__ = ["Camera", "parse_view"]
+__all__ = ["MAX_IMAGE", "Camera", "parse_view"]
+
+#: Largest image width or height from any source (``--size``, a camera file, the API).
+MAX_IMAGE = 16384
 
 
 def _unit(v: np.ndarray, what: str) -> np.ndarray:
@@ -60,8 +63,15 @@ class Camera:
             object.__setattr__(self, name, v)
         for name in ("width", "height"):
             val = getattr(self, name)
-            if int(val) != val or int(val) < 1:
-                raise DVRInputError(f"camera: image {name} must be a positive integer, got {val}")
+            try:
+                ok = not isinstance(val, bool) and int(val) == val
+            except (TypeError, ValueError, OverflowError):
+                ok = False
+            if not ok or not 1 <= int(val) <= MAX_IMAGE:
+                shown = repr(val) if len(repr(val)) < 40 else f"{repr(val)[:30]}..."
+                raise DVRInputError(
+                    f"camera: image {name} must be an integer in 1..{MAX_IMAGE}, got {shown}"
+                )
             object.__setattr__(self, name, int(val))
         if not 0 < float(self.view_angle) < 180:
             raise DVRInputError(
@@ -139,13 +149,15 @@ class Camera:
         known = set(cls.__dataclass_fields__)
         extra = set(d) - known
         if extra:
-            raise DVRInputError(f"{source}: unknown camera field(s) {sorted(extra)}")
+            names = sorted(str(e)[:40] for e in extra)
+            more = f" and {len(names) - 5} more" if len(names) > 5 else ""
+            raise DVRInputError(f"{source}: unknown camera field(s) {names[:5]}{more}")
         try:
             return cls(**d)
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
             if isinstance(exc, DVRInputError):
                 raise DVRInputError(f"{source}: {exc}") from None
-            raise DVRInputError(f"{source}: invalid camera ({exc})") from None
+            raise DVRInputError(f"{source}: invalid camera ({str(exc)[:120]})") from None
 
     @classmethod
     def from_view(

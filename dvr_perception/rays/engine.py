@@ -47,14 +47,14 @@ from dvr_perception.rays import _grid, _tables, memory
 from dvr_perception.rays import _numpy_kernels as _npk
 from dvr_perception.rays._results import RayAnalysis, RayCache, engine_made
 from dvr_perception.rays.camera import Camera
-from dvr_perception.structures.spec import StructureSpec
+from dvr_perception.structures.spec import MAX_STRUCTURES, StructureSpec
 from dvr_perception.structures.transfer import build_lut
 from dvr_perception.volume.volume import Volume
 
 __all__ = ["RayAnalysis", "RayCache", "analyze", "analyze_views", "reevaluate"]
 
 BACKENDS = ("auto", "numba", "numpy")
-_MAX_STRUCTURES = 32
+_MAX_STRUCTURES = MAX_STRUCTURES
 
 
 def _numba_kernels():

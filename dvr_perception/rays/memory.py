@@ -25,7 +25,17 @@ import numpy as np
 
 from dvr_perception.errors import DVRInputError
 
-__all__ = ["DEFAULT_FRACTION", "WHOLE_VOXELS", "Plan", "limit", "parse_size", "plan", "set_limit"]
+__all__ = [
+    "DEFAULT_FRACTION",
+    "WHOLE_VOXELS",
+    "Plan",
+    "check_image",
+    "limit",
+    "parse_size",
+    "plan",
+    "ray_bytes",
+    "set_limit",
+]
 
 #: Share of the machine's memory an analysis may use by default.
 DEFAULT_FRACTION = 0.5
@@ -46,11 +56,13 @@ def parse_size(text, name: str = "--memory-limit") -> int:
     >>> parse_size("1.5G"), parse_size("512MiB"), parse_size(2097152)
     (1610612736, 536870912, 2097152)
     """
-    m = re.fullmatch(r"\s*([0-9]+(?:\.[0-9]*)?)\s*([KMGT]?)(?:I?B)?\s*", str(text), re.IGNORECASE)
+    text = str(text)
+    m = re.fullmatch(r"\s*([0-9]{1,15}(?:\.[0-9]{0,15})?)\s*([KMGT]?)(?:I?B)?\s*", text, re.I)
     value = float(m.group(1)) * _UNITS[m.group(2).upper()] if m else math.nan
     if not (math.isfinite(value) and value >= 2**20):
+        shown = repr(text) if len(text) <= 40 else f"{text[:30]!r}... ({len(text)} characters)"
         raise DVRInputError(
-            f"{name}: expected a memory size of at least 1M such as 8G or 512M, got {text!r}"
+            f"{name}: expected a memory size of at least 1M such as 8G or 512M, got {shown}"
         )
     return int(value)
 
@@ -82,6 +94,33 @@ def limit(value=None) -> int:
 
 def _human(n: float) -> str:
     return f"{n / 2**30:.2f} GB" if n >= 2**30 else f"{n / 2**20:.0f} MB"
+
+
+def ray_bytes(k: int) -> int:
+    """Bytes of the per-ray buffers of an analysis with ``k`` structures (one ray)."""
+    return 8 * (4 + 1 + 2 * k + 1 + 8 + 7) + 4 * (9 + 2 * k)
+
+
+def check_image(width: int, height: int, k: int = 1, *, source: str = "--size",
+                memory_limit=None) -> None:  # fmt: skip
+    """Refuse an image whose per-ray buffers alone exceed the memory limit.
+
+    Checked as soon as the image size is known (``--size``, a camera file), before the volume
+    is read.
+
+    Examples
+    --------
+    >>> check_image(512, 512, memory_limit="1G") is None
+    True
+    """
+    cap = limit(memory_limit)
+    need = int(width) * int(height) * ray_bytes(max(int(k), 1))
+    if need > cap:
+        raise DVRInputError(
+            f"{source}: an image of {width}x{height} pixels needs about {_human(need)} for its "
+            f"per-pixel buffers alone, more than the memory limit of {_human(cap)}; use a "
+            f"smaller image or raise --memory-limit (or {ENV})"
+        )
 
 
 class Plan(dict):
@@ -119,7 +158,7 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     entry = 2 + 4 + (4 if shade else 0) + (4 if curvature else 0)
     filled = _filled_fraction(volume, lut, membership) if build_cache else 0.0
     entries = samples * min(1.0, filled * 1.25 + 0.01)
-    per_ray = 8 * (4 + 1 + 2 * k + 1 + 8 + 7) + 4 * (9 + 2 * k)
+    per_ray = ray_bytes(k)
     rays_bytes = nrays * per_ray
     cache = entries * entry if build_cache else 0.0
     scratch_whole = samples * entry if build_cache else 0.0

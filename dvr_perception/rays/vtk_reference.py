@@ -25,6 +25,7 @@ import numpy as np
 
 from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError
+from dvr_perception.rays import _tables
 from dvr_perception.rays._grid import clipping_range
 from dvr_perception.rays.camera import Camera
 from dvr_perception.structures.spec import StructureSpec
@@ -128,6 +129,7 @@ class _Scene:
         sd = float(min(volume.spacing)) if rs.sample_distance is None else rs.sample_distance
         if not (math.isfinite(sd) and sd > 0):
             raise DVRInputError(f"rendering.sample_distance must be positive, got {sd}")
+        sd = _tables.min_step(float(sd), volume)
         if mapper == "fixed_point":
             m = r.vtkFixedPointVolumeRayCastMapper()
             m.SetImageSampleDistance(1.0)

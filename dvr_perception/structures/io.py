@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import tempfile
 import warnings
 from pathlib import Path
@@ -42,6 +43,9 @@ __all__ = [
     "spec_from_dict",
     "spec_to_dict",
 ]
+
+#: Largest spec file read (bytes).
+MAX_SPEC_BYTES = 16 * 2**20
 
 
 def spec_from_dict(d, *, source: str = "spec") -> StructureSpec:
@@ -147,6 +151,14 @@ def load_spec(path) -> StructureSpec:
     path = Path(path)
     name = path.name
     try:
+        st = path.stat()
+        if stat.S_ISREG(st.st_mode) and st.st_size > MAX_SPEC_BYTES:
+            raise DVRInputError(
+                f"{path}: the spec file has {st.st_size} bytes, more than the {MAX_SPEC_BYTES} "
+                "allowed"
+            )
+        if not stat.S_ISREG(st.st_mode) and not stat.S_ISDIR(st.st_mode):
+            raise DVRInputError(f"{path}: expected a spec JSON file, got a device or pipe")
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise DVRInputError(f"{path}: spec file not found") from None
@@ -164,6 +176,8 @@ def load_spec(path) -> StructureSpec:
         ) from None
     except RecursionError:
         raise DVRInputError(f"{name}: JSON nested too deeply") from None
+    except ValueError as exc:  # e.g. an integer of more than 4300 digits
+        raise DVRInputError(f"{name}: not valid JSON ({str(exc)[:80]})") from None
     spec, unknown = parse_spec_dict(d, name)
     if unknown:
         warnings.warn(
@@ -222,6 +236,9 @@ def save_spec(spec: StructureSpec, path) -> None:
     if not folder.is_dir():
         raise DVRInputError(f"{path}: folder {folder} does not exist")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    mask = os.umask(0o022)
+    os.umask(mask)
+    os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600; outputs follow the umask like the rest
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
             fh.write(text)

@@ -21,9 +21,14 @@ from dataclasses import dataclass, field, replace
 
 from dvr_perception.errors import DVRInputError
 
-__all__ = ["Lighting", "RenderSettings", "Structure", "StructureSpec"]
+__all__ = ["MAX_STRUCTURES", "Lighting", "RenderSettings", "Structure", "StructureSpec"]
 
 SPEC_VERSION = 1
+#: Most structures a spec may hold (the engine keeps one bit per structure in 32 bits); checked
+#: before any per-structure or pairwise work.
+MAX_STRUCTURES = 32
+#: Label ids are 32-bit signed integers.
+_LABEL_RANGE = (-(2**31), 2**31 - 1)
 
 
 @dataclass(frozen=True)
@@ -128,6 +133,15 @@ _STRUCTURE_KEYS = (
 _TOP_KEYS = ("version", "background", "structures", "rendering", "view", "labels")
 
 
+def _shown(value, limit: int = 80) -> str:
+    """``repr(value)`` cut to about ``limit`` characters (huge integers cannot be printed)."""
+    try:
+        text = repr(value)
+    except ValueError:  # an integer of more than 4300 digits
+        return "a number too large to print"
+    return text if len(text) <= limit else f"{text[: limit - 3]}..."
+
+
 class _Checker:
     """Field validation that raises one DVRInputError naming ``source`` and the field path."""
 
@@ -136,7 +150,7 @@ class _Checker:
         self.unknown: list[str] = []
 
     def fail(self, path: str, expected: str, got=None, *, show_got: bool = True):
-        tail = f", got {got!r}" if show_got else ""
+        tail = f", got {_shown(got)}" if show_got else ""
         raise DVRInputError(f"{self.source}: {path} {expected}{tail}")
 
     def scan_nonfinite(self, value, path: str) -> None:
@@ -160,7 +174,10 @@ class _Checker:
     def number(self, value, path: str, lo=None, hi=None, *, lo_open=False, hi_open=False):
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             self.fail(path, "must be a number", value)
-        v = float(value)
+        try:
+            v = float(value)
+        except OverflowError:
+            self.fail(path, "must be a finite number", value)
         if lo is not None or hi is not None:
             below = lo is not None and (v <= lo if lo_open else v < lo)
             above = hi is not None and (v >= hi if hi_open else v > hi)
@@ -208,6 +225,8 @@ def _parse_structure(c: _Checker, d, path: str, has_labels: bool) -> Structure:
         label = d["label"]
         if isinstance(label, bool) or not isinstance(label, int):
             c.fail(f"{path}.label", "must be an integer label id", label)
+        if not _LABEL_RANGE[0] <= label <= _LABEL_RANGE[1]:
+            c.fail(f"{path}.label", "must be a 32-bit integer label id", label)
         if not has_labels:
             c.fail(
                 f"{path}.label",
@@ -286,6 +305,12 @@ def parse_spec_dict(d, source: str = "spec") -> tuple[StructureSpec, list[str]]:
     items = d.get("structures")
     if not isinstance(items, list) or not items:
         c.fail("structures", "must be a non-empty list of structures", items)
+    if len(items) > MAX_STRUCTURES:
+        c.fail(
+            "structures",
+            f"must hold at most {MAX_STRUCTURES} structures, got {len(items)}",
+            show_got=False,
+        )
     structures = [
         _parse_structure(c, s, f"structures[{i}]", labels is not None) for i, s in enumerate(items)
     ]
@@ -303,7 +328,7 @@ def parse_spec_dict(d, source: str = "spec") -> tuple[StructureSpec, list[str]]:
     ranged = sorted((s.range, i) for i, s in enumerate(structures) if s.range is not None)
     for n in range(1, len(ranged)):
         (lo, _), i = ranged[n]
-        (plo, phi), j = max(ranged[:n], key=lambda r: r[0][1])
+        (plo, phi), j = ranged[n - 1]  # sorted by lo: an overlap shows in neighbours first
         if lo < phi:
             a, b = structures[j], structures[i]
             c.fail(

@@ -8,11 +8,17 @@ NRRD is parsed here (not with ``vtkNrrdReader``): VTK 9.x reads a first axis sho
 samples as vector components, whatever ``kinds`` says, which silently corrupts small volumes.
 Headerless raw files follow the shared-data naming ``NAME_XxYxZ_DTYPE.raw`` (little-endian,
 x fastest).  The other formats go through VTK's readers and writers.
+
+Headers are untrusted (:mod:`dvr_perception.volume._limits`): a detached data file must lie in
+the header's folder (or a folder allowed with ``DVR_PERCEPTION_DATA_ROOTS``), and the sizes,
+spacing, encoding and file size are checked against each other and the memory limit before
+any data is read; compressed data is decompressed with a bound.
 """
 
 from __future__ import annotations
 
 import gzip
+import math
 import os
 import re
 import shutil
@@ -24,6 +30,17 @@ import numpy as np
 
 from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.volume._limits import (
+    MAX_TOKEN,
+    check_budget,
+    check_ratio,
+    check_spacing,
+    parse_float,
+    parse_int,
+    read_compressed,
+    resolve_data_file,
+    shown,
+)
 from dvr_perception.volume.convert import from_vtk_image, to_vtk_image, vtk_errors
 from dvr_perception.volume.volume import Volume
 
@@ -46,6 +63,7 @@ _NRRD_ALIASES = {
 _NRRD_TYPES = {alias: code for code, names in _NRRD_ALIASES.items() for alias in names}
 _NRRD_NAMES = {"i1": "int8", "u1": "uint8", "i2": "int16", "u2": "uint16", "i4": "int32"}
 _NRRD_NAMES |= {"u4": "uint32", "i8": "int64", "u8": "uint64", "f4": "float", "f8": "double"}
+_NRRD_ENCODINGS = {"raw": "raw", "gzip": "gzip", "gz": "gzip", "bzip2": "bzip2", "bz2": "bzip2"}
 _FORMATS = (".nhdr", ".nrrd", ".mha", ".mhd", ".vti", ".vtk", ".nii", ".nii.gz", ".raw")
 _WRITABLE = (".vti", ".nhdr", ".nrrd", ".mha", ".mhd", ".nii", ".nii.gz", ".vtk")
 
@@ -121,6 +139,10 @@ def load_volume(path, *, name: str | None = None) -> Volume:
     elif ext == ".raw":
         data, spacing, origin = _read_raw(path), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0)
     else:
+        if ext in (".mha", ".mhd"):
+            _check_meta(path)
+        elif ext in (".nii", ".nii.gz"):
+            _check_nifti(path, ext)
         reader = {
             ".mha": _vtk.vtkMetaImageReader,
             ".mhd": _vtk.vtkMetaImageReader,
@@ -190,11 +212,11 @@ def _read_raw(path: Path) -> np.ndarray:
             f"{path}: unsupported raw dtype {dtype!r} in the file name; expected one of "
             f"{', '.join(RAW_DTYPES)}"
         )
-    dims = tuple(int(m.group(a)) for a in "xyz")
+    dims = tuple(parse_int(m.group(a), path, "file name", lo=0) for a in "xyz")
     if 0 in dims:
         raise DVRInputError(f"{path}: the volume is empty (dims {dims} in the file name)")
     dt = np.dtype(dtype).newbyteorder("<")
-    _check_size(path, path.stat().st_size, int(np.prod(dims)) * dt.itemsize, dims)
+    _check_size(path, path.stat().st_size, check_budget(path, dims, dt, "file name"), dims)
     return np.fromfile(path, dtype=dt).reshape(dims[::-1]).astype(dt.newbyteorder("="))
 
 
@@ -210,34 +232,40 @@ def _check_size(path, found: int, expected: int, dims) -> None:
         )
 
 
+_HEADER_MAX = 65536
+
+
 def _nrrd_header(path: Path) -> tuple[dict[str, str], int]:
     with open(path, "rb") as f:
-        head = f.read(65536)
+        head = f.read(_HEADER_MAX)
     if not head.startswith(b"NRRD000"):
         raise DVRInputError(f"{path}: not a NRRD file (missing the 'NRRD000X' magic line)")
     fields: dict[str, str] = {}
     offset = head.index(b"\n") + 1 if b"\n" in head else len(head)
+    ended = False
     for raw in head[offset:].split(b"\n"):
+        if offset + len(raw) >= len(head) and len(head) == _HEADER_MAX:
+            break  # the last, possibly cut, line of a full buffer
         offset += len(raw) + 1
         line = raw.decode("latin-1").rstrip("\r")
         if not line.strip():
+            ended = True
             break  # blank line: end of an attached header
         if line.startswith("#") or ":=" in line:
             continue
         key, sep, value = line.partition(": ")
         if not sep:
-            raise DVRInputError(f"{path}: malformed NRRD header line {line!r}")
+            raise DVRInputError(f"{path}: malformed NRRD header line {shown(line)}")
         fields[key.strip().lower()] = value.strip()
+    if not ended and len(head) == _HEADER_MAX:
+        raise DVRInputError(
+            f"{path}: the NRRD header is longer than {_HEADER_MAX} bytes (no blank line ends it)"
+        )
     return fields, min(offset, len(head))
 
 
 def _vector(text: str, path: Path, field: str) -> tuple[float, ...]:
-    try:
-        return tuple(float(v) for v in text.strip().strip("()").split(","))
-    except ValueError:
-        raise DVRInputError(
-            f"{path}: NRRD field {field!r}: expected numbers, got {text!r}"
-        ) from None
+    return tuple(parse_float(v, path, field) for v in text.strip().strip("()").split(","))
 
 
 def _read_nrrd(path: Path):
@@ -251,63 +279,70 @@ def _read_nrrd(path: Path):
     dtype = _NRRD_TYPES.get(" ".join(need("type").lower().split()))
     if dtype is None:
         raise DVRInputError(
-            f"{path}: NRRD field 'type': unsupported type {fields['type']!r}; expected an "
+            f"{path}: NRRD field 'type': unsupported type {shown(fields['type'])}; expected an "
             "integer or float scalar type"
         )
     if need("dimension") != "3":
         raise DVRInputError(
-            f"{path}: NRRD field 'dimension': expected 3, got {fields['dimension']}"
+            f"{path}: NRRD field 'dimension': expected 3, got {shown(fields['dimension'])}"
         )
-    try:
-        dims = tuple(int(s) for s in need("sizes").split())
-    except ValueError:
-        dims = ()
-    if len(dims) != 3 or min(dims) < 0:
+    tokens = need("sizes").split()
+    if len(tokens) != 3 or not all(t.isdigit() or len(t) > MAX_TOKEN for t in tokens):
         raise DVRInputError(
-            f"{path}: NRRD field 'sizes': expected 3 integers, got {fields['sizes']!r}"
+            f"{path}: NRRD field 'sizes': expected 3 integers, got {shown(fields['sizes'])}"
         )
+    dims = tuple(parse_int(s, path, "sizes", lo=0) for s in tokens)
     if 0 in dims:
         raise DVRInputError(f"{path}: the volume is empty (NRRD sizes {dims})")
-    encoding = need("encoding").lower()
-    if encoding not in ("raw", "gzip", "gz"):
+    encoding = _NRRD_ENCODINGS.get(need("encoding").lower())
+    if encoding is None:
         raise DVRInputError(
-            f"{path}: NRRD encoding {encoding!r} is not supported; expected raw or gzip"
+            f"{path}: NRRD encoding {shown(fields['encoding'])} is not supported; expected raw, "
+            "gzip or bzip2"
         )
     for key in ("line skip", "byte skip"):
         if fields.get(key, "0").strip() != "0":
             raise DVRInputError(f"{path}: NRRD field {key!r} is not supported (must be 0)")
     endian = "<" if fields.get("endian", "little").lower() == "little" else ">"
     dt = np.dtype(endian + dtype)
-    expected = int(np.prod(dims)) * dt.itemsize
+    spacing, origin = _nrrd_spacing(fields, path), _nrrd_origin(fields, path)
+    expected = check_budget(path, dims, dt)
     data_file = fields.get("data file", fields.get("datafile"))
     if data_file is not None:
-        if data_file.split()[0] == "LIST" or "%" in data_file:
+        if data_file.split()[:1] == ["LIST"] or "%" in data_file:
             raise DVRInputError(f"{path}: NRRD multi-file 'data file' lists are not supported")
-        src = path.parent / data_file
-        if not src.is_file():
-            raise DVRInputError(f"{path}: data file {str(src)!r} named by the header not found")
-        blob, where = src.read_bytes(), f"{path} (data file {src.name})"
+        src = resolve_data_file(path, data_file, "data file")
+        where, offset = f"{path} (data file {src.name})", 0
     else:
-        blob, where = path.read_bytes()[offset:], path
-    if encoding != "raw":
-        try:
-            blob = gzip.decompress(blob)
-        except (OSError, EOFError) as exc:
-            raise DVRInputError(f"{where}: corrupt gzip data ({exc})") from None
-    _check_size(where, len(blob), expected, dims)
-    data = np.frombuffer(blob, dtype=dt).reshape(dims[::-1]).astype(dt.newbyteorder("="))
-    return data, _nrrd_spacing(fields, path), _nrrd_origin(fields, path)
+        src, where = path, str(path)
+    if encoding == "raw":
+        _check_size(where, src.stat().st_size - offset, expected, dims)
+        with open(src, "rb") as f:
+            f.seek(offset)
+            data = np.fromfile(f, dtype=dt, count=math.prod(dims))
+        _check_size(where, data.nbytes, expected, dims)  # the file shrank while being read
+    else:
+        data = read_compressed(src, offset, expected, encoding, where).view(dt)
+    data = data.reshape(dims[::-1])
+    if not dt.isnative:
+        data = data.astype(dt.newbyteorder("="))
+    return data, spacing, origin
 
 
 def _nrrd_spacing(fields: dict[str, str], path: Path) -> tuple[float, float, float]:
     if "spacings" in fields:
         vals = fields["spacings"].split()
         if len(vals) != 3:
-            raise DVRInputError(f"{path}: NRRD field 'spacings': expected 3 values, got {vals}")
-        out = [_vector(v, path, "spacings")[0] if v.lower() != "nan" else 1.0 for v in vals]
-        return tuple(out)  # type: ignore[return-value]
+            raise DVRInputError(
+                f"{path}: NRRD field 'spacings': expected 3 values, got {shown(fields['spacings'])}"
+            )
+        out = [parse_float(v, path, "spacings") if v.lower() != "nan" else 1.0 for v in vals]
+        return check_spacing(out, path, "spacings")
     if "space directions" in fields:
-        vecs = re.findall(r"\(([^)]*)\)|none", fields["space directions"])
+        text = fields["space directions"]
+        if len(text) > 8 * MAX_TOKEN:
+            raise DVRInputError(f"{path}: NRRD field 'space directions' is too long")
+        vecs = re.findall(r"\(([^)]*)\)|none", text)
         rows = [_vector(v, path, "space directions") for v in vecs if v]
         if len(rows) != 3 or any(len(r) != 3 for r in rows):
             raise DVRInputError(f"{path}: NRRD field 'space directions': expected 3 vectors")
@@ -318,17 +353,126 @@ def _nrrd_spacing(fields: dict[str, str], path: Path) -> tuple[float, float, flo
                 DVRWarning,
                 stacklevel=4,
             )
-        return tuple(float(v) for v in np.linalg.norm(mat, axis=1))  # type: ignore[return-value]
+        with np.errstate(over="ignore"):
+            lengths = np.linalg.norm(mat, axis=1)
+        return check_spacing(lengths, path, "space directions")
     return (1.0, 1.0, 1.0)
 
 
 def _nrrd_origin(fields: dict[str, str], path: Path) -> tuple[float, float, float]:
     if "space origin" not in fields:
         return (0.0, 0.0, 0.0)
-    org = _vector(fields["space origin"], path, "space origin")
+    text = fields["space origin"]
+    if len(text) > 4 * MAX_TOKEN:
+        raise DVRInputError(f"{path}: NRRD field 'space origin' is too long")
+    org = _vector(text, path, "space origin")
     if len(org) != 3:
         raise DVRInputError(f"{path}: NRRD field 'space origin': expected 3 numbers, got {org}")
     return org  # type: ignore[return-value]
+
+
+_META_TYPES = {
+    "MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4,
+    "MET_UINT": 4, "MET_LONG": 4, "MET_ULONG": 4, "MET_LONG_LONG": 8, "MET_ULONG_LONG": 8,
+    "MET_FLOAT": 4, "MET_DOUBLE": 8,
+}  # fmt: skip
+
+
+def _meta_header(path: Path) -> tuple[dict[str, str], int]:
+    """Return the MetaImage header's fields (keys lower case) and the data offset."""
+    with open(path, "rb") as f:
+        head = f.read(_HEADER_MAX)
+    fields: dict[str, str] = {}
+    offset = 0
+    for raw in head.split(b"\n"):
+        if offset + len(raw) >= len(head) and len(head) == _HEADER_MAX:
+            raise DVRInputError(f"{path}: the MetaImage header is longer than {_HEADER_MAX} bytes")
+        offset += len(raw) + 1
+        line = raw.decode("latin-1").strip()
+        if not line:
+            continue
+        key, sep, value = line.partition("=")
+        if not sep:
+            raise DVRInputError(f"{path}: malformed MetaImage header line {shown(line)}")
+        fields[key.strip().lower()] = value.strip()
+        if key.strip().lower() == "elementdatafile":
+            break  # the last field; attached data follows
+    return fields, min(offset, len(head))
+
+
+def _check_meta(path: Path) -> None:
+    """Check a ``.mha``/``.mhd`` header (data file, sizes, spacing, size) before VTK reads it."""
+    fields, offset = _meta_header(path)
+
+    def need(key: str, name: str) -> str:
+        if key not in fields:
+            raise DVRInputError(f"{path}: MetaImage header has no {name!r} field")
+        return fields[key]
+
+    if need("ndims", "NDims") != "3":
+        raise DVRInputError(f"{path}: field 'NDims': expected 3, got {shown(fields['ndims'])}")
+    tokens = need("dimsize", "DimSize").split()
+    if len(tokens) != 3:
+        raise DVRInputError(f"{path}: field 'DimSize': expected 3 integers, got {shown(tokens)}")
+    dims = tuple(parse_int(t, path, "DimSize") for t in tokens)
+    etype = need("elementtype", "ElementType").upper()
+    if etype not in _META_TYPES:
+        raise DVRInputError(
+            f"{path}: field 'ElementType': unsupported type {shown(etype)}; expected one of "
+            f"{', '.join(_META_TYPES)}"
+        )
+    channels = fields.get("elementnumberofchannels", "1")
+    channels = parse_int(channels, path, "ElementNumberOfChannels")
+    for key, name in (("elementspacing", "ElementSpacing"), ("elementsize", "ElementSize")):
+        if key in fields:
+            vals = fields[key].split()
+            if len(vals) != 3:
+                raise DVRInputError(
+                    f"{path}: field {name!r}: expected 3 numbers, got {shown(vals)}"
+                )
+            check_spacing([parse_float(v, path, name) for v in vals], path, name)
+    for key, name in (("offset", "Offset"), ("position", "Position"), ("origin", "Origin")):
+        for v in fields.get(key, "").split()[:3]:
+            parse_float(v, path, name)
+    expected = check_budget(path, (*dims, channels), np.dtype(f"u{_META_TYPES[etype]}"), "DimSize")
+    data_file = need("elementdatafile", "ElementDataFile")
+    if data_file.upper() == "LOCAL":
+        src = path
+    else:
+        if data_file.split()[:1] == ["LIST"] or "%" in data_file:
+            raise DVRInputError(f"{path}: field 'ElementDataFile': file lists are not supported")
+        src, offset = resolve_data_file(path, data_file, "ElementDataFile"), 0
+    header_size = parse_int(fields.get("headersize", "0"), path, "HeaderSize", lo=-1)
+    available = src.stat().st_size - offset - max(header_size, 0)
+    where = f"{path} (data file {src.name})" if src != path else str(path)
+    if fields.get("compresseddata", "false").lower() == "true":
+        check_ratio(where, available, expected)
+    elif available < expected:
+        raise DVRInputError(
+            f"{where}: truncated: expected {expected} bytes, found {max(available, 0)} "
+            f"(DimSize {tuple(dims)})"
+        )
+
+
+def _check_nifti(path: Path, ext: str) -> None:
+    """Refuse a NIfTI-1 header whose sizes cannot fit the memory limit (before VTK reads it)."""
+    try:
+        with gzip.open(path, "rb") if ext == ".nii.gz" else open(path, "rb") as f:
+            head = f.read(348)
+    except (OSError, EOFError) as exc:
+        raise DVRInputError(f"{path}: cannot read the NIfTI header ({exc})") from None
+    if len(head) < 348:
+        raise DVRInputError(f"{path}: truncated: the NIfTI header needs 348 bytes")
+    for order in "<>":
+        if int(np.frombuffer(head[:4], order + "i4")[0]) == 348:
+            break
+    else:
+        return  # not NIfTI-1: VTK's reader decides
+    dim = np.frombuffer(head[40:56], order + "i2").astype(np.int64)
+    bitpix = int(np.frombuffer(head[72:74], order + "i2")[0])
+    if not 1 <= dim[0] <= 7 or bitpix <= 0 or np.any(dim[1 : dim[0] + 1] < 0):
+        raise DVRInputError(f"{path}: NIfTI field 'dim': invalid sizes {dim.tolist()}")
+    check_budget(path, [int(d) for d in dim[1 : dim[0] + 1]], f"u{max(bitpix // 8, 1)}", "dim")
 
 
 def save_volume(volume: Volume, path) -> None:
@@ -373,8 +517,10 @@ def save_volume(volume: Volume, path) -> None:
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=parent))
     try:
         written = _write(volume, tmp / path.name, ext)
-        for f in written:  # data files first, the header last
-            os.replace(f, parent / f.name)
+        from dvr_perception._files import commit
+
+        # data file and header together (Ctrl-C held back); a non-regular target is refused
+        commit([(f, parent / f.name) for f in written])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

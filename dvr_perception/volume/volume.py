@@ -66,9 +66,10 @@ class Volume:
             )
         spacing = tuple(float(s) for s in self.spacing)
         origin = tuple(float(o) for o in self.origin)
-        if len(spacing) != 3 or not all(np.isfinite(s) and s > 0 for s in spacing):
+        if len(spacing) != 3 or not all(np.isfinite(s) and 0 < s <= 1e6 for s in spacing):
             raise DVRInputError(
-                f"volume {self.name!r}: spacing must be three positive numbers, got {self.spacing}"
+                f"volume {self.name!r}: spacing must be three numbers in (0, 1e6], got "
+                f"{self.spacing}"
             )
         if len(origin) != 3 or not all(np.isfinite(o) for o in origin):
             raise DVRInputError(
