@@ -332,7 +332,7 @@ def rank_records(output, ranks):
     """The per-rank records of the filter's field data (string array ``ranks``)."""
     arr = output.GetFieldData().GetAbstractArray("ranks")
     if arr is None or arr.GetNumberOfValues() != ranks:
-        raise BatchError(f"Perception Measures did not run on {ranks} ranks together")
+        raise BatchError(f"the filter did not run on {ranks} ranks together")
     return [json.loads(arr.GetValue(i)) for i in range(ranks)]
 
 

@@ -50,8 +50,11 @@ FD_RESOLUTION = 48
 
 
 def _check(volume, spec, camera, stages, weights, cameras, region, calibration, seed, callback,
-           max_iter, resolution, opacity_floor, coverage_keep=None):  # fmt: skip
-    if not isinstance(volume, Volume):
+           max_iter, resolution, opacity_floor, coverage_keep=None, analyzer=None):  # fmt: skip
+    if analyzer is not None:
+        if not callable(analyzer):
+            raise DVRInputError(f"analyzer: expected a callable or None, got {analyzer!r}")
+    elif not isinstance(volume, Volume):
         raise DVRInputError(f"volume: expected a Volume, got {type(volume).__name__}")
     if not isinstance(spec, StructureSpec):
         raise DVRInputError(f"spec: expected a StructureSpec, got {type(spec).__name__}")
@@ -146,6 +149,7 @@ def optimize(
     curvature=None,
     composition="importance",
     objective="mean",
+    analyzer=None,
 ) -> OptimizationResult:
     """Optimise opacity, lighting and colour of ``spec`` for a readable rendering (Eq. 12-15).
 
@@ -226,6 +230,10 @@ def optimize(
         makes the inserts' face more saturated and solid, so what lies behind it shows a
         little less; cthead and lidc_chest look alike.  The mean is also cheaper (no full
         coarse evaluation per finite-difference gradient).
+    analyzer : callable, optional
+        ``analyzer(camera) -> RayAnalysis`` with a re-evaluation cache, instead of analysing
+        ``volume`` (then ``None``) with ``curvature``: the MPI ranks' analysis, whose cache
+        re-evaluates over the ranks (:meth:`~dvr_perception.rays.ranks.RankSession.analyze`).
 
     Returns
     -------
@@ -247,7 +255,7 @@ def optimize(
     """
     t_start = time.perf_counter()
     w = _check(volume, spec, camera, stages, weights, cameras, region, calibration, seed, callback,
-               max_iter, resolution, opacity_floor, coverage_keep)  # fmt: skip
+               max_iter, resolution, opacity_floor, coverage_keep, analyzer)  # fmt: skip
     if composition not in COMPOSITIONS:
         raise DVRInputError(f"composition: expected one of {COMPOSITIONS}, got {composition!r}")
     if not isinstance(objective, str) or objective not in OBJECTIVES:
@@ -257,15 +265,19 @@ def optimize(
     mask = parse_region(region, camera.height, camera.width)
     views = [camera, *(cameras or [])]
     res = DEFAULT_RESOLUTION if resolution is None else int(resolution)
-    if curvature is None:
-        curvature = curvature_source(volume, spec)
+    if analyzer is None:
+        if curvature is None:
+            curvature = curvature_source(volume, spec)
+
+        def analyzer(cam):
+            return analyze(volume, spec, cam, curvature=curvature)
+
     full_analyses, opt_analyses, opt_masks = [], [], []
     for cam in views:
         small = _reduced(cam, res)
-        full = analyze(volume, spec, cam, curvature=curvature)
+        full = analyzer(cam)
         full_analyses.append(full)
-        opt_analyses.append(full if small is cam else analyze(volume, spec, small,
-                                                              curvature=curvature))  # fmt: skip
+        opt_analyses.append(full if small is cam else analyzer(small))
         opt_masks.append(None if mask is None else resample_mask(mask, small.height, small.width))
     full_masks = [mask] + [None] * (len(views) - 1)
     full_problem = Problem([a.cache for a in full_analyses], full_masks, spec, w, goals,
@@ -282,7 +294,7 @@ def optimize(
         caches, masks = [], []
         for cam in views:
             small = _reduced(cam, FD_RESOLUTION)
-            caches.append(analyze(volume, spec, small, curvature=curvature).cache)
+            caches.append(analyzer(small).cache)
             masks.append(None if mask is None else resample_mask(mask, small.height, small.width))
         coarse = Problem(caches, masks, spec, w, goals, calibration, composition)
 
