@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -294,6 +295,11 @@ def _failure(returncode: int, stderr: str) -> Exception:
         return DVRInputError(mine[-1])
     if mine:
         return RuntimeError(f"pvbatch failed with exit code {returncode}: {mine[-1]}")
+    # ParaView's own errors (loguru "ERR|" lines) say more than mpiexec's closing banner
+    lines = [re.sub(r"\x1b\[[0-9;]*m", "", ln).strip() for ln in lines]
+    lines = [ln for ln in lines if ln.strip("-") and not ln.startswith("[")] or lines
+    errs = [ln for ln in lines if "ERR|" in ln]
+    lines = errs or lines
     last = lines[-1] if lines else "no output"
     return RuntimeError(f"pvbatch failed with exit code {returncode}: {last} (rerun with -v)")
 
@@ -388,11 +394,13 @@ def run(args: argparse.Namespace) -> int:
                 args.timeout,
                 what,
             )
-        # a signal (negative code) is ParaView crashing, not our script's error: Debian's
-        # pvbatch has been seen to abort once at start-up; one fresh retry, then report it
-        if proc.returncode >= 0 or attempt == 2:
+        # a signal (negative code; under mpiexec 128 + signal and ParaView's X message) is
+        # ParaView crashing, not our script's error: Debian's pvbatch has been seen to abort
+        # now and then at start-up ("bad X server connection"); one fresh retry, then report it
+        crashed = proc.returncode < 0 or "bad X server connection" in (proc.stderr or "")
+        if not crashed or attempt == 2:
             break
-        log.warning("pvbatch died with signal %d; retrying once", -proc.returncode)
+        log.warning("pvbatch crashed (exit %d); retrying once", proc.returncode)
     if args.verbose and proc.stderr:
         sys.stderr.write(proc.stderr)
     if proc.returncode != 0:
