@@ -65,6 +65,7 @@ def parse_args(argv):
     parser.add_argument("--resolution", type=int, default=0, help="0: the optimiser's default")
     parser.add_argument("--region", default="", metavar="X0,Y0,X1,Y1", help="the lens (pixels)")
     parser.add_argument("--ranks", type=int, default=1, help="MPI ranks (mpiexec -n N)")
+    parser.add_argument("--no-screenshot", action="store_true", help="no before/after.png")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     args = parser.parse_args(argv)
     try:
@@ -147,13 +148,21 @@ def run(args):
     spec_path = os.path.join(out_dir, "optimized_spec.json")
     write_json(spec_path, result["optimized_spec"])
     images = bm.measure_images(pvs, output, scene.spec.background, out_dir)
-    before = os.path.join(out_dir, "before.png")
-    bm.screenshot(pvs, source, array, scene, before)
-    after = os.path.join(out_dir, "after.png")
-    view, display = bm.show_volume(pvs, source, array, scene)
     preset = os.path.join(out_dir, "optimized_preset.json")
-    apply_optimized(output, display, preset_path=preset)
-    bm.save_screenshot(pvs, view, scene.camera, after)
+    shots = ()
+    if args.no_screenshot:
+        from dvr_perception.export import save_paraview_preset
+        from dvr_perception.structures.io import spec_from_dict
+
+        save_paraview_preset(spec_from_dict(result["optimized_spec"]), preset)
+    else:
+        before = os.path.join(out_dir, "before.png")
+        bm.screenshot(pvs, source, array, scene, before)
+        after = os.path.join(out_dir, "after.png")
+        view, display = bm.show_volume(pvs, source, array, scene)
+        apply_optimized(output, display, preset_path=preset)
+        bm.save_screenshot(pvs, view, scene.camera, after)
+        shots = (before, after)
     result.update(
         volume=str(scene.volume_source),
         spec=scene.spec_source,
@@ -167,7 +176,7 @@ def run(args):
         paraview_version=servermanager.vtkSMProxyManager.GetParaViewSourceVersion(),
         seconds=round(time.perf_counter() - t0, 3),
     )
-    files = (before, after, *images, spec_path, preset, "result.json")
+    files = (*shots, *images, spec_path, preset, "result.json")
     result["files"] = [os.path.basename(f) for f in files]
     write_json(os.path.join(out_dir, "result.json"), result)
     summary = {"initial_E": result["initial"]["E"], "E": result["final"]["E"], "out": out_dir}

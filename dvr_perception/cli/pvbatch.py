@@ -80,6 +80,11 @@ def add_parser(subparsers, parents) -> None:
         metavar="N",
         help="run on N MPI ranks (mpiexec -n N pvbatch), each reading its piece (default 1)",
     )
+    p.add_argument(
+        "--no-screenshot",
+        action="store_true",
+        help="skip ParaView's own rendering (screenshot.png; with --optimize before/after.png)",
+    )
     o = p.add_argument_group(
         "optimisation (--optimize)",
         "optimise the transfer function inside ParaView (plugin/batch_optimize.py): the options "
@@ -267,6 +272,8 @@ def _script_args(args: argparse.Namespace) -> list[str]:
     else:
         argv += ["--sigma", repr(float(args.sigma))]
     argv += ["--out", str(args.out)]
+    if getattr(args, "no_screenshot", False):
+        argv.append("--no-screenshot")
     ranks = getattr(args, "ranks", 1)
     return [*argv, "--ranks", str(ranks)] if ranks != 1 else argv
 
