@@ -76,13 +76,13 @@ def _serial(name, volumes, tmp_path_factory) -> dict:
     return _SERIAL[name]
 
 
-#: ParaView's own parallel screenshot of cthead_half at 4 ranks deadlocks now and then (2 of 4
-#: runs on 2026-12-03): rank 0 waits in an all-gather of
-#: ``vtkPVRenderViewDataDeliveryManager::RedistributeDataForOrderedCompositing`` while the other
-#: ranks already wait for the next RMI (ParaView 5.11's ordered compositing, after our filter has
-#: finished).  That case runs without the screenshot (``--no-screenshot``); the measures are
-#: what the test checks.
-NO_SCREENSHOT = {("cthead_half", 4)}
+#: ParaView's own parallel screenshot of cthead_half deadlocks now and then (3 of 6 runs on
+#: 2026-12-03, at 4 and at 2 ranks; never seen with fuel or neghip): rank 0 waits in an
+#: all-gather of ``vtkPVRenderViewDataDeliveryManager::RedistributeDataForOrderedCompositing``
+#: while the other ranks already wait for the next RMI (ParaView 5.11's ordered compositing,
+#: after our filter has finished).  Those cases run without the screenshot
+#: (``--no-screenshot``); the measures are what the test checks.
+NO_SCREENSHOT = {("cthead_half", 2), ("cthead_half", 4)}
 
 
 @pytest.mark.slow
