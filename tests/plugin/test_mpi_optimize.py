@@ -54,7 +54,7 @@ def _reference(shared_data, tmp_path_factory) -> dict:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ranks", [1, 2])
+@pytest.mark.parametrize("ranks", [1, 2, 4])
 def test_pvbatch_optimize_equals_the_optimize_command(
     mpiexec, shared_data, tmp_path, tmp_path_factory, ranks
 ):
@@ -89,7 +89,7 @@ def test_pvbatch_optimize_equals_the_optimize_command(
     assert {r["views"] for r in records} == {2}  # the user's view and the optimiser's
     whole = 64**3
     for r in records:
-        assert r["voxels"] / whole <= 0.60, r
+        assert r["voxels"] / whole <= {2: 0.60, 4: 0.35}[ranks], r
         assert r["peak_rss_mb"] > 0
     assert np.sum([r["voxels"] for r in records]) < 2 * whole
 
