@@ -16,6 +16,10 @@ dependency folder ``.pvdeps`` of ``make paraview-setup`` and the start-up shims 
 ``--ranks N`` runs ``mpiexec -n N pvbatch`` (the MPI that ParaView is built with; Debian's is
 Open MPI, for which ``--oversubscribe`` and, as root, ``OMPI_ALLOW_RUN_AS_ROOT`` are set): each
 rank reads and analyses its piece of the volume and ``result.json`` adds ``ranks``.
+``--optimize`` runs ``plugin/batch_optimize.py`` instead (*Optimize Transfer Function*; with
+``--ranks N`` over the ranks, each keeping its piece's cache entries): ``before.png``,
+``after.png``, ``optimized_spec.json``, the preset and ``result.json``.  ``--timeout`` stops the
+whole job (``mpiexec`` and every rank) when it takes longer.
 """
 
 from __future__ import annotations
