@@ -47,10 +47,13 @@ True
 from __future__ import annotations
 
 import json
+import os
 import queue
 import resource
 import struct
 import sys
+import time
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -58,8 +61,10 @@ from dvr_perception.errors import DVRInputError
 
 __all__ = [
     "Communicator",
+    "RankFailure",
     "SerialCommunicator",
     "VTKCommunicator",
+    "abort_on_error",
     "communicator",
     "local_group",
     "pack_arrays",
@@ -239,10 +244,33 @@ class VTKCommunicator(Communicator):
         if not self.controller.Send(arr, int(dest), int(tag)):
             raise RuntimeError(f"rank {self.rank}: MPI send to rank {dest} failed")
 
+    def _wait_for(self, source: int, tag: int) -> None:
+        """Sleep until a message from ``source`` with ``tag`` is there (``MPI_Iprobe``).
+
+        Open MPI's blocking receive polls the network without pause; with more ranks than
+        cores, ranks waiting for their turn then take the cores from the one that works
+        (``mpi_yield_when_idle`` only yields them, at full load).  Probing with short sleeps
+        (0.05 ms doubling to 2 ms) leaves the cores to the working rank.  Without ``Iprobe``
+        (not an MPI communicator) nothing is waited for here.
+        """
+        probe = getattr(self.controller.GetCommunicator(), "Iprobe", None)
+        if probe is None:
+            return
+        flag, actual = [0], [0]
+        pause = 5e-5
+        while True:
+            if not probe(int(source), int(tag), flag, actual):
+                return  # the probe failed: let the blocking receive report it
+            if flag[0]:
+                return
+            time.sleep(pause)
+            pause = min(2 * pause, 2e-3)
+
     def _recv_bytes(self, source, tag):
         from vtkmodules.util.numpy_support import vtk_to_numpy
         from vtkmodules.vtkCommonCore import vtkUnsignedCharArray
 
+        self._wait_for(source, tag)
         arr = vtkUnsignedCharArray()
         if not self.controller.Receive(arr, int(source), int(tag)):
             raise RuntimeError(f"rank {self.rank}: MPI receive from rank {source} failed")
@@ -282,6 +310,51 @@ def communicator() -> Communicator:
     except (DVRInputError, ImportError):
         return SerialCommunicator()
     return comm if comm.size > 1 else SerialCommunicator()
+
+
+class RankFailure(Exception):
+    """What :func:`abort_on_error` reports before it ends the job (tests catch it instead)."""
+
+
+@contextmanager
+def abort_on_error(comm: Communicator, what: str, *, exit=os._exit):
+    """End the whole MPI job when the block raises on any rank (one error line, non-zero exit).
+
+    Once the ranks exchange messages, a rank that fails leaves the others waiting for it
+    forever.  With several ranks an exception in the block is written as one line
+    ``dvr-perception: error: WHAT (rank R): MESSAGE`` on stderr and the process leaves at once
+    with status 2 (:class:`~dvr_perception.errors.DVRInputError`) or 1 (anything else):
+    ``mpiexec`` then stops every other rank and exits with that status (Open MPI: a rank that
+    exits non-zero aborts the job, as ``MPI_Abort`` does).  One rank: the exception propagates.
+    ``exit`` is the function that ends the process (tests pass one that raises
+    :class:`RankFailure`).
+
+    Examples
+    --------
+    >>> def leave(status):
+    ...     raise RankFailure(status)
+    >>> comm = local_group(2)[1]
+    >>> try:
+    ...     with abort_on_error(comm, "demo", exit=leave):
+    ...         raise DVRInputError("bad piece")
+    ... except RankFailure as exc:
+    ...     print("status", exc.args[0])
+    status 2
+    """
+    try:
+        yield
+    except BaseException as exc:
+        if comm.size < 2 or isinstance(exc, (KeyboardInterrupt, SystemExit, RankFailure)):
+            raise
+        status = 2 if isinstance(exc, DVRInputError) else 1
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        if status == 1:
+            text = f"{type(exc).__name__}: {text}"
+        sys.stdout.flush()
+        sys.stderr.write(f"dvr-perception: error: {what} (rank {comm.rank}): {text}\n")
+        sys.stderr.flush()
+        exit(status)
+        raise  # pragma: no cover - ``exit`` returned
 
 
 def peak_rss_mb() -> float:

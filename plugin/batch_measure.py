@@ -74,6 +74,7 @@ def parse_args(argv):
     parser.add_argument(
         "--ranks", type=int, default=1, help="MPI ranks pvbatch runs on (mpiexec -n N)"
     )
+    parser.add_argument("--no-screenshot", action="store_true", help="skip ParaView's rendering")
     return parser.parse_args(argv)
 
 
@@ -237,9 +238,11 @@ def run(args):
     if ranks > 1:
         array = source.PointData.keys()[0]
         result["ranks"] = rank_records(output, ranks)
-    shot = os.path.join(out_dir, "screenshot.png")
-    screenshot(pvs, source, array, scene, shot)
-    files = [shot, *measure_images(pvs, output, scene.spec.background, out_dir)]
+    files = measure_images(pvs, output, scene.spec.background, out_dir)
+    if not args.no_screenshot:
+        shot = os.path.join(out_dir, "screenshot.png")
+        screenshot(pvs, source, array, scene, shot)
+        files.insert(0, shot)
     from paraview import servermanager
 
     result.update(
@@ -332,7 +335,7 @@ def rank_records(output, ranks):
     """The per-rank records of the filter's field data (string array ``ranks``)."""
     arr = output.GetFieldData().GetAbstractArray("ranks")
     if arr is None or arr.GetNumberOfValues() != ranks:
-        raise BatchError(f"Perception Measures did not run on {ranks} ranks together")
+        raise BatchError(f"the filter did not run on {ranks} ranks together")
     return [json.loads(arr.GetValue(i)) for i in range(ranks)]
 
 

@@ -5,20 +5,30 @@ repository root and ``.pvdeps``, and an X display)::
 
     pvbatch plugin/batch_optimize.py VOLUME [--structures SPEC] [--view A,E[,Z] | --camera CAM]
             [--size N|WxH] [--shade|--no-shade] [--stages S] [--weights WV,WS,WT] [--seed N]
-            [--max-iter N] [--resolution N] --out DIR
+            [--max-iter N] [--resolution N] [--region X0,Y0,X1,Y1] [--ranks N] --out DIR
 
-The scene options are resolved as in ``batch_measure.py``.  The plugin's *Optimize Transfer
-Function* filter runs on the volume; written into DIR:
+``dvr-perception pvbatch VOLUME --optimize`` runs it.  The scene options are resolved as in
+``batch_measure.py`` (under ``mpiexec -n N pvbatch ... --ranks N`` the volume is opened with
+ParaView's reader, each rank reads its piece, and the filter optimises over the ranks: see
+``TransferFunctionOptimizer.execute_piece``).  The plugin's *Optimize Transfer Function*
+filter runs on the volume; written into DIR:
 
 ``before.png``
-    ParaView's volume rendering with the spec's transfer functions and material;
+    ParaView's volume rendering with the spec's transfer functions and material (what
+    ``batch_measure.py`` saves as ``screenshot.png``);
 ``after.png``
     the same view after ``apply_optimized`` (``apply_result.py``) applied the optimised spec;
+``image.png`` and the three deviation maps
+    the filter's output: the engine's image of the optimised spec and its deviations;
+``optimized_spec.json``
+    the optimised spec (for ``dvr-perception render/measure --structures``);
 ``optimized_preset.json``
     the optimised transfer functions as a ParaView preset;
 ``result.json``
     ``initial`` and ``final`` (``E_v``, ``E_s``, ``E_t``, ``E``, from the filter's field data),
-    ``status``, ``iterations``, ``optimized_spec``, the camera and the files written.
+    ``status``, ``iterations``, ``optimized_spec``, the camera, the files written and, with
+    several ranks, ``ranks`` (one record per rank: ``rank``, ``extent``, ``voxels``,
+    ``peak_rss_mb``, ``evaluations``, ...).
 
 Errors print one line ``dvr-perception: error: ...`` on stderr and exit with status 2.
 """
@@ -53,6 +63,9 @@ def parse_args(argv):
     parser.add_argument("--seed", type=int, default=0, help="seed of the annealing (default 0)")
     parser.add_argument("--max-iter", type=int, default=10, help="iterations per stage")
     parser.add_argument("--resolution", type=int, default=0, help="0: the optimiser's default")
+    parser.add_argument("--region", default="", metavar="X0,Y0,X1,Y1", help="the lens (pixels)")
+    parser.add_argument("--ranks", type=int, default=1, help="MPI ranks (mpiexec -n N)")
+    parser.add_argument("--no-screenshot", action="store_true", help="no before/after.png")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     args = parser.parse_args(argv)
     try:
@@ -88,18 +101,31 @@ def optimizer_values(output):
 
 def run(args):
     t0 = time.perf_counter()
-    from dvr_perception._files import write_json
-    from dvr_perception.cli._common import load_scene, make_output_dir
-    from dvr_perception.structures.io import spec_to_dict
-
-    scene = load_scene(args)
-    out_dir = str(make_output_dir(args.out))
     from apply_result import apply_optimized
     from paraview import servermanager
     from paraview import simple as pvs
 
+    from dvr_perception._files import write_json
+    from dvr_perception.cli._common import load_scene, make_output_dir
+    from dvr_perception.structures.io import spec_to_dict
+
+    ranks = bm.check_ranks(args.ranks)
+    if ranks > 1:
+        source, scene = bm.reader_scene(pvs, args)
+    else:
+        scene = load_scene(args)
+    out_dir = str(make_output_dir(args.out))
     pvs.LoadPlugin(bm.PLUGIN)
-    source, array = bm.volume_source(pvs, scene.volume, args.volume)
+    if ranks == 1:
+        source, array = bm.volume_source(pvs, scene.volume, args.volume)
+    else:
+        array = ""  # the reader's active scalars
+    region = ""
+    if args.region:
+        from dvr_perception.cli.optimize import parse_rect
+
+        x0, y0, x1, y1 = parse_rect(args.region, scene.camera.width, scene.camera.height)
+        region = f"rect,{x0},{y0},{x1},{y1}"
     opt = pvs.OptimizeTransferFunction(
         Input=source,
         ScalarArray=array,
@@ -110,17 +136,33 @@ def run(args):
         Seed=args.seed,
         MaxIterations=args.max_iter,
         Resolution=args.resolution,
+        Region=region,
+        Distributed=int(ranks > 1),
     )
     opt.UpdatePipeline()
     output = servermanager.Fetch(opt)
     result = optimizer_values(output)
-    before = os.path.join(out_dir, "before.png")
-    bm.screenshot(pvs, source, array, scene, before)
-    after = os.path.join(out_dir, "after.png")
-    view, display = bm.show_volume(pvs, source, array, scene)
+    if ranks > 1:
+        array = source.PointData.keys()[0]
+        result["ranks"] = bm.rank_records(output, ranks)
+    spec_path = os.path.join(out_dir, "optimized_spec.json")
+    write_json(spec_path, result["optimized_spec"])
+    images = bm.measure_images(pvs, output, scene.spec.background, out_dir)
     preset = os.path.join(out_dir, "optimized_preset.json")
-    apply_optimized(output, display, preset_path=preset)
-    bm.save_screenshot(pvs, view, scene.camera, after)
+    shots = ()
+    if args.no_screenshot:
+        from dvr_perception.export import save_paraview_preset
+        from dvr_perception.structures.io import spec_from_dict
+
+        save_paraview_preset(spec_from_dict(result["optimized_spec"]), preset)
+    else:
+        before = os.path.join(out_dir, "before.png")
+        bm.screenshot(pvs, source, array, scene, before)
+        after = os.path.join(out_dir, "after.png")
+        view, display = bm.show_volume(pvs, source, array, scene)
+        apply_optimized(output, display, preset_path=preset)
+        bm.save_screenshot(pvs, view, scene.camera, after)
+        shots = (before, after)
     result.update(
         volume=str(scene.volume_source),
         spec=scene.spec_source,
@@ -129,10 +171,12 @@ def run(args):
         weights=args.weights,
         seed=args.seed,
         max_iter=args.max_iter,
+        resolution=args.resolution,
+        region=args.region or None,
         paraview_version=servermanager.vtkSMProxyManager.GetParaViewSourceVersion(),
         seconds=round(time.perf_counter() - t0, 3),
     )
-    files = (before, after, preset, "result.json")
+    files = (*shots, *images, spec_path, preset, "result.json")
     result["files"] = [os.path.basename(f) for f in files]
     write_json(os.path.join(out_dir, "result.json"), result)
     summary = {"initial_E": result["initial"]["E"], "E": result["final"]["E"], "out": out_dir}

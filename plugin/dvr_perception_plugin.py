@@ -10,10 +10,11 @@ the filter first executes.  Parameter values are validated by the library when t
 runs, so a bad value (e.g. a negative sigma typed in Python) becomes an error message in
 *Output Messages*, never an exception inside ParaView.  With several MPI ranks, the filters
 read the whole volume on every rank and compute on piece 0 (rank 0); *Perception Measures*
-with *Distributed* on (what ``dvr-perception pvbatch --ranks N`` sets) reads one piece (plus
-ghost layers) per rank and the ranks compute the serial result together
-(``dvr_perception.rays.ranks``; every rank must execute the filter together, so it is off by
-default in the GUI).  Either way piece 0 holds the whole output and the other pieces are empty.
+and *Optimize Transfer Function* with *Distributed* on (what ``dvr-perception pvbatch --ranks
+N`` sets) read one piece (plus ghost layers) per rank and the ranks compute the serial result
+together (``dvr_perception.rays.ranks``; every rank must execute the filter together, so it is
+off by default in the GUI).  Either way piece 0 holds the whole output and the other pieces
+are empty.
 """
 
 import os
@@ -223,8 +224,7 @@ class PerceptionMeasures(_LibraryShell):
 
     def _parameters(self):
         v = dict(self._values)
-        if "distributed" in v:  # Perception Measures only (Optimize shares this method)
-            v["distributed"] = bool(v["distributed"])
+        v["distributed"] = bool(v["distributed"])
         view = (v.pop("azimuth"), v.pop("elevation"), v.pop("zoom"))
         v["view"] = None if v.pop("use_spec_view") else view
         return v
@@ -314,9 +314,11 @@ class OptimizeTransferFunction(_LibraryShell):
             "seed": 0,
             "max_iter": 10,
             "resolution": 0,
+            "distributed": 0,
         }
 
     _parameters = PerceptionMeasures._parameters
+    SetDistributed = PerceptionMeasures.SetDistributed
 
     # the spec and view properties of the other filters (Sigma is not used by the optimiser)
     SetScalarArray = SetScalarArray

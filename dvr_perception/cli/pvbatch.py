@@ -16,6 +16,10 @@ dependency folder ``.pvdeps`` of ``make paraview-setup`` and the start-up shims 
 ``--ranks N`` runs ``mpiexec -n N pvbatch`` (the MPI that ParaView is built with; Debian's is
 Open MPI, for which ``--oversubscribe`` and, as root, ``OMPI_ALLOW_RUN_AS_ROOT`` are set): each
 rank reads and analyses its piece of the volume and ``result.json`` adds ``ranks``.
+``--optimize`` runs ``plugin/batch_optimize.py`` instead (*Optimize Transfer Function*; with
+``--ranks N`` over the ranks, each keeping its piece's cache entries): ``before.png``,
+``after.png``, ``optimized_spec.json``, the preset and ``result.json``.  ``--timeout`` stops the
+whole job (``mpiexec`` and every rank) when it takes longer.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -39,10 +44,14 @@ __all__ = [
     "find_paraview",
     "mpi_command",
     "paraview_env",
+    "rank_threads",
     "run",
+    "run_job",
     "virtual_display",
 ]
 
+#: Seconds a pvbatch run (all its MPI ranks) may take before it is killed (``--timeout``).
+DEFAULT_TIMEOUT = 3600.0
 #: Environment variable naming the directory that holds ``pvpython``/``pvbatch``.
 PARAVIEW_ENV = "DVR_PERCEPTION_PARAVIEW"
 #: Variables of this environment that must not reach ParaView's Python.
@@ -74,6 +83,42 @@ def add_parser(subparsers, parents) -> None:
         default=1,
         metavar="N",
         help="run on N MPI ranks (mpiexec -n N pvbatch), each reading its piece (default 1)",
+    )
+    p.add_argument(
+        "--no-screenshot",
+        action="store_true",
+        help="skip ParaView's own rendering (screenshot.png; with --optimize before/after.png)",
+    )
+    o = p.add_argument_group(
+        "optimisation (--optimize)",
+        "optimise the transfer function inside ParaView (plugin/batch_optimize.py): the options "
+        "mean what they mean for 'dvr-perception optimize'",
+    )
+    o.add_argument(
+        "--optimize",
+        action="store_true",
+        help="run Optimize Transfer Function instead of Perception Measures; writes before.png, "
+        "after.png, optimized_spec.json, the preset and result.json (with --ranks N: over the "
+        "ranks, each holding its piece)",
+    )
+    o.add_argument("--stages", default="opacity,lighting,colour", metavar="S1,S2,..",
+                   help="stages in order (default opacity,lighting,colour)")  # fmt: skip
+    o.add_argument("--weights", default="1,1,1", metavar="V,S,T",
+                   help="w_v,w_s,w_t >= 0 (default 1,1,1)")  # fmt: skip
+    o.add_argument("--seed", type=int, default=0, metavar="N", help="annealing seed (0)")
+    o.add_argument("--max-iter", type=int, default=10, metavar="N",
+                   help="iterations per stage (default 10)")  # fmt: skip
+    o.add_argument("--resolution", type=int, default=None, metavar="N",
+                   help="long side of the optimisation camera in pixels (default 96)")  # fmt: skip
+    o.add_argument("--region", metavar="X0,Y0,X1,Y1",
+                   help="optimise for this image rectangle (pixels, y down)")  # fmt: skip
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=DEFAULT_TIMEOUT,
+        metavar="SECONDS",
+        help=f"stop the ParaView job (every MPI rank) after this long and fail (default "
+        f"{DEFAULT_TIMEOUT:g})",
     )
     p.set_defaults(run=run)
 
@@ -177,13 +222,43 @@ def mpi_command(ranks: int, pvbatch: Path, env: dict) -> list[str]:
     if "Open MPI" in version or "OpenRTE" in version:
         extra.append("--oversubscribe")
         env.setdefault("OMPI_MCA_mpi_yield_when_idle", "1")
+        # the shared-memory transport's single copy (CMA) needs ptrace rights that containers
+        # often lack; the copy through the shared segment always works
+        env.setdefault("OMPI_MCA_btl_vader_single_copy_mechanism", "none")
         if hasattr(os, "geteuid") and os.geteuid() == 0:
             env.update(OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1")
+    threads = str(rank_threads(ranks))
+    for name in THREAD_VARIABLES:
+        env.setdefault(name, threads)
     return [mpiexec, "-n", str(int(ranks)), *extra]
 
 
+#: Thread pools of each rank (numba's, OpenMP's, the BLAS'), sized by :func:`rank_threads`.
+THREAD_VARIABLES = ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                    "MKL_NUM_THREADS")  # fmt: skip
+
+
+def rank_threads(ranks: int, cores: int | None = None) -> int:
+    """Threads per rank so that ``ranks`` ranks together use the cores, not more.
+
+    Every rank would otherwise start one numba/OpenMP/BLAS thread per core: 4 ranks on 2
+    cores run 8 compute threads that take turns on the cores.
+
+    Examples
+    --------
+    >>> rank_threads(4, cores=2), rank_threads(2, cores=8), rank_threads(3, cores=8)
+    (1, 4, 2)
+    """
+    if cores is None:
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except (AttributeError, OSError):  # not Linux
+            cores = os.cpu_count() or 1
+    return max(1, int(cores) // max(1, int(ranks)))
+
+
 def _script_args(args: argparse.Namespace) -> list[str]:
-    """Return the command line of ``plugin/batch_measure.py`` for the parsed options."""
+    """Return the command line of ``plugin/batch_measure.py`` (or ``batch_optimize.py``)."""
     argv = [str(args.volume)]
     for opt in ("structures", "camera", "size"):
         if getattr(args, opt) is not None:
@@ -192,22 +267,55 @@ def _script_args(args: argparse.Namespace) -> list[str]:
         argv.append(f"--view={args.view}")
     if args.shade is not None:
         argv.append("--shade" if args.shade else "--no-shade")
-    argv += ["--sigma", repr(float(args.sigma)), "--out", str(args.out)]
+    if getattr(args, "optimize", False):
+        argv += ["--stages", ",".join(args.stages), "--weights", ",".join(map(repr, args.weights)),
+                 "--seed", str(args.seed), "--max-iter", str(args.max_iter),
+                 "--resolution", str(args.resolution or 0)]  # fmt: skip
+        if args.region:
+            argv.append(f"--region={args.region}")
+    else:
+        argv += ["--sigma", repr(float(args.sigma))]
+    argv += ["--out", str(args.out)]
+    if getattr(args, "no_screenshot", False):
+        argv.append("--no-screenshot")
     ranks = getattr(args, "ranks", 1)
     return [*argv, "--ranks", str(ranks)] if ranks != 1 else argv
+
+
+def _check_optimize(args: argparse.Namespace) -> None:
+    """Parse the optimiser's options in place (one error naming the option)."""
+    from dvr_perception.cli.optimize import _numbers, parse_stages, parse_weights
+
+    args.stages = parse_stages(args.stages)
+    args.weights = parse_weights(args.weights)
+    if args.seed < 0:
+        raise DVRInputError(f"--seed: expected an integer >= 0, got {args.seed}")
+    if args.max_iter < 1:
+        raise DVRInputError(f"--max-iter: expected a positive integer, got {args.max_iter}")
+    if args.resolution is not None and args.resolution < 8:
+        raise DVRInputError(f"--resolution: expected an integer >= 8, got {args.resolution}")
+    if args.region is not None:
+        _numbers(args.region, "--region", 4, "four numbers x0,y0,x1,y1")
 
 
 def _failure(returncode: int, stderr: str) -> Exception:
     lines = [ln.strip() for ln in stderr.splitlines() if ln.strip()]
     prefix = f"{PROG}: error: "
     mine = [ln[len(prefix) :] for ln in lines if ln.startswith(prefix)]
-    if mine:
+    if mine and returncode == 2:
         return DVRInputError(mine[-1])
+    if mine:
+        return RuntimeError(f"pvbatch failed with exit code {returncode}: {mine[-1]}")
+    # ParaView's own errors (loguru "ERR|" lines) say more than mpiexec's closing banner
+    lines = [re.sub(r"\x1b\[[0-9;]*m", "", ln).strip() for ln in lines]
+    lines = [ln for ln in lines if ln.strip("-") and not ln.startswith("[")] or lines
+    errs = [ln for ln in lines if "ERR|" in ln]
+    lines = errs or lines
     last = lines[-1] if lines else "no output"
     return RuntimeError(f"pvbatch failed with exit code {returncode}: {last} (rerun with -v)")
 
 
-def _warm_up(pvbatch: Path, env: dict) -> None:
+def _warm_up(pvbatch: Path, env: dict, *, optimize: bool = False) -> None:
     """Compile the ranks' kernels in one pvbatch process first (:func:`ranks.warm_up`)."""
     import tempfile
 
@@ -215,7 +323,8 @@ def _warm_up(pvbatch: Path, env: dict) -> None:
     with tempfile.TemporaryDirectory(prefix="dvr-warm-") as tmp:
         script = Path(tmp) / "warm_up.py"
         script.write_text(
-            "from dvr_perception.rays.ranks import warm_up\nwarm_up()\n", encoding="utf-8"
+            f"from dvr_perception.rays.ranks import warm_up\nwarm_up(optimize={optimize})\n",
+            encoding="utf-8",
         )
         for _ in (1, 2):  # Debian's pvbatch may abort at start-up: one retry
             proc = subprocess.run(
@@ -228,6 +337,43 @@ def _warm_up(pvbatch: Path, env: dict) -> None:
                     proc.returncode)  # fmt: skip
 
 
+def run_job(cmd: list[str], env: dict, timeout: float, what: str) -> subprocess.CompletedProcess:
+    """Run ``cmd`` (``pvbatch`` or ``mpiexec ... pvbatch``) in its own process group.
+
+    After ``timeout`` seconds the whole group (``mpiexec`` and every rank) gets SIGTERM, then
+    SIGKILL, and a ``RuntimeError`` names ``what`` and ``--timeout``: a rank that hangs never
+    leaves the command (or a test) waiting.
+    """
+    import signal
+
+    proc = subprocess.Popen(
+        cmd,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        for sig, wait in ((signal.SIGTERM, 10), (signal.SIGKILL, None)):
+            try:
+                os.killpg(proc.pid, sig)
+            except ProcessLookupError:
+                break
+            try:
+                proc.communicate(timeout=wait)
+                break
+            except subprocess.TimeoutExpired:
+                continue
+        proc.wait()
+        raise RuntimeError(
+            f"{what} did not finish within {timeout:g} s (--timeout); the job was killed"
+        ) from None
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+
+
 def run(args: argparse.Namespace) -> int:
     """Execute ``pvbatch``."""
     if args.size is not None:
@@ -238,34 +384,47 @@ def run(args: argparse.Namespace) -> int:
         raise DVRInputError(f"--sigma: expected a positive number, got {args.sigma}")
     if args.ranks < 1:
         raise DVRInputError(f"--ranks: expected a positive number of ranks, got {args.ranks}")
+    if not (args.timeout > 0):
+        raise DVRInputError(f"--timeout: expected a positive number of seconds, got {args.timeout}")
+    if args.optimize:
+        _check_optimize(args)
     pvbatch = find_paraview("pvbatch")
-    script = _paraview_compat.repo_root() / "plugin" / "batch_measure.py"
+    name = "batch_optimize.py" if args.optimize else "batch_measure.py"
+    script = _paraview_compat.repo_root() / "plugin" / name
     env = paraview_env()
     prefix = mpi_command(args.ranks, pvbatch, env) if args.ranks > 1 else []
     if prefix:
-        _warm_up(pvbatch, env)
+        _warm_up(pvbatch, env, optimize=args.optimize)
     for attempt in (1, 2):
         with virtual_display() as display:
             env["DISPLAY"] = display
-            proc = subprocess.run(
+            what = f"pvbatch{f' --ranks {args.ranks}' if args.ranks > 1 else ''}"
+            proc = run_job(
                 [*prefix, str(pvbatch), str(script), *_script_args(args)],
-                env=env,
-                capture_output=True,
-                text=True,
-                check=False,
+                env,
+                args.timeout,
+                what,
             )
-        # a signal (negative code) is ParaView crashing, not our script's error: Debian's
-        # pvbatch has been seen to abort once at start-up; one fresh retry, then report it
-        if proc.returncode >= 0 or attempt == 2:
+        # a signal (negative code; under mpiexec 128 + signal and ParaView's X message) is
+        # ParaView crashing, not our script's error: Debian's pvbatch has been seen to abort
+        # now and then at start-up ("bad X server connection"); one fresh retry, then report it
+        crashed = proc.returncode < 0 or "bad X server connection" in (proc.stderr or "")
+        if not crashed or attempt == 2:
             break
-        log.warning("pvbatch died with signal %d; retrying once", -proc.returncode)
+        log.warning("pvbatch crashed (exit %d); retrying once", proc.returncode)
     if args.verbose and proc.stderr:
         sys.stderr.write(proc.stderr)
     if proc.returncode != 0:
         raise _failure(proc.returncode, proc.stderr)
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    mpi = f", {args.ranks} MPI ranks" if args.ranks > 1 else ""
     if args.json:
         emit_json(json.loads((Path(summary["out"]) / "result.json").read_text(encoding="utf-8")))
+    elif args.optimize:
+        print(
+            f"E {summary['initial_E']:.4f} -> {summary['E']:.4f}  (ParaView pvbatch{mpi}; "
+            f"before.png, after.png, optimized_spec.json and result.json in {summary['out']})"
+        )
     else:
         print(
             f"E_v = {summary['E_v']:.4f}  E_s = {summary['E_s']:.4f}  E_t = {summary['E_t']:.4f}"

@@ -19,8 +19,9 @@ that do not depend on the computation:
   the library while a request runs) are forwarded the same way as ``WarningEvent`` or warning
   text, and kept in :attr:`DVRFilterBase.warning_messages`.
 * The filters need the **whole input** (curvature and rays are not local), so the update extent
-  requested upstream is always the input's whole extent; they do not stream or run in
-  distributed (multi-rank) pipelines.
+  requested upstream is always the input's whole extent; they do not stream.  Under several
+  MPI ranks *Perception Measures* and the optimiser can instead have each rank hold its piece
+  (their ``distributed`` parameter; :mod:`dvr_perception.rays.ranks`).
 """
 
 from __future__ import annotations

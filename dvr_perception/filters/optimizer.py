@@ -41,6 +41,8 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
+
 from dvr_perception.errors import DVRInputError
 from dvr_perception.filters._base import (
     Parameter,
@@ -191,25 +193,67 @@ class TransferFunctionOptimizer(PerceptionMeasures):
 
         return callback
 
+    def _optimize(self, volume, spec, camera, analyzer=None):
+        from dvr_perception.optimize import optimize
+
+        stages = self.stages
+        return optimize(volume, spec, camera, stages=stages, weights=self.weights, seed=self.seed,
+                        region=self.region, callback=self._callback(len(stages) * self.max_iter),
+                        max_iter=self.max_iter, resolution=self.resolution or None,
+                        analyzer=analyzer)  # fmt: skip
+
     def execute(self, image, output) -> None:
         """Optimise, render and measure the optimised spec, and fill the output."""
-        from dvr_perception.optimize import optimize
-        from dvr_perception.optimize.explain import explanation_line
-
         self.UpdateProgress(0.0)
         self.result = None
         volume = self.load_input(image)
         spec = self.load_spec_parameters()
         check_spec_for_volume(spec, volume)
         camera = self.make_camera(volume, spec)
-        stages, weights = self.stages, self.weights
-        res = optimize(volume, spec, camera, stages=stages, weights=weights, seed=self.seed,
-                       region=self.region, callback=self._callback(len(stages) * self.max_iter),
-                       max_iter=self.max_iter, resolution=self.resolution or None)  # fmt: skip
+        res = self._optimize(volume, spec, camera)
         self.UpdateProgress(0.9)
         opt = res.spec
         curvature, _ = curvature_volume(volume, opt)
         result = analyze(volume, opt, camera, curvature=curvature, build_cache=False)
+        self._fill_result(output, result, res, camera)
+
+    def execute_piece(self, image, output, comm, piece: int, whole) -> None:
+        """Optimise over the MPI ranks, each holding its piece (collective).
+
+        Every rank keeps its brick's cache entries
+        (:class:`~dvr_perception.rays.ranks.RankSession`); rank 0 runs the optimiser, whose
+        every evaluation broadcasts the parameters and composites the ranks' re-evaluations in
+        view order; the others serve until rank 0 stops them.  The optimised spec's image is
+        the user view's re-evaluation.  Piece 0 holds the output, whose field data adds
+        ``ranks`` (:meth:`~dvr_perception.rays.ranks.RankSession.stop`'s records).
+        """
+        from dvr_perception.optimize._problem import Params
+        from dvr_perception.rays.ranks import RankSession
+
+        self.UpdateProgress(0.0)
+        self.result = None
+        part, spec, camera = self.piece_scene(image, comm, piece, whole)
+        session = RankSession(comm, part, spec, sigma=1.0)  # the optimiser's curvature scale
+        if comm.rank != 0:
+            session.serve()
+            output.Initialize()
+            return
+        res = self._optimize(None, spec, camera, analyzer=session.analyze)
+        self.UpdateProgress(0.9)
+        p = Params.from_spec(res.spec)
+        result = session.caches[0].reevaluate(
+            opacities=np.clip(p.opacities, 0.0, 1.0), lighting=p.materials(),
+            colors=np.clip(p.colors, 0.0, 1.0), light_direction=p.light,
+        )  # fmt: skip
+        records = session.stop()
+        self._fill_result(output, result, res, camera)
+        output.GetFieldData().AddArray(string_array([json.dumps(r) for r in records], "ranks"))
+
+    def _fill_result(self, output, result, res, camera) -> None:
+        """Measure the optimised rendering ``result`` and fill the output (see the module)."""
+        from dvr_perception.optimize.explain import explanation_line
+
+        opt, weights = res.spec, self.weights
         vis, shp, trn = visibility(result, opt), shape(result, opt), transparency(result, opt)
         lum = composite_luminance(result.rgba, background=opt.background)
         self.UpdateProgress(0.97)

@@ -242,15 +242,26 @@ class PerceptionMeasures(DVRFilterBase):
         whole = (
             in_info[0].GetInformationObject(0).Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT())
         )
-        status = self._guarded(self.execute_piece, image, output, comm, piece, whole)
+        status = self._guarded(self._collective, comm, image, output, piece, whole)
         if not status and output is not None:
             output.Initialize()
         return status
 
-    def execute_piece(self, image, output, comm, piece: int, whole) -> None:
-        """Compute this rank's part of the output (collective; see *Several MPI ranks*)."""
+    def _collective(self, comm, image, output, piece: int, whole) -> None:
+        """:meth:`execute_piece`; an error on any rank ends the MPI job (one line, exit 2/1).
+
+        The other ranks would otherwise wait forever for the failed rank's messages
+        (:func:`~dvr_perception.parallel.abort_on_error`).
+        """
+        from dvr_perception.parallel import abort_on_error
+
+        with abort_on_error(comm, self.label):
+            self.execute_piece(image, output, comm, piece, whole)
+
+    def piece_scene(self, image, comm, piece: int, whole) -> tuple:
+        """Return this rank's ``(Piece, spec, camera)`` for the input piece ``image``."""
         from dvr_perception.rays import bricks
-        from dvr_perception.rays.ranks import Piece, analyze_ranks
+        from dvr_perception.rays.ranks import Piece
 
         if comm.rank != piece:
             raise DVRInputError(f"{self.label}: rank {comm.rank} was asked for piece {piece}")
@@ -267,9 +278,14 @@ class PerceptionMeasures(DVRFilterBase):
         owned = piece_extent(whole, piece, comm.size, 0)
         brick = bricks.from_piece_extent(owned, whole)
         camera = self.make_camera(geometry, spec)
-        result, records = analyze_ranks(
-            comm, Piece(volume, offset, brick, geometry), spec, camera, sigma=self.sigma
-        )
+        return Piece(volume, offset, brick, geometry), spec, camera
+
+    def execute_piece(self, image, output, comm, piece: int, whole) -> None:
+        """Compute this rank's part of the output (collective; see *Several MPI ranks*)."""
+        from dvr_perception.rays.ranks import analyze_ranks
+
+        part, spec, camera = self.piece_scene(image, comm, piece, whole)
+        result, records = analyze_ranks(comm, part, spec, camera, sigma=self.sigma)
         if result is None:
             output.Initialize()
             return

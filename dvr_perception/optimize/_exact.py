@@ -78,6 +78,58 @@ def _composite_grad(rays, start, count, lut, ids, alpha, dalpha, k, ert, grad, v
                 dacc[q, i] = -tr * g[q]
 
 
+@njit(cache=True)
+def composite_grad_part(rays, start, count, lut, ids, alpha, dalpha, k, ert, grad, tr, g, vis,
+                        dvis):  # fmt: skip
+    """:func:`_composite_grad` over one brick's entries, continuing each selected ray's state.
+
+    Per selected ray ``i``: ``tr[i]`` the transmittance, ``g[:, i]`` the running
+    ``d log T / d o``, ``vis[:, i]`` and (with ``grad``) ``dvis[:, :, i]``, all updated in place
+    with the same operations as :func:`_composite_grad`; a ray already below ``ert`` is left
+    as it is.  Walking the bricks in view order from ``tr = 1`` and zeros gives the whole
+    ray's values bit for bit; then ``acc = 1 - tr`` and ``dacc = -tr * g``.
+    """
+    for i in range(rays.shape[0]):
+        r = rays[i]
+        t = tr[i]
+        if t < ert:
+            continue
+        for e in range(start[r], start[r] + count[r]):
+            idx = lut[e]
+            al = alpha[idx]
+            if al <= 0.0:
+                continue
+            s = ids[idx]
+            w = al * t
+            vis[s, i] += w
+            if grad:
+                for q in range(k):
+                    dvis[s, q, i] += w * g[q, i]
+                da = dalpha[idx]
+                dvis[s, s, i] += da * t
+                g[s, i] -= da / max(1.0 - al, 1e-9)
+            t *= 1.0 - al
+            if t < ert:
+                break
+        tr[i] = t
+
+
+def opacity_tables(ids, membership, ratio, ops) -> tuple:
+    """Return ``(alpha, dalpha, structure)`` per table entry at opacities ``ops`` (K,).
+
+    The engine's quantised step-corrected opacity, its derivative in the structure's opacity
+    (without the rounding) and the structure index (0 outside every structure, where the
+    opacity is 0).
+    """
+    alpha = _tables.alpha_table(ids, membership, ops, ratio)
+    ids = np.asarray(ids)
+    m = np.asarray(membership, np.float64)
+    o = np.where(ids >= 0, ops[np.maximum(ids, 0)] * m, 0.0)
+    base = np.clip(1.0 - o, 1e-9, 1.0)
+    da = np.where(o > 1e-4, ratio * m * base ** (ratio - 1.0), m)
+    return alpha, np.where(ids >= 0, da, 0.0), np.maximum(ids, 0).astype(np.int64)
+
+
 class OpacityModel:
     """``E_v`` and coverage of one problem as functions of the K rendering opacities.
 
@@ -99,13 +151,7 @@ class OpacityModel:
         self.nfev = 0
 
     def _tables(self, cache, ops):
-        alpha = _tables.alpha_table(cache.ids, cache.membership, ops, cache.ratio)
-        ids = np.asarray(cache.ids)
-        m = np.asarray(cache.membership, np.float64)
-        o = np.where(ids >= 0, ops[np.maximum(ids, 0)] * m, 0.0)
-        base = np.clip(1.0 - o, 1e-9, 1.0)
-        da = np.where(o > 1e-4, cache.ratio * m * base ** (cache.ratio - 1.0), m)
-        return alpha, np.where(ids >= 0, da, 0.0), np.maximum(ids, 0).astype(np.int64)
+        return opacity_tables(cache.ids, cache.membership, cache.ratio, ops)
 
     def evaluate(self, ops, grad: bool = True, shares: bool = False) -> tuple:
         """Return ``(E_v, coverage, dE_v/do, dcoverage/do)`` at opacities ``ops`` (K,).
@@ -126,12 +172,15 @@ class OpacityModel:
             n = rays.size
             if n == 0:
                 continue
-            alpha, dalpha, ids = self._tables(cache, ops)
-            vis, acc = np.empty((k, n)), np.empty(n)
-            m = n if grad else 1
-            dvis, dacc = np.zeros((k, k, m)), np.zeros((k, m))
-            _composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha, k,
-                            _tables.ERT, grad, vis, dvis, acc, dacc)  # fmt: skip
+            if hasattr(cache, "opacity_pass"):  # entries spread over MPI ranks
+                vis, dvis, acc, dacc = cache.opacity_pass(rays, ops, grad)
+            else:
+                alpha, dalpha, ids = self._tables(cache, ops)
+                vis, acc = np.empty((k, n)), np.empty(n)
+                m = n if grad else 1
+                dvis, dacc = np.zeros((k, k, m)), np.zeros((k, m))
+                _composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha,
+                                k, _tables.ERT, grad, vis, dvis, acc, dacc)  # fmt: skip
             acc32, vis32 = acc.astype(np.float32), vis.astype(np.float32)  # as the engine's
             diff = target - vis32.astype(np.float64)
             e_v += float(np.abs(diff).sum(axis=0).mean())

@@ -212,14 +212,21 @@ class Problem:
         return both / max(total, 1)
 
     def render(self, params: Params, view: int = 0):
-        """Return the ray analysis of ``params`` in ``view`` (re-composited from the cache)."""
-        return reevaluate(
-            self.caches[view],
-            opacities=np.clip(params.opacities, 0.0, 1.0),
-            lighting=params.materials(),
-            colors=np.clip(params.colors, 0.0, 1.0),
-            light_direction=params.light,
-        )
+        """Return the ray analysis of ``params`` in ``view`` (re-composited from the cache).
+
+        A cache with a ``reevaluate`` method of its own (the MPI ranks' :class:`~dvr_perception.
+        rays.ranks.RankCache`) re-composites itself.
+        """
+        cache = self.caches[view]
+        kwargs = {
+            "opacities": np.clip(params.opacities, 0.0, 1.0),
+            "lighting": params.materials(),
+            "colors": np.clip(params.colors, 0.0, 1.0),
+            "light_direction": params.light,
+        }
+        if hasattr(cache, "reevaluate"):
+            return cache.reevaluate(**kwargs)
+        return reevaluate(cache, **kwargs)
 
     def terms(self, params: Params, *, whole=False, need=TERMS, analyses=None) -> dict:
         """Terms ``{E_v, E_s, E_t, E, S, coverage, luminance, visible_share, badness}``.

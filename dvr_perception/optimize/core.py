@@ -50,8 +50,11 @@ FD_RESOLUTION = 48
 
 
 def _check(volume, spec, camera, stages, weights, cameras, region, calibration, seed, callback,
-           max_iter, resolution, opacity_floor, coverage_keep=None):  # fmt: skip
-    if not isinstance(volume, Volume):
+           max_iter, resolution, opacity_floor, coverage_keep=None, analyzer=None):  # fmt: skip
+    if analyzer is not None:
+        if not callable(analyzer):
+            raise DVRInputError(f"analyzer: expected a callable or None, got {analyzer!r}")
+    elif not isinstance(volume, Volume):
         raise DVRInputError(f"volume: expected a Volume, got {type(volume).__name__}")
     if not isinstance(spec, StructureSpec):
         raise DVRInputError(f"spec: expected a StructureSpec, got {type(spec).__name__}")
@@ -146,6 +149,7 @@ def optimize(
     curvature=None,
     composition="importance",
     objective="mean",
+    analyzer=None,
 ) -> OptimizationResult:
     """Optimise opacity, lighting and colour of ``spec`` for a readable rendering (Eq. 12-15).
 
@@ -226,6 +230,10 @@ def optimize(
         makes the inserts' face more saturated and solid, so what lies behind it shows a
         little less; cthead and lidc_chest look alike.  The mean is also cheaper (no full
         coarse evaluation per finite-difference gradient).
+    analyzer : callable, optional
+        ``analyzer(camera) -> RayAnalysis`` with a re-evaluation cache, instead of analysing
+        ``volume`` (then ``None``) with ``curvature``: the MPI ranks' analysis, whose cache
+        re-evaluates over the ranks (:meth:`~dvr_perception.rays.ranks.RankSession.analyze`).
 
     Returns
     -------
@@ -247,7 +255,7 @@ def optimize(
     """
     t_start = time.perf_counter()
     w = _check(volume, spec, camera, stages, weights, cameras, region, calibration, seed, callback,
-               max_iter, resolution, opacity_floor, coverage_keep)  # fmt: skip
+               max_iter, resolution, opacity_floor, coverage_keep, analyzer)  # fmt: skip
     if composition not in COMPOSITIONS:
         raise DVRInputError(f"composition: expected one of {COMPOSITIONS}, got {composition!r}")
     if not isinstance(objective, str) or objective not in OBJECTIVES:
@@ -257,18 +265,21 @@ def optimize(
     mask = parse_region(region, camera.height, camera.width)
     views = [camera, *(cameras or [])]
     res = DEFAULT_RESOLUTION if resolution is None else int(resolution)
-    if curvature is None:
-        curvature = curvature_source(volume, spec)
     smalls = [_reduced(cam, res) for cam in views]
     want_coarse = res >= 2 * FD_RESOLUTION and any(
         max(c.width, c.height) >= 2 * FD_RESOLUTION for c in smalls
     )
     coarse_cams = [_reduced(cam, FD_RESOLUTION) for cam in views] if want_coarse else []
-    # every camera of a view in one call: a volume analysed in bricks is read once for all
     todo = [*views, *(s for s, cam in zip(smalls, views, strict=True) if s is not cam)]
-    got = dict(zip(map(id, todo + coarse_cams),
-                   analyze_views(volume, spec, todo + coarse_cams, curvature=curvature),
-                   strict=True))  # fmt: skip
+    todo += coarse_cams
+    if analyzer is None:
+        if curvature is None:
+            curvature = curvature_source(volume, spec)
+        # every camera in one call: a volume analysed in bricks is read once for all
+        found = analyze_views(volume, spec, todo, curvature=curvature)
+    else:
+        found = [analyzer(cam) for cam in todo]
+    got = dict(zip(map(id, todo), found, strict=True))
     full_analyses = [got[id(cam)] for cam in views]
     opt_analyses = [got[id(s)] for s in smalls]
     opt_masks = [None if mask is None else resample_mask(mask, s.height, s.width) for s in smalls]

@@ -9,7 +9,9 @@ sample of a ray belongs to exactly one brick.  :func:`walk_brick` walks those sa
 :func:`_numba_kernels._walk_ray`, continuing the per-ray state handed on from the bricks in
 front; :func:`fill_range` computes the shading and curvature of cache entries in a brick's
 runs (the bricked cache has no whole volume to fill them from later); :func:`place` copies a
-brick's cache entries behind the entries of the bricks in front of it.
+brick's cache entries behind the entries of the bricks in front of it; :func:`composite_part`
+re-composites a brick's cache entries, continuing the rays' state from the bricks in front
+(the re-evaluation over MPI ranks, :class:`~dvr_perception.rays.ranks.RankSession`).
 """
 
 from __future__ import annotations
@@ -18,9 +20,9 @@ import math
 
 from numba import njit, prange
 
-from dvr_perception.rays._numba_kernels import _FM, _UNSET, _fill, _sample_at, _walk_ray
+from dvr_perception.rays._numba_kernels import _FM, _IQS, _UNSET, _fill, _sample_at, _walk_ray
 
-__all__ = ["brick_ranges", "fill_range", "place", "walk_brick"]
+__all__ = ["brick_ranges", "composite_part", "fill_range", "place", "walk_brick"]
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
@@ -173,3 +175,59 @@ def place(dest, fill, start, count, lut, j_, sh, curv, m_lut, m_j, m_sh, m_curv,
             if has_curv:
                 m_curv[d0 + q] = curv[s0 + q]
         fill[r] += count[r]
+
+
+@njit(parallel=True, cache=True, fastmath=_FM)
+def composite_part(start, count, c_lut, c_sh, c_curv, ids, alpha_r, col, light, shade, has_curv,
+                   ert, st, vis):  # fmt: skip
+    """Front-to-back compositing of one brick's cache entries, continuing every ray's state.
+
+    ``st`` (R, 6) float64: premultiplied r, g, b, transmittance, curvature numerator and
+    weight per ray; ``vis`` (K, R) float64 visible opacities; both updated in place.  The
+    update is :func:`_numba_kernels._composite_ray`'s, operation for operation, and a ray
+    whose transmittance is already below ``ert`` (terminated in a brick in front) is left as
+    it is, so walking the bricks in view order gives the whole re-evaluation bit for bit.
+    Every entry's shading and curvature must be set (:func:`fill_range`).
+    """
+    ka = light[0]
+    kd = light[1]
+    ks = light[2]
+    for r in prange(len(start)):
+        tr = st[r, 3]
+        if count[r] == 0 or tr < ert:
+            continue
+        cr = st[r, 0]
+        cg = st[r, 1]
+        cb = st[r, 2]
+        num = st[r, 4]
+        den = st[r, 5]
+        for e in range(start[r], start[r] + count[r]):
+            k = c_lut[e]
+            al = alpha_r[k]
+            if al <= 0.0:
+                continue
+            s = ids[k]
+            dfac = 1.0
+            spec = 0.0
+            if shade:
+                dfac = ka[s] + kd[s] * (c_sh[e, 0] * _IQS)
+                spec = ks[s] * (c_sh[e, 1] * _IQS)
+            w = al * tr
+            vis[s, r] += w
+            cr += w * (col[s, 0] * dfac + spec)
+            cg += w * (col[s, 1] * dfac + spec)
+            cb += w * (col[s, 2] * dfac + spec)
+            if has_curv:
+                hc = c_curv[e]
+                if hc > 0.0:
+                    num += w * hc
+                    den += w
+            tr *= 1.0 - al
+            if tr < ert:
+                break
+        st[r, 0] = cr
+        st[r, 1] = cg
+        st[r, 2] = cb
+        st[r, 3] = tr
+        st[r, 4] = num
+        st[r, 5] = den

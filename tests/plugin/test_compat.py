@@ -132,7 +132,7 @@ def test_pvbatch_checks_options_before_starting_paraview(tmp_path, capsys):
     assert "--sigma: expected a positive number" in capsys.readouterr().err
 
 
-def _fake_pvbatch(monkeypatch, tmp_path, codes):
+def _fake_pvbatch(monkeypatch, tmp_path, codes, stderr="( 2.2s) FATL| Signal: SIGABRT"):
     """``dvr-perception pvbatch`` with ParaView replaced: each run exits with the next code."""
     import contextlib
     import json
@@ -147,7 +147,7 @@ def _fake_pvbatch(monkeypatch, tmp_path, codes):
         calls.append(cmd)
         out = tmp_path / "o"
         if code != 0:
-            return subprocess.CompletedProcess(cmd, code, "", "( 2.2s) FATL| Signal: SIGABRT")
+            return subprocess.CompletedProcess(cmd, code, "", stderr)
         out.mkdir(exist_ok=True)
         (out / "result.json").write_text(json.dumps({"E_v": 0.1}), encoding="utf-8")
         summary = {"out": str(out), "E_v": 0.1, "E_s": 0.2, "E_t": 0.3}
@@ -155,7 +155,7 @@ def _fake_pvbatch(monkeypatch, tmp_path, codes):
 
     monkeypatch.setattr(mod, "find_paraview", lambda name: Path("/fake") / name)
     monkeypatch.setattr(mod, "virtual_display", lambda: contextlib.nullcontext(":99"))
-    monkeypatch.setattr(mod.subprocess, "run", fake_run)
+    monkeypatch.setattr(mod, "run_job", lambda cmd, env, timeout, what: fake_run(cmd))
     return calls
 
 
@@ -173,3 +173,17 @@ def test_pvbatch_reports_a_second_crash(tmp_path, monkeypatch, capsys):
     assert main(["pvbatch", "phantom", "--out", str(tmp_path / "o")]) == 1
     assert len(calls) == 2
     assert "pvbatch failed with exit code -6" in capsys.readouterr().err
+
+
+def test_pvbatch_retries_paraviews_x_abort_under_mpiexec(tmp_path, monkeypatch, capsys):
+    """mpiexec reports a rank's abort as 128 + signal; ParaView's X message marks the crash."""
+    x_abort = "vtkXOpenGLRenderWindow.:465 ERR| bad X server connection. DISPLAY=:0. Aborting."
+    calls = _fake_pvbatch(monkeypatch, tmp_path, [134, 0], stderr=x_abort)
+    assert main(["pvbatch", "phantom", "--out", str(tmp_path / "o")]) == 0
+    assert len(calls) == 2
+    assert "retrying once" in capsys.readouterr().err
+    # any other failure of the job is reported at once, with ParaView's error line
+    calls = _fake_pvbatch(monkeypatch, tmp_path, [1, 0], stderr=f"noise\n{x_abort[:30]} other\n---")
+    assert main(["pvbatch", "phantom", "--out", str(tmp_path / "o")]) == 1
+    assert len(calls) == 1
+    assert "pvbatch failed with exit code 1: vtkXOpenGLRenderWindow" in capsys.readouterr().err

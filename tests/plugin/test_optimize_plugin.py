@@ -143,9 +143,16 @@ def test_batch_optimize_writes_before_after_screenshots_and_json(paraview, tmp_p
     assert set(result["files"]) == {
         "before.png",
         "after.png",
+        "image.png",
+        "visibility_deviation.png",
+        "shape_deviation.png",
+        "transparency_deviation.png",
+        "optimized_spec.json",
         "optimized_preset.json",
         "result.json",
     }
+    saved = json.loads((out / "optimized_spec.json").read_text())
+    assert saved == result["optimized_spec"]
     for key in ("E_v", "E_s", "E_t", "E"):
         assert np.isfinite(result["initial"][key])
         assert np.isfinite(result["final"][key])

@@ -178,3 +178,119 @@ def test_ranks_in_threads_equal_the_serial_measures_on_neghip(shared_data, n):
     assert (eg[0].E_v, eg[1].E_s, eg[2].E_t) == (es[0].E_v, es[1].E_s, es[2].E_t)
     share = {2: 0.60, 4: 0.35}[n]
     assert max(r["voxels"] for r in records) <= share * vol.data.size
+
+
+# -- the optimiser over ranks (RankSession / RankCache) -------------------------------------------
+def _session_reevaluations(vol, spec, cam, n, params):
+    """Rank 0's re-evaluations of ``params`` (a list of kwargs) over ``n`` thread ranks."""
+    from dvr_perception.rays.ranks import RankSession
+
+    ghost = ghost_levels(vol.spacing, 1.0)
+    bricks = block_split(vol.data.shape, n)
+
+    def rank(c):
+        session = RankSession(c, piece_of(vol, bricks[c.rank], ghost), spec)
+        if c.rank != 0:
+            return session.serve()
+        analysis = session.analyze(cam)
+        got = [analysis] + [analysis.cache.reevaluate(**p) for p in params]
+        session.stop()
+        return got
+
+    return _run(n, rank)[0]
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_rank_cache_reevaluates_new_opacities_colours_and_light_as_the_whole_cache(n):
+    from dvr_perception.rays.engine import reevaluate
+    from dvr_perception.structures.spec import Lighting
+
+    vol, spec = make_phantom(size=28)
+    cam = Camera.from_view(vol.bounds, azimuth=35, elevation=25, width=24, height=20)
+    k = len(spec.structures)
+    params = [
+        {"opacities": np.linspace(0.9, 0.2, k)},
+        {"colors": np.tile([0.2, 0.7, 0.4], (k, 1)), "light_direction": (0.3, 0.5, 0.8)},
+        {"lighting": [Lighting(0.2, 0.6, 0.5, 30.0)] * k, "opacities": np.full(k, 0.35)},
+    ]
+    curvature, _ = curvature_volume(vol, spec)
+    whole = analyze(vol, spec, cam, curvature=curvature)
+    got = _session_reevaluations(vol, spec, cam, n, params)
+    expect = [whole] + [reevaluate(whole.cache, **p) for p in params]
+    assert got[0].cache.present is not None
+    for a, b in zip(got, expect, strict=True):
+        for name in ("rgba", "image", "accumulated", "visible", "curvature", "present"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    # the re-evaluations changed the picture (the test can fail)
+    assert not np.array_equal(got[1].rgba, got[0].rgba)
+    assert not np.array_equal(got[2].rgba, got[1].rgba)
+
+
+@pytest.mark.parametrize("n", [2, 4])
+def test_optimize_over_ranks_in_threads_equals_the_serial_optimisation(n):
+    from dvr_perception.optimize import optimize
+    from dvr_perception.rays.ranks import optimize_in_threads
+
+    vol, spec = make_phantom(size=24)
+    cam = Camera.from_view(vol.bounds, azimuth=30, elevation=20, width=40, height=32)
+    opts = {"stages": ("opacity", "lighting", "colour"), "max_iter": 2, "resolution": 24}
+    serial = optimize(vol, spec, cam, **opts)
+    res, records = optimize_in_threads(vol, spec, cam, n, **opts)
+    for key in ("E_v", "E_s", "E_t", "E"):
+        assert res.initial[key] == serial.initial[key], key
+        assert res.final[key] == serial.final[key], key
+    assert serial.final["E"] < serial.initial["E"]  # it optimised something
+    np.testing.assert_array_equal(
+        [s.render_opacity for s in res.spec.structures],
+        [s.render_opacity for s in serial.spec.structures],
+    )
+    assert [r["rank"] for r in records] == list(range(n))
+    assert sorted(r["order"] for r in records) == list(range(n))
+    evals = {r["evaluations"] for r in records}
+    assert len(evals) == 1  # every rank took part in every evaluation
+    assert evals.pop() > 10
+    total = np.prod(vol.data.shape)
+    assert all(r["voxels"] < total for r in records)
+    assert all(r["views"] >= 2 for r in records)  # the user view and the optimisation view
+
+
+def test_rank_session_refuses_commands_from_other_ranks():
+    from dvr_perception.rays.ranks import RankSession
+
+    vol, spec = make_phantom(size=16)
+    cam = Camera.from_view(vol.bounds, width=8, height=8)
+    bricks = block_split(vol.data.shape, 2)
+
+    def rank(c):
+        session = RankSession(c, piece_of(vol, bricks[c.rank], ghost_levels(vol.spacing, 1.0)),
+                              spec)  # fmt: skip
+        if c.rank == 1:
+            with pytest.raises(DVRInputError, match="rank 1 cannot give commands"):
+                session.analyze(cam)
+            return session.serve()
+        return session.stop()
+
+    records = _run(2, rank)[0]
+    assert [r["evaluations"] for r in records] == [0, 0]
+
+
+def test_abort_on_error_ends_the_job_with_one_line_and_the_status(capsys):
+    from dvr_perception.parallel import RankFailure, abort_on_error
+
+    def leave(status):
+        raise RankFailure(status)
+
+    c1 = local_group(2)[1]
+    with pytest.raises(RankFailure) as exc, abort_on_error(c1, "Perception Measures", exit=leave):
+        raise ValueError("boom\non two lines")
+    assert exc.value.args == (1,)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        "dvr-perception: error: Perception Measures (rank 1): ValueError: boom on two lines"
+    ]
+    # one rank: the exception is the caller's
+    with (
+        pytest.raises(DVRInputError, match="bad"),
+        abort_on_error(SerialCommunicator(), "x", exit=leave),
+    ):
+        raise DVRInputError("bad")
