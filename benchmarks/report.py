@@ -477,10 +477,11 @@ def _scale_section(scale: dict | None, obs: dict) -> list[str]:
                  "VTK frame s", "optimise s", "in VTK frames", "bench peak MB",
                  "`optimize` s", "`optimize` peak MB"], rows)  # fmt: skip
     rows = []
+    whole = {r["volume"]: r.get("voxels") for r in scale["sizes"]}
     for r in scale.get("ranks", []):
         per = r.get("per_rank", [])
         share = [p["voxels"] for p in per]
-        total = max(sum(share), 1)
+        total = whole.get(r["volume"]) or max(sum(share), 1)
         rows.append([
             r["ranks"], _s(r["wall_s"]),
             " / ".join(f"{100 * v / total:.0f} %" for v in share) if share else "–",
@@ -489,8 +490,9 @@ def _scale_section(scale: dict | None, obs: dict) -> list[str]:
             or r.get("error", "")[-120:],
         ])  # fmt: skip
     if rows:
-        L += [f"**MPI ranks** (`dvr-perception pvbatch --ranks N` on {scale['ranks'][0]['volume']}"
-              "; the voxel share counts each rank's piece with its ghost layers)", ""]  # fmt: skip
+        name = scale["ranks"][0]["volume"]
+        L += [f"**MPI ranks** (`dvr-perception pvbatch --ranks N` on {name}; a rank's voxels, "
+              "ghost layers included, against the whole volume's)", ""]  # fmt: skip
         L += _table(["ranks", "wall s", "voxels per rank", "peak MB per rank", "E terms"], rows)
     L += _observed(obs, "scale")
     return L

@@ -38,14 +38,15 @@ def test_the_report_renders_sizes_and_ranks(modules):
     _, report = modules
     scale = {
         "size": 512, "cpus": 2, "when": "2026-12-03 10:00",
-        "sizes": [{"label": "cthead up 2,2,4", "dims": [512, 512, 452], "voxels": 118489088,
+        "sizes": [{"label": "cthead up 2,2,4", "volume": "big.nhdr", "dims": [512, 512, 452],
+                   "voxels": 118489088,
                    "curvature_s": 9.5, "curvature_vtk_frames": 11.9, "frame_s": 3.1,
                    "vtk_frame_s": 0.8, "optimize_s": 17.7, "optimize_vtk_frames": 22.1,
                    "peak_rss_mb": 1500.0, "optimize_e2e_s": 19.0,
                    "optimize_e2e_peak_rss_mb": 1380.0}],
-        "ranks": [{"ranks": 2, "volume": "v.nhdr", "wall_s": 30.0, "E": {"E_v": 0.5},
-                   "per_rank": [{"voxels": 60, "peak_rss_mb": 900.0},
-                                {"voxels": 40, "peak_rss_mb": 700.0}]}],
+        "ranks": [{"ranks": 2, "volume": "big.nhdr", "wall_s": 30.0, "E": {"E_v": 0.5},
+                   "per_rank": [{"voxels": 71093453, "peak_rss_mb": 900.0},
+                                {"voxels": 47395635, "peak_rss_mb": 700.0}]}],
     }  # fmt: skip
     text = "\n".join(report._scale_section(scale, {}))
     assert "| cthead up 2,2,4 | 512\u00d7512\u00d7452 | 118.5 | 9.50 | 11.9 |" in text
