@@ -277,6 +277,21 @@ def analyze_ranks(comm: Communicator, piece: Piece, spec, camera, *, sigma: floa
     return bricks.finish(state, seconds=time.perf_counter() - t0), records
 
 
+def _run_threads(rank, group, bricks, out: dict):
+    """Run ``rank(comm, brick)`` per rank in a thread; re-raise a rank's error; ``out[0]``."""
+    threads = [
+        threading.Thread(target=rank, args=(c, b)) for c, b in zip(group, bricks, strict=True)
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for r in range(len(threads)):
+        if isinstance(out.get(r), BaseException):
+            raise out[r]
+    return out[0]
+
+
 def analyze_in_threads(volume: Volume, spec, camera, n: int, *, sigma: float | None = 1.0):
     """:func:`analyze_ranks` with ``n`` ranks as threads of this process (tests, checks).
 
@@ -296,18 +311,7 @@ def analyze_in_threads(volume: Volume, spec, camera, n: int, *, sigma: float | N
         except BaseException as exc:  # re-raised below (a thread would swallow it)
             out[comm.rank] = exc
 
-    threads = [
-        threading.Thread(target=rank, args=(c, b))
-        for c, b in zip(group, block_split(volume.data.shape, n), strict=True)
-    ]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    for r in range(n):
-        if isinstance(out.get(r), BaseException):
-            raise out[r]
-    return out[0]
+    return _run_threads(rank, group, block_split(volume.data.shape, n), out)
 
 
 def warm_up(*, optimize: bool = False) -> None:
@@ -714,15 +718,4 @@ def optimize_in_threads(volume: Volume, spec, camera, n: int, **options):
         except BaseException as exc:  # re-raised below (a thread would swallow it)
             out[comm.rank] = exc
 
-    threads = [
-        threading.Thread(target=rank, args=(c, b))
-        for c, b in zip(group, block_split(volume.data.shape, n), strict=True)
-    ]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    for r in range(n):
-        if isinstance(out.get(r), BaseException):
-            raise out[r]
-    return out[0]
+    return _run_threads(rank, group, block_split(volume.data.shape, n), out)

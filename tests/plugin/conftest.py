@@ -120,3 +120,15 @@ def paraview() -> ParaView:
     except DVRInputError as exc:
         _missing(str(exc))
     return ParaView(pvpython, pvbatch, env)
+
+
+@pytest.fixture(scope="module")
+def mpiexec(paraview):
+    """ParaView, with Open MPI's ``mpiexec`` (a failure under CI=true when missing)."""
+    import shutil
+
+    if shutil.which("mpiexec") is None:
+        if IN_CI:
+            pytest.fail("required under CI=true: mpiexec (openmpi-bin, make paraview-system)")
+        pytest.skip("no mpiexec (apt-get install openmpi-bin)")
+    return paraview

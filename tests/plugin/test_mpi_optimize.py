@@ -10,13 +10,12 @@ order (``dvr_perception.rays.ranks.RankSession``).  The initial E terms equal th
 from __future__ import annotations
 
 import json
-import shutil
 
 import numpy as np
 import pytest
 
 from dvr_perception.cli import main
-from tests.plugin.conftest import CROSS_ENV_ABS, IN_CI
+from tests.plugin.conftest import CROSS_ENV_ABS
 
 SIZE = 64
 MAX_ITER = 3
@@ -24,15 +23,6 @@ MAX_ITER = 3
 RESOLUTION = 32
 TERMS = ("E_v", "E_s", "E_t", "E")
 _REFERENCE: dict = {}
-
-
-@pytest.fixture(scope="module")
-def mpiexec(paraview):
-    if shutil.which("mpiexec") is None:
-        if IN_CI:
-            pytest.fail("required under CI=true: mpiexec (openmpi-bin, make paraview-system)")
-        pytest.skip("no mpiexec (apt-get install openmpi-bin)")
-    return paraview
 
 
 def _scene(shared_data):

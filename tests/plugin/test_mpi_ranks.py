@@ -10,7 +10,6 @@ helpers of :mod:`dvr_perception.parallel` over ParaView's ``vtkMultiProcessContr
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -19,22 +18,12 @@ import pytest
 
 from dvr_perception.cli import main
 from dvr_perception.cli.pvbatch import mpi_command, virtual_display
-from tests.plugin.conftest import IN_CI
 
 REPO = Path(__file__).resolve().parents[2]
 SIZE = 48
 #: The largest share of the voxels one rank may hold (issue 17).
 MAX_SHARE = {2: 0.60, 4: 0.35}
 _SERIAL: dict = {}
-
-
-@pytest.fixture(scope="module")
-def mpiexec(paraview):
-    if shutil.which("mpiexec") is None:
-        if IN_CI:
-            pytest.fail("required under CI=true: mpiexec (openmpi-bin, make paraview-system)")
-        pytest.skip("no mpiexec (apt-get install openmpi-bin)")
-    return paraview
 
 
 @pytest.fixture(scope="module")
