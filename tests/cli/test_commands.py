@@ -211,7 +211,9 @@ def test_bench_alternates_frames_and_survives_a_vtk_that_cannot_render(capsys, m
     assert report["vtk_error"] == "VTK: no OpenGL here"
     assert report["frame_s"] > 0
     assert report["render_s"] > 0
-    assert report["measure_total_s"] > report["measure_s"] > 0
+    # two medians timed apart: at 16 px their order is noise, so only their presence is checked
+    assert report["measure_total_s"] > 0
+    assert report["measure_s"] > 0
 
 
 def test_bench_rejects_bad_repeat(capsys):
