@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dvr_perception._numba import kernels
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures.results import (
     VisibilityResult,
@@ -258,48 +259,97 @@ def visibility(
     if spec is None and composition == "importance":
         notes.append("no spec: every structure has the same importance")
     a_imp = _importance_accumulated(analysis, accumulated)
-    c = target_composition(assigned, _importance(spec, len(names)), composition=composition,
-                           presence_scale=presence_scale)  # fmt: skip
-    target = c * a_imp[None]
-    nonempty = assigned.sum(axis=0) > 0
-    deviation = np.where(nonempty, np.abs(target - visible).sum(axis=0), 0.0)
-    if nonempty.any():
-        e_v = float(deviation[nonempty].mean())
-    else:
+    imp = _importance(spec, len(names))
+    edges = np.linspace(0.0, 1.0, nbins + 1)
+    core = _core_numba if kernels("dvr_perception.measures._kernels") else _core_numpy
+    target, deviation, nonempty, e_v, sums, hist, rays = core(
+        analysis, visible, assigned, a_imp, imp, composition, presence_scale, edges
+    )
+    if e_v is None:
         e_v = 0.0
         notes.append("no ray carries assigned opacity; E_v = 0")
-
-    edges = np.linspace(0.0, 1.0, nbins + 1)
-    present = _presence(analysis, assigned, visible)
-    vis_k, tgt_k, asg_k = visible.sum(axis=(1, 2)), target.sum(axis=(1, 2)), assigned.sum((1, 2))
+    vis_k, tgt_k, asg_k, vis_nz, tgt_nz = sums
     n_rays = max(int(np.count_nonzero(nonempty)), 1)
     per_structure = {}
     for k, name in enumerate(names):
-        rays = present(k)
         per_structure[name] = {
             "visible_share": _fraction(vis_k, k),
             "target_share": _fraction(tgt_k, k),
             "assigned_share": _fraction(asg_k, k),
-            "visible_opacity": float(visible[k][nonempty].sum()) / n_rays,
-            "target_opacity": float(target[k][nonempty].sum()) / n_rays,
-            # bins=nbins with a range takes numpy's uniform-bin path (no sort); the counts
-            # equal those for bins=edges, which np.histogram builds the same way
-            "histogram_visible": np.histogram(
-                np.clip(visible[k][rays], 0, 1), bins=nbins, range=(0, 1))[0],
-            "histogram_assigned": np.histogram(
-                np.clip(target[k][rays], 0, 1), bins=nbins, range=(0, 1))[0],
-            "rays": int(np.count_nonzero(rays)),
-        }  # fmt: skip
+            "visible_opacity": float(vis_nz[k]) / n_rays,
+            "target_opacity": float(tgt_nz[k]) / n_rays,
+            "histogram_visible": hist[0][k],
+            "histogram_assigned": hist[1][k],
+            "rays": int(rays[k]),
+        }
     return VisibilityResult(
         E_v=e_v,
-        deviation=deviation.astype(np.float32),
+        deviation=deviation,
         nonempty=nonempty,
         per_structure=per_structure,
         bin_edges=edges,
         notes=tuple(notes),
-        target=target.astype(np.float32),
+        target=target,
         composition=composition,
     )
+
+
+def _core_numpy(analysis, visible, assigned, a_imp, imp, composition, presence_scale, edges):
+    """Targets, deviations, ``E_v`` (None without a non-empty ray), sums and histograms."""
+    c = target_composition(assigned, imp, composition=composition,
+                           presence_scale=presence_scale)  # fmt: skip
+    target = c * a_imp[None]
+    nonempty = assigned.sum(axis=0) > 0
+    deviation = np.where(nonempty, np.abs(target - visible).sum(axis=0), 0.0)
+    e_v = float(deviation[nonempty].mean()) if nonempty.any() else None
+    present = _presence(analysis, assigned, visible)
+    sums = (visible.sum(axis=(1, 2)), target.sum(axis=(1, 2)), assigned.sum((1, 2)),
+            [float(v[nonempty].sum()) for v in visible],
+            [float(t[nonempty].sum()) for t in target])  # fmt: skip
+    nbins = len(edges) - 1
+    hist: tuple[list, list] = ([], [])
+    rays = []
+    for k in range(len(imp)):
+        on = present(k)
+        # bins=nbins with a range takes numpy's uniform-bin path (no sort); the counts
+        # equal those for bins=edges, which np.histogram builds the same way
+        hist[0].append(np.histogram(np.clip(visible[k][on], 0, 1), bins=nbins, range=(0, 1))[0])
+        hist[1].append(np.histogram(np.clip(target[k][on], 0, 1), bins=nbins, range=(0, 1))[0])
+        rays.append(int(np.count_nonzero(on)))
+    return (target.astype(np.float32), deviation.astype(np.float32), nonempty, e_v, sums,
+            hist, rays)  # fmt: skip
+
+
+def _core_numba(analysis, visible, assigned, a_imp, imp, composition, presence_scale, edges):
+    """:func:`_core_numpy` in one numba pass over the rays (the per-ray numbers to the bit)."""
+    from dvr_perception.measures._kernels import visibility_core
+
+    k = visible.shape[0]
+    bits = _presence_bits(analysis, assigned)
+    flat = (np.ascontiguousarray(visible.reshape(k, -1), np.float64),
+            np.ascontiguousarray(assigned.reshape(k, -1), np.float64))  # fmt: skip
+    target, deviation, nonempty, e_sum, n_on, sums, hist, rays = visibility_core(
+        *flat, np.ascontiguousarray(a_imp.reshape(-1), np.float64),
+        np.ascontiguousarray(imp, np.float64), float(presence_scale), composition == "thickness",
+        bits, np.ascontiguousarray(edges),
+    )  # fmt: skip
+    shape = visible.shape[1:]
+    e_v = float(e_sum) / int(n_on) if n_on else None
+    return (target.reshape(k, *shape), deviation.reshape(shape), nonempty.reshape(shape), e_v,
+            sums, hist, rays)  # fmt: skip
+
+
+def _presence_bits(analysis, assigned: np.ndarray) -> np.ndarray:
+    """Return the ``present`` bitmask as flat uint64, checked as :func:`_presence` does."""
+    present = getattr(analysis, "present", None)
+    if present is None:
+        return np.zeros(0, np.uint64)
+    bits = np.asarray(present)
+    if bits.shape != assigned.shape[1:] or not np.issubdtype(bits.dtype, np.integer):
+        raise DVRInputError(
+            f"analysis.present must be an integer bitmask of shape {assigned.shape[1:]}"
+        )
+    return np.ascontiguousarray(bits.reshape(-1).astype(np.uint64))
 
 
 def _fraction(totals: np.ndarray, k: int) -> float:
