@@ -124,7 +124,7 @@ def opacity_tables(ids, membership, ratio, ops) -> tuple:
     alpha = _tables.alpha_table(ids, membership, ops, ratio)
     ids = np.asarray(ids)
     m = np.asarray(membership, np.float64)
-    o = np.where(ids >= 0, ops[np.maximum(ids, 0)] * m, 0.0)
+    o = _tables.entry_opacity(ids, m, ops)
     base = np.clip(1.0 - o, 1e-9, 1.0)
     da = np.where(o > 1e-4, ratio * m * base ** (ratio - 1.0), m)
     return alpha, np.where(ids >= 0, da, 0.0), np.maximum(ids, 0).astype(np.int64)

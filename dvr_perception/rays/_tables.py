@@ -102,9 +102,14 @@ def min_step(step: float, volume) -> float:
     return floor
 
 
+def entry_opacity(ids: np.ndarray, memb: np.ndarray, ops: np.ndarray) -> np.ndarray:
+    """Opacity of every table entry before the step correction: ``ops[s] * membership``."""
+    return np.where(ids >= 0, ops[np.maximum(ids, 0)] * memb, 0.0)
+
+
 def alpha_table(ids: np.ndarray, memb: np.ndarray, ops: np.ndarray, ratio: float) -> np.ndarray:
     """Step-corrected, 15-bit-rounded opacity of every table entry (float64[N])."""
-    o = np.where(ids >= 0, ops[np.maximum(ids, 0)] * memb, 0.0)
+    o = entry_opacity(ids, memb, ops)
     corr = np.where(o > 1e-4, 1.0 - np.power(np.clip(1.0 - o, 0.0, 1.0), ratio), o)
     return _quantise(corr)
 
