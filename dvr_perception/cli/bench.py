@@ -9,13 +9,17 @@ Reported figures (seconds unless stated):
   commands.
 * ``curvature_s`` – the curvature volume; ``curvature_vtk_frames`` = ``curvature_s /
   vtk_frame_s``.
-* ``peak_rss_mb`` – the process's peak resident memory (``ru_maxrss``) at the end, MiB.
+* ``peak_rss_mb`` – the process's peak resident memory (``ru_maxrss``) at the end, MiB: the
+  engine's, since VTK renders in a child process (:func:`~dvr_perception.rays.vtk_process.
+  vtk_frame_process`);
+  ``vtk_peak_rss_mb`` – that child's peak (``VmHWM``: VTK's renderer with its copy of the
+  volume); ``peak_rss_vtk_ratio`` = ``peak_rss_mb / vtk_peak_rss_mb``.
 * ``compile_s`` – the first, warm-up :func:`~dvr_perception.rays.engine.analyze` call (numba
   compilation included); ``frame_s`` – median of ``--repeat`` further full calls.
 * ``vtk_frame_s`` – median of ``--repeat`` warm frames of VTK's fixed-point ray caster, same
-  view and size (:func:`~dvr_perception.rays.vtk_reference.vtk_frame_timer`), timed
-  alternately with ours so that both see the same machine load; ``frame_ratio`` = ``frame_s /
-  vtk_frame_s``.
+  view and size (:func:`~dvr_perception.rays.vtk_reference.vtk_frame_timer`, in the child
+  process; the child times its frames), timed alternately with ours so that both see the
+  same machine load; ``frame_ratio`` = ``frame_s / vtk_frame_s``.
 * ``render_s`` – median frame of the image alone (``analyze(..., build_cache=False,
   occlusion_free=False)``: rays stop at early ray termination as VTK's do; what ``render``
   without ``--buffers`` pays), timed in turn with the two above; ``render_ratio`` =
@@ -143,14 +147,15 @@ def _median_time(fn, repeat: int) -> float:
     return float(statistics.median(times))
 
 
-def _paired_frames(ours: dict, scene, repeat: int) -> tuple[dict, float | None, str | None]:
+def _paired_frames(ours: dict, scene, repeat: int) -> tuple:
     """Median seconds of each of our frames and of VTK's, timed in turn on the same machine.
 
-    ``ours`` maps a name to a function rendering one frame.  When VTK cannot render here,
-    VTK's time is ``None`` and the reason is returned.
+    ``ours`` maps a name to a function rendering one frame.  Returns ``(ours, vtk_s, error,
+    vtk_peak_rss_mb)``: when VTK cannot render here, VTK's time is ``None`` and the reason is
+    returned; the peak memory of VTK's process is known when it rendered in a child.
     """
     from dvr_perception.errors import DVRInputError
-    from dvr_perception.rays.vtk_reference import vtk_frame_timer
+    from dvr_perception.rays.vtk_process import vtk_frame_process
 
     mine: dict[str, list] = {name: [] for name in ours}
     theirs: list = []
@@ -160,18 +165,21 @@ def _paired_frames(ours: dict, scene, repeat: int) -> tuple[dict, float | None, 
             mine[name].append(_median_time(fn, 1))
 
     try:
-        with vtk_frame_timer(scene.volume, scene.spec, scene.camera) as vtk_frame:
+        # VTK renders in a child process: its memory apart from ours
+        with vtk_frame_process(scene.volume, scene.spec, scene.camera) as vtk_frame:
             for _ in range(repeat):
                 theirs.append(vtk_frame())
                 ours_once()
     except DVRInputError as exc:  # VTK cannot render here: report, do not fail the bench
         while min(len(v) for v in mine.values()) < repeat:
             ours_once()
-        return {n: float(statistics.median(v[-repeat:])) for n, v in mine.items()}, None, str(exc)
+        mine_s = {n: float(statistics.median(v[-repeat:])) for n, v in mine.items()}
+        return mine_s, None, str(exc), None
     return (
         {n: float(statistics.median(v)) for n, v in mine.items()},
         float(statistics.median(theirs)),
         None,
+        getattr(vtk_frame, "peak_rss_mb", None),
     )
 
 
@@ -273,7 +281,7 @@ def run(args: argparse.Namespace) -> int:
     from dvr_perception.measures import all_measures
 
     all_measures(result, spec)  # compiles the measures' kernels
-    frames, vtk_frame_s, vtk_error = _paired_frames(
+    frames, vtk_frame_s, vtk_error, vtk_peak = _paired_frames(
         {
             "frame": lambda: analyze(vol, spec, cam, curvature=curv),
             "render": lambda: analyze(vol, spec, cam, build_cache=False, occlusion_free=False),
@@ -337,6 +345,8 @@ def run(args: argparse.Namespace) -> int:
         opt["optimize_with_curvature_s"] = opt["optimize_s"] + curvature_s
         report.update(opt)
     report["peak_rss_mb"] = _peak_rss_mb()
+    report["vtk_peak_rss_mb"] = vtk_peak
+    report["peak_rss_vtk_ratio"] = report["peak_rss_mb"] / vtk_peak if vtk_peak else None
     if args.json:
         emit_json(report)
     else:

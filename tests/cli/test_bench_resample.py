@@ -20,7 +20,7 @@ from dvr_perception.volume.resample import upsample
 @pytest.fixture
 def small_scene(tmp_path, monkeypatch):
     """A 10x12x14 (x, y, z) ball and its spec; VTK's frame timer replaced (no OpenGL needed)."""
-    from dvr_perception.rays import vtk_reference
+    from dvr_perception.rays import vtk_process, vtk_reference
 
     z, y, x = np.mgrid[:14, :12, :10].astype(np.float64)
     r = np.sqrt((x - 4.5) ** 2 + (y - 5.5) ** 2 + (z - 6.5) ** 2)
@@ -34,6 +34,7 @@ def small_scene(tmp_path, monkeypatch):
         yield lambda: 0.25
 
     monkeypatch.setattr(vtk_reference, "vtk_frame_timer", timer)
+    monkeypatch.setattr(vtk_process, "vtk_frame_process", timer)
     return tmp_path
 
 

@@ -167,6 +167,11 @@ def test_bench_reports_keys(capsys, vtk_can_render):
     assert report["frame_ratio"] == pytest.approx(report["frame_s"] / report["vtk_frame_s"])
     assert report["render_ratio"] == pytest.approx(report["render_s"] / report["vtk_frame_s"])
     assert report["cache_mb"] > 0
+    # VTK rendered in a child process: its memory is reported apart from the engine's
+    assert report["vtk_peak_rss_mb"] > 30
+    assert report["peak_rss_vtk_ratio"] == pytest.approx(
+        report["peak_rss_mb"] / report["vtk_peak_rss_mb"]
+    )
 
 
 def test_bench_alternates_frames_and_survives_a_vtk_that_cannot_render(capsys, monkeypatch):
@@ -174,7 +179,7 @@ def test_bench_alternates_frames_and_survives_a_vtk_that_cannot_render(capsys, m
     import contextlib
 
     from dvr_perception.errors import DVRInputError
-    from dvr_perception.rays import engine, vtk_reference
+    from dvr_perception.rays import engine, vtk_process, vtk_reference
 
     order = []
     real_analyze = engine.analyze
@@ -198,6 +203,7 @@ def test_bench_alternates_frames_and_survives_a_vtk_that_cannot_render(capsys, m
 
     monkeypatch.setattr(engine, "analyze", analyze)
     monkeypatch.setattr(vtk_reference, "vtk_frame_timer", timer)
+    monkeypatch.setattr(vtk_process, "vtk_frame_process", timer)
     code, out, err = _run(capsys, ["bench", "--size", "16", "--repeat", "4", "--json"])
     assert code == 0, err
     report = _one_json(out)
