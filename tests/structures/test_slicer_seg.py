@@ -106,13 +106,16 @@ def test_saved_spec_is_editable_and_reloads(files, tmp_path):
     assert np.array_equal(vol.labels, labels)
 
 
-def test_cropped_segmentation_is_placed_by_its_origin(files, tmp_path):
+@pytest.mark.parametrize("y_sign", [1.0, -1.0])
+def test_cropped_segmentation_is_placed_by_its_origin(files, tmp_path, y_sign):
     d, labels = files
-    # Slicer writes a segmentation cropped to its segments' extent: origin moved by the offset
+    # Slicer writes a segmentation cropped to its segments' extent: the origin moves by the
+    # offset along each (signed) axis direction; LPS files often have a negative y direction
     crop = labels[2:22, 3:21, 3:21]  # z 2.., y 3.., x 3..
-    origin = (ORIGIN[0] + 3 * SPACING[0], ORIGIN[1] + 3 * SPACING[1], ORIGIN[2] + 2 * SPACING[2])
+    spacing = (SPACING[0], y_sign * SPACING[1], SPACING[2])
+    origin = (ORIGIN[0] + 3 * spacing[0], ORIGIN[1] + 3 * spacing[1], ORIGIN[2] + 2 * spacing[2])
     p = write_segmentation(
-        tmp_path / "crop.seg.nrrd", crop, SEGMENTS, spacing=SPACING, origin=origin
+        tmp_path / "crop.seg.nrrd", crop, SEGMENTS, spacing=spacing, origin=origin
     )
     vol = load_volume(d / "ct.nrrd")
     assert np.array_equal(segmentation_labels(p, vol), labels)
@@ -156,7 +159,7 @@ def test_optimize_keeps_names_and_colours_in_outputs_and_slicer_export(files, tm
     d, _ = files
     out = tmp_path / "opt"
     argv = ["optimize", str(d / "ct.nrrd"), "--structures", str(d / "organs.seg.nrrd")]
-    argv += ["--size", "32", "--resolution", "24", "--stages", "opacity", "--max-iter", "2"]
+    argv += ["--size", "24", "--resolution", "16", "--stages", "opacity", "--max-iter", "2"]
     code, stdout, err = _main([*argv, "--out", str(out), "--json"])
     assert code == 0, err
     report = json.loads(stdout)
