@@ -159,7 +159,7 @@ def test_optimize_keeps_names_and_colours_in_outputs_and_slicer_export(files, tm
     d, _ = files
     out = tmp_path / "opt"
     argv = ["optimize", str(d / "ct.nrrd"), "--structures", str(d / "organs.seg.nrrd")]
-    argv += ["--size", "24", "--resolution", "16", "--stages", "opacity", "--max-iter", "2"]
+    argv += ["--size", "24", "--resolution", "16", "--stages", "opacity", "--max-iter", "1"]
     code, stdout, err = _main([*argv, "--out", str(out), "--json"])
     assert code == 0, err
     report = json.loads(stdout)
@@ -263,3 +263,19 @@ def test_hardening_of_the_volume_reader_still_applies(tmp_path):
     )
     with pytest.raises(DVRInputError, match=r"elsewhere.seg.nhdr"):
         load_spec(tmp_path / "elsewhere.seg.nhdr")
+
+
+def test_vtk_filter_reads_the_segmentation_as_its_spec_file(files):
+    from dvr_perception._vtk import vtk_to_numpy
+    from dvr_perception.filters import StructuralLayers
+    from dvr_perception.volume import to_vtk_image
+
+    d, labels = files
+    f = StructuralLayers()
+    f.SetSpecFile(str(d / "organs.seg.nrrd"))
+    f.SetInputDataObject(to_vtk_image(load_volume(d / "ct.nrrd")))
+    f.Update()
+    assert f.error_message == ""
+    ids = vtk_to_numpy(f.GetOutputDataObject(0).GetPointData().GetAbstractArray("structure_id"))
+    expected = np.select([labels == 1, labels == 5, labels == 7], [0, 1, 2], -1)
+    np.testing.assert_array_equal(ids.reshape(labels.shape), expected)
