@@ -62,6 +62,10 @@ _SEGMENT_KEY = re.compile(r"^Segment(\d{1,6})_(\w+)$")
 MAX_NAME = 200
 _LABEL_MAX = 2**31 - 1
 _IMPORTANCE_RANGE = (0.15, 0.85)
+_OTHER_VOLUME = (
+    "the segmentation was made on another volume, or the volume was read without its origin "
+    "(e.g. a DICOM series)"
+)
 
 
 def _header(path: Path) -> tuple[dict[str, str], dict[str, str]]:
@@ -255,10 +259,13 @@ def default_importances(counts) -> list[float]:
 
 
 def _counts(data: np.ndarray, labels: list[int]) -> list[int]:
+    """Voxels per label value (a histogram in slabs for 8- and 16-bit data)."""
     if data.dtype.kind in "ui" and data.dtype.itemsize <= 2:
-        lo = int(data.min())
-        hist = np.bincount((data.reshape(-1).astype(np.int64) - lo), minlength=1)
-        return [int(hist[v - lo]) if 0 <= v - lo < len(hist) else 0 for v in labels]
+        from dvr_perception.structures.io import _int_histogram
+
+        lo, hi = int(data.min()), int(data.max())
+        hist = _int_histogram(data, lo, hi - lo + 1)
+        return [int(hist[v - lo]) if lo <= v <= hi else 0 for v in labels]
     return [int(np.count_nonzero(data == v)) for v in labels]
 
 
@@ -373,14 +380,15 @@ def segmentation_labels(path, volume) -> np.ndarray:
         offset = np.linalg.solve(directions.T, delta)
     except np.linalg.LinAlgError:
         _fail(path, "space directions", "the axis directions are degenerate")
+    if not np.all(np.abs(offset) < 2**31):  # far away (or not finite): certainly outside
+        offset = np.full(3, 2.0**31)
     index = np.round(offset)
     if not np.all(np.abs(offset - index) < 1e-3):
         raise DVRInputError(
             f"{path}: the segmentation's origin {tuple(round(float(o), 6) for o in seg.origin)} "
             f"is not on the volume's voxel grid (origin "
             f"{tuple(round(float(o), 6) for o in volume.origin)}, index offset "
-            f"{tuple(round(float(o), 3) for o in offset)}); the segmentation was made on "
-            "another volume"
+            f"{tuple(round(float(o), 3) for o in offset)}); {_OTHER_VOLUME}"
         )
     start = index.astype(np.int64)
     if np.array_equal(start, [0, 0, 0]) and np.array_equal(seg_dims, vol_dims):
@@ -397,8 +405,7 @@ def segmentation_labels(path, volume) -> np.ndarray:
         raise DVRInputError(
             f"{path}: segment voxels lie outside the volume: the segmentation (dims "
             f"{tuple(int(d) for d in seg_dims)}) starts at index {tuple(int(s) for s in start)} "
-            f"of the volume (dims {tuple(int(d) for d in vol_dims)}); the segmentation was "
-            "made on another volume"
+            f"of the volume (dims {tuple(int(d) for d in vol_dims)}); {_OTHER_VOLUME}"
         )
     if inside is not None:
         target = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))

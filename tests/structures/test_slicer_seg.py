@@ -127,6 +127,7 @@ def test_cropped_segmentation_is_placed_by_its_origin(files, tmp_path, y_sign):
         ({"spacing": (1.0, 1.0, 1.0)}, r"voxel spacing .* differs from the volume's"),
         ({"origin": (ORIGIN[0] + 0.5, ORIGIN[1], ORIGIN[2])}, r"origin .* not on the volume's"),
         ({"origin": (ORIGIN[0] + 20, ORIGIN[1], ORIGIN[2])}, r"segment voxels lie outside"),
+        ({"origin": (ORIGIN[0], ORIGIN[1], 1e15)}, r"segment voxels lie outside"),
     ],
 )
 def test_geometry_mismatch_is_one_clear_error(files, tmp_path, kw, message):
