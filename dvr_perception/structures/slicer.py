@@ -148,7 +148,7 @@ def read_segments(path) -> list[dict]:
         Naming the file and the field: not a NRRD, a multi-layer (4-D) file, a non-integer
         voxel type, no segments, more than ``MAX_STRUCTURES`` segments, a missing or bad
         ``LabelValue``, a colour out of [0, 1], a ``Layer`` other than 0, duplicate label
-        values or names.
+        values or names, or no voxel data (Slicer's single-voxel file of empty segments).
     """
     path = Path(path)
     fields, keyvalues = _header(path)
@@ -169,6 +169,10 @@ def read_segments(path) -> list[dict]:
             path,
             "type",
             f"a segmentation holds integer label values, got {fields.get('type', '')[:40]!r}",
+        )
+    if fields.get("sizes", "").split() == ["1", "1", "1"]:  # how Slicer saves empty segments
+        raise DVRInputError(
+            f"{path}: the segmentation holds no voxel data (its segments are empty)"
         )
     groups: dict[int, dict[str, str]] = {}
     for key, value in keyvalues.items():
@@ -359,10 +363,6 @@ def segmentation_labels(path, volume) -> np.ndarray:
     read_segments(path)  # the header checks, before any voxel is read
     fields, _ = _header(path)
     seg = load_volume(path)
-    if seg.data.size == 1:
-        raise DVRInputError(
-            f"{path}: the segmentation holds no voxel data (its segments are empty)"
-        )
     spacing = np.array(seg.spacing, float)
     vspacing = np.array(volume.spacing, float)
     if not np.allclose(spacing, vspacing, rtol=1e-4, atol=1e-9):

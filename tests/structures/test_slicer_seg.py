@@ -249,6 +249,15 @@ def test_too_many_segments_float_data_multilayer_and_no_segments(tmp_path):
         load_spec(tmp_path / "layers.seg.nrrd")
 
 
+def test_empty_segmentation_is_one_clear_error(tmp_path):
+    # Slicer saves a segmentation without voxels as a single voxel
+    p = write_segmentation(tmp_path / "empty.seg.nrrd", np.zeros((1, 1, 1), np.uint8), SEGMENTS)
+    with pytest.raises(DVRInputError, match=r"empty.seg.nrrd: the segmentation holds no voxel"):
+        segmentation_labels(p, Volume(np.zeros((4, 4, 4), np.uint8)))
+    with pytest.raises(DVRInputError, match=r"empty.seg.nrrd: the segmentation holds no voxel"):
+        load_spec(p)
+
+
 def test_hardening_of_the_volume_reader_still_applies(tmp_path):
     p = _broken(tmp_path)
     head, _, payload = p.read_bytes().partition(b"\n\n")
