@@ -239,7 +239,14 @@ def run(args):
         array = source.PointData.keys()[0]
         result["ranks"] = rank_records(output, ranks)
     files = measure_images(pvs, output, scene.spec.background, out_dir)
-    if not args.no_screenshot:
+    labelled = any(s.label is not None for s in scene.spec.structures)
+    if labelled and not args.no_screenshot:  # e.g. a .seg.nrrd: no intensity transfer function
+        print(
+            "batch_measure: no screenshot.png: ParaView's volume mapper cannot colour label "
+            "structures",
+            file=sys.stderr,
+        )
+    if not args.no_screenshot and not labelled:
         shot = os.path.join(out_dir, "screenshot.png")
         screenshot(pvs, source, array, scene, shot)
         files.insert(0, shot)

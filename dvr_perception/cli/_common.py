@@ -65,8 +65,13 @@ def common_parent() -> argparse.ArgumentParser:
     return parent
 
 
-def add_scene_args(parser: argparse.ArgumentParser, *, volume_optional: bool = False) -> None:
-    """Declare VOLUME, ``--structures``, ``--view``/``--camera``, ``--size``, ``--shade``."""
+def add_scene_args(
+    parser: argparse.ArgumentParser, *, volume_optional: bool = False, save_spec: bool = True
+) -> None:
+    """Declare VOLUME, ``--structures``, ``--view``/``--camera``, ``--size``, ``--shade``.
+
+    With ``save_spec`` also ``--save-spec`` (written by :func:`load_scene`).
+    """
     help_volume = "volume file (.nhdr, .nrrd, .mha, .vti, ...) or the word 'phantom'"
     if volume_optional:
         parser.add_argument(
@@ -77,8 +82,16 @@ def add_scene_args(parser: argparse.ArgumentParser, *, volume_optional: bool = F
     parser.add_argument(
         "--structures",
         metavar="SPEC.json",
-        help="structure spec (default: the spec paired with the volume, else a proposal)",
+        help="structure spec, or a 3D Slicer segmentation (.seg.nrrd: one label structure per "
+        "segment) (default: the spec paired with the volume, else a proposal)",
     )
+    if save_spec:
+        parser.add_argument(
+            "--save-spec",
+            metavar="OUT.json",
+            help="also write the structure spec used (e.g. the one made from a .seg.nrrd or "
+            "proposed) as an editable spec JSON",
+        )
     cam = parser.add_mutually_exclusive_group()
     cam.add_argument(
         "--view",
@@ -265,6 +278,9 @@ def load_scene(args: argparse.Namespace) -> Scene:
     factors = parse_factors(resample) if resample is not None else None
     view = parse_view(args.view) if args.view is not None else None
     camera = _read_camera(args.camera, size) if args.camera is not None else None
+    save_to = getattr(args, "save_spec", None)
+    if save_to is not None:
+        save_to = check_output_file(save_to)
     from dvr_perception.structures.io import attach_labels, check_spec_for_volume, load_spec
 
     given = load_spec(args.structures) if args.structures is not None else None
@@ -295,6 +311,11 @@ def load_scene(args: argparse.Namespace) -> Scene:
     check_spec_for_volume(spec, volume)
     if args.shade is not None:
         spec = replace(spec, rendering=replace(spec.rendering, shade=bool(args.shade)))
+    if save_to is not None:
+        from dvr_perception.structures.io import save_spec
+
+        save_spec(spec, save_to)
+        log.info("wrote the structure spec to %s", save_to)
     if camera is None:
         az, el, zoom = view if view is not None else (spec.view or (0.0, 0.0, 1.0))
         w, h = size if size is not None else (DEFAULT_SIZE, DEFAULT_SIZE)

@@ -302,12 +302,14 @@ def _terms(d: dict) -> dict:
 def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lighting", "colour"),
                    weights=(1.0, 1.0, 1.0), region=None, views=1, seed=0, max_iter=10,
                    resolution=None, coverage_keep=None, progress=None,
-                   objective=None) -> dict:  # fmt: skip
+                   objective=None, final_dir=None) -> dict:  # fmt: skip
     """Optimise ``spec`` for ``camera``, write every output into ``out_dir``, return the report.
 
     ``region`` is ``(x0, y0, x1, y1)`` in pixels or ``None``; ``progress`` a :class:`Progress`
     (or any callback); ``objective`` ``"mean"`` or ``"least_squares"`` (``None``: the
-    optimiser's default).  See the module docstring for the files and the report.
+    optimiser's default).  ``final_dir`` is the folder the files end up in when ``out_dir`` is
+    a staging folder (the optimised spec's ``labels`` path is made relative to it).  See the
+    module docstring for the files and the report.
     """
     from dvr_perception.cli import _plots
     from dvr_perception.export import save_paraview_preset, save_slicer_vp
@@ -358,7 +360,7 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
     ]
     title = f"optimisation ({res.nit} iterations, {res.message})"
     files.append(_plots.save_convergence(d / "convergence.png", records, title=title))
-    save_spec(res.spec, d / "optimized_spec.json")
+    save_spec(res.spec, d / "optimized_spec.json", relative_to=final_dir)
     files.append(d / "optimized_spec.json")
     notes = []
     for name, save in (
@@ -437,7 +439,8 @@ def run(args: argparse.Namespace) -> int:
                                     seed=args.seed, max_iter=args.max_iter,
                                     resolution=args.resolution,
                                     coverage_keep=args.coverage_keep, progress=progress,
-                                    objective=args.objective)  # fmt: skip
+                                    objective=args.objective,
+                                    final_dir=staged.final)  # fmt: skip
         report = {"volume": scene.volume_source, "spec": scene.spec_source, **report}
         report["out_dir"] = str(staged.final)
         report["files"] = [str(staged.final_path(f)) for f in report["files"]]

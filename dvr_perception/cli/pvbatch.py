@@ -74,7 +74,7 @@ def add_parser(subparsers, parents) -> None:
         epilog=EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_scene_args(p)
+    add_scene_args(p, save_spec=False)
     p.add_argument("--sigma", type=float, default=1.0, help="curvature scale (default 1)")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument(

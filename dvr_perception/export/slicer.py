@@ -26,6 +26,19 @@ first structure's lighting is written; when structures' lighting differ a
 :class:`~dvr_perception.errors.DVRWarning` is emitted and a note is added.  The extra top-level
 ``"dvr_perception"`` object is allowed by the schema (``additionalProperties``) and ignored by
 Slicer.
+
+Label structures (a spec of a 3D Slicer segmentation, ``--structures organs.seg.nrrd``)
+    A volume property maps voxel values to colour and opacity, so it cannot colour a CT by a
+    segmentation.  For a spec whose structures are all label structures the property is written
+    for the *label volume* itself: each segment's label value ``L`` gets its colour and its
+    rendering opacity on ``[L - 0.45, L + 0.45]`` (0 between labels and on the background 0),
+    and ``interpolationType`` is ``"nearest"`` so that samples keep the voxels' label values.
+    In Slicer, load the ``.seg.nrrd`` as a volume (not as a segmentation) so that its voxels
+    keep the label values, and apply the ``.vp.json`` to it in Volume Rendering.  The
+    ``"dvr_perception"`` block then also holds ``"segments"``: one ``{"name", "label",
+    "color", "opacity", "importance"}`` per structure, with the segment names, so the optimised
+    opacities can be carried back to the segments (e.g. as segment opacities in Segmentations).
+    A spec that mixes range and label structures is refused.
 """
 
 from __future__ import annotations
@@ -37,6 +50,7 @@ from pathlib import Path
 from dvr_perception._files import write_json
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.export._common import check_intensity_spec, transfer_nodes
+from dvr_perception.structures.spec import StructureSpec
 
 __all__ = ["SLICER_VP_SCHEMA", "save_slicer_vp", "slicer_volume_property"]
 
@@ -73,7 +87,7 @@ def slicer_volume_property(spec, volume=None, *, opacities=None) -> dict:
     Parameters
     ----------
     spec : StructureSpec
-        Range structures only.
+        Range structures, or label structures only (see the module docstring).
     volume : Volume, optional
         The volume to be rendered: its scalar range widens ``effectiveRange`` and its smallest
         voxel spacing is the opacity unit distance when the spec sets none.
@@ -88,8 +102,8 @@ def slicer_volume_property(spec, volume=None, *, opacities=None) -> dict:
     Raises
     ------
     DVRInputError
-        If ``spec`` has label structures, an opacity is out of [0, 1] or the unit distance is
-        not positive.
+        If ``spec`` mixes label and range structures, an opacity is out of [0, 1] or the unit
+        distance is not positive.
 
     Warns
     -----
@@ -105,9 +119,18 @@ def slicer_volume_property(spec, volume=None, *, opacities=None) -> dict:
     >>> [(p["x"], p["y"]) for p in comp["scalarOpacity"]["points"]]
     [(100.0, 0.0), (110.0, 0.8), (190.0, 0.8), (200.0, 0.0)]
     """
-    check_intensity_spec(spec, "Slicer volume property")
-    color, opacity = transfer_nodes(spec, opacities)
     notes: list[str] = []
+    labelled = isinstance(spec, StructureSpec) and all(s.label is not None for s in spec.structures)
+    extra: dict = {}
+    if labelled:
+        color, opacity, extra = _label_nodes(spec, opacities)
+        notes.append(
+            "label structures: this property renders the segmentation's label volume (load the "
+            ".seg.nrrd as a volume, nearest interpolation); 'segments' lists the segments"
+        )
+    else:
+        check_intensity_spec(spec, "Slicer volume property")
+        color, opacity = transfer_nodes(spec, opacities)
     lights = [s.lighting for s in spec.structures]
     light = lights[0]
     if any(lt != light for lt in lights[1:]):
@@ -120,7 +143,7 @@ def slicer_volume_property(spec, volume=None, *, opacities=None) -> dict:
     unit = _unit_distance(spec, volume, notes)
     xs = [n[0] for n in opacity] + [n[0] for n in color]
     lo, hi = min(xs), max(xs)
-    if volume is not None:
+    if volume is not None and not labelled:
         vlo, vhi = volume.scalar_range
         lo, hi = min(lo, vlo), max(hi, vhi)
     component = {
@@ -154,15 +177,48 @@ def slicer_volume_property(spec, volume=None, *, opacities=None) -> dict:
                 "effectiveRange": [lo, hi],
                 "isoSurfaceValues": [],
                 "independentComponents": True,
-                "interpolationType": "linear",
+                "interpolationType": "nearest" if labelled else "linear",
                 "useClippedVoxelIntensity": False,
                 "clippedVoxelIntensity": 0.0,
                 "scatteringAnisotropy": 0.0,
                 "components": [component],
             }
         ],
-        "dvr_perception": {"structures": list(spec.names), "notes": notes},
+        "dvr_perception": {"structures": list(spec.names), **extra, "notes": notes},
     }
+
+
+def _label_nodes(spec, opacities) -> tuple[list[list[float]], list[list[float]], dict]:
+    """Colour and opacity nodes that give each label value its structure's colour and opacity."""
+    from dvr_perception.structures.transfer import _opacities
+
+    ops = _opacities(spec, opacities)
+    order = sorted(range(len(spec.structures)), key=lambda i: spec.structures[i].label)
+    color: list[list[float]] = []
+    opacity: list[list[float]] = []
+    for i in order:
+        s = spec.structures[i]
+        label, rgb, op = float(s.label), [float(c) for c in s.color], float(ops[i])
+        for x, y in ((label - _HALF, 0.0), (label - _EDGE, op), (label + _EDGE, op)):
+            opacity.append([x, y, 0.5, 0.0])
+        opacity.append([label + _HALF, 0.0, 0.5, 0.0])
+        for x in (label - _EDGE, label + _EDGE):
+            color.append([x, *rgb, 0.5, 0.0])
+    segments = [
+        {
+            "name": s.name,
+            "label": int(s.label),
+            "color": [float(c) for c in s.color],
+            "opacity": float(ops[i]),
+            "importance": float(s.importance),
+        }
+        for i, s in enumerate(spec.structures)
+    ]
+    return color, opacity, {"segments": segments}
+
+
+#: Half-width of a label's flat opacity (and colour) around its value, and where it reaches 0.
+_EDGE, _HALF = 0.45, 0.5
 
 
 def save_slicer_vp(spec, path, volume=None, *, opacities=None) -> Path:

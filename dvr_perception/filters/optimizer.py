@@ -55,7 +55,7 @@ from dvr_perception.filters.perception_measures import PerceptionMeasures, _nan,
 from dvr_perception.measures import composite_luminance, shape, transparency, visibility
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
-from dvr_perception.structures.io import check_spec_for_volume, spec_to_dict
+from dvr_perception.structures.io import attach_labels, check_spec_for_volume, spec_to_dict
 
 __all__ = ["TransferFunctionOptimizer"]
 
@@ -208,6 +208,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         self.result = None
         volume = self.load_input(image)
         spec = self.load_spec_parameters()
+        volume = attach_labels(volume, spec)  # the spec's label volume, e.g. a .seg.nrrd
         check_spec_for_volume(spec, volume)
         camera = self.make_camera(volume, spec)
         res = self._optimize(volume, spec, camera)

@@ -69,7 +69,7 @@ from dvr_perception.measures import all_measures, composite_luminance
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
-from dvr_perception.structures.io import check_spec_for_volume
+from dvr_perception.structures.io import attach_labels, check_spec_for_volume
 
 __all__ = ["PerceptionMeasures", "piece_extent"]
 
@@ -178,6 +178,7 @@ class PerceptionMeasures(DVRFilterBase):
         self.UpdateProgress(0.0)
         volume = self.load_input(image)
         spec = self.load_spec_parameters()
+        volume = attach_labels(volume, spec)  # the spec's label volume, e.g. a .seg.nrrd
         check_spec_for_volume(spec, volume)
         camera = self.make_camera(volume, spec)
         self.UpdateProgress(0.05)

@@ -24,7 +24,7 @@ import numpy as np
 
 from dvr_perception.filters._base import DVRFilterBase, Parameter, as_positive_float, point_array
 from dvr_perception.rays.curvature import classify_structures, curvature_volume
-from dvr_perception.structures.io import check_spec_for_volume
+from dvr_perception.structures.io import attach_labels, check_spec_for_volume
 
 __all__ = ["StructuralLayers"]
 
@@ -72,6 +72,7 @@ class StructuralLayers(DVRFilterBase):
         self.UpdateProgress(0.0)
         volume = self.load_input(image)
         spec = self.load_spec_parameters()
+        volume = attach_labels(volume, spec)  # the spec's label volume, e.g. a .seg.nrrd
         check_spec_for_volume(spec, volume)  # label structures without labels -> error
         self.UpdateProgress(0.1)
         ids = classify_structures(volume, spec)

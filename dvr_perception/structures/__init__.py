@@ -1,4 +1,4 @@
-"""Structures: spec data model and JSON, transfer functions, automatic proposal."""
+"""Structures: spec data model and JSON, Slicer segmentations, transfer functions, proposal."""
 
 from dvr_perception.structures.io import (
     check_spec_for_volume,
@@ -8,6 +8,7 @@ from dvr_perception.structures.io import (
     spec_to_dict,
 )
 from dvr_perception.structures.propose import propose_structures
+from dvr_perception.structures.slicer import spec_from_segmentation
 from dvr_perception.structures.spec import Lighting, RenderSettings, Structure, StructureSpec
 
 __all__ = [
@@ -20,5 +21,6 @@ __all__ = [
     "propose_structures",
     "save_spec",
     "spec_from_dict",
+    "spec_from_segmentation",
     "spec_to_dict",
 ]

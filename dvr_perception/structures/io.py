@@ -139,10 +139,14 @@ def load_spec(path) -> StructureSpec:
     A relative ``labels`` path is resolved against the directory of the spec file, and the
     label file must exist.
 
+    A 3D Slicer segmentation (``*.seg.nrrd``, or a NRRD with ``SegmentN_`` header fields) is
+    read as one label structure per segment, with the file as the label volume
+    (:func:`dvr_perception.structures.slicer.spec_from_segmentation`).
+
     Parameters
     ----------
     path : str or os.PathLike
-        The JSON file.
+        The JSON file, or a Slicer segmentation.
 
     Returns
     -------
@@ -150,6 +154,10 @@ def load_spec(path) -> StructureSpec:
     """
     path = Path(path)
     name = path.name
+    from dvr_perception.structures.slicer import is_segmentation, spec_from_segmentation
+
+    if is_segmentation(path):
+        return spec_from_segmentation(path)
     try:
         st = path.stat()
         if stat.S_ISREG(st.st_mode) and st.st_size > MAX_SPEC_BYTES:
@@ -209,10 +217,11 @@ def _dumps(value, indent: str = "") -> str:
     return json.dumps(value, ensure_ascii=False, allow_nan=False)
 
 
-def save_spec(spec: StructureSpec, path) -> None:
+def save_spec(spec: StructureSpec, path, *, relative_to=None) -> None:
     """Write ``spec`` as JSON, atomically (temporary file in the same folder, then rename).
 
-    A ``labels_file`` is written relative to the folder of ``path`` when possible.
+    A ``labels_file`` is written relative to the folder of ``path`` (or to the folder
+    ``relative_to``, where the file will be moved to) when possible.
 
     Examples
     --------
@@ -228,7 +237,8 @@ def save_spec(spec: StructureSpec, path) -> None:
     d = spec_to_dict(parse_spec_dict(spec_to_dict(spec), "spec")[0])  # validates
     if spec.labels_file is not None and Path(spec.labels_file).is_absolute():
         try:
-            d["labels"] = os.path.relpath(spec.labels_file, path.parent.resolve())
+            base = path.parent if relative_to is None else Path(relative_to)
+            d["labels"] = os.path.relpath(spec.labels_file, base.resolve())
         except ValueError:  # another drive on Windows
             d["labels"] = str(spec.labels_file)
     text = _dumps(d) + "\n"
@@ -255,7 +265,9 @@ def attach_labels(volume, spec: StructureSpec):
     """Return ``volume`` with the label volume of ``spec.labels_file`` attached.
 
     Unchanged when the spec names no label file.  The label file must have the volume's dims;
-    integer-valued float labels are accepted.
+    integer-valued float labels are accepted.  A 3D Slicer segmentation must have the volume's
+    spacing and may cover part of it (placed by its origin, see
+    :func:`dvr_perception.structures.slicer.segmentation_labels`).
 
     Raises
     ------
@@ -278,6 +290,10 @@ def attach_labels(volume, spec: StructureSpec):
     from dvr_perception.volume.io import load_volume
 
     path = spec.labels_file
+    from dvr_perception.structures.slicer import is_segmentation, segmentation_labels
+
+    if is_segmentation(path):
+        return replace(volume, labels=segmentation_labels(path, volume))
     lab = load_volume(path)
     data = lab.data
     if data.shape != volume.data.shape:

@@ -17,6 +17,7 @@ any data is read; compressed data is decompressed with a bound.
 
 from __future__ import annotations
 
+import contextlib
 import gzip
 import math
 import os
@@ -235,7 +236,12 @@ def _check_size(path, found: int, expected: int, dims) -> None:
 _HEADER_MAX = 65536
 
 
-def _nrrd_header(path: Path) -> tuple[dict[str, str], int]:
+def _nrrd_header(path: Path, keyvalues: dict[str, str] | None = None) -> tuple[dict[str, str], int]:
+    """Return the NRRD header's fields (keys lower case) and the data offset.
+
+    ``key:=value`` lines are skipped, or collected into ``keyvalues`` (keys as written, values
+    decoded as UTF-8 where they are valid UTF-8) when a dict is given.
+    """
     with open(path, "rb") as f:
         head = f.read(_HEADER_MAX)
     if not head.startswith(b"NRRD000"):
@@ -251,7 +257,14 @@ def _nrrd_header(path: Path) -> tuple[dict[str, str], int]:
         if not line.strip():
             ended = True
             break  # blank line: end of an attached header
-        if line.startswith("#") or ":=" in line:
+        if line.startswith("#"):
+            continue
+        if ":=" in line:
+            if keyvalues is not None:
+                key, _, value = line.partition(":=")
+                with contextlib.suppress(UnicodeDecodeError):
+                    value = value.encode("latin-1").decode("utf-8")
+                keyvalues[key] = value
             continue
         key, sep, value = line.partition(": ")
         if not sep:

@@ -198,6 +198,30 @@ def test_batch_script_writes_rendering_measure_images_and_json(paraview, tmp_pat
     assert dev[library["alpha"] == 0].max() == 0
 
 
+def test_batch_script_measures_a_slicer_segmentation(paraview, tmp_path):
+    """``pvbatch --structures X.seg.nrrd``: the segments are the structures (no screenshot)."""
+    from dvr_perception.cli import main
+    from dvr_perception.structures.slicer import write_segmentation
+    from dvr_perception.volume import Volume, save_volume
+
+    labels = np.zeros((20, 20, 20), np.uint8)
+    labels[3:17, 3:17, 3:17] = 2
+    labels[7:13, 7:13, 7:13] = 9
+    save_volume(Volume((labels * 10).astype(np.int16), origin=(1, 2, 3)), tmp_path / "ct.nrrd")
+    segments = [
+        {"name": "Kidney", "color": (0.8, 0.3, 0.3), "label": 2},
+        {"name": "Stone", "color": (1.0, 1.0, 0.2), "label": 9},
+    ]
+    write_segmentation(tmp_path / "s.seg.nrrd", labels, segments, origin=(1, 2, 3))
+    out = tmp_path / "pv_seg"
+    argv = ["pvbatch", str(tmp_path / "ct.nrrd"), "--structures", str(tmp_path / "s.seg.nrrd")]
+    assert main([*argv, "--size", "24", "--out", str(out)]) == 0
+    result = json.loads((out / "result.json").read_text(encoding="utf-8"))
+    assert list(result["structures"]) == ["Kidney", "Stone"]
+    assert result["E_v"] > 0
+    assert "screenshot.png" not in result["files"]
+
+
 BAD_INPUTS = f"""
 reader = OpenDataFile(sys.argv[1])
 spec = {str(SPEC)!r}
