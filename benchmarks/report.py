@@ -120,10 +120,11 @@ def _log(msg: str) -> None:
     print(f"report: {msg}", file=sys.stderr, flush=True)
 
 
-def build(cfg: Config, out, *, log=_log) -> dict:
+def build(cfg: Config, out, *, log=_log, final=None) -> dict:
     """Run every experiment, write the figures, ``summary.json`` and ``REPORT.md`` into ``out``.
 
-    Returns the summary (what ``summary.json`` holds).
+    ``final``: the folder the files end up in when ``out`` is a staging folder (its
+    ``scale.json`` goes into the report).  Returns the summary (what ``summary.json`` holds).
     """
     out = Path(out)
     images = out / "images"
@@ -192,7 +193,8 @@ def build(cfg: Config, out, *, log=_log) -> dict:
         "performance": perf,
     }
     write_json(out / "summary.json", summary)
-    text = render_markdown(_with_scale(summary, out), read_observations())
+    scale_dir = out if final is None else final  # a staged run: scale.json is in the folder
+    text = render_markdown(_with_scale(summary, scale_dir), read_observations())
     with atomic_path(out / "REPORT.md") as tmp:
         tmp.write_text(text, encoding="utf-8")
     log(f"wrote {out / 'REPORT.md'} ({summary['seconds']:.0f} s)")

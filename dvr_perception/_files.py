@@ -225,6 +225,7 @@ def commit(moves) -> None:
         check_target(final)
     with _deferred_sigint():
         for staged, final in moves:
+            final.parent.mkdir(parents=True, exist_ok=True)  # a staged subfolder's files
             os.replace(staged, final)
 
 
@@ -326,8 +327,9 @@ def output_folder(path) -> Iterator[StagedFolder]:
 
     The folder is created if needed and must be writable (checked before the caller's work),
     a lock file (:data:`LOCK_NAME`) keeps a second run out, the caller writes into a hidden
-    staging folder inside it, and when the block succeeds every staged file is moved into the
-    folder with Ctrl-C held back (:func:`commit`).  If the block fails or is interrupted, the
+    staging folder inside it, and when the block succeeds every staged file (those in staged
+    subfolders too, into the same subfolders) is moved into the folder with Ctrl-C held back
+    (:func:`commit`).  If the block fails or is interrupted, the
     staged files are removed, a folder this call created is removed again if empty, and the
     folder holds exactly what it held before.
 
@@ -365,10 +367,10 @@ def output_folder(path) -> Iterator[StagedFolder]:
         yield StagedFolder(final, staging)
         mode = file_mode()
         moves = []
-        for f in sorted(staging.iterdir()):
+        for f in sorted(staging.rglob("*")):
             if f.is_file():
                 os.chmod(f, mode)
-                moves.append((f, final / f.name))
+                moves.append((f, final / f.relative_to(staging)))
         commit(moves)
     finally:
         with _deferred_sigint():

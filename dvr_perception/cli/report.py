@@ -15,7 +15,8 @@ import os
 import sys
 from pathlib import Path
 
-from dvr_perception.cli._common import emit_json, make_output_dir
+from dvr_perception._files import output_folder
+from dvr_perception.cli._common import emit_json
 from dvr_perception.errors import DVRInputError
 
 __all__ = ["add_parser", "load_benchmarks", "run"]
@@ -111,7 +112,6 @@ def run(args: argparse.Namespace) -> int:
                if not (data / f"{n}.nhdr").is_file()]  # fmt: skip
     if missing:
         raise DVRInputError(f"--data {data}: missing {', '.join(f'{n}.nhdr' for n in missing)}")
-    out = make_output_dir(args.out)
     report = load_benchmarks()
     from benchmarks.experiments import Config
 
@@ -120,7 +120,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"dvr-perception: report: {msg}", file=sys.stderr, flush=True)
 
     cfg = Config(data=data, size=size, quick=bool(args.quick), seed=int(args.seed))
-    summary = report.build(cfg, out, log=log)
+    # staged: an interrupted or failed run leaves the folder as it was; a lock keeps a
+    # second run out of it
+    with output_folder(args.out) as staged:
+        summary = report.build(cfg, staged.path, log=log, final=staged.final)
+    out = Path(args.out)
     passed = sum(c["passed"] for c in summary["checks"])
     if args.json:
         emit_json(

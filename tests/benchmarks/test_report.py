@@ -150,3 +150,65 @@ def test_markdown_only_rewrites_the_same_report(quick_report, capsys):
     assert main(["report", "--markdown-only", "--out", str(out)]) == 0
     capsys.readouterr()
     assert report.read_text(encoding="utf-8") == before
+
+
+def _fake_data(tmp_path):
+    data = tmp_path / "data"
+    data.mkdir(parents=True)
+    for n in ("cthead", "engine", "neghip", "lidc_chest"):
+        (data / f"{n}.nhdr").write_text("NRRD0004\n")
+    return data
+
+
+def test_a_failed_report_leaves_the_folder_as_it_was(tmp_path, capsys, monkeypatch):
+    """Staged: figures in images/ and the summary appear all together or not at all."""
+    report = load_benchmarks()
+    out = tmp_path / "out"
+    (out / "images").mkdir(parents=True)
+    (out / "images" / "old.png").write_bytes(b"old")
+    (out / "scale.json").write_text("{}")
+
+    def build(cfg, folder, *, log, final):
+        assert final == out
+        assert folder != out  # written into a staging folder
+        (folder / "images").mkdir()
+        (folder / "images" / "fig.png").write_bytes(b"new")
+        (folder / "summary.json").write_text("{}")
+        raise KeyboardInterrupt  # Ctrl-C in the middle of the run
+
+    monkeypatch.setattr(report, "build", build)
+    argv = ["report", "--data", str(_fake_data(tmp_path)), "--out", str(out), "--quick"]
+    assert main(argv) == 130
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == [
+        "images", "images/old.png", "scale.json"
+    ]  # fmt: skip
+
+    def build_ok(cfg, folder, *, log, final):
+        (folder / "images").mkdir()
+        (folder / "images" / "fig.png").write_bytes(b"new")
+        (folder / "summary.json").write_text("{}")
+        return {"checks": [], "seconds": 1.0, "all_passed": True}
+
+    monkeypatch.setattr(report, "build", build_ok)
+    assert main(["report", "--data", str(_fake_data(tmp_path / "b")), "--out", str(out)]) == 0
+    assert (out / "images" / "fig.png").read_bytes() == b"new"
+    assert (out / "images" / "old.png").read_bytes() == b"old"  # other files stay
+    assert (out / "summary.json").is_file()
+    capsys.readouterr()
+
+
+def test_a_second_report_into_the_same_folder_is_refused(tmp_path, capsys, monkeypatch):
+    report = load_benchmarks()
+    out = tmp_path / "out"
+    data = _fake_data(tmp_path)
+
+    def build(cfg, folder, *, log, final):
+        assert main(["report", "--data", str(data), "--out", str(out), "--quick"]) == 2
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(report, "build", build)
+    assert main(["report", "--data", str(data), "--out", str(out), "--quick"]) == 1
+    err = capsys.readouterr().err
+    assert "another dvr-perception run" in err
+    assert "stop" in err
+    assert not out.exists()  # the folder the failed run created is gone again
