@@ -42,6 +42,7 @@ from dvr_perception.volume._limits import (
     resolve_data_file,
     shown,
 )
+from dvr_perception.volume._vtk_headers import check_legacy_vtk, check_vti
 from dvr_perception.volume.convert import from_vtk_image, to_vtk_image, vtk_errors
 from dvr_perception.volume.volume import Volume
 
@@ -144,6 +145,10 @@ def load_volume(path, *, name: str | None = None) -> Volume:
             _check_meta(path)
         elif ext in (".nii", ".nii.gz"):
             _check_nifti(path, ext)
+        elif ext == ".vti":
+            check_vti(path)
+        elif ext == ".vtk":
+            check_legacy_vtk(path)
         reader = {
             ".mha": _vtk.vtkMetaImageReader,
             ".mhd": _vtk.vtkMetaImageReader,

@@ -192,14 +192,55 @@ def test_vtk_polydata_is_rejected(tmp_path):
         "# vtk DataFile Version 3.0\ntri\nASCII\nDATASET POLYDATA\n"
         "POINTS 3 float\n0 0 0 1 0 0 0 1 0\nPOLYGONS 1 4\n3 0 1 2\n"
     )
-    _raises(p, "holds vtkPolyData; expected image data")
+    _raises(p, "field 'DATASET': holds 'POLYDATA'; expected STRUCTURED_POINTS")
 
 
 def test_corrupt_vti_is_one_error(tmp_path):
     p = tmp_path / "c.vti"
     p.write_text("<VTKFile type='ImageData'> garbage")
-    msg = _raises(p, "VTK could not process the file")
+    msg = _raises(p, "no <ImageData ...> element")
     assert "\n" not in msg
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        (
+            '<ImageData WholeExtent="0 99999 0 99999 0 99999" Spacing="1 1 1">'
+            '<Piece><PointData><DataArray type="UInt8"/>',
+            "field 'WholeExtent': sizes 100000",
+        ),
+        ('<ImageData WholeExtent="0 9 0 9 0 ' + "9" * 5000 + '">', "is too long"),
+        ('<ImageData WholeExtent="0 9 0 9">', "field 'WholeExtent': expected 6 integers"),
+        ('<ImageData WholeExtent="0 9 0 9 5 1">', "empty extent"),
+        ('<ImageData WholeExtent="0 9 0 9 0 9" Spacing="1 nan 1">', "'Spacing'"),
+        ('<ImageData WholeExtent="0 9 0 9 0 9"><DataArray type="Complex">', "unsupported type"),
+    ],
+)
+def test_vti_headers_are_checked_before_vtk_reads(tmp_path, text, expected):
+    p = tmp_path / "h.vti"
+    p.write_text('<?xml version="1.0"?><VTKFile type="ImageData">' + text)
+    msg = _raises(p, expected)
+    assert str(p) in msg
+
+
+@pytest.mark.parametrize(
+    ("lines", "expected"),
+    [
+        (["DATASET STRUCTURED_POINTS", "DIMENSIONS 100000 100000 100000", "SPACING 1 1 1",
+          "POINT_DATA 1", "SCALARS s unsigned_char"], "field 'DIMENSIONS': sizes 100000"),
+        (["DATASET STRUCTURED_POINTS", "DIMENSIONS 4 4"], "expected 3 integers"),
+        (["DATASET STRUCTURED_POINTS", "DIMENSIONS 4 4 4", "SPACING 1 0 1"], "'SPACING'"),
+        (["DATASET STRUCTURED_POINTS", "DIMENSIONS 4 4 4", "SCALARS s quaternion"],
+         "unsupported type"),
+        (["DATASET UNSTRUCTURED_GRID"], "expected STRUCTURED_POINTS"),
+    ],
+)  # fmt: skip
+def test_legacy_vtk_headers_are_checked_before_vtk_reads(tmp_path, lines, expected):
+    p = tmp_path / "h.vtk"
+    p.write_text("\n".join(["# vtk DataFile Version 3.0", "t", "BINARY", *lines, ""]))
+    msg = _raises(p, expected)
+    assert str(p) in msg
 
 
 def test_multicomponent_image_is_rejected(tmp_path):
