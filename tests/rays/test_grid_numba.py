@@ -56,3 +56,22 @@ def test_phantom_with_labels_and_anisotropic_spacing(monkeypatch):
 def test_shared_volumes(shared_data, name, monkeypatch):
     vol = load_volume(shared_data / f"{name}.nhdr")
     _check(vol, load_spec(f"state_files/{name}.json"), monkeypatch)
+
+
+@pytest.mark.parametrize("ulp", [1.0, -1.0, 4.0, -4.0])
+def test_normal_codes_do_not_follow_numpys_arctan2_and_arcsin_rounding(
+    shared_data, monkeypatch, ulp
+):
+    """numpy's SIMD arctan2/arcsin differ from the C library's by an ulp, differently in numpy
+    1.24 (ParaView) and 2.x; codes on a rounding boundary (phi = 45 degrees) must not move."""
+    vol = load_volume(shared_data / "fuel.nhdr")
+    monkeypatch.setenv("DVR_PERCEPTION_NO_NUMBA", "1")
+    exact = _grid.normal_codes(Volume(vol.data, vol.spacing, vol.origin))
+    for name in ("arctan2", "arcsin"):
+        func = getattr(np, name)
+        monkeypatch.setattr(np, name, lambda *a, f=func: f(*a) * (1.0 + ulp * 2.0**-52))
+    off = _grid.normal_codes(Volume(vol.data, vol.spacing, vol.origin))
+    monkeypatch.undo()
+    assert np.array_equal(off, exact)
+    nb = _grid.normal_codes(Volume(vol.data, vol.spacing, vol.origin))  # the C library's angles
+    assert np.array_equal(nb, exact)
