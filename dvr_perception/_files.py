@@ -225,7 +225,6 @@ def commit(moves) -> None:
         check_target(final)
     with _deferred_sigint():
         for staged, final in moves:
-            final.parent.mkdir(parents=True, exist_ok=True)  # a staged subfolder's files
             os.replace(staged, final)
 
 
@@ -321,6 +320,18 @@ def _lock(final: Path):
         os.close(fd)  # replaced between open and lock: try again
 
 
+def _subfolders(final: Path, targets) -> list[Path]:
+    """Create the subfolders of ``final`` that ``targets`` need; return those made, in order."""
+    made = []
+    for parent in sorted({t.parent for t in targets}, key=lambda p: len(p.parts)):
+        missing = [p for p in (parent, *parent.parents) if p != final and final in p.parents]
+        for p in reversed(missing):
+            if not p.exists():
+                p.mkdir()
+                made.append(p)
+    return made
+
+
 @contextmanager
 def output_folder(path) -> Iterator[StagedFolder]:
     """Write a multi-file output all at once: lock, stage, check, then move everything in.
@@ -371,7 +382,14 @@ def output_folder(path) -> Iterator[StagedFolder]:
             if f.is_file():
                 os.chmod(f, mode)
                 moves.append((f, final / f.relative_to(staging)))
-        commit(moves)
+        made = _subfolders(final, [b for _, b in moves])
+        try:
+            commit(moves)
+        except BaseException:
+            for d in reversed(made):  # subfolders made for this commit, if still empty
+                with contextlib.suppress(OSError):
+                    d.rmdir()
+            raise
     finally:
         with _deferred_sigint():
             if staging is not None:
