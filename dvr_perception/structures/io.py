@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.structures._counts import int_histogram
 from dvr_perception.structures.spec import StructureSpec, parse_spec_dict
 
 __all__ = [
@@ -309,21 +310,6 @@ def attach_labels(volume, spec: StructureSpec):
     return replace(volume, labels=data)
 
 
-def _int_histogram(data: np.ndarray, lo: int, bins: int) -> np.ndarray:
-    """Count the integer values ``lo .. lo + bins - 1`` in ``data``, in slabs.
-
-    ``np.bincount`` needs an index array (8 bytes a voxel): made per slab of about 4 M
-    voxels, never for the whole volume.
-    """
-    counts = np.zeros(bins, np.int64)
-    flat = data.reshape(-1)
-    step = 1 << 22
-    for i in range(0, flat.size, step):
-        part = flat[i : i + step].astype(np.int64) - lo
-        counts += np.bincount(part, minlength=bins)[:bins]
-    return counts
-
-
 def check_spec_for_volume(spec: StructureSpec, volume) -> list[str]:
     """Check that every structure of ``spec`` can appear in ``volume``.
 
@@ -349,7 +335,7 @@ def check_spec_for_volume(spec: StructureSpec, volume) -> list[str]:
     lo_v, hi_v = volume.scalar_range
     counts = None
     if data.dtype.kind in "ui" and hi_v - lo_v < 2**20:
-        counts = np.cumsum(_int_histogram(data, int(lo_v), int(hi_v - lo_v) + 1))
+        counts = np.cumsum(int_histogram(data, int(lo_v), int(hi_v - lo_v) + 1))
     for s in spec.structures:
         if s.range is not None:
             lo, hi = s.range

@@ -16,6 +16,7 @@ import numpy as np
 from skimage.filters import threshold_multiotsu
 
 from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.structures._counts import int_histogram
 from dvr_perception.structures.spec import Structure, StructureSpec
 
 __all__ = ["propose_structures"]
@@ -47,8 +48,7 @@ def _histogram(data: np.ndarray, seed: int):
     if data.dtype.kind in "ui":
         lo, hi = int(flat.min()), int(flat.max())
         if hi - lo < 2**20:
-            shifted = flat if lo >= 0 else flat.astype(np.int64) - lo
-            counts = np.bincount(shifted)[max(lo, 0) :].astype(np.float64)
+            counts = int_histogram(data, lo, hi - lo + 1).astype(np.float64)
             centres = np.arange(lo, hi + 1, dtype=np.float64)
             return counts, centres, 1.0, centres[counts > 0]
     if flat.size > _MAX_SAMPLES:

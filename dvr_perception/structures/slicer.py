@@ -265,10 +265,10 @@ def default_importances(counts) -> list[float]:
 def _counts(data: np.ndarray, labels: list[int]) -> list[int]:
     """Voxels per label value (a histogram in slabs for 8- and 16-bit data)."""
     if data.dtype.kind in "ui" and data.dtype.itemsize <= 2:
-        from dvr_perception.structures.io import _int_histogram
+        from dvr_perception.structures._counts import int_histogram
 
         lo, hi = int(data.min()), int(data.max())
-        hist = _int_histogram(data, lo, hi - lo + 1)
+        hist = int_histogram(data, lo, hi - lo + 1)
         return [int(hist[v - lo]) if lo <= v <= hi else 0 for v in labels]
     return [int(np.count_nonzero(data == v)) for v in labels]
 
