@@ -48,11 +48,12 @@ from dvr_perception.filters._base import (
     Parameter,
     as_positive_int,
     double_array,
+    engine_luminance,
     point_array,
     string_array,
 )
 from dvr_perception.filters.perception_measures import PerceptionMeasures, _nan, _rows_up
-from dvr_perception.measures import composite_luminance, shape, transparency, visibility
+from dvr_perception.measures import shape, transparency, visibility
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
 from dvr_perception.structures.io import check_spec_for_volume, spec_to_dict
@@ -255,7 +256,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
 
         opt, weights = res.spec, self.weights
         vis, shp, trn = visibility(result, opt), shape(result, opt), transparency(result, opt)
-        lum = composite_luminance(result.rgba, background=opt.background)
+        lum = engine_luminance(result.rgba, opt.background)
         self.UpdateProgress(0.97)
 
         w, h = camera.width, camera.height
