@@ -15,7 +15,8 @@ import pytest
 from dvr_perception._files import read_png
 from dvr_perception.cli.pvbatch import virtual_display
 from dvr_perception.structures.io import spec_from_dict
-from dvr_perception.structures.transfer import to_vtk_transfer_functions
+from dvr_perception.structures.transfer import GPU_TABLE_SAMPLES, to_vtk_transfer_functions
+from tests.plugin.conftest import assert_no_vtk_messages
 
 REPO = Path(__file__).resolve().parents[2]
 PLUGIN_DIR = REPO / "plugin"
@@ -92,6 +93,7 @@ print({MARK!r} + json.dumps({{
     "rgb": list(display.LookupTable.RGBPoints),
     "points": list(display.ScalarOpacityFunction.Points),
     "material": [display.Ambient, display.Diffuse, display.Specular, display.SpecularPower],
+    "range": list(reader.PointData[reader.PointData.keys()[0]].GetRange()),
 }}), flush=True)
 """
     with _with_display(paraview) as env:
@@ -107,9 +109,13 @@ print({MARK!r} + json.dumps({{
     assert got["dims"] == [SIZE, SIZE, 1]
     # the optimiser never returns something worse than its start
     assert got["E"] <= got["initial_E"] + 1e-9
-    # apply_optimized: ParaView's LUT/opacity nodes are the optimised spec's VTK functions
+    # apply_optimized: ParaView's LUT/opacity nodes are the optimised spec's VTK functions, with
+    # the nodes one GPU table entry (1/4096 of the data range) apart at least
     spec = spec_from_dict(json.loads(got["spec"]))
-    ctf, otf = to_vtk_transfer_functions(spec)
+    ctf, otf = to_vtk_transfer_functions(spec, samples=GPU_TABLE_SAMPLES, scalar_range=got["range"])
+    for nodes in (got["rgb"], got["points"]):
+        xs = np.asarray(nodes).reshape(-1, 4)[:, 0]
+        assert np.diff(xs).min() >= (got["range"][1] - got["range"][0]) / GPU_TABLE_SAMPLES - 1e-9
     np.testing.assert_allclose(got["rgb"], _nodes(ctf, 6), atol=1e-9)
     np.testing.assert_allclose(got["points"], _nodes(otf, 4), atol=1e-9)
     # a few values through the piecewise-linear opacity (midpoint 0.5, sharpness 0)
@@ -139,6 +145,7 @@ def test_batch_optimize_writes_before_after_screenshots_and_json(paraview, tmp_p
             check=False,
         )
     assert proc.returncode == 0, proc.stderr
+    assert_no_vtk_messages(proc.stdout + proc.stderr)
     result = json.loads((out / "result.json").read_text())
     assert set(result["files"]) == {
         "before.png",
