@@ -214,8 +214,13 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         res = self._optimize(volume, spec, camera)
         self.UpdateProgress(0.9)
         opt = res.spec
-        curvature, _ = curvature_volume(volume, opt)
-        result = analyze(volume, opt, camera, curvature=curvature, build_cache=False)
+        # the optimiser's rendering of the view with the optimised spec, as 'dvr-perception
+        # optimize' measures it: equal to a fresh analysis, but with its re-evaluation cache,
+        # which the transparency measure reads where an encloser's plain view is missing
+        result = res.analyses[-1] if res.analyses else None
+        if result is None:
+            curvature, _ = curvature_volume(volume, opt)
+            result = analyze(volume, opt, camera, curvature=curvature, build_cache=False)
         self._fill_result(output, result, res, camera)
 
     def execute_piece(self, image, output, comm, piece: int, whole) -> None:

@@ -81,6 +81,11 @@ display = Show(reader, view)
 display.SetRepresentationType("Volume")
 ColorBy(display, ("POINTS", reader.PointData.keys()[0]))
 apply_optimized(opt, display, preset_path={str(preset)!r})
+imported = ImportPresets({str(preset)!r})  # what Choose Preset > Import does
+lut2 = GetColorTransferFunction("imported")
+lut2.ApplyPreset("preset", False)
+pwf2 = GetOpacityTransferFunction("imported")
+pwf2.ApplyPreset("preset", False)  # the dialog's "use preset opacity"
 print({MARK!r} + json.dumps({{
     "label": opt.SMProxy.GetXMLLabel(),
     "menu": menu.GetAttribute("category") if menu else None,
@@ -94,6 +99,9 @@ print({MARK!r} + json.dumps({{
     "points": list(display.ScalarOpacityFunction.Points),
     "material": [display.Ambient, display.Diffuse, display.Specular, display.SpecularPower],
     "range": list(reader.PointData[reader.PointData.keys()[0]].GetRange()),
+    "imported": bool(imported),
+    "imported_rgb": list(lut2.RGBPoints),
+    "imported_points": list(pwf2.Points),
 }}), flush=True)
 """
     with _with_display(paraview) as env:
@@ -128,6 +136,10 @@ print({MARK!r} + json.dumps({{
     exported = json.loads(preset.read_text())[0]
     assert exported["RGBPoints"] == pytest.approx(got["rgb"])
     assert exported["Points"] == pytest.approx(got["points"])
+    # the preset imports into ParaView (ImportPresets, as Choose Preset > Import) and applies
+    assert got["imported"]
+    assert got["imported_rgb"] == pytest.approx(got["rgb"])
+    assert got["imported_points"] == pytest.approx(got["points"])
 
 
 def test_batch_optimize_writes_before_after_screenshots_and_json(paraview, tmp_path, neghip):
