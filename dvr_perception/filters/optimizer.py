@@ -7,8 +7,11 @@ deviation maps, ``layer_set``, ``region_id``; ``E_v``, ``E_s``, ``E_t``, ``struc
 ``visible_share``, ``target_share``, ``assigned_share``, ``perceived_transparency``,
 ``expected_opacity``).  The
 filter runs :func:`~dvr_perception.optimize.optimize` and then measures the optimised spec
-with the library measures at the output resolution; without a region and with one view the
-``E_*`` arrays equal the optimiser's ``final`` terms.
+with the library measures at the output resolution, on the optimiser's own rendering of the
+view (``OptimizationResult.analyses``: equal to a fresh analysis, plus the re-evaluation cache
+the transparency measure reads where an enclosing layer's plain view is missing), as
+``dvr-perception optimize`` does; without a region and with one view the ``E_*`` arrays equal
+the optimiser's ``final`` terms.
 
 The optimised parameters are **field-data arrays** of the same output (one port keeps the
 filter a plain image filter in ParaView; a ``vtkTable`` can be made from them with
