@@ -209,6 +209,8 @@ case("missing_spec", Input=reader, SpecFile="/no/such/dir/opt_spec.json")
 case("weights", Input=reader, SpecFile=spec, Weights=[0.0, 0.0, 0.0])
 case("stages", Input=reader, SpecFile=spec, Stages="opacity,bogus")
 case("resolution", Input=reader, SpecFile=spec, Resolution=4)
+case("max_iter", Input=reader, SpecFile=spec, MaxIterations=0)
+case("zoom", Input=reader, SpecFile=spec, Zoom=50.0)
 case("region", Input=reader, SpecFile=spec, Region="rect,1,2")
 case("region_outside", Input=reader, SpecFile=spec, Region="circle,100,100,3")
 sys.stderr.write("@@SURVIVED\\n")
@@ -223,6 +225,8 @@ def test_optimize_filter_reports_bad_input_without_crashing(paraview, tmp_path, 
         "weights": "weights: expected three numbers (w_v, w_s, w_t) >= 0, not all zero",
         "stages": "stages: unknown or missing stage(s) ['bogus']",
         "resolution": "resolution: expected 0 (default) or an integer >= 8, got 4",
+        "max_iter": "Optimize Transfer Function: MaxIterations: expected an integer in [1, 1000]",
+        "zoom": "Optimize Transfer Function: Zoom: expected a number in [0.1, 10], got 50.0",
         "region": "region: expected '' (whole image), 'rect,x0,y0,x1,y1' or 'circle,cx,cy,r'",
         "region_outside": "covers no pixel of the 16 x 16 image",
     }

@@ -217,7 +217,7 @@ def case(name, **kw):
 case("polydata", Input=Sphere(), SpecFile=spec)
 case("missing_spec", Input=reader, SpecFile="/no/such/dir/spec.json")
 f = case("sigma", Input=reader, SpecFile=spec, Sigma=-2.0)
-case("width", Input=reader, SpecFile=spec, Width=0)
+case("width", Input=reader, SpecFile=spec, Width=5)  # documented range 16-4096
 case("camera", Input=reader, SpecFile=spec, CameraJSON="{{not json")
 sys.stderr.write("@@CASE fixed\\n")
 f.Sigma = 1.0
@@ -233,7 +233,7 @@ def test_bad_input_is_an_error_message_in_paraview_not_a_crash(paraview, tmp_pat
         "polydata": "is of type vtkPolyData, but a vtkImageData is required",
         "missing_spec": "/no/such/dir/spec.json",
         "sigma": "Perception Measures: Sigma: expected a number in [0.1, 10], got -2.0",
-        "width": "Perception Measures: Width: expected an integer in [16, 4096], got 0",
+        "width": "Perception Measures: Width: expected an integer in [16, 4096], got 5",
         "camera": "camera_json: not valid JSON",
     }
     paraview.assert_errors(cases, expected)
