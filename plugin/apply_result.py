@@ -93,7 +93,7 @@ def apply_optimized(source_or_spec_json, volume_display, *, preset_path=None):
 
     Returns the applied ``StructureSpec``.
     """
-    from batch_measure import set_transfer_functions
+    from batch_measure import data_range, set_transfer_functions
     from paraview import simple as pvs
 
     spec = optimized_spec(source_or_spec_json)
@@ -109,5 +109,5 @@ def apply_optimized(source_or_spec_json, volume_display, *, preset_path=None):
     if preset_path is not None:
         from dvr_perception.export import save_paraview_preset
 
-        save_paraview_preset(spec, preset_path)
+        save_paraview_preset(spec, preset_path, scalar_range=data_range(volume_display, array))
     return spec

@@ -78,11 +78,16 @@ def parse_args(argv):
     return parser.parse_args(argv)
 
 
-def transfer_function_points(spec):
-    """ParaView's ``RGBPoints`` and ``Points`` lists for the spec's VTK transfer functions."""
-    from dvr_perception.structures.transfer import to_vtk_transfer_functions
+def transfer_function_points(spec, scalar_range=None):
+    """ParaView's ``RGBPoints`` and ``Points`` lists for the spec's VTK transfer functions.
 
-    ctf, otf = to_vtk_transfer_functions(spec)
+    The nodes are kept one GPU table entry apart over ``scalar_range`` (the data range) and
+    the nodes' span (``GPU_TABLE_SAMPLES``): ParaView's GPU ray caster then gets a lookup
+    texture OpenGL supports, without VTK's "incorrect lookup table mapping" warning.
+    """
+    from dvr_perception.structures.transfer import GPU_TABLE_SAMPLES, to_vtk_transfer_functions
+
+    ctf, otf = to_vtk_transfer_functions(spec, samples=GPU_TABLE_SAMPLES, scalar_range=scalar_range)
     rgb, node = [], [0.0] * 6
     for i in range(ctf.GetSize()):
         ctf.GetNodeValue(i, node)
@@ -134,7 +139,7 @@ def save_screenshot(pvs, view, camera, path):
 
 def set_transfer_functions(pvs, display, array, spec):
     """Give ``display`` the spec's colour LUT and opacity function for ``array`` (fixed range)."""
-    rgb, pts = transfer_function_points(spec)
+    rgb, pts = transfer_function_points(spec, data_range(display, array))
     lut = pvs.GetColorTransferFunction(array)
     lut.AutomaticRescaleRangeMode = "Never"
     lut.ColorSpace = "RGB"
@@ -143,6 +148,15 @@ def set_transfer_functions(pvs, display, array, spec):
     pwf.Points = pts
     display.LookupTable = lut
     display.ScalarOpacityFunction = pwf
+
+
+def data_range(display, array):
+    """The range of the point array ``array`` shown by ``display`` (None if unknown)."""
+    try:
+        info = display.Input.PointData[array]
+    except (AttributeError, KeyError, TypeError):
+        return None
+    return None if info is None else tuple(info.GetRange())
 
 
 def screenshot(pvs, source, array, scene, path):

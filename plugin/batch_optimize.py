@@ -126,6 +126,14 @@ def run(args):
 
         x0, y0, x1, y1 = parse_rect(args.region, scene.camera.width, scene.camera.height)
         region = f"rect,{x0},{y0},{x1},{y1}"
+    before = os.path.join(out_dir, "before.png")
+    shots = ()
+    if not args.no_screenshot and ranks == 1:
+        # ParaView's rendering before the optimisation, first: the X connection is opened
+        # here, so a start-up failure of Debian's pvbatch (see dvr_perception.cli.pvbatch)
+        # costs seconds, not the optimisation
+        bm.screenshot(pvs, source, array, scene, before)
+        shots = (before,)
     opt = pvs.OptimizeTransferFunction(
         Input=source,
         ScalarArray=array,
@@ -149,20 +157,20 @@ def run(args):
     write_json(spec_path, result["optimized_spec"])
     images = bm.measure_images(pvs, output, scene.spec.background, out_dir)
     preset = os.path.join(out_dir, "optimized_preset.json")
-    shots = ()
     if args.no_screenshot:
         from dvr_perception.export import save_paraview_preset
         from dvr_perception.structures.io import spec_from_dict
 
         save_paraview_preset(spec_from_dict(result["optimized_spec"]), preset)
     else:
-        before = os.path.join(out_dir, "before.png")
-        bm.screenshot(pvs, source, array, scene, before)
+        if not shots:  # several ranks: the reader's array is known now
+            bm.screenshot(pvs, source, array, scene, before)
+            shots = (before,)
         after = os.path.join(out_dir, "after.png")
         view, display = bm.show_volume(pvs, source, array, scene)
         apply_optimized(output, display, preset_path=preset)
         bm.save_screenshot(pvs, view, scene.camera, after)
-        shots = (before, after)
+        shots = (*shots, after)
     result.update(
         volume=str(scene.volume_source),
         spec=scene.spec_source,

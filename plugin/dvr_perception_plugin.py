@@ -33,6 +33,23 @@ _ARRAY_LIST = (
     "</ArrayListDomain>"
 )
 _MULTI_LINE = '<Widget type="multi_line" />'
+#: The documented range of each numeric property: ``(min, max, integer)``.  The ``smdomain``
+#: decorators below show them in the GUI; :meth:`_LibraryShell._set_in_range` holds values set
+#: from Python to them too.
+RANGES = {
+    "Sigma": (0.1, 10.0, False),
+    "Azimuth": (-180.0, 180.0, False),
+    "Elevation": (-90.0, 90.0, False),
+    "Zoom": (0.1, 10.0, False),
+    "Width": (16, 4096, True),
+    "Height": (16, 4096, True),
+    "UseSpecView": (0, 1, True),
+    "Distributed": (0, 1, True),
+    "Weights": (0.0, 100.0, False),
+    "Seed": (0, 1000000, True),
+    "MaxIterations": (1, 1000, True),
+    "Resolution": (0, 1024, True),
+}
 
 
 def _setup_paths():
@@ -52,19 +69,44 @@ class _LibraryShell(VTKPythonAlgorithmBase):
     """Forwards the pipeline passes to a lazily created ``dvr_perception.filters`` filter."""
 
     _filter_name = ""
+    _label = ""
 
     def __init__(self):
         VTKPythonAlgorithmBase.__init__(
             self, nInputPorts=1, inputType="vtkImageData", nOutputPorts=1, outputType="vtkImageData"
         )
         self._values = {}
+        self._invalid = {}
         self._impl = None
         self._last_error = None
 
     def _set(self, name, value):
+        self._invalid.pop(name, None)
         if self._values.get(name, object()) != value:
             self._values[name] = value
             self.Modified()
+
+    def _set_in_range(self, name, value, prop):
+        """Set ``name`` if ``value`` lies in the property's documented range (:data:`RANGES`).
+
+        A value outside it (typed in Python: the GUI's widgets keep to the range) is not
+        taken: the filter fails with one error naming the property until it is set right.
+        """
+        from dvr_perception.errors import DVRInputError
+        from dvr_perception.filters._base import check_range
+
+        low, high, integer = RANGES[prop]
+        try:
+            checked = (
+                [check_range(v, prop, low, high, integer=integer) for v in value]
+                if (isinstance(value, tuple))
+                else check_range(value, prop, low, high, integer=integer)
+            )
+        except DVRInputError as exc:
+            self._invalid[name] = f"{self._label}: {exc}"
+            self.Modified()
+            return
+        self._set(name, tuple(checked) if isinstance(value, tuple) else checked)
 
     def _library_filter(self):
         """Create the library filter (first call only) and push the current values into it."""
@@ -77,6 +119,8 @@ class _LibraryShell(VTKPythonAlgorithmBase):
         from dvr_perception.errors import DVRInputError
 
         try:
+            for message in self._invalid.values():
+                raise DVRInputError(message)
             for name, value in self._parameters().items():
                 setattr(impl, name, value)
         except DVRInputError as exc:
@@ -166,9 +210,9 @@ def SetSpecJSON(self, value):
 
 
 @smproperty.doublevector(name="Sigma", default_values=1.0)
-@smdomain.doublerange(min=0.1, max=10.0)
+@smdomain.doublerange(min=RANGES["Sigma"][0], max=RANGES["Sigma"][1])
 def SetSigma(self, value):
-    self._set("sigma", value)
+    self._set_in_range("sigma", value, "Sigma")
 
 
 @smproxy.filter(name="DVRStructuralLayers", label="Structural Layers", support_reload=False)
@@ -180,6 +224,7 @@ class StructuralLayers(_LibraryShell):
     """Adds ``structure_id``, ``boundary`` and ``curvature`` point arrays to a volume."""
 
     _filter_name = "StructuralLayers"
+    _label = "Structural Layers"
 
     def __init__(self):
         _LibraryShell.__init__(self)
@@ -204,6 +249,7 @@ class PerceptionMeasures(_LibraryShell):
     """Renders the volume; outputs the image, per-pixel deviations and E_v, E_s, E_t."""
 
     _filter_name = "PerceptionMeasures"
+    _label = "Perception Measures"
 
     def __init__(self):
         _LibraryShell.__init__(self)
@@ -244,37 +290,37 @@ class PerceptionMeasures(_LibraryShell):
     @smdomain.xml('<BooleanDomain name="bool" />')
     def SetDistributed(self, value):
         """Each MPI rank reads and analyses its own piece (all ranks execute together)."""
-        self._set("distributed", int(value))
+        self._set_in_range("distributed", value, "Distributed")
 
     @smproperty.intvector(name="UseSpecView", default_values=1)
     @smdomain.xml('<BooleanDomain name="bool" />')
     def SetUseSpecView(self, value):
-        self._set("use_spec_view", int(value))
+        self._set_in_range("use_spec_view", value, "UseSpecView")
 
     @smproperty.doublevector(name="Azimuth", default_values=0.0)
-    @smdomain.doublerange(min=-180.0, max=180.0)
+    @smdomain.doublerange(min=RANGES["Azimuth"][0], max=RANGES["Azimuth"][1])
     def SetAzimuth(self, value):
-        self._set("azimuth", value)
+        self._set_in_range("azimuth", value, "Azimuth")
 
     @smproperty.doublevector(name="Elevation", default_values=0.0)
-    @smdomain.doublerange(min=-90.0, max=90.0)
+    @smdomain.doublerange(min=RANGES["Elevation"][0], max=RANGES["Elevation"][1])
     def SetElevation(self, value):
-        self._set("elevation", value)
+        self._set_in_range("elevation", value, "Elevation")
 
     @smproperty.doublevector(name="Zoom", default_values=1.0)
-    @smdomain.doublerange(min=0.1, max=10.0)
+    @smdomain.doublerange(min=RANGES["Zoom"][0], max=RANGES["Zoom"][1])
     def SetZoom(self, value):
-        self._set("zoom", value)
+        self._set_in_range("zoom", value, "Zoom")
 
     @smproperty.intvector(name="Width", default_values=512)
-    @smdomain.intrange(min=16, max=4096)
+    @smdomain.intrange(min=RANGES["Width"][0], max=RANGES["Width"][1])
     def SetWidth(self, value):
-        self._set("width", value)
+        self._set_in_range("width", value, "Width")
 
     @smproperty.intvector(name="Height", default_values=512)
-    @smdomain.intrange(min=16, max=4096)
+    @smdomain.intrange(min=RANGES["Height"][0], max=RANGES["Height"][1])
     def SetHeight(self, value):
-        self._set("height", value)
+        self._set_in_range("height", value, "Height")
 
 
 @smproxy.filter(
@@ -295,6 +341,7 @@ class OptimizeTransferFunction(_LibraryShell):
     """
 
     _filter_name = "TransferFunctionOptimizer"
+    _label = "Optimize Transfer Function"
 
     def __init__(self):
         _LibraryShell.__init__(self)
@@ -331,38 +378,38 @@ class OptimizeTransferFunction(_LibraryShell):
     SetZoom = PerceptionMeasures.SetZoom
 
     @smproperty.intvector(name="Width", default_values=256)
-    @smdomain.intrange(min=16, max=4096)
+    @smdomain.intrange(min=RANGES["Width"][0], max=RANGES["Width"][1])
     def SetWidth(self, value):
-        self._set("width", value)
+        self._set_in_range("width", value, "Width")
 
     @smproperty.intvector(name="Height", default_values=256)
-    @smdomain.intrange(min=16, max=4096)
+    @smdomain.intrange(min=RANGES["Height"][0], max=RANGES["Height"][1])
     def SetHeight(self, value):
-        self._set("height", value)
+        self._set_in_range("height", value, "Height")
 
     @smproperty.stringvector(name="Stages", default_values="opacity,lighting,colour")
     def SetStages(self, value):
         self._set("stages", value)
 
     @smproperty.doublevector(name="Weights", default_values=[1.0, 1.0, 1.0])
-    @smdomain.doublerange(min=0.0, max=100.0)
+    @smdomain.doublerange(min=RANGES["Weights"][0], max=RANGES["Weights"][1])
     def SetWeights(self, w_v, w_s, w_t):
-        self._set("weights", (w_v, w_s, w_t))
+        self._set_in_range("weights", (w_v, w_s, w_t), "Weights")
 
     @smproperty.intvector(name="Seed", default_values=0)
-    @smdomain.intrange(min=0, max=1000000)
+    @smdomain.intrange(min=RANGES["Seed"][0], max=RANGES["Seed"][1])
     def SetSeed(self, value):
-        self._set("seed", value)
+        self._set_in_range("seed", value, "Seed")
 
     @smproperty.intvector(name="MaxIterations", default_values=10)
-    @smdomain.intrange(min=1, max=1000)
+    @smdomain.intrange(min=RANGES["MaxIterations"][0], max=RANGES["MaxIterations"][1])
     def SetMaxIterations(self, value):
-        self._set("max_iter", value)
+        self._set_in_range("max_iter", value, "MaxIterations")
 
     @smproperty.intvector(name="Resolution", default_values=0)
-    @smdomain.intrange(min=0, max=1024)
+    @smdomain.intrange(min=RANGES["Resolution"][0], max=RANGES["Resolution"][1])
     def SetResolution(self, value):
-        self._set("resolution", value)
+        self._set_in_range("resolution", value, "Resolution")
 
     @smproperty.stringvector(name="Region", default_values="")
     @smdomain.xml(

@@ -111,7 +111,7 @@ imageFileTF2D.Range = [0.0, 255.0, 0.0, 1.0]
 imageFileLUT = GetColorTransferFunction('ImageFile')
 imageFileLUT.AutomaticRescaleRangeMode = 'Never'
 imageFileLUT.TransferFunction2D = imageFileTF2D
-imageFileLUT.RGBPoints = [40.008, 0.3, 0.5, 0.9, 119.992, 0.3, 0.5, 0.9, 120.008, 0.3, 0.8, 0.4, 199.992, 0.3, 0.8, 0.4, 200.0055, 0.95, 0.35, 0.2, 254.9945, 0.95, 0.35, 0.2]
+imageFileLUT.RGBPoints = [40.062255859375, 0.3, 0.5, 0.9, 119.937744140625, 0.3, 0.5, 0.9, 120.062255859375, 0.3, 0.8, 0.4, 199.937744140625, 0.3, 0.8, 0.4, 200.062255859375, 0.95, 0.35, 0.2, 254.937744140625, 0.95, 0.35, 0.2]
 imageFileLUT.ColorSpace = 'RGB'
 imageFileLUT.ScalarRangeInitialized = 1.0
 
@@ -176,17 +176,17 @@ perceptionMeasuresDisplay = Show(perceptionMeasures, renderView2, 'UniformGridRe
 # get 2D transfer function for 'rgba'
 rgbaTF2D = GetTransferFunction2D('rgba')
 rgbaTF2D.ScalarRangeInitialized = 1
-rgbaTF2D.Range = [0.0, 1.5816149784506854, 0.0, 1.0]
+rgbaTF2D.Range = [0.0, 1.5816123526035482, 0.0, 1.0]
 
 # get color transfer function/color map for 'rgba'
 rgbaLUT = GetColorTransferFunction('rgba')
 rgbaLUT.TransferFunction2D = rgbaTF2D
-rgbaLUT.RGBPoints = [0.0, 0.231373, 0.298039, 0.752941, 0.7908074892253427, 0.865003, 0.865003, 0.865003, 1.5816149784506854, 0.705882, 0.0156863, 0.14902]
+rgbaLUT.RGBPoints = [0.0, 0.231373, 0.298039, 0.752941, 0.7908061763017741, 0.865003, 0.865003, 0.865003, 1.5816123526035482, 0.705882, 0.0156863, 0.14902]
 rgbaLUT.ScalarRangeInitialized = 1.0
 
 # get opacity transfer function/opacity map for 'rgba'
 rgbaPWF = GetOpacityTransferFunction('rgba')
-rgbaPWF.Points = [0.0, 0.0, 0.5, 0.0, 1.5816149784506854, 1.0, 0.5, 0.0]
+rgbaPWF.Points = [0.0, 0.0, 0.5, 0.0, 1.5816123526035482, 1.0, 0.5, 0.0]
 rgbaPWF.ScalarRangeInitialized = 1
 
 # trace defaults for the display properties.

@@ -112,7 +112,7 @@ imageFileTF2D.Range = [0.0, 255.0, 0.0, 1.0]
 imageFileLUT = GetColorTransferFunction('ImageFile')
 imageFileLUT.AutomaticRescaleRangeMode = 'Never'
 imageFileLUT.TransferFunction2D = imageFileTF2D
-imageFileLUT.RGBPoints = [145.0035, 0.95, 0.88, 0.7, 179.9965, 0.95, 0.88, 0.7, 200.005, 0.85, 0.92, 1.0, 249.995, 0.85, 0.92, 1.0]
+imageFileLUT.RGBPoints = [145.062255859375, 0.95, 0.88, 0.7, 179.937744140625, 0.95, 0.88, 0.7, 200.062255859375, 0.85, 0.92, 1.0, 249.937744140625, 0.85, 0.92, 1.0]
 imageFileLUT.ColorSpace = 'RGB'
 imageFileLUT.ScalarRangeInitialized = 1.0
 

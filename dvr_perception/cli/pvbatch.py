@@ -395,7 +395,7 @@ def run(args: argparse.Namespace) -> int:
     prefix = mpi_command(args.ranks, pvbatch, env) if args.ranks > 1 else []
     if prefix:
         _warm_up(pvbatch, env, optimize=args.optimize)
-    for attempt in (1, 2):
+    for attempt in (1, 2, 3):
         with virtual_display() as display:
             env["DISPLAY"] = display
             what = f"pvbatch{f' --ranks {args.ranks}' if args.ranks > 1 else ''}"
@@ -407,11 +407,12 @@ def run(args: argparse.Namespace) -> int:
             )
         # a signal (negative code; under mpiexec 128 + signal and ParaView's X message) is
         # ParaView crashing, not our script's error: Debian's pvbatch has been seen to abort
-        # now and then at start-up ("bad X server connection"); one fresh retry, then report it
+        # now and then at start-up ("bad X server connection", up to 1 launch in 5 on a busy
+        # machine); two fresh retries, then report it
         crashed = proc.returncode < 0 or "bad X server connection" in (proc.stderr or "")
-        if not crashed or attempt == 2:
+        if not crashed or attempt == 3:
             break
-        log.warning("pvbatch crashed (exit %d); retrying once", proc.returncode)
+        log.warning("pvbatch crashed (exit %d); retrying", proc.returncode)
     if args.verbose and proc.stderr:
         sys.stderr.write(proc.stderr)
     if proc.returncode != 0:

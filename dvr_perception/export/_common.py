@@ -20,15 +20,19 @@ def check_intensity_spec(spec, what: str) -> None:
         )
 
 
-def transfer_nodes(spec, opacities) -> tuple[list[list[float]], list[list[float]]]:
-    """Nodes of the VTK functions built by ``to_vtk_transfer_functions``.
+def transfer_nodes(
+    spec, opacities, samples=None, scalar_range=None
+) -> tuple[list[list[float]], list[list[float]]]:
+    """Nodes of the VTK functions built by ``to_vtk_transfer_functions`` (with ``samples``).
 
     Returns
     -------
     color : list of [x, r, g, b, midpoint, sharpness]
     opacity : list of [x, y, midpoint, sharpness]
     """
-    ctf, otf = to_vtk_transfer_functions(spec, opacities=opacities)
+    ctf, otf = to_vtk_transfer_functions(
+        spec, opacities=opacities, samples=samples, scalar_range=scalar_range
+    )
     color, opacity = [], []
     for i in range(ctf.GetSize()):
         node = [0.0] * 6

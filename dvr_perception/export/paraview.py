@@ -10,7 +10,9 @@ A ParaView preset file is a JSON list of preset objects.  Each object used here 
 * ``"Creator"``: ``"dvr_perception"`` (informational).
 
 The points are the nodes of :func:`dvr_perception.structures.transfer.to_vtk_transfer_functions`
-for the same spec, so ParaView reproduces its trapezoids exactly.  ParaView rescales a preset
+for the same spec with ``samples=GPU_TABLE_SAMPLES`` (no two nodes closer than 1/4096 of their
+span, so ParaView's GPU lookup texture fits OpenGL's limit without a VTK warning), so ParaView
+reproduces its trapezoids to within that spacing.  ParaView rescales a preset
 to the data range by default; keep the preset's own range (the dialog's option to use the preset
 range) so that the structure boundaries stay at their intensities.
 """
@@ -22,11 +24,12 @@ from pathlib import Path
 from dvr_perception._files import write_json
 from dvr_perception.errors import DVRInputError
 from dvr_perception.export._common import check_intensity_spec, transfer_nodes
+from dvr_perception.structures.transfer import GPU_TABLE_SAMPLES
 
 __all__ = ["paraview_preset", "save_paraview_preset"]
 
 
-def paraview_preset(spec, *, name: str | None = None, opacities=None) -> dict:
+def paraview_preset(spec, *, name: str | None = None, opacities=None, scalar_range=None) -> dict:
     """ParaView preset object (colour + opacity) equal to the spec's VTK transfer functions.
 
     Parameters
@@ -37,6 +40,9 @@ def paraview_preset(spec, *, name: str | None = None, opacities=None) -> dict:
         Preset name (default ``"dvr_perception"``).
     opacities : array_like, optional
         One rendering opacity per structure (default: each structure's ``render_opacity``).
+    scalar_range : (float, float), optional
+        The data range the preset will be shown over; the nodes are kept 1/4096 of it apart
+        too (``to_vtk_transfer_functions``' ``scalar_range``).
 
     Returns
     -------
@@ -60,7 +66,7 @@ def paraview_preset(spec, *, name: str | None = None, opacities=None) -> dict:
     label = "dvr_perception" if name is None else name
     if not isinstance(label, str) or not label.strip():
         raise DVRInputError(f"name must be a non-empty string, got {name!r}")
-    color, opacity = transfer_nodes(spec, opacities)
+    color, opacity = transfer_nodes(spec, opacities, GPU_TABLE_SAMPLES, scalar_range)
     return {
         "Name": label,
         "Creator": "dvr_perception",
@@ -70,7 +76,9 @@ def paraview_preset(spec, *, name: str | None = None, opacities=None) -> dict:
     }
 
 
-def save_paraview_preset(spec, path, *, name: str | None = None, opacities=None) -> Path:
+def save_paraview_preset(
+    spec, path, *, name: str | None = None, opacities=None, scalar_range=None
+) -> Path:
     """Write :func:`paraview_preset` as a ParaView preset file (a one-element list, atomically).
 
     Parameters
@@ -83,6 +91,8 @@ def save_paraview_preset(spec, path, *, name: str | None = None, opacities=None)
         Preset name (default: the file name without ``.json``).
     opacities : array_like, optional
         One rendering opacity per structure.
+    scalar_range : (float, float), optional
+        The data range the preset will be shown over (see :func:`paraview_preset`).
 
     Returns
     -------
@@ -99,5 +109,5 @@ def save_paraview_preset(spec, path, *, name: str | None = None, opacities=None)
     'bone'
     """
     label = Path(path).name.removesuffix(".json") if name is None else name
-    preset = paraview_preset(spec, name=label, opacities=opacities)
+    preset = paraview_preset(spec, name=label, opacities=opacities, scalar_range=scalar_range)
     return write_json(path, [preset])

@@ -46,7 +46,7 @@ from dvr_perception.errors import DVRInputError
 from dvr_perception.structures.io import load_spec, spec_from_dict
 from dvr_perception.volume.convert import from_vtk_image
 
-__all__ = ["DVRFilterBase", "Parameter"]
+__all__ = ["DVRFilterBase", "Parameter", "check_range", "engine_luminance"]
 
 
 class Parameter:
@@ -134,6 +134,38 @@ def as_positive_int(value, name: str) -> int:
     if v != value or v < 1:
         raise DVRInputError(f"{name}: expected a positive integer, got {value!r}")
     return v
+
+
+def check_range(value, name: str, low, high, *, integer: bool = False):
+    """Return ``value`` if it lies in ``[low, high]`` (an integer when ``integer``).
+
+    The ParaView plugin checks its properties' documented ranges (the ``smdomain`` ranges the
+    GUI's sliders use) with this, so a value typed in Python is held to them too.
+
+    Raises
+    ------
+    DVRInputError
+        One line naming ``name`` and the range.
+
+    Examples
+    --------
+    >>> check_range(32, "Width", 16, 4096, integer=True)
+    32
+    >>> check_range(5, "Width", 16, 4096, integer=True)
+    Traceback (most recent call last):
+    ...
+    dvr_perception.errors.DVRInputError: Width: expected an integer in [16, 4096], got 5
+    """
+    what = "an integer" if integer else "a number"
+    try:
+        v = float(value)
+        ok = math.isfinite(v) and low <= v <= high and not isinstance(value, (bool, str))
+        ok = ok and (not integer or v == int(v))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise DVRInputError(f"{name}: expected {what} in [{low:g}, {high:g}], got {value!r}")
+    return int(v) if integer else v
 
 
 def as_flag(value, name: str) -> bool:
@@ -317,6 +349,31 @@ def double_array(values, name: str):
     for i, v in enumerate(vals):
         arr.SetValue(i, v)
     return arr
+
+
+def engine_luminance(rgba, background) -> np.ndarray:
+    """Return the luminance of the engine's premultiplied ``rgba`` over ``background``.
+
+    The composite of :func:`~dvr_perception.measures.composite_luminance`,
+    ``Y(rgb) + (1 - a) * Y(background)``, without its check that no colour channel exceeds
+    its opacity: that check is meant for images of unknown origin.  The engine's image is
+    premultiplied by construction, and its colour may legitimately exceed its opacity where
+    shading adds a white specular term (VTK's Phong model, which the engine follows, adds
+    the highlight on top of the premultiplied colour: emission, up to a few per cent on
+    tooth and cthead at their spec views).  Checking it would report every highlight as a
+    "not premultiplied" warning in ParaView.
+
+    Examples
+    --------
+    >>> float(engine_luminance([[0.5, 0.5, 0.5, 0.5]], (1.0, 1.0, 1.0))[0])
+    1.0
+    """
+    from dvr_perception.measures.luminance import LUMA_WEIGHTS
+
+    arr = np.asarray(rgba, np.float64)
+    weights = np.asarray(LUMA_WEIGHTS, np.float64)
+    bg = float(np.asarray(background, np.float64) @ weights)
+    return arr[..., :3] @ weights + (1.0 - arr[..., 3]) * bg
 
 
 def string_array(values, name: str):

@@ -7,8 +7,11 @@ deviation maps, ``layer_set``, ``region_id``; ``E_v``, ``E_s``, ``E_t``, ``struc
 ``visible_share``, ``target_share``, ``assigned_share``, ``perceived_transparency``,
 ``expected_opacity``).  The
 filter runs :func:`~dvr_perception.optimize.optimize` and then measures the optimised spec
-with the library measures at the output resolution; without a region and with one view the
-``E_*`` arrays equal the optimiser's ``final`` terms.
+with the library measures at the output resolution, on the optimiser's own rendering of the
+view (``OptimizationResult.analyses``: equal to a fresh analysis, plus the re-evaluation cache
+the transparency measure reads where an enclosing layer's plain view is missing), as
+``dvr-perception optimize`` does; without a region and with one view the ``E_*`` arrays equal
+the optimiser's ``final`` terms.
 
 The optimised parameters are **field-data arrays** of the same output (one port keeps the
 filter a plain image filter in ParaView; a ``vtkTable`` can be made from them with
@@ -48,11 +51,12 @@ from dvr_perception.filters._base import (
     Parameter,
     as_positive_int,
     double_array,
+    engine_luminance,
     point_array,
     string_array,
 )
 from dvr_perception.filters.perception_measures import PerceptionMeasures, _nan, _rows_up
-from dvr_perception.measures import composite_luminance, shape, transparency, visibility
+from dvr_perception.measures import shape, transparency, visibility
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
 from dvr_perception.structures.io import attach_labels, check_spec_for_volume, spec_to_dict
@@ -214,8 +218,13 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         res = self._optimize(volume, spec, camera)
         self.UpdateProgress(0.9)
         opt = res.spec
-        curvature, _ = curvature_volume(volume, opt)
-        result = analyze(volume, opt, camera, curvature=curvature, build_cache=False)
+        # the optimiser's rendering of the view with the optimised spec, as 'dvr-perception
+        # optimize' measures it: equal to a fresh analysis, but with its re-evaluation cache,
+        # which the transparency measure reads where an encloser's plain view is missing
+        result = res.analyses[-1] if res.analyses else None
+        if result is None:
+            curvature, _ = curvature_volume(volume, opt)
+            result = analyze(volume, opt, camera, curvature=curvature, build_cache=False)
         self._fill_result(output, result, res, camera)
 
     def execute_piece(self, image, output, comm, piece: int, whole) -> None:
@@ -256,7 +265,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
 
         opt, weights = res.spec, self.weights
         vis, shp, trn = visibility(result, opt), shape(result, opt), transparency(result, opt)
-        lum = composite_luminance(result.rgba, background=opt.background)
+        lum = engine_luminance(result.rgba, opt.background)
         self.UpdateProgress(0.97)
 
         w, h = camera.width, camera.height

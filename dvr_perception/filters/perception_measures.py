@@ -61,11 +61,12 @@ from dvr_perception.filters._base import (
     as_positive_int,
     as_text,
     double_array,
+    engine_luminance,
     parse_json,
     point_array,
     string_array,
 )
-from dvr_perception.measures import all_measures, composite_luminance
+from dvr_perception.measures import all_measures
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
@@ -297,7 +298,7 @@ class PerceptionMeasures(DVRFilterBase):
         """Measure ``result`` and fill the output image and its field data."""
         vis, shp, trn = all_measures(result, spec)
         self.UpdateProgress(0.95)
-        lum = composite_luminance(result.rgba, background=spec.background)
+        lum = engine_luminance(result.rgba, spec.background)
 
         w, h = camera.width, camera.height
         output.SetExtent(0, w - 1, 0, h - 1, 0, 0)

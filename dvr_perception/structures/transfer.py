@@ -25,6 +25,7 @@ from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.structures.spec import Lighting, Structure, StructureSpec
 
 __all__ = [
+    "GPU_TABLE_SAMPLES",
     "TransferLUT",
     "build_lut",
     "classify",
@@ -39,6 +40,11 @@ __all__ = [
 
 #: Table size VTK's fixed-point mapper uses for float data and wide integer ranges.
 VTK_FLOAT_TABLE_SIZE = 32768
+#: Table entries a GPU renderer (VTK's GPU ray caster in ParaView) may sample our transfer
+#: functions into (``to_vtk_transfer_functions(..., samples=...)``): its lookup texture is the
+#: data range over the smallest node spacing, rounded up to a power of two, and OpenGL allows
+#: 16384 texels (Mesa) or more; 4096 leaves room for a data range four times the nodes' span.
+GPU_TABLE_SAMPLES = 4096
 #: Offset of the colour points inside each range (fraction of the range width).
 _COLOR_INSET = 1e-4
 #: Width of the "vertical" ramp that stands for ``edge == 0`` (fraction of the range width).
@@ -288,12 +294,34 @@ def color_table(lut: TransferLUT, colors) -> np.ndarray:
     return out
 
 
-def to_vtk_transfer_functions(spec: StructureSpec, *, opacities=None):
+def to_vtk_transfer_functions(
+    spec: StructureSpec, *, opacities=None, samples: int | None = None, scalar_range=None
+):
     """Build VTK colour and scalar-opacity functions equal to the spec's trapezoids.
 
     Each structure gives four opacity points ``(lo, 0), (lo + w, o), (hi - w, o), (hi, 0)``
     (``w = edge * (hi - lo)``) and two colour points just inside ``(lo, hi)``, so VTK's
     colour interpolation never mixes two structures where the opacity is non-zero.
+
+    Parameters
+    ----------
+    spec : StructureSpec
+        Range structures only.
+    opacities : array_like, optional
+        One rendering opacity per structure (default: each structure's ``render_opacity``).
+    samples : int, optional
+        For a renderer that samples the functions into a table of about ``samples`` entries
+        over ``scalar_range`` (VTK's GPU ray caster, ParaView): keep the nodes at least
+        ``span / samples`` apart (``span``: the wider of ``scalar_range`` and the nodes'
+        extent).  VTK's GPU mapper sizes its lookup texture as the range over the smallest
+        node spacing, rounded up to a power of two; the colour points' inset of
+        ``1e-4 * (hi - lo)`` alone asks for 32768 texels on the engine data, more than
+        OpenGL allows (16384 on Mesa), and VTK warns ("incorrect lookup table mapping").  A
+        spacing finer than one table entry cannot be shown anyway.  Default: exact nodes
+        (the CPU reference renderer's tables need them).  :data:`GPU_TABLE_SAMPLES` is the
+        value for ParaView.
+    scalar_range : (float, float), optional
+        The data range the renderer maps over (with ``samples``).
 
     Returns
     -------
@@ -306,18 +334,44 @@ def to_vtk_transfer_functions(spec: StructureSpec, *, opacities=None):
             f"structure {bad!r}: label structures cannot be expressed as a VTK intensity "
             "transfer function; expected only range structures"
         )
+    ranges = sorted(_range_structures(spec), key=lambda t: t[1])
+    gap = _node_gap(ranges, samples, scalar_range)
     ctf = _vtk.vtkColorTransferFunction()
     otf = _vtk.vtkPiecewiseFunction()
-    for k, lo, hi, edge in sorted(_range_structures(spec), key=lambda t: t[1]):
+    last = None  # the opacity node added last
+    for k, lo, hi, edge in ranges:
         width = hi - lo
-        w = max(edge * width, _STEP_WIDTH * width)
+        floor = min(gap, width / 3.0)
+        w = max(edge * width, _STEP_WIDTH * width, floor)
         o = float(ops[k])
-        for x, y in ((lo, 0.0), (lo + w, o), (hi - w, o), (hi, 0.0)):
+        nodes = [(lo, 0.0), (lo + w, o), (hi - w, o), (hi, 0.0)]
+        if gap and nodes[2][0] - nodes[1][0] < gap:  # a (near) triangle: one peak node
+            nodes[1:3] = [(0.5 * (lo + hi), o)]
+        if gap and last is not None and last[1] == 0.0 and 0.0 < lo - last[0] < gap:
+            nodes = nodes[1:]  # zero from the previous structure's end already
+        for x, y in nodes:
             otf.AddPoint(x, y)
+        last = nodes[-1]
+        inset = max(_COLOR_INSET * width, floor)
         r, g, b = (float(c) for c in spec.structures[k].color)
-        ctf.AddRGBPoint(lo + _COLOR_INSET * width, r, g, b)
-        ctf.AddRGBPoint(hi - _COLOR_INSET * width, r, g, b)
+        ctf.AddRGBPoint(lo + inset, r, g, b)
+        ctf.AddRGBPoint(hi - inset, r, g, b)
     return ctf, otf
+
+
+def _node_gap(ranges, samples, scalar_range) -> float:
+    """Smallest node spacing for a table of ``samples`` entries (0: exact nodes)."""
+    if samples is None or not ranges:
+        return 0.0
+    if int(samples) < 2:
+        raise DVRInputError(f"samples: expected an integer >= 2, got {samples!r}")
+    lo = min(r[1] for r in ranges)
+    hi = max(r[2] for r in ranges)
+    if scalar_range is not None:
+        a, b = (float(v) for v in scalar_range)
+        if math.isfinite(a) and math.isfinite(b):
+            lo, hi = min(lo, a), max(hi, b)
+    return (hi - lo) / int(samples)
 
 
 def to_vtk_property(spec: StructureSpec, volume, *, opacities=None, shade=None):

@@ -19,7 +19,11 @@ from dvr_perception.export import (
 )
 from dvr_perception.export.slicer import SLICER_VP_SCHEMA
 from dvr_perception.structures.spec import Lighting, RenderSettings, Structure, StructureSpec
-from dvr_perception.structures.transfer import membership, to_vtk_transfer_functions
+from dvr_perception.structures.transfer import (
+    GPU_TABLE_SAMPLES,
+    membership,
+    to_vtk_transfer_functions,
+)
 from dvr_perception.volume.volume import Volume
 
 RED, GREEN, BLUE = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
@@ -76,7 +80,9 @@ def _expected_opacity(spec, opacities):
 def test_paraview_reproduces_vtk_functions(spec3, tmp_path, opacities):
     path = save_paraview_preset(spec3, tmp_path / "tf.json", opacities=opacities)
     (preset,) = json.loads(path.read_text())
-    want_rgb, want_op = _eval(*to_vtk_transfer_functions(spec3, opacities=opacities))
+    # the nodes kept one GPU table entry apart (ParaView's lookup texture; see the module)
+    want = to_vtk_transfer_functions(spec3, opacities=opacities, samples=GPU_TABLE_SAMPLES)
+    want_rgb, want_op = _eval(*want)
     got_rgb, got_op = _eval(*_from_paraview(preset))
     np.testing.assert_array_equal(got_rgb, want_rgb)
     np.testing.assert_array_equal(got_op, want_op)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,10 +13,12 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 from dvr_perception._vtk import vtk_to_numpy, vtkLogger, vtkOutputWindow, vtkStringOutputWindow
 from dvr_perception.filters import PerceptionMeasures, StructuralLayers
 from dvr_perception.measures import shape, transparency, visibility
+from dvr_perception.measures.luminance import LUMA_WEIGHTS
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import classify_structures, curvature_volume
 from dvr_perception.rays.engine import analyze
 from dvr_perception.structures.io import spec_to_dict
+from dvr_perception.structures.spec import Lighting
 from dvr_perception.volume import from_vtk_image, make_phantom, to_vtk_image
 
 SIZE = 48
@@ -320,3 +323,26 @@ def test_library_warnings_are_forwarded(phantom):
     assert ok, errors
     assert any("holds no voxel" in w for w in warnings_seen), warnings_seen
     assert f.warning_messages == warnings_seen
+
+
+def test_specular_highlights_are_not_reported_as_straight_alpha(phantom):
+    # White structures, strong specular: the highlights carry more light than their opacity
+    # (emission, as in VTK's Phong shading); the engine's image is premultiplied all the same,
+    # so the filter must not warn "rgba_premultiplied: colour channels exceed their opacity".
+    _, spec, image = phantom
+    light = Lighting(ambient=0.5, diffuse=0.8, specular=1.0, specular_power=2.0)
+    white = [replace(s, lighting=light, color=(1.0, 1.0, 1.0)) for s in spec.structures]
+    shiny = replace(spec, structures=tuple(white), rendering=replace(spec.rendering, shade=True))
+    f = PerceptionMeasures()
+    f.spec_json = json.dumps(spec_to_dict(shiny))
+    f.width = f.height = 24
+    f.SetInputDataObject(image)
+    ok, errors = _update_capturing(f)
+    assert ok, errors
+    assert f.warning_messages == []
+    out = f.GetOutputDataObject(0)
+    rgba = _point(out, "rgba").astype(np.float64)
+    assert (rgba[:, :3].max(axis=1) > rgba[:, 3] + 1e-3).sum() > 10  # there are highlights
+    bg = float(np.dot(spec.background, LUMA_WEIGHTS))
+    want = rgba[:, :3] @ np.asarray(LUMA_WEIGHTS) + (1 - rgba[:, 3]) * bg
+    np.testing.assert_allclose(_point(out, "luminance"), want, atol=1e-6)

@@ -15,7 +15,8 @@ import pytest
 from dvr_perception._files import read_png
 from dvr_perception.cli.pvbatch import virtual_display
 from dvr_perception.structures.io import spec_from_dict
-from dvr_perception.structures.transfer import to_vtk_transfer_functions
+from dvr_perception.structures.transfer import GPU_TABLE_SAMPLES, to_vtk_transfer_functions
+from tests.plugin.conftest import assert_no_vtk_messages
 
 REPO = Path(__file__).resolve().parents[2]
 PLUGIN_DIR = REPO / "plugin"
@@ -80,6 +81,11 @@ display = Show(reader, view)
 display.SetRepresentationType("Volume")
 ColorBy(display, ("POINTS", reader.PointData.keys()[0]))
 apply_optimized(opt, display, preset_path={str(preset)!r})
+imported = ImportPresets({str(preset)!r})  # what Choose Preset > Import does
+lut2 = GetColorTransferFunction("imported")
+lut2.ApplyPreset("preset", False)
+pwf2 = GetOpacityTransferFunction("imported")
+pwf2.ApplyPreset("preset", False)  # the dialog's "use preset opacity"
 print({MARK!r} + json.dumps({{
     "label": opt.SMProxy.GetXMLLabel(),
     "menu": menu.GetAttribute("category") if menu else None,
@@ -92,6 +98,10 @@ print({MARK!r} + json.dumps({{
     "rgb": list(display.LookupTable.RGBPoints),
     "points": list(display.ScalarOpacityFunction.Points),
     "material": [display.Ambient, display.Diffuse, display.Specular, display.SpecularPower],
+    "range": list(reader.PointData[reader.PointData.keys()[0]].GetRange()),
+    "imported": bool(imported),
+    "imported_rgb": list(lut2.RGBPoints),
+    "imported_points": list(pwf2.Points),
 }}), flush=True)
 """
     with _with_display(paraview) as env:
@@ -107,9 +117,13 @@ print({MARK!r} + json.dumps({{
     assert got["dims"] == [SIZE, SIZE, 1]
     # the optimiser never returns something worse than its start
     assert got["E"] <= got["initial_E"] + 1e-9
-    # apply_optimized: ParaView's LUT/opacity nodes are the optimised spec's VTK functions
+    # apply_optimized: ParaView's LUT/opacity nodes are the optimised spec's VTK functions, with
+    # the nodes one GPU table entry (1/4096 of the data range) apart at least
     spec = spec_from_dict(json.loads(got["spec"]))
-    ctf, otf = to_vtk_transfer_functions(spec)
+    ctf, otf = to_vtk_transfer_functions(spec, samples=GPU_TABLE_SAMPLES, scalar_range=got["range"])
+    for nodes in (got["rgb"], got["points"]):
+        xs = np.asarray(nodes).reshape(-1, 4)[:, 0]
+        assert np.diff(xs).min() >= (got["range"][1] - got["range"][0]) / GPU_TABLE_SAMPLES - 1e-9
     np.testing.assert_allclose(got["rgb"], _nodes(ctf, 6), atol=1e-9)
     np.testing.assert_allclose(got["points"], _nodes(otf, 4), atol=1e-9)
     # a few values through the piecewise-linear opacity (midpoint 0.5, sharpness 0)
@@ -122,6 +136,10 @@ print({MARK!r} + json.dumps({{
     exported = json.loads(preset.read_text())[0]
     assert exported["RGBPoints"] == pytest.approx(got["rgb"])
     assert exported["Points"] == pytest.approx(got["points"])
+    # the preset imports into ParaView (ImportPresets, as Choose Preset > Import) and applies
+    assert got["imported"]
+    assert got["imported_rgb"] == pytest.approx(got["rgb"])
+    assert got["imported_points"] == pytest.approx(got["points"])
 
 
 def test_batch_optimize_writes_before_after_screenshots_and_json(paraview, tmp_path, neghip):
@@ -139,6 +157,7 @@ def test_batch_optimize_writes_before_after_screenshots_and_json(paraview, tmp_p
             check=False,
         )
     assert proc.returncode == 0, proc.stderr
+    assert_no_vtk_messages(proc.stdout + proc.stderr)
     result = json.loads((out / "result.json").read_text())
     assert set(result["files"]) == {
         "before.png",
@@ -190,6 +209,8 @@ case("missing_spec", Input=reader, SpecFile="/no/such/dir/opt_spec.json")
 case("weights", Input=reader, SpecFile=spec, Weights=[0.0, 0.0, 0.0])
 case("stages", Input=reader, SpecFile=spec, Stages="opacity,bogus")
 case("resolution", Input=reader, SpecFile=spec, Resolution=4)
+case("max_iter", Input=reader, SpecFile=spec, MaxIterations=0)
+case("zoom", Input=reader, SpecFile=spec, Zoom=50.0)
 case("region", Input=reader, SpecFile=spec, Region="rect,1,2")
 case("region_outside", Input=reader, SpecFile=spec, Region="circle,100,100,3")
 sys.stderr.write("@@SURVIVED\\n")
@@ -204,6 +225,8 @@ def test_optimize_filter_reports_bad_input_without_crashing(paraview, tmp_path, 
         "weights": "weights: expected three numbers (w_v, w_s, w_t) >= 0, not all zero",
         "stages": "stages: unknown or missing stage(s) ['bogus']",
         "resolution": "resolution: expected 0 (default) or an integer >= 8, got 4",
+        "max_iter": "Optimize Transfer Function: MaxIterations: expected an integer in [1, 1000]",
+        "zoom": "Optimize Transfer Function: Zoom: expected a number in [0.1, 10], got 50.0",
         "region": "region: expected '' (whole image), 'rect,x0,y0,x1,y1' or 'circle,cx,cy,r'",
         "region_outside": "covers no pixel of the 16 x 16 image",
     }

@@ -20,7 +20,7 @@ from dvr_perception.rays.curvature import classify_structures, curvature_volume
 from dvr_perception.rays.engine import analyze
 from dvr_perception.structures.io import load_spec
 from dvr_perception.volume import load_volume
-from tests.plugin.conftest import CROSS_ENV_ABS
+from tests.plugin.conftest import CROSS_ENV_ABS, assert_no_vtk_messages
 
 REPO = Path(__file__).resolve().parents[2]
 PLUGIN = REPO / "plugin" / "dvr_perception_plugin.py"
@@ -123,6 +123,7 @@ print({MARK!r} + str(sorted(n for n in names if n in globals())))
 """
     proc = paraview.run(code, tmp_path, env=env)
     assert proc.returncode == 0, proc.stdout
+    assert_no_vtk_messages(proc.stdout)
     assert f"{MARK}['PerceptionMeasures', 'StructuralLayers']" in proc.stdout
 
 
@@ -171,13 +172,16 @@ emit({{"E": {{k: fd.GetArray(k).GetValue(0) for k in ("E_v", "E_s", "E_t")}},
     assert all(b >= a for a, b in itertools.pairwise(prog))
 
 
-def test_batch_script_writes_rendering_measure_images_and_json(paraview, tmp_path, neghip, library):
+def test_batch_script_writes_rendering_measure_images_and_json(
+    paraview, tmp_path, neghip, library, capsys
+):
     from dvr_perception.cli import main
 
     out = tmp_path / "pv_out"
     view = ",".join(str(v) for v in VIEW)
-    argv = ["pvbatch", str(neghip), "--structures", str(SPEC), f"--view={view}"]
+    argv = ["pvbatch", str(neghip), "--structures", str(SPEC), f"--view={view}", "-v"]
     assert main([*argv, "--size", str(SIZE), "--out", str(out)]) == 0
+    assert_no_vtk_messages(capsys.readouterr().err)  # -v: pvbatch's own output on stderr
     result = json.loads((out / "result.json").read_text())
     for k in ("E_v", "E_s", "E_t"):
         assert result[k] == pytest.approx(library[k], abs=CROSS_ENV_ABS), k
@@ -237,7 +241,7 @@ def case(name, **kw):
 case("polydata", Input=Sphere(), SpecFile=spec)
 case("missing_spec", Input=reader, SpecFile="/no/such/dir/spec.json")
 f = case("sigma", Input=reader, SpecFile=spec, Sigma=-2.0)
-case("width", Input=reader, SpecFile=spec, Width=0)
+case("width", Input=reader, SpecFile=spec, Width=5)  # documented range 16-4096
 case("camera", Input=reader, SpecFile=spec, CameraJSON="{{not json")
 sys.stderr.write("@@CASE fixed\\n")
 f.Sigma = 1.0
@@ -252,8 +256,8 @@ def test_bad_input_is_an_error_message_in_paraview_not_a_crash(paraview, tmp_pat
     expected = {
         "polydata": "is of type vtkPolyData, but a vtkImageData is required",
         "missing_spec": "/no/such/dir/spec.json",
-        "sigma": "sigma: expected a positive number, got -2.0",
-        "width": "width: expected a positive integer, got 0",
+        "sigma": "Perception Measures: Sigma: expected a number in [0.1, 10], got -2.0",
+        "width": "Perception Measures: Width: expected an integer in [16, 4096], got 5",
         "camera": "camera_json: not valid JSON",
     }
     paraview.assert_errors(cases, expected)

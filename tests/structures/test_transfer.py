@@ -8,6 +8,7 @@ import pytest
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.structures.spec import Lighting, RenderSettings, Structure, StructureSpec
 from dvr_perception.structures.transfer import (
+    GPU_TABLE_SAMPLES,
     build_lut,
     classify,
     color_table,
@@ -203,3 +204,29 @@ def test_property_settings_and_lighting_warning(spec2):
     with pytest.warns(DVRWarning, match="per-structure lighting"):
         prop = to_vtk_property(mixed, vol)
     assert prop.GetSpecular() == pytest.approx(0.2)
+
+
+def test_gpu_samples_keep_nodes_one_table_entry_apart():
+    # The engine's optimised spec whose colour points 127.9962 / 128.0052 made ParaView's GPU
+    # mapper ask for a 32768-texel lookup texture (more than OpenGL's 16384 on Mesa).
+    spec = StructureSpec(
+        (
+            Structure("light", 0.2, RED, range=(90, 128), edge=0.1),
+            Structure("dense", 0.2, BLUE, range=(128, 180), edge=0.1),
+            Structure("inserts", 0.3, RED, range=(190, 255), edge=0.0),
+        )
+    )
+    exact, _ = to_vtk_transfer_functions(spec)
+    assert exact.EstimateMinNumberOfSamples(0.0, 255.0) > 16384
+    ctf, otf = to_vtk_transfer_functions(spec, samples=GPU_TABLE_SAMPLES, scalar_range=(0, 255))
+    for fn in (ctf, otf):
+        assert fn.EstimateMinNumberOfSamples(0.0, 255.0) <= GPU_TABLE_SAMPLES
+    # the same colours where the opacity is not ~0, the trapezoids to within the node spacing
+    gap = 255.0 / GPU_TABLE_SAMPLES
+    assert ctf.GetColor(127.9) == pytest.approx(RED)
+    assert ctf.GetColor(128.0 + 2 * gap) == pytest.approx(BLUE)
+    assert otf.GetValue(110.0) == pytest.approx(0.2)
+    assert otf.GetValue(190.0 + gap) == pytest.approx(0.3)  # the edge-0 step, one entry wide
+    assert otf.GetValue(190.0) == 0.0
+    with pytest.raises(DVRInputError, match="samples"):
+        to_vtk_transfer_functions(spec, samples=1)
