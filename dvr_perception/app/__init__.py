@@ -19,7 +19,11 @@ importing this package does not import trame (the app class is loaded on first u
 
 from __future__ import annotations
 
+import asyncio
+import logging
 import os
+import signal
+import threading
 
 __all__ = ["DVRApp", "serve"]
 
@@ -45,6 +49,7 @@ def serve(app, *, port: int = 8080, host: str = "127.0.0.1") -> None:
     server = app.server
 
     def ready(**_):
+        _exit_on_sigterm(app)
         shown = "127.0.0.1" if host in ("", "0.0.0.0", "::") else host
         shown = f"[{shown}]" if ":" in shown else shown
         print(
@@ -56,3 +61,41 @@ def serve(app, *, port: int = 8080, host: str = "127.0.0.1") -> None:
     server.start(
         port=int(port), host=host, open_browser=False, timeout=0, show_connection_info=False
     )
+
+
+#: Seconds a SIGTERM leaves the server to stop by itself before the process exits anyway.
+TERM_GRACE_S = 0.6
+_stopping: list = []  # the server's stop task (kept referenced until the process ends)
+
+
+def _exit_on_sigterm(app) -> None:
+    """Make SIGTERM stop the server within a second, also while the optimiser runs.
+
+    aiohttp's own handler waits for the open connections and the interpreter then joins the
+    worker threads (an optimisation may run for minutes); here the run is cancelled, the
+    server asked to stop, and the process leaves after :data:`TERM_GRACE_S` at the latest.
+    """
+    log = logging.getLogger("dvr_perception.app")
+
+    def stop() -> None:
+        log.info("SIGTERM: stopping the server")
+        cancel = getattr(app, "_cancel", None)
+        if cancel is not None:
+            cancel.set()
+        timer = threading.Timer(TERM_GRACE_S, _leave)
+        timer.daemon = True
+        timer.start()
+        try:
+            _stopping.append(asyncio.ensure_future(app.server.stop()))
+        except Exception:  # the timer ends the process anyway
+            _leave()
+
+    try:
+        asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop)
+    except (RuntimeError, NotImplementedError, ValueError):
+        signal.signal(signal.SIGTERM, lambda *_: stop())
+
+
+def _leave() -> None:
+    logging.shutdown()
+    os._exit(0)

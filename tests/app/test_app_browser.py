@@ -17,6 +17,8 @@ import json
 import os
 import re
 import shutil
+import signal
+import time
 from pathlib import Path
 
 import numpy as np
@@ -362,6 +364,106 @@ def test_drawn_lens_triggers_region_refinement(page):
     assert "optimise opacity in lens" in page.inner_text("#history-list")
 
 
+def _now_key(page) -> str:
+    return page.get_attribute("#now-key", "data-now")
+
+
+def _stale_right_after_change(page, old_key: str) -> list[str]:
+    """Wait for the page's view or settings to change; list the old numbers still shown then.
+
+    The check runs in the very frame the page learns of the change: any element showing a
+    number measured for another view or settings (``data-key`` not the current one) counts.
+    """
+    found = page.wait_for_function(
+        """(old) => {
+            const now = document.querySelector('#now-key')?.dataset.now;
+            if (!now || now === old) return false;
+            return {stale: [...document.querySelectorAll('.measured')]
+                .filter(el => el.dataset.key !== now && /\\d/.test(el.textContent))
+                .map(el => (el.id || el.className) + ': ' + el.textContent.slice(0, 100))};
+        }""",
+        arg=old_key,
+    )
+    return found.json_value()["stale"]
+
+
+def test_lens_refinement_that_worsens_the_whole_view_asks_to_keep_or_undo(page):
+    # back to the phantom's own settings (before 'load poor.json'); the banner stays on its
+    # screen
+    _tab(page, "optimise")
+    _close_messages(page)
+    page.locator("#history-list button").last.click()
+    page.wait_for_selector("#info-message", state="visible")
+    assert "went back" in page.inner_text("#info-message")
+    page.wait_for_selector("#measuring", state="hidden")
+    _tab(page, "data")
+    assert page.locator("#info-message").count() == 0
+    _tab(page, "optimise")
+    # dismissed, not just hidden (sooner than it times out)
+    page.wait_for_selector("#info-message", state="detached", timeout=4000)
+    # a small lens in the middle, without targets, helps the lens and costs the whole view
+    n_history = page.locator("#history-list > div").count()
+    _tab(page, "lens")
+    page.click("#clear-lens")  # also drops the targets of the previous test
+    page.wait_for_selector("#lens-table", state="detached")
+    page.click("#lens-rect")
+    _drag(page, 0.4, 0.4, 0.6, 0.6)
+    page.wait_for_function(
+        "() => document.querySelector('#lens-text')?.innerText.startsWith('rectangle covering 4 %')"
+    )
+    _optimise(page, "#refine-lens")
+    e0, e1 = _errors_in_progress(page)
+    assert e1 < e0  # better inside the lens
+    page.wait_for_function("() => /total/.test(document.querySelector('#lens-whole').innerText)")
+    whole = page.inner_text("#lens-whole")
+    assert page.locator("#lens-prompt").is_visible(), (whole, page.inner_text("#progress-text"))
+    m = re.search(r"total ([\d.]+) -> ([\d.]+) \(\+(\d+) %\)", whole)
+    assert m, whole
+    assert "visibility" in whole
+    assert "transparency" in whole
+    assert float(m.group(2)) > 1.1 * float(m.group(1))
+    page.click("#lens-undo")
+    page.wait_for_selector("#lens-prompt", state="detached")
+    page.wait_for_selector("#measuring", state="hidden")
+    _tab(page, "optimise")
+    assert page.locator("#history-list > div").count() == n_history
+
+
+def test_after_rotation_or_edit_no_number_of_the_old_view_is_shown(page):
+    _tab(page, "optimise")
+    _optimise(page, "#optimise-opacity")  # before/after, chart and captions for this view
+    page.wait_for_selector("#after-image")
+    page.wait_for_function("() => /\\d/.test(document.querySelector('#after-text').innerText)")
+    old = _now_key(page)
+    assert page.get_attribute("#before-text", "data-key") == old
+    assert "for view" in page.inner_text("#opt-for")
+    # rotate: drag across the view
+    box = page.locator("#view").bounding_box()
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(cx, cy)
+    page.mouse.down()
+    page.mouse.move(cx + 80, cy + 20, steps=6)
+    page.mouse.up()
+    assert _stale_right_after_change(page, old) == []
+    page.wait_for_selector("#measuring", state="hidden")
+    now = _now_key(page)
+    assert page.get_attribute("#measured-for", "data-key") == now
+    assert _value(page, "E_v") >= 0.0
+    assert page.inner_text("#opt-for").startswith("for an earlier view")
+    assert page.inner_text("#before-text") == "before: -"
+    # a transfer-function change: importance slider of the first structure
+    _tab(page, "data")
+    old = _now_key(page)
+    track = page.locator("#structure-table tr").nth(1).locator(".v-slider-track").bounding_box()
+    page.mouse.click(track["x"] + 0.1 * track["width"], track["y"] + track["height"] / 2)
+    assert _stale_right_after_change(page, old) == []
+    page.wait_for_selector("#measuring", state="hidden")
+    assert page.get_attribute("#value-E_v", "data-key") == _now_key(page)
+    _tab(page, "optimise")
+    page.click("#undo")
+    page.wait_for_selector("#measuring", state="hidden")
+
+
 def test_calibration_flow_saves_a_curve_file(page, server):
     from dvr_perception.calibration import load_calibration
 
@@ -563,3 +665,15 @@ def test_upload_of_a_volume_shows_it(page, server):
     assert _wait_value(page, "E_v") >= 0.0
     assert "small.nrrd" in page.inner_text("header")
     assert server["proc"].poll() is None
+
+
+def test_sigterm_stops_the_server_within_a_second_while_it_optimises(page, server):
+    _tab(page, "optimise")
+    page.click("#optimise-all")
+    page.wait_for_selector("#cancel:not([disabled])")
+    t0 = time.monotonic()
+    server["proc"].send_signal(signal.SIGTERM)
+    server["proc"].wait(timeout=10)
+    assert time.monotonic() - t0 <= 1.0
+    # every client that went away (the second tab, the refused sockets) took one line
+    assert "Traceback" not in server["log"].read_text()
