@@ -19,11 +19,9 @@ importing this package does not import trame (the app class is loaded on first u
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import os
 import signal
-import threading
 
 __all__ = ["DVRApp", "serve"]
 
@@ -63,39 +61,23 @@ def serve(app, *, port: int = 8080, host: str = "127.0.0.1") -> None:
     )
 
 
-#: Seconds a SIGTERM leaves the server to stop by itself before the process exits anyway.
-TERM_GRACE_S = 0.6
-_stopping: list = []  # the server's stop task (kept referenced until the process ends)
-
-
 def _exit_on_sigterm(app) -> None:
-    """Make SIGTERM stop the server within a second, also while the optimiser runs.
+    """Make SIGTERM end the server at once, also while the optimiser runs.
 
-    aiohttp's own handler waits for the open connections and the interpreter then joins the
-    worker threads (an optimisation may run for minutes); here the run is cancelled, the
-    server asked to stop, and the process leaves after :data:`TERM_GRACE_S` at the latest.
+    aiohttp's own handler is queued behind the event loop's work, then waits for the open
+    connections, and the interpreter then joins the worker threads (an optimisation may run
+    for minutes).  Here the handler runs in the main thread at its next Python instruction:
+    it cancels the run, logs one line and leaves without joining the worker threads (an
+    export being written at that instant may be left incomplete).
     """
     log = logging.getLogger("dvr_perception.app")
 
-    def stop() -> None:
-        log.info("SIGTERM: stopping the server")
+    def stop(*_) -> None:
         cancel = getattr(app, "_cancel", None)
         if cancel is not None:
             cancel.set()
-        timer = threading.Timer(TERM_GRACE_S, _leave)
-        timer.daemon = True
-        timer.start()
-        try:
-            _stopping.append(asyncio.ensure_future(app.server.stop()))
-        except Exception:  # the timer ends the process anyway
-            _leave()
+        log.info("SIGTERM: server stopped")
+        logging.shutdown()
+        os._exit(0)
 
-    try:
-        asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop)
-    except (RuntimeError, NotImplementedError, ValueError):
-        signal.signal(signal.SIGTERM, lambda *_: stop())
-
-
-def _leave() -> None:
-    logging.shutdown()
-    os._exit(0)
+    signal.signal(signal.SIGTERM, stop)

@@ -61,7 +61,7 @@ MAX_ITER = 10
 #: 512\u00b2 in software GL), and one per second starved the optimiser's thread (issue 20).
 LIVE_INTERVAL_S = 0.25
 #: Seconds an info banner stays; an error banner stays until closed or for ERROR_S.
-INFO_S = 8.0
+INFO_S = 5.0
 ERROR_S = 30.0
 #: Relative rise of the whole view's error after a lens refinement that asks to keep or undo.
 LENS_WORSE = 0.10
@@ -218,7 +218,10 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         s.structure_names = []
         s.error = ""
         s.info = ""
-        s.banner_tab = "data"  # the screen the banner belongs to
+        # the screen a banner appeared on, set by the page itself: the server's copy of ``tab``
+        # may lag behind a click that follows a tab change at once
+        s.banner_tab = "data"
+        s.client_only("banner_tab")
         s.now_key = "0.0"  # view and transfer function shown: "VIEW.TF"
         s.measured_key = ""  # the view and transfer function the summary numbers are for
         s.measured_for = ""
@@ -284,10 +287,9 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
 
     @change("info", "error")
     def on_banner(self, info, error, **_):
-        """Tie a new banner to the screen it appeared on, and let it time out."""
+        """Let a new banner time out (the page shows it only on the screen it appeared on)."""
         if not info and not error:
             return
-        self.state.banner_tab = self.state.tab
         if self._banner_timer is not None:
             self._banner_timer.cancel()
         try:
@@ -295,12 +297,6 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         except RuntimeError:
             return
         self._banner_timer = loop.call_later(ERROR_S if error else INFO_S, self._banner_out)
-
-    @change("tab")
-    def on_tab(self, tab, **_):
-        """Leaving a screen dismisses its banner (it does not follow to other screens)."""
-        if tab != self.state.banner_tab and (self.state.info or self.state.error):
-            self.state.info = self.state.error = ""
 
     def _banner_out(self) -> None:
         self._banner_timer = None
@@ -735,16 +731,13 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         self._task_running = False
         self._pending = None
         with self.state:
-            self.state.busy = False
             self.state.error_history_svg = _history_chart(list(self._e_history))
             if result is None:
+                self.state.busy = False
                 self.fail(error)
                 self._show_spec()
                 return
             cancelled = self._cancel.is_set()
-            label += " (cancelled)" if cancelled else ""
-            self.session.push_undo(label)
-            self.session.spec = result.spec
             where = " in the lens" if region is not None else ""
             self.state.progress = 100
             same = result.final["E"] >= result.initial["E"]
@@ -754,6 +747,13 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
                 f"({result.nit} iterations, {time.monotonic() - run['t0']:.0f} s)"
                 + ("; no better setting found, rendering unchanged" if same else "")
             )
+        # the outcome is on the page before the new view is rendered (seconds for a large view)
+        await asyncio.sleep(0.05)
+        with self.state:
+            self.state.busy = False
+            label += " (cancelled)" if cancelled else ""
+            self.session.push_undo(label)
+            self.session.spec = result.spec
             self.state.why_lines = _why_lines(result)
             self._render_spec(result.spec)
             self.state.after_url = self._snapshot()

@@ -21,7 +21,7 @@ Elements the browser tests use carry ``id`` attributes.
 from __future__ import annotations
 
 from trame.ui.vuetify3 import SinglePageWithDrawerLayout
-from trame.widgets import html
+from trame.widgets import client, html
 from trame.widgets import vtk as vtk_widgets
 from trame.widgets import vuetify3 as v3
 
@@ -468,6 +468,8 @@ def build_ui(app):
             html.Div("{{ volume_name }}", classes="text-body-2 mr-4")
         layout.drawer.width = 470
         with layout.drawer, html.Div(classes="pa-3"):
+            # a new banner belongs to the screen shown when it arrives
+            client.ClientStateChange(value="info + '|' + error", change="banner_tab = tab")
             v3.VAlert(
                 v_if="error && banner_tab === tab",
                 text=("error",),
