@@ -24,7 +24,7 @@ CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 VIEW_PX = 128
-ITERATIONS = 5
+ITERATIONS = 3
 MAX_RATIO = 1.5
 DRAWER_PX, TOOLBAR_PX = 470, 48
 
