@@ -19,7 +19,9 @@ importing this package does not import trame (the app class is loaded on first u
 
 from __future__ import annotations
 
+import logging
 import os
+import signal
 
 __all__ = ["DVRApp", "serve"]
 
@@ -45,6 +47,7 @@ def serve(app, *, port: int = 8080, host: str = "127.0.0.1") -> None:
     server = app.server
 
     def ready(**_):
+        _exit_on_sigterm(app)
         shown = "127.0.0.1" if host in ("", "0.0.0.0", "::") else host
         shown = f"[{shown}]" if ":" in shown else shown
         print(
@@ -56,3 +59,25 @@ def serve(app, *, port: int = 8080, host: str = "127.0.0.1") -> None:
     server.start(
         port=int(port), host=host, open_browser=False, timeout=0, show_connection_info=False
     )
+
+
+def _exit_on_sigterm(app) -> None:
+    """Make SIGTERM end the server at once, also while the optimiser runs.
+
+    aiohttp's own handler is queued behind the event loop's work, then waits for the open
+    connections, and the interpreter then joins the worker threads (an optimisation may run
+    for minutes).  Here the handler runs in the main thread at its next Python instruction:
+    it cancels the run, logs one line and leaves without joining the worker threads (an
+    export being written at that instant may be left incomplete).
+    """
+    log = logging.getLogger("dvr_perception.app")
+
+    def stop(*_) -> None:
+        cancel = getattr(app, "_cancel", None)
+        if cancel is not None:
+            cancel.set()
+        log.info("SIGTERM: server stopped")
+        logging.shutdown()
+        os._exit(0)
+
+    signal.signal(signal.SIGTERM, stop)

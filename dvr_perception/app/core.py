@@ -18,7 +18,9 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
+import math
 import threading
+import time
 
 from trame.app import TrameApp, asynchronous
 from trame.decorators import change
@@ -54,8 +56,15 @@ log = logging.getLogger("dvr_perception.app")
 STAGE_SETS = {"opacity": ("opacity",), "all": ("opacity", "lighting", "colour")}
 #: Optimiser iterations per stage.
 MAX_ITER = 10
-#: Least seconds between two live images while optimising (rendering blocks the optimiser).
-LIVE_INTERVAL_S = 1.0
+#: Least seconds between two progress updates while optimising.  Only numbers and the chart
+#: are pushed: a VTK rendering holds the GIL for its whole duration (2-3 s for cthead at
+#: 512\u00b2 in software GL), and one per second starved the optimiser's thread (issue 20).
+LIVE_INTERVAL_S = 0.25
+#: Seconds an info banner stays; an error banner stays until closed or for ERROR_S.
+INFO_S = 5.0
+ERROR_S = 30.0
+#: Relative rise of the whole view's error after a lens refinement that asks to keep or undo.
+LENS_WORSE = 0.10
 #: Seconds after which a pushed image is pushed once more (see ``DVRApp._push_image``).
 REPUSH_S = 0.8
 #: Colour range of the quality maps (deviations above 1 saturate).
@@ -175,6 +184,12 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         self._measure_again = False
         self._e_history: list[tuple] = []
         self._repush = None
+        self._view_no = 0  # counts camera changes
+        self._tf_no = 0  # counts changes of the transfer function (spec) shown
+        self._tf_label = "as loaded"
+        self._run = None  # the optimisation under way: start time, stages, camera, key
+        self._banner_timer = None
+        self._map_on = False
         self._init_state()
         self._show_volume(volume or PHANTOM)
         from dvr_perception.app.ui import build_ui
@@ -203,6 +218,19 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         s.structure_names = []
         s.error = ""
         s.info = ""
+        # the screen a banner appeared on, set by the page itself: the server's copy of ``tab``
+        # may lag behind a click that follows a tab change at once
+        s.banner_tab = "data"
+        s.client_only("banner_tab")
+        s.now_key = "0.0"  # view and transfer function shown: "VIEW.TF"
+        s.measured_key = ""  # the view and transfer function the summary numbers are for
+        s.measured_for = ""
+        s.opt_key = ""  # the view and transfer function the optimisation results are for
+        s.opt_for = ""
+        s.opt_camera = None
+        s.live_shares = []
+        s.lens_whole_text = ""
+        s.lens_worse = False
         s.show_map = False
         s.map_kind = "visibility"
         s.E_v = s.E_s = s.E_t = None
@@ -257,6 +285,50 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         self.state.error = " ".join(str(message).split())
         self.state.info = ""
 
+    @change("info", "error")
+    def on_banner(self, info, error, **_):
+        """Let a new banner time out (the page shows it only on the screen it appeared on)."""
+        if not info and not error:
+            return
+        if self._banner_timer is not None:
+            self._banner_timer.cancel()
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            return
+        self._banner_timer = loop.call_later(ERROR_S if error else INFO_S, self._banner_out)
+
+    def _banner_out(self) -> None:
+        self._banner_timer = None
+        with self.state:
+            self.state.info = self.state.error = ""
+
+    # -- what the numbers were measured for ---------------------------------------------------
+    def _key(self) -> str:
+        return f"{self._view_no}.{self._tf_no}"
+
+    def _changed(self, *, view: bool = False, label: str = "") -> None:
+        """Count a camera (``view``) or transfer-function change: older numbers go stale."""
+        if view:
+            self._view_no += 1
+        else:
+            self._tf_no += 1
+            self._tf_label = label or "edited"
+            self.state.lens_worse = False  # the keep-or-undo question was about the last change
+        self.state.now_key = self._key()
+
+    def _describe(self, camera) -> str:
+        """Return the view, size and settings numbers for a caption."""
+        d = [p - f for p, f in zip(camera.position, camera.focal_point, strict=True)]
+        r = math.sqrt(sum(c * c for c in d)) or 1.0
+        el = math.degrees(math.asin(max(-1.0, min(1.0, d[1] / r))))
+        az = math.degrees(math.atan2(d[0], d[2]))
+        return (
+            f"view {self._view_no} (azimuth {az:.0f} deg, elevation {el:.0f} deg, "
+            f"{camera.width}\u00d7{camera.height} px), settings {self._tf_no} "
+            f"({self._tf_label})"
+        )
+
     def _sync(self) -> None:
         """Copy the session's spec into the page state."""
         self.state.structures = self.session.structure_rows()
@@ -309,6 +381,9 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
             volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
         )
         set_plotter_camera(self.plotter, cam, window_size=False)
+        self._changed(view=True)
+        self._changed(label=f"loaded {name}")
+        self.state.opt_key = ""
         self.state.volume_name = name
         self.state.lens = None
         self.state.lens_rows = []
@@ -319,14 +394,19 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         self._sync()
         self.remeasure(wait=True)
 
-    def _show_spec(self, *, restructured: bool = False) -> None:
-        """Show the session's spec in the view and table, then re-measure."""
+    def _show_spec(
+        self, *, restructured: bool = False, label: str = "", measure: bool = True
+    ) -> None:
+        """Show the session's spec in the view and table, then re-measure (if ``measure``)."""
         if restructured:
             self.handle = None
+        labels = self.session.undo_labels
+        self._changed(label=label or (labels[-1] if labels else "edited"))
         self._render_spec(self.session.spec)
         self._sync()
         self._push_image()
-        self.remeasure()
+        if measure:
+            self.remeasure()
 
     def _render_spec(self, spec) -> None:
         """Show ``spec`` in the plotter (no render)."""
@@ -345,7 +425,8 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         A request while a measurement runs is queued: one more measurement follows it.
         """
         if wait:
-            self._set_measures(self.session.measure(self.current_camera()))
+            cam = self.current_camera()
+            self._set_measures(self.session.measure(cam), self._key(), self._describe(cam))
             return
         if self._measuring:
             self._measure_again = True
@@ -359,10 +440,10 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         measures, error = None, ""
         while True:
             self._measure_again = False
+            key, cam = self._key(), self.current_camera()
+            described = self._describe(cam)
             try:
-                measures = await loop.run_in_executor(
-                    None, self.session.measure, self.current_camera()
-                )
+                measures = await loop.run_in_executor(None, self.session.measure, cam)
             except Exception as exc:  # shown in the page; the server keeps running
                 log.exception("measuring failed")
                 measures, error = None, f"measuring failed: {exc}"
@@ -374,16 +455,18 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
             if measures is None:
                 self.fail(error)
             else:
-                self._set_measures(measures)
+                self._set_measures(measures, key, described)
 
-    def _set_measures(self, measures) -> None:
+    def _set_measures(self, measures, key: str, described: str) -> None:
         self.measures = measures
         self.state.update(measures.as_state())
+        self.state.measured_key = key
+        self.state.measured_for = described
         self._set_shares({k: v["visible"] for k, v in measures.shares.items()})
         self._update_lens_rows()
         self._update_map()
 
-    def _set_shares(self, visible: dict) -> None:
+    def _set_shares(self, visible: dict, name: str = "shares") -> None:
         """Per-structure bars: visible share now (``visible``) and wanted share."""
         wanted = self.measures.shares if self.measures is not None else {}
         rows = []
@@ -398,14 +481,19 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
                     "wanted": round(100 * float(wanted.get(s.name, {}).get("wanted", 0.0)), 1),
                 }
             )
-        self.state.shares = rows
+        self.state[name] = rows
 
     def _update_map(self) -> None:
         from dvr_perception.plotting import add_quality_map
 
+        was_on = self._map_on
         for name in ("quality_image", "quality_bar"):
             self.plotter.remove_actor(name, render=False)
-        if self.state.show_map and self.measures is not None:
+        fresh = self.state.measured_key == self.state.now_key
+        self._map_on = bool(self.state.show_map and self.measures is not None and fresh)
+        if not (self._map_on or was_on):
+            return  # nothing shown before or now: no new image to push
+        if self._map_on:
             kind = self.state.map_kind
             overlay = add_quality_map(
                 self.plotter,
@@ -483,7 +571,7 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         if self._task_running or self.session.undo(int(steps)) is None:
             return
         self.state.error = ""
-        self._show_spec(restructured=True)
+        self._show_spec(restructured=True, label=f"went back {int(steps)}")
         self.state.info = f"went back {int(steps)} step{'s' if int(steps) > 1 else ''}"
 
     @guard
@@ -496,7 +584,10 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
 
     @guard
     def measure_view(self, *_):
-        """Re-measure after the user rotated the view."""
+        """Re-measure after the user rotated the view (the old numbers go stale at once)."""
+        self._changed(view=True)
+        if self.state.show_map:
+            self._update_map()  # the old view's map is taken off until the new one is measured
         self.remeasure()
 
     # -- optimisation ------------------------------------------------------------------------
@@ -505,7 +596,8 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         """Start optimising this view (``"opacity"`` or ``"all"`` stages) in the background.
 
         With ``in_lens`` only the lens region drives the optimisation, with the targets set
-        for the structures inside it.
+        for the structures inside it; the whole view's terms before and after are shown
+        beside it, and a rise of more than :data:`LENS_WORSE` asks to keep or undo.
         """
         if self._task_running:
             return
@@ -516,22 +608,35 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         if in_lens:
             region = lens_region(self.state.lens, camera.width, camera.height)
             targets = self._lens_targets()
-        self.state.error = ""
+        s = self.state
+        s.error = ""
         self._task_running = True
         self._cancel.clear()
-        self.state.busy = True
-        self.state.progress = 0
-        self.state.progress_text = "analysing the view..."
-        self.state.before_url = self._snapshot()
-        self.state.before_text = self._errors_text()
-        self.state.after_url = ""
-        self.state.after_text = ""
+        stages = STAGE_SETS[which]
+        self._run = {"t0": time.monotonic(), "stages": stages, "view": self._view_no}
+        s.busy = True
+        s.progress = 0
+        s.progress_text = "analysing the view..."
+        s.opt_key = self._key()
+        s.opt_for = self._describe(camera)
+        s.opt_camera = camera.to_dict()  # the optimiser's camera, for the CLI to redo it
+        s.before_url = self._snapshot()
+        s.before_text = self._errors_text() if s.measured_key == s.now_key else ""
+        s.after_url = s.after_text = ""
+        s.lens_whole_text = ""
+        s.lens_worse = False
+        s.live_shares = []
+        s.why_lines = []
         self._e_history = []
-        self.state.error_history_svg = ""
+        s.error_history_svg = ""
         label = f"optimise {which}" + (" in lens" if in_lens else "")
-        asynchronous.create_task(self._optimise(STAGE_SETS[which], camera, region, targets, label))
+        asynchronous.create_task(self._optimise(stages, camera, region, targets, label))
 
-    def _errors_text(self) -> str:
+    def _errors_text(self, m=None) -> str:
+        """Return the three errors of ``m`` (default: the summary's) as a caption."""
+        if m is not None:
+            m = m.as_state()
+            return f"visibility {m['E_v']}, shape {m['E_s']}, transparency {m['E_t']}"
         s = self.state
         if s.E_v is None:
             return ""
@@ -545,7 +650,7 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
             self.state.progress_text = "cancelling..."
 
     def _on_iteration(self, loop, stages, intermediate):
-        """Optimiser callback (worker thread): hand the newest spec to the event loop."""
+        """Optimiser callback (worker thread): hand the newest numbers to the event loop."""
         if self._cancel.is_set():
             raise StopIteration
         self._e_history.append(tuple(float(intermediate.terms[k]) for k in TERMS))
@@ -559,74 +664,138 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         loop.call_later(max(0.0, wait), self._show_intermediate)
 
     def _show_intermediate(self) -> None:
+        """Progress, errors and shares of the newest iteration (numbers only: no rendering)."""
+        from dvr_perception.optimize.core import DEFAULT_RESOLUTION
+
         pending, self._pending = self._pending, None
-        if pending is None or not self._task_running:
+        if pending is None or not self._task_running or self._cancel.is_set():
             return
         self._last_live = asyncio.get_running_loop().time()
         stages, r = pending
         n = self.max_iter
         done = stages.index(r.stage) * n + min(r.iteration, n)
-        self._render_spec(r.spec)
-        self._push_image()
+        total = len(stages) * n
+        elapsed = time.monotonic() - self._run["t0"]
+        left = elapsed / max(done, 1) * (total - done)
+        e = sum(float(r.terms[k]) for k in TERMS)
         with self.state:
             self.state.error_history_svg = _history_chart(list(self._e_history))
-            self.state.update({k: float(f"{r.terms[k]:.3g}") for k in ("E_v", "E_s", "E_t")})
-            self._set_shares(r.terms.get("visible_share", {}))
-            self.state.progress = round(100 * done / (len(stages) * n))
+            self._set_shares(r.terms.get("visible_share", {}), "live_shares")
+            self.state.progress = round(100 * done / total)
             self.state.progress_text = (
                 f"step {stages.index(r.stage) + 1} of {len(stages)} ({r.stage}): "
-                f"iteration {r.iteration} of {n}"
+                f"iteration {r.iteration} of {n}; total error {e:.3g} at the optimiser's "
+                f"{DEFAULT_RESOLUTION} px sampling; {elapsed:.0f} s so far, at most about "
+                f"{left:.0f} s left"
             )
 
-    async def _optimise(self, stages, camera, region, targets, label) -> None:
+    def _optimise_in_worker(self, stages, camera, region, targets, callback):
+        """Run the optimiser (worker thread); return the result and the whole view's measures.
+
+        The measures before and after come from the optimiser's own analyses of ``camera``
+        (no second rendering), so the whole view's numbers appear with the result.
+        """
         from dvr_perception.optimize import optimize
 
-        loop = asyncio.get_running_loop()
-        spec, volume = self.session.spec, self.session.volume
-        run = functools.partial(
-            optimize,
-            volume,
+        session = self.session
+        spec = session.spec
+        result = optimize(
+            session.volume,
             spec,
             camera,
             stages=stages,
             region=region,
             targets=targets,
-            calibration=self.session.calibration,
+            calibration=session.calibration,
             max_iter=self.max_iter,
             seed=0,
-            callback=functools.partial(self._on_iteration, loop, stages),
+            callback=callback,
+            curvature=session.curvature(spec),
         )
+        first, last = result.analyses or (None, None)
+        if first is None:
+            return result, None, None
+        return result, session.measures_of(first, spec), session.measures_of(last, result.spec)
+
+    async def _optimise(self, stages, camera, region, targets, label) -> None:
+        loop = asyncio.get_running_loop()
+        callback = functools.partial(self._on_iteration, loop, stages)
         try:
-            result = await loop.run_in_executor(None, run)
+            result, before, after = await loop.run_in_executor(
+                None, self._optimise_in_worker, stages, camera, region, targets, callback
+            )
         except Exception as exc:  # shown in the page; the server keeps running
             log.exception("optimisation failed")
             result, error = None, f"optimisation failed: {exc}"
+        run, self._run = self._run, None
         self._task_running = False
         self._pending = None
         with self.state:
-            self.state.busy = False
             self.state.error_history_svg = _history_chart(list(self._e_history))
             if result is None:
+                self.state.busy = False
                 self.fail(error)
                 self._show_spec()
                 return
             cancelled = self._cancel.is_set()
-            self.session.push_undo(label + (" (cancelled)" if cancelled else ""))
-            self.session.spec = result.spec
             where = " in the lens" if region is not None else ""
             self.state.progress = 100
             same = result.final["E"] >= result.initial["E"]
             self.state.progress_text = (
                 f"{'cancelled, kept the best so far' if cancelled else 'done'}: total error"
                 f"{where} {result.initial['E']:.3g} -> {result.final['E']:.3g} "
-                f"({result.nit} iterations)"
+                f"({result.nit} iterations, {time.monotonic() - run['t0']:.0f} s)"
                 + ("; no better setting found, rendering unchanged" if same else "")
             )
+        # the outcome is on the page before the new view is rendered (seconds for a large view)
+        await asyncio.sleep(0.05)
+        with self.state:
+            self.state.busy = False
+            label += " (cancelled)" if cancelled else ""
+            self.session.push_undo(label)
+            self.session.spec = result.spec
             self.state.why_lines = _why_lines(result)
             self._render_spec(result.spec)
             self.state.after_url = self._snapshot()
-            self._show_spec()
-        asynchronous.create_task(self._after_text())
+            fresh = after is not None and run["view"] == self._view_no
+            self._show_spec(label=label, measure=not fresh)
+            self.state.opt_key = self._key()
+            self.state.opt_for = self._describe(camera)
+            if before is not None:
+                self.state.before_text = self._errors_text(before)
+            if fresh:
+                self._set_measures(after, self._key(), self.state.opt_for)
+                self.state.after_text = self._errors_text(after)
+                if region is not None:
+                    self._lens_verdict(before, after)
+            else:
+                asynchronous.create_task(self._after_text())
+
+    def _lens_verdict(self, before, after) -> None:
+        """Whole view before -> after beside the lens; ask to keep or undo when it got worse."""
+        e0 = before.E_v + before.E_s + before.E_t
+        e1 = after.E_v + after.E_s + after.E_t
+        rise = (e1 - e0) / e0 if e0 > 0 else 0.0
+        b, a = before.as_state(), after.as_state()
+        parts = ", ".join(
+            f"{name} {b[k]} -> {a[k]}"
+            for k, name in (("E_v", "visibility"), ("E_s", "shape"), ("E_t", "transparency"))
+        )
+        self.state.lens_whole_text = (
+            f"whole view: {parts}; total {e0:.3g} -> {e1:.3g} ({100 * rise:+.0f} %)"
+        )
+        self.state.lens_worse = rise > LENS_WORSE
+
+    @guard
+    def lens_keep(self):
+        """Keep a lens refinement that made the whole view worse."""
+        self.state.lens_worse = False
+
+    @guard
+    def lens_undo(self):
+        """Undo a lens refinement that made the whole view worse."""
+        self.state.lens_worse = False
+        self.undo(1)
 
     async def _after_text(self) -> None:
         """Fill the 'after' numbers once the new view is measured."""

@@ -210,6 +210,7 @@ class Session:
         self.undo_labels: list[str] = []
         self.calibration = None
         self.calibration_name = ""
+        self._curvature = (None, None)  # (key, curvature volume) of the last spec's structures
 
     # -- files -------------------------------------------------------------------------------
     @staticmethod
@@ -424,16 +425,36 @@ class Session:
         ]
 
     # -- measures ----------------------------------------------------------------------------
-    def measure(self, camera) -> Measures:
-        """Analyse the current spec from ``camera`` (reduced) and compute E_v, E_s, E_t."""
-        from dvr_perception.measures import all_measures
-        from dvr_perception.rays.curvature import curvature_volume
+    def curvature(self, spec=None):
+        """Return the curvature source of ``spec`` (default the current one), cached.
+
+        It depends only on how the voxels are classified (the structures' ranges and labels),
+        not on opacity, colour or lighting: computing it took most of a re-measure (about 5 s
+        on cthead), so it is kept until a range or label changes.
+        """
+        from dvr_perception.rays.curvature_field import curvature_source
+
+        spec = self.spec if spec is None else spec
+        key = (id(self.volume), tuple((s.range, s.label, s.edge) for s in spec.structures))
+        if self._curvature[0] != key:
+            self._curvature = (key, curvature_source(self.volume, spec))
+        return self._curvature[1]
+
+    def measure(self, camera, spec=None) -> Measures:
+        """Analyse ``spec`` (default the current one) from ``camera`` (reduced): E_v, E_s, E_t."""
         from dvr_perception.rays.engine import analyze
 
+        spec = self.spec if spec is None else spec
         cam = measure_camera(camera)
-        curvature, _ = curvature_volume(self.volume, self.spec)
-        analysis = analyze(self.volume, self.spec, cam, curvature=curvature, build_cache=False)
-        v, s, t = all_measures(analysis, self.spec, calibration=self.calibration)
+        curvature = self.curvature(spec)
+        analysis = analyze(self.volume, spec, cam, curvature=curvature, build_cache=False)
+        return self.measures_of(analysis, spec)
+
+    def measures_of(self, analysis, spec) -> Measures:
+        """Compute E_v, E_s, E_t and the maps of a ray analysis of ``spec`` (no rendering)."""
+        from dvr_perception.measures import all_measures
+
+        v, s, t = all_measures(analysis, spec, calibration=self.calibration)
         empty = ~v.nonempty  # no map where nothing is rendered: the background stays visible
         images = {
             name: np.where(empty, np.nan, np.asarray(r.deviation, dtype=np.float32))

@@ -21,7 +21,7 @@ Elements the browser tests use carry ``id`` attributes.
 from __future__ import annotations
 
 from trame.ui.vuetify3 import SinglePageWithDrawerLayout
-from trame.widgets import html
+from trame.widgets import client, html
 from trame.widgets import vtk as vtk_widgets
 from trame.widgets import vuetify3 as v3
 
@@ -49,6 +49,10 @@ TABS = (
     ("export", "7 Export"),
 )
 STUDY_TABS = "['calibration', 'ranking'].includes(tab)"
+#: The summary numbers are for the view and transfer function shown.
+FRESH = "measured_key === now_key"
+#: The optimisation's results are for the view and transfer function shown.
+OPT_FRESH = "opt_key === now_key"
 
 ERRORS = (
     ("E_v", "Visibility", "Is each structure as visible as its importance asks?"),
@@ -69,11 +73,25 @@ def _summary(app) -> None:
                 with v3.VCol(cols=4, classes="text-center", title=help_text):
                     html.Div(f"{name} error", classes="text-caption")
                     html.Div(
-                        f"{{{{ {key} === null ? '-' : {key} }}}}",
-                        classes="text-h6",
+                        f"{{{{ {key} === null || !({FRESH}) ? '-' : {key} }}}}",
+                        classes="text-h6 measured",
+                        raw_attrs=[':data-key="measured_key"'],
                         id=f"value-{key}",
                     )
+        html.Div(
+            f"{{{{ {FRESH} ? 'for ' + measured_for "
+            ": 'the view or settings changed: re-measuring' }}",
+            classes="text-caption measured",
+            raw_attrs=[':data-key="measured_key"'],
+            id="measured-for",
+        )
         html.Div("measuring...", v_show="measuring", classes="text-caption", id="measuring")
+        html.Div(raw_attrs=[':data-now="now_key"'], id="now-key", style="display: none")
+        html.Div(
+            raw_attrs=[':data-camera="JSON.stringify(opt_camera)"'],
+            id="opt-camera",
+            style="display: none",
+        )
         html.Div(
             "Transparency judged with your calibration ({{ calibration_name }})",
             v_show="use_calibration && calibration_name",
@@ -84,7 +102,13 @@ def _summary(app) -> None:
             v3.VProgressLinear(model_value=("progress",), height=6, v_show="busy")
             with v3.VRow(dense=True, align="center", classes="mt-1"):
                 with v3.VCol(cols=9):
-                    html.Div("{{ progress_text }}", classes="text-caption", id="progress-text")
+                    html.Div(
+                        f"{{{{ busy || {OPT_FRESH} ? progress_text : 'the last optimisation was "
+                        "for an earlier view or settings' }}",
+                        classes="text-caption measured",
+                        raw_attrs=[':data-key="busy ? now_key : opt_key"'],
+                        id="progress-text",
+                    )
                 with v3.VCol(cols=3):
                     v3.VBtn(
                         "Cancel",
@@ -255,13 +279,22 @@ def _quality_panel(app) -> None:
     _share_chart("share-chart")
 
 
-def _share_chart(element_id: str, *, compact: bool = False) -> None:
-    """Bars: each structure's visible share now, with a mark at the share wanted."""
+def _share_chart(
+    element_id: str,
+    *,
+    compact: bool = False,
+    rows: str = "shares",
+    key: str = "measured_key",
+) -> None:
+    """Bars: each structure's visible share (``rows``, measured for ``key``) and the wanted one.
+
+    When ``key`` is not the view and settings shown, the bars and numbers are hidden.
+    """
     text = "text-caption" if compact else "text-body-2"
     with (
-        html.Div(id=element_id),
+        html.Div(id=element_id, classes="measured", raw_attrs=[f':data-key="{key}"']),
         html.Div(
-            v_for="row in shares",
+            v_for=f"row in ({key} === now_key ? {rows} : [])",
             key="row.name",
             classes="d-flex align-center" + ("" if compact else " mb-1"),
         ),
@@ -318,14 +351,26 @@ def _optimise_panel(app) -> None:
     html.Div("'Optimise all' also adjusts lighting and colours.", classes="text-caption")
     with html.Div(v_show="error_history_svg", classes="mt-2"):
         html.Div(
-            "Errors at each iteration (quick preview resolution)",
+            "Errors at each iteration (the optimiser's sampling resolution)",
             classes="text-body-2 font-weight-bold",
         )
-        html.Div(v_html=("error_history_svg",), id="error-history")
+        html.Div(
+            v_html=(f"{OPT_FRESH} ? error_history_svg : ''",),
+            classes="measured",
+            raw_attrs=[':data-key="opt_key"'],
+            id="error-history",
+        )
         html.Div("Visible share of each structure (mark: its target share)", classes="text-caption")
-        _share_chart("share-chart-live", compact=True)
+        _share_chart("share-chart-live", compact=True, rows="live_shares", key="opt_key")
     with html.Div(v_if="before_url", classes="mt-2", id="before-after"):
         html.Div("Before and after", classes="text-body-2 font-weight-bold")
+        html.Div(
+            f"{{{{ {OPT_FRESH} ? 'for ' + opt_for : 'for an earlier view or settings: "
+            "optimise again for the numbers of this one' }}",
+            classes="text-caption measured",
+            raw_attrs=[':data-key="opt_key"'],
+            id="opt-for",
+        )
         with v3.VRow(dense=True):
             with v3.VCol(cols=6):
                 html.Img(
@@ -333,15 +378,30 @@ def _optimise_panel(app) -> None:
                     style="width: 100%; height: 120px; object-fit: contain; background: #000;",
                     id="before-image",
                 )
-                html.Div("before: {{ before_text }}", classes="text-caption")
+                html.Div(
+                    f"before: {{{{ {OPT_FRESH} ? before_text : '-' }}}}",
+                    classes="text-caption measured",
+                    raw_attrs=[':data-key="opt_key"'],
+                    id="before-text",
+                )
             with v3.VCol(cols=6, v_if="after_url"):
                 html.Img(
                     src=("after_url",),
                     style="width: 100%; height: 120px; object-fit: contain; background: #000;",
                     id="after-image",
                 )
-                html.Div("after: {{ after_text }}", classes="text-caption")
-    with html.Div(v_if="why_lines.length", classes="mt-2", id="why"):
+                html.Div(
+                    f"after: {{{{ {OPT_FRESH} ? after_text : '-' }}}}",
+                    classes="text-caption measured",
+                    raw_attrs=[':data-key="opt_key"'],
+                    id="after-text",
+                )
+    with html.Div(
+        v_if=f"why_lines.length && {OPT_FRESH}",
+        classes="mt-2 measured",
+        raw_attrs=[':data-key="opt_key"'],
+        id="why",
+    ):
         html.Div("What changed and why", classes="text-body-2 font-weight-bold")
         html.Div("{{ line }}", v_for="line in why_lines", key="line", classes="text-caption")
     with html.Div(classes="d-flex align-center mt-2"):
@@ -408,8 +468,10 @@ def build_ui(app):
             html.Div("{{ volume_name }}", classes="text-body-2 mr-4")
         layout.drawer.width = 470
         with layout.drawer, html.Div(classes="pa-3"):
+            # a new banner belongs to the screen shown when it arrives
+            client.ClientStateChange(value="info + '|' + error", change="banner_tab = tab")
             v3.VAlert(
-                v_if="error",
+                v_if="error && banner_tab === tab",
                 text=("error",),
                 type="error",
                 density="compact",
@@ -418,7 +480,7 @@ def build_ui(app):
                 id="error-message",
             )
             v3.VAlert(
-                v_if="info && !error",
+                v_if="info && !error && banner_tab === tab",
                 text=("info",),
                 type="info",
                 density="compact",

@@ -51,8 +51,10 @@ def lens_panel(app) -> None:
                 )
                 html.Span("{{ row.name }}")
                 html.Div(
-                    "in {{ (100 * row.fraction).toFixed(0) }} % of the region",
-                    classes="text-caption",
+                    "{{ measured_key === now_key ? 'in ' + (100 * row.fraction).toFixed(0) "
+                    "+ ' % of the region' : 're-measuring' }}",
+                    classes="text-caption measured",
+                    raw_attrs=[':data-key="measured_key"'],
                 )
             for use, key in (("use_vis", "vis"), ("use_tr", "tr")):
                 with (
@@ -105,6 +107,28 @@ def lens_panel(app) -> None:
             disabled=("busy || !lens",),
             id="clear-lens",
         )
+    html.Div(
+        "{{ opt_key === now_key ? lens_whole_text : '' }}",
+        v_show="lens_whole_text",
+        classes="text-body-2 mt-2 measured",
+        raw_attrs=[':data-key="opt_key"'],
+        id="lens-whole",
+    )
+    with v3.VAlert(
+        v_if="lens_worse",
+        type="warning",
+        density="compact",
+        variant="tonal",
+        classes="mt-2",
+        id="lens-prompt",
+    ):
+        html.Div(
+            "The refinement made the whole view worse by more than 10 %. Keep it or undo it?",
+            classes="text-body-2",
+        )
+        with v3.VRow(dense=True, classes="mt-1"):
+            half_button("Keep", click=app.lens_keep, id="lens-keep")
+            half_button("Undo", click=app.lens_undo, color="primary", id="lens-undo")
 
 
 def _outline_style(x0, y0, x1, y1, circle) -> str:

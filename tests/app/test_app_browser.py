@@ -17,6 +17,8 @@ import json
 import os
 import re
 import shutil
+import signal
+import time
 from pathlib import Path
 
 import numpy as np
@@ -174,8 +176,10 @@ def _tab(page, name: str) -> None:
 
 
 def _close_messages(page) -> None:
+    """Close the banners, also those of other screens (hidden here, shown on their screen)."""
     page.evaluate(
-        "() => document.querySelectorAll('.v-alert__close button').forEach(b => b.click())"
+        "() => { document.querySelectorAll('.v-alert__close button').forEach(b => b.click());"
+        " window.trame.state.update({error: '', info: ''}); }"
     )
 
 
@@ -284,10 +288,17 @@ def test_cancel_keeps_best_so_far_and_app_stays_responsive(page, server):
     _tab(page, "optimise")
     n_history = page.locator("#history-list > div").count()
     page.click("#optimise-all")
+    # progress per stage and iteration, with the time left
     page.wait_for_function(
-        "() => document.querySelector('#progress-text')?.innerText.includes('iteration')"
+        "() => /^step \\d of 3 \\(\\w+\\): iteration \\d+ of \\d+;.* s left$/"
+        ".test(document.querySelector('#progress-text')?.innerText || '')"
     )
+    t0 = time.monotonic()
     page.click("#cancel")
+    page.wait_for_function(
+        "() => document.querySelector('#progress-text')?.innerText.startsWith('cancelled')"
+    )
+    assert time.monotonic() - t0 <= 1.0  # Cancel takes effect within a second
     page.wait_for_selector("#cancel[disabled]")
     assert page.inner_text("#progress-text").startswith("cancelled, kept the best so far")
     e0, e1 = _errors_in_progress(page)
@@ -360,6 +371,99 @@ def test_drawn_lens_triggers_region_refinement(page):
     _shot(page, "lens")
     _tab(page, "optimise")
     assert "optimise opacity in lens" in page.inner_text("#history-list")
+
+
+def _now_key(page) -> str:
+    return page.get_attribute("#now-key", "data-now")
+
+
+def _stale_right_after_change(page, old_key: str) -> list[str]:
+    """Wait for the page's view or settings to change; list the old numbers still shown then.
+
+    The check runs in the very frame the page learns of the change: any element showing a
+    number measured for another view or settings (``data-key`` not the current one) counts.
+    """
+    found = page.wait_for_function(
+        """(old) => {
+            const now = document.querySelector('#now-key')?.dataset.now;
+            if (!now || now === old) return false;
+            return {stale: [...document.querySelectorAll('.measured')]
+                .filter(el => el.dataset.key !== now && /\\d/.test(el.textContent))
+                .map(el => (el.id || el.className) + ': ' + el.textContent.slice(0, 100))};
+        }""",
+        arg=old_key,
+    )
+    return found.json_value()["stale"]
+
+
+def test_lens_refinement_that_worsens_the_whole_view_asks_to_keep_or_undo(page):
+    # back to the phantom's own settings (before 'load poor.json'); the banner stays on its
+    # screen
+    _tab(page, "optimise")
+    _close_messages(page)
+    page.locator("#history-list button").last.click()
+    page.wait_for_selector("#info-message", state="visible")
+    assert "went back" in page.inner_text("#info-message")
+    page.wait_for_selector("#measuring", state="hidden")
+    _tab(page, "data")
+    assert page.locator("#info-message").count() == 0
+    _tab(page, "optimise")
+    page.wait_for_selector("#info-message", state="visible")
+    # and it times out
+    from dvr_perception.app.core import INFO_S
+
+    page.wait_for_selector("#info-message", state="detached", timeout=(INFO_S + 3) * 1000)
+    # a small lens in the middle, without targets, helps the lens and costs the whole view
+    n_history = page.locator("#history-list > div").count()
+    _tab(page, "lens")
+    page.click("#clear-lens")  # also drops the targets of the previous test
+    page.wait_for_selector("#lens-table", state="detached")
+    page.click("#lens-rect")
+    _drag(page, 0.4, 0.4, 0.6, 0.6)
+    page.wait_for_function(
+        "() => document.querySelector('#lens-text')?.innerText.startsWith('rectangle covering 4 %')"
+    )
+    _optimise(page, "#refine-lens")
+    e0, e1 = _errors_in_progress(page)
+    assert e1 < e0  # better inside the lens
+    page.wait_for_function("() => /total/.test(document.querySelector('#lens-whole').innerText)")
+    whole = page.inner_text("#lens-whole")
+    assert page.locator("#lens-prompt").is_visible(), (whole, page.inner_text("#progress-text"))
+    m = re.search(r"total ([\d.]+) -> ([\d.]+) \(\+(\d+) %\)", whole)
+    assert m, whole
+    assert "visibility" in whole
+    assert "transparency" in whole
+    assert float(m.group(2)) > 1.1 * float(m.group(1))
+    # every number on the page is for this view and these settings
+    old = _now_key(page)
+    assert page.get_attribute("#lens-whole", "data-key") == old
+    assert page.get_attribute("#measured-for", "data-key") == old
+    assert "for view" in page.inner_text("#measured-for")
+    # rotate (drag across the view on another screen): no number of the old view stays
+    _tab(page, "optimise")
+    assert "for view" in page.inner_text("#opt-for")
+    box = page.locator("#view").bounding_box()
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(cx, cy)
+    page.mouse.down()
+    page.mouse.move(cx + 80, cy + 20, steps=6)
+    page.mouse.up()
+    assert _stale_right_after_change(page, old) == []
+    page.wait_for_selector("#measuring", state="hidden")
+    assert page.get_attribute("#measured-for", "data-key") == _now_key(page)
+    assert _value(page, "E_v") >= 0.0
+    assert page.inner_text("#opt-for").startswith("for an earlier view")
+    assert page.inner_text("#before-text") == "before: -"
+    # undo the refinement (a transfer-function change): the same holds
+    _tab(page, "lens")
+    old = _now_key(page)
+    page.click("#lens-undo")
+    assert _stale_right_after_change(page, old) == []
+    page.wait_for_selector("#lens-prompt", state="detached")
+    page.wait_for_selector("#measuring", state="hidden")
+    assert page.get_attribute("#value-E_v", "data-key") == _now_key(page)
+    _tab(page, "optimise")
+    assert page.locator("#history-list > div").count() == n_history
 
 
 def test_calibration_flow_saves_a_curve_file(page, server):
@@ -475,7 +579,7 @@ def test_malformed_spec_is_a_visible_error(page, server):
     )
     assert "JSON" in _error_text(page) or "json" in _error_text(page)
     assert server["proc"].poll() is None
-    assert _value(page, "E_v") >= 0.0  # the page still works
+    assert _wait_value(page, "E_v") >= 0.0  # the page still works
 
 
 def test_export_writes_valid_files(page, server):
@@ -563,3 +667,15 @@ def test_upload_of_a_volume_shows_it(page, server):
     assert _wait_value(page, "E_v") >= 0.0
     assert "small.nrrd" in page.inner_text("header")
     assert server["proc"].poll() is None
+
+
+def test_sigterm_stops_the_server_within_a_second_while_it_optimises(page, server):
+    _tab(page, "optimise")
+    page.click("#optimise-all")
+    page.wait_for_selector("#cancel:not([disabled])")
+    t0 = time.monotonic()
+    server["proc"].send_signal(signal.SIGTERM)
+    server["proc"].wait(timeout=10)
+    assert time.monotonic() - t0 <= 1.0
+    # every client that went away (the second tab, the refused sockets) took one line
+    assert "Traceback" not in server["log"].read_text()
