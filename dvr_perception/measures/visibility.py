@@ -162,15 +162,10 @@ def _presence(analysis, assigned: np.ndarray, visible: np.ndarray):
     Uses the ``present`` bitmask when the analysis has one (bit ``k`` of each pixel, read one
     structure at a time), else "any assigned or visible opacity".
     """
-    present = getattr(analysis, "present", None)
-    if present is None:
+    bits = _presence_bits(analysis, assigned)
+    if bits.size == 0:
         return lambda k: (assigned[k] > 0) | (visible[k] > 0)
-    bits = np.asarray(present)
-    if bits.shape != assigned.shape[1:] or not np.issubdtype(bits.dtype, np.integer):
-        raise DVRInputError(
-            f"analysis.present must be an integer bitmask of shape {assigned.shape[1:]}"
-        )
-    bits = bits.astype(np.uint64)
+    bits = bits.reshape(assigned.shape[1:])
     return lambda k: ((bits >> np.uint64(k)) & np.uint64(1)).astype(bool)
 
 

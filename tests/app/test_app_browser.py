@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.conftest import _missing
+
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
     "--headless",
@@ -35,7 +37,6 @@ CHROMIUM_ARGS = [
     "--disable-component-update",
     "--disable-sync",
 ]
-IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 ACTION_TIMEOUT_MS = 60_000
 SCREENSHOTS = os.environ.get("DVR_APP_SCREENSHOTS", "")
 PHANTOM_SIZE = int(os.environ.get("DVR_APP_PHANTOM_SIZE", "40"))
@@ -44,12 +45,6 @@ MAX_UPLOAD_MB = 0.05
 VIEWPORT = {"width": 1400, "height": 900} if SCREENSHOTS else {"width": 1180, "height": 720}
 
 pytestmark = [pytest.mark.vtk_render, pytest.mark.slow]
-
-
-def _missing(reason: str) -> None:
-    if IN_CI:
-        pytest.fail(f"required under CI=true: {reason}")
-    pytest.skip(reason)
 
 
 @pytest.fixture(scope="module")

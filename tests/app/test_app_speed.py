@@ -11,7 +11,6 @@ per stage (the CLI's and the app's default is 10; fewer keep the test short).
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -20,21 +19,16 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import _missing
+
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]
-IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 VIEW_PX = 128
 ITERATIONS = 3
 MAX_RATIO = 1.5
 DRAWER_PX, TOOLBAR_PX = 470, 48
 
 pytestmark = [pytest.mark.vtk_render, pytest.mark.slow]
-
-
-def _missing(reason: str) -> None:
-    if IN_CI:
-        pytest.fail(f"required under CI=true: {reason}")
-    pytest.skip(reason)
 
 
 @pytest.fixture(scope="module")
