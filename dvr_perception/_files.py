@@ -39,6 +39,7 @@ __all__ = [
     "check_target",
     "check_writable",
     "commit",
+    "file_lock",
     "file_mode",
     "json_ready",
     "output_folder",
@@ -287,15 +288,20 @@ class StagedFolder:
 LOCK_NAME = ".dvr-perception.lock"
 
 
-def _lock(final: Path):
-    """Take the output folder's lock file; return its descriptor (non-blocking)."""
-    lock = final / LOCK_NAME
+def _lock(final: Path, lock: Path | None = None, what: str | None = None):
+    """Take a lock file (the output folder's by default); return its descriptor (non-blocking).
+
+    ``lock`` is the lock file (``final / LOCK_NAME`` by default) and ``what`` names the target
+    in the errors (``"output folder FINAL"`` by default).
+    """
+    lock = final / LOCK_NAME if lock is None else lock
+    what = f"output folder {final}" if what is None else what
     while True:
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
             raise DVRInputError(
-                f"output folder {final}: cannot write into it ({exc.strerror})"
+                f"{what}: cannot create the lock file {lock} ({exc.strerror})"
             ) from None
         try:
             if fcntl is not None:
@@ -310,8 +316,8 @@ def _lock(final: Path):
             except OSError:
                 pid = "?"
             raise DVRInputError(
-                f"output folder {final}: another dvr-perception run (pid {pid or '?'}) is "
-                f"writing into it (lock file {lock}); wait for it or choose another folder"
+                f"{what}: another dvr-perception run (pid {pid or '?'}) is writing it "
+                f"(lock file {lock}); wait for it or choose another name"
             ) from None
         if same:
             os.ftruncate(fd, 0)
@@ -330,6 +336,31 @@ def _subfolders(final: Path, targets) -> list[Path]:
                 p.mkdir()
                 made.append(p)
     return made
+
+
+@contextmanager
+def file_lock(path) -> Iterator[Path]:
+    """Hold ``.NAME.lock`` beside the output file ``path``: a second run is refused meanwhile.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> target = Path(tempfile.mkdtemp()) / "big.nhdr"
+    >>> with file_lock(target) as lock:
+    ...     lock.name
+    '.big.nhdr.lock'
+    >>> lock.exists()
+    False
+    """
+    target = Path(path)
+    lock = target.parent / f".{target.name}.lock"
+    fd = _lock(target.parent, lock, f"output file {target}")
+    try:
+        yield lock
+    finally:
+        with _deferred_sigint():
+            lock.unlink(missing_ok=True)
+            os.close(fd)
 
 
 @contextmanager

@@ -48,6 +48,7 @@ Reported figures (seconds unless stated):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import functools
 import statistics
@@ -55,6 +56,7 @@ import time
 
 import numpy as np
 
+from dvr_perception._files import file_lock
 from dvr_perception.cli._common import (
     add_scene_args,
     check_output_file,
@@ -257,15 +259,17 @@ def run(args: argparse.Namespace) -> int:
     from dvr_perception.rays.curvature_field import CurvatureField, curvature_source
     from dvr_perception.rays.engine import analyze, reevaluate
 
-    if args.save_volume is not None:
-        check_output_file(args.save_volume)
-    scene = load_scene(args)
-    vol, spec, cam = scene.volume, scene.spec, scene.camera
-    if args.save_volume is not None:
-        from dvr_perception.volume.io import save_volume
+    with contextlib.ExitStack() as held:
+        if args.save_volume is not None:
+            check_output_file(args.save_volume)
+            held.enter_context(file_lock(args.save_volume))  # a second run is refused
+        scene = load_scene(args)
+        vol, spec, cam = scene.volume, scene.spec, scene.camera
+        if args.save_volume is not None:
+            from dvr_perception.volume.io import save_volume
 
-        log.info("writing %s", args.save_volume)
-        save_volume(vol, args.save_volume)
+            log.info("writing %s", args.save_volume)
+            save_volume(vol, args.save_volume)
     log.info("curvature volume")
     t0 = time.perf_counter()
     curv = curvature_source(vol, spec)  # per brick (inside the frames) when too large

@@ -35,6 +35,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from dvr_perception import _paraview_compat
+from dvr_perception._files import output_folder
 from dvr_perception.cli._common import PROG, add_scene_args, emit_json, log, parse_size
 from dvr_perception.errors import DVRInputError
 from dvr_perception.rays.camera import parse_view
@@ -374,21 +375,8 @@ def run_job(cmd: list[str], env: dict, timeout: float, what: str) -> subprocess.
     return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
 
 
-def run(args: argparse.Namespace) -> int:
-    """Execute ``pvbatch``."""
-    if args.size is not None:
-        parse_size(args.size)
-    if args.view is not None:
-        parse_view(args.view)
-    if not (args.sigma > 0):
-        raise DVRInputError(f"--sigma: expected a positive number, got {args.sigma}")
-    if args.ranks < 1:
-        raise DVRInputError(f"--ranks: expected a positive number of ranks, got {args.ranks}")
-    if not (args.timeout > 0):
-        raise DVRInputError(f"--timeout: expected a positive number of seconds, got {args.timeout}")
-    if args.optimize:
-        _check_optimize(args)
-    pvbatch = find_paraview("pvbatch")
+def _launch(args: argparse.Namespace, pvbatch: Path) -> subprocess.CompletedProcess:
+    """Run the batch script under ``pvbatch`` (retrying ParaView's start-up crashes)."""
     name = "batch_optimize.py" if args.optimize else "batch_measure.py"
     script = _paraview_compat.repo_root() / "plugin" / name
     env = paraview_env()
@@ -417,10 +405,37 @@ def run(args: argparse.Namespace) -> int:
         sys.stderr.write(proc.stderr)
     if proc.returncode != 0:
         raise _failure(proc.returncode, proc.stderr)
-    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    return proc
+
+
+def run(args: argparse.Namespace) -> int:
+    """Execute ``pvbatch``."""
+    if args.size is not None:
+        parse_size(args.size)
+    if args.view is not None:
+        parse_view(args.view)
+    if not (args.sigma > 0):
+        raise DVRInputError(f"--sigma: expected a positive number, got {args.sigma}")
+    if args.ranks < 1:
+        raise DVRInputError(f"--ranks: expected a positive number of ranks, got {args.ranks}")
+    if not (args.timeout > 0):
+        raise DVRInputError(f"--timeout: expected a positive number of seconds, got {args.timeout}")
+    if args.optimize:
+        _check_optimize(args)
+    pvbatch = find_paraview("pvbatch")
+    # ParaView writes into a staging folder inside --out, locked against a second run; the
+    # files move in together only when the job succeeded (an interrupted or failed run leaves
+    # the folder as it was)
+    with output_folder(args.out) as staged:
+        job = argparse.Namespace(**vars(args))
+        job.out = staged.path
+        proc = _launch(job, pvbatch)
+        summary = json.loads(proc.stdout.strip().splitlines()[-1])
+        result_json = (staged.path / "result.json").read_text(encoding="utf-8")
+    summary["out"] = str(staged.final)
     mpi = f", {args.ranks} MPI ranks" if args.ranks > 1 else ""
     if args.json:
-        emit_json(json.loads((Path(summary["out"]) / "result.json").read_text(encoding="utf-8")))
+        emit_json(json.loads(result_json))
     elif args.optimize:
         print(
             f"E {summary['initial_E']:.4f} -> {summary['E']:.4f}  (ParaView pvbatch{mpi}; "

@@ -304,9 +304,17 @@ def attach_labels(volume, spec: StructureSpec):
     if data.dtype.kind == "f":
         if not np.all(np.isfinite(data)) or np.any(data != np.round(data)):
             raise DVRInputError(f"labels file {path}: label values must be integers")
-        data = data.astype(np.int64)
     elif data.dtype.kind not in "ui":
         raise DVRInputError(f"labels file {path}: expected integer labels, got {data.dtype}")
+    if data.dtype.kind == "f" or data.dtype.itemsize > 4 or data.dtype == np.uint32:
+        # labels are 32-bit ids, as in a spec; stored as int32
+        lo, hi = float(data.min()), float(data.max())
+        if lo < -(2**31) or hi > 2**31 - 1:
+            raise DVRInputError(
+                f"labels file {path}: label values must be 32-bit integers "
+                f"(-2147483648 to 2147483647), got {lo:.0f} to {hi:.0f}"
+            )
+        data = data.astype(np.int32)
     return replace(volume, labels=data)
 
 

@@ -102,3 +102,21 @@ def test_upsample_is_trilinear_and_keeps_world_extent():
     np.testing.assert_array_equal(lab[1::2, 1::2, 1::2], labels)
     with pytest.raises(DVRInputError, match="factors"):
         upsample(vol, (1, 0, 1))
+
+
+def test_save_volume_that_another_run_writes_is_refused(capsys, small_scene):
+    from dvr_perception._files import file_lock
+
+    saved = small_scene / "big.nhdr"
+    argv = [str(small_scene / "ball.nhdr"), "--structures", str(small_scene / "ball.json")]
+    with file_lock(saved):  # another bench is writing that file
+        code = main(["bench", *argv, "--size", "12", "--save-volume", str(saved)])
+        err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1, err
+    assert f"output file {saved}: another dvr-perception run" in err[0]
+    assert not saved.exists()
+    assert not (small_scene / ".big.nhdr.lock").exists()  # released by its holder
+    _bench(capsys, [*argv, "--save-volume", str(saved)])  # free again: it is written
+    assert load_volume(saved).dims == (10, 12, 14)
+    assert not (small_scene / ".big.nhdr.lock").exists()

@@ -277,4 +277,19 @@ def test_pvbatch_reports_a_bad_spec_from_inside_paraview_in_one_line(
     assert len(err) == 1, err
     assert err[0].startswith("dvr-perception: error: ")
     assert "bad_spec.json" in err[0]
-    assert not (tmp_path / "result.json").exists()
+    # ParaView wrote into a staging folder that is gone again: --out holds what it held
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad_spec.json"]
+
+
+def test_pvbatch_into_a_folder_another_run_writes_is_refused(paraview, tmp_path, neghip, capsys):
+    from dvr_perception._files import output_folder
+    from dvr_perception.cli import main
+
+    out = tmp_path / "out"
+    with output_folder(out) as staged:  # another run holds the folder's lock
+        (staged.path / "theirs.txt").write_text("x")
+        assert main(["pvbatch", str(neghip), "--structures", str(SPEC), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1, err
+        assert "another dvr-perception run" in err[0]
+    assert sorted(p.name for p in out.iterdir()) == ["theirs.txt"]

@@ -17,6 +17,7 @@ import stat
 import zlib
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 GOOD_NRRD = "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 8 8 8\nendian: little\n"
@@ -186,6 +187,40 @@ def _mhd(inputs, run, param):
     (inputs / "d.raw").write_bytes(bytes(512))
     header = _nhdr(inputs, body, "h.mhd")
     return {"argv": _render(header, run), "needles": [str(header), needle]}
+
+
+def _labelled(inputs: Path, labels: np.ndarray, dims=(32, 32, 32)) -> Path:
+    """A volume of ``dims`` (x, y, z), the label volume ``labels`` and a spec naming both."""
+    from dvr_perception.volume import Volume, save_volume
+
+    ramp = np.linspace(0, 255, dims[0] * dims[1] * dims[2]).reshape(dims[::-1])
+    save_volume(Volume(ramp.astype(np.uint8)), inputs / "v.nhdr")
+    save_volume(Volume(labels), inputs / "labels.nhdr")
+    spec = {"version": 1, "labels": "labels.nhdr", "structures": [
+        {"name": "a", "label": 7, "importance": 0.8, "color": [1, 0, 0]},
+        {"name": "b", "label": 30000, "importance": 0.4, "color": [0, 1, 0]}]}  # fmt: skip
+    (inputs / "spec.json").write_text(json.dumps(spec))
+    return inputs / "v.nhdr"
+
+
+@case("labels-32768-distinct-values")
+def _many_labels(inputs, run):
+    # every voxel its own label: the work is per structure (two), never per distinct label
+    labels = np.arange(32**3, dtype=np.int32).reshape(32, 32, 32)
+    vol = _labelled(inputs, labels)
+    argv = [*_render(vol, run), "--structures", inputs / "spec.json"]
+    return {"argv": argv, "code": 0, "written": ["x.png"]}
+
+
+@case("labels-other-dims", "labels-fractional", "labels-beyond-int32",
+      params=[(np.zeros((8, 8, 8), np.int16), "do not match the volume's dims"),
+              (np.full((32, 32, 32), 7.5, np.float32), "label values must be integers"),
+              (np.full((32, 32, 32), 2.0**40, np.float64), "32-bit")])  # fmt: skip
+def _bad_labels(inputs, run, param):
+    labels, needle = param
+    vol = _labelled(inputs, labels)
+    argv = [*_render(vol, run), "--structures", inputs / "spec.json"]
+    return {"argv": argv, "needles": ["labels.nhdr", needle]}
 
 
 @case("volume-is-a-device")
@@ -396,5 +431,5 @@ def test_every_class_of_issue_18_is_covered():
     names = " ".join(CASES)
     for needle in ("escape", "gzip-bomb", "sizes-product-overflows", "spacing-nan", "mhd",
                    "camera-width", "views", "structures", "sample-distance", "dev-null",
-                   "one-path", "unwritable", "locked"):  # fmt: skip
+                   "one-path", "unwritable", "locked", "labels"):  # fmt: skip
         assert needle in names, needle
