@@ -435,12 +435,15 @@ def analyze_views(
     if not cameras:
         raise DVRInputError("cameras: expected at least one camera")
     curv = _check_curvature(curvature, volume)
-    plans = []
     for cam in cameras:
         _check_inputs(volume, spec, cam, "auto")
-        _, _, _, lut, _, _, memb, seg = _scene(volume, spec, cam, "auto")
-        plans.append(_plan(volume, spec, cam, seg, lut, memb, curv is not None, build_cache,
-                           memory_limit, None))  # fmt: skip
+    # the tables and label map are the same for every camera: only the rays differ
+    nk, step, _, lut, _, _, memb, _ = _scene(volume, spec, cameras[0], "auto")
+    plans = [
+        _plan(volume, spec, cam, _segments(nk, cam, volume, step), lut, memb, curv is not None,
+              build_cache, memory_limit, None)
+        for cam in cameras
+    ]  # fmt: skip
     bricks = {tuple(p["brick"]) for p in plans if p["mode"] == "bricks"}
     if len(cameras) > 1 and len(bricks) == 1 and all(p["mode"] == "bricks" for p in plans):
         from dvr_perception.rays.bricks import analyze_bricked_views
