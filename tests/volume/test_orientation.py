@@ -284,7 +284,7 @@ def test_oblique_view_equals_the_rotated_axis_aligned_volume():
 def test_named_view_parsing_and_errors():
     assert parse_patient_view("Anterior,10,-5") == ("anterior", 10.0, -5.0, 1.0)
     assert parse_patient_view("-30,10,2") == (None, -30.0, 10.0, 2.0)
-    with pytest.raises(DVRInputError, match="unknown view 'front'.*anterior"):
+    with pytest.raises(DVRInputError, match=r"unknown view 'front'.*anterior"):
         parse_patient_view("front")
     with pytest.raises(DVRInputError, match="AZIMUTH,ELEVATION"):
         parse_patient_view("left,abc")
@@ -312,7 +312,7 @@ def test_render_cli_named_view(stored, tmp_path):
     import contextlib
     import io
 
-    from dvr_perception._vtk import vtkPNGReader, vtk_to_numpy
+    from dvr_perception._vtk import vtk_to_numpy, vtkPNGReader
     from dvr_perception.cli import main
     from dvr_perception.structures.io import save_spec
 
