@@ -90,7 +90,7 @@ def test_ct_series_hu_and_position_order(tmp_path):
     assert vol.origin == pytest.approx((x0, y0, -75.0))
     assert vol.data.dtype == np.int16
     for z in zs:  # each slice in its place, in HU
-        np.testing.assert_array_equal(vol.data[int(round((z + 75.0) / 5.0))], hu)
+        np.testing.assert_array_equal(vol.data[round((z + 75.0) / 5.0)], hu)
     assert _value_at(vol, (x0 + 3 * vol.spacing[0], y0, -60.0)) == hu[0, 3]
 
 
