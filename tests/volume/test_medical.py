@@ -241,3 +241,24 @@ def test_missing_extra_names_it(tmp_path, monkeypatch):
     (tmp_path / "x.mgz").write_bytes(b"\0" * 400)
     with pytest.raises(DVRInputError, match=r"x\.mgz.*nibabel.*dvr-perception\[medical\]"):
         load_volume(tmp_path / "x.mgz")
+
+
+def test_series_option_through_the_cli(tmp_path):
+    """``--series`` in the CLI: the list of series when missing, exit status 2, no traceback."""
+    import contextlib
+    import io
+
+    from dvr_perception.cli import main
+
+    src = _shipped("CT_small.dcm")
+    _series(tmp_path / "mixed", src, [0.0, 2.0, 4.0], series_uid="1.2.3.9.1")
+    _series(tmp_path / "mixed", src, [0.0, 3.0], series_uid="1.2.3.9.2", names=["p", "q"])
+    argv = ["render", str(tmp_path / "mixed"), "--size", "16", "--out", str(tmp_path / "a.png")]
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        assert main(argv) == 2
+    assert "1.2.3.9.1 (3 file(s), CT)" in err.getvalue()
+    assert "Traceback" not in err.getvalue()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        assert main([*argv, "--series", "1.2.3.9.2", "--view", "anterior"]) == 0
+    assert (tmp_path / "a.png").stat().st_size > 0

@@ -330,3 +330,45 @@ def test_render_cli_named_view(stored, tmp_path):
     png = png[::-1, :, :3] / 255.0  # VTK's PNG rows are bottom-up
     want = analyze(ref, SPEC, patient_view(ref, "anterior", width=32, height=32)).image
     assert compare_images(png, want)["ssim"] >= 0.98
+
+
+@pytest.mark.parametrize("ext", [".nii.gz", ".vti", ".nrrd"])
+def test_oblique_round_trip(tmp_path, ext):
+    """Writers keep an oblique direction; nibabel reads our NIfTI at the same positions."""
+    vol = _oblique(25.0)
+    save_volume(vol, tmp_path / f"ob{ext}")
+    back = load_volume(tmp_path / f"ob{ext}")
+    np.testing.assert_array_equal(back.data, vol.data)
+    np.testing.assert_allclose(back.direction, vol.direction, atol=1e-6)
+    np.testing.assert_allclose(back.origin, vol.origin, atol=1e-5)
+    np.testing.assert_allclose(back.spacing, vol.spacing, rtol=1e-6)
+    if ext == ".nii.gz":
+        affine = nibabel.load(str(tmp_path / f"ob{ext}")).affine
+        ijk = np.array([4.0, 7.0, 3.0])
+        ras = (affine @ (*ijk, 1))[:3]
+        lps = vol.to_world(np.asarray(vol.origin) + ijk * vol.spacing)
+        np.testing.assert_allclose(ras * (-1, -1, 1), lps, atol=1e-4)
+    with pytest.raises(DVRInputError, match="oblique direction"):
+        save_volume(vol, tmp_path / "ob.mha")
+
+
+def test_metaimage_transform_matrix(tmp_path):
+    """An ITK-style .mha with a rotated TransformMatrix (y and z reversed) loads canonically."""
+    ref = _block()
+    stored = ref.data[::-1, ::-1, :]  # index y runs anterior, index z inferior
+    nz, ny, _ = ref.data.shape
+    top = ref.origin[2] + (nz - 1) * SPACING[2]
+    back = ref.origin[1] + (ny - 1) * SPACING[1]
+    head = (
+        "ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
+        "TransformMatrix = 1 0 0 0 -1 0 0 0 -1\n"
+        f"Offset = {ref.origin[0]} {back} {top}\n"
+        f"ElementSpacing = {SPACING[0]} {SPACING[1]} {SPACING[2]}\n"
+        f"DimSize = {ref.dims[0]} {ref.dims[1]} {ref.dims[2]}\n"
+        "ElementType = MET_SHORT\nElementDataFile = LOCAL\n"
+    )
+    path = tmp_path / "itk.mha"
+    path.write_bytes(head.encode() + np.ascontiguousarray(stored).astype("<i2").tobytes())
+    vol = load_volume(path)
+    np.testing.assert_array_equal(vol.data, ref.data)
+    np.testing.assert_allclose(vol.origin, ref.origin, atol=1e-6)
