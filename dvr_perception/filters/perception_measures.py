@@ -157,8 +157,8 @@ class PerceptionMeasures(DVRFilterBase):
     def make_camera(self, volume, spec) -> Camera:
         """Return the camera for ``volume`` (``camera_json``, else the orbit ``view``)."""
         d = self._camera_dict()
-        if d is not None:
-            return Camera.from_dict(d, source="camera_json")
+        if d is not None:  # the view's camera, in world coordinates
+            return Camera.from_dict(d, source="camera_json").in_volume_frame(volume)
         az, el, zoom = self.view or spec.view or (0.0, 0.0, 1.0)
         return Camera.from_view(
             volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=self.width, height=self.height

@@ -139,6 +139,23 @@ class Camera:
         """Return the same camera with another image size."""
         return replace(self, width=width, height=height)
 
+    def in_volume_frame(self, volume) -> Camera:
+        """Return this camera, given in world (patient LPS) coordinates, in ``volume``'s frame.
+
+        The engine renders in the frame ``origin + spacing * index``; for an oblique volume
+        (``volume.oblique``) a world camera -- e.g. ParaView's, which displays the image with
+        its direction matrix -- is rotated into it.  The identity for axis-aligned volumes.
+        """
+        if not getattr(volume, "oblique", False):
+            return self
+        d = np.asarray(volume.direction)
+        return replace(
+            self,
+            position=tuple(volume.to_frame(self.position)),
+            focal_point=tuple(volume.to_frame(self.focal_point)),
+            view_up=tuple(np.asarray(self.view_up) @ d),
+        )
+
     # -- serialisation ------------------------------------------------------------------------
     def to_dict(self) -> dict:
         """JSON-ready dictionary (the ``--camera CAM.json`` format)."""

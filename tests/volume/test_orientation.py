@@ -372,3 +372,23 @@ def test_metaimage_transform_matrix(tmp_path):
     vol = load_volume(path)
     np.testing.assert_array_equal(vol.data, ref.data)
     np.testing.assert_allclose(vol.origin, ref.origin, atol=1e-6)
+
+
+def test_world_camera_into_the_volume_frame():
+    """A world camera (ParaView's) mapped into an oblique volume's frame = the patient view."""
+    vol = _oblique(25.0)
+    cam = patient_view(vol, "left", azimuth=10, elevation=20, width=8, height=8)
+    d = np.asarray(vol.direction)
+    world = Camera(
+        position=tuple(vol.to_world(cam.position)),
+        focal_point=tuple(vol.to_world(cam.focal_point)),
+        view_up=tuple(d @ cam.view_up),
+        width=8,
+        height=8,
+    )
+    assert not np.allclose(world.position, cam.position)
+    back = world.in_volume_frame(vol)
+    np.testing.assert_allclose(back.position, cam.position, atol=1e-9)
+    np.testing.assert_allclose(back.view_up, cam.view_up, atol=1e-12)
+    assert _block().oblique is False
+    assert world.in_volume_frame(_block()) is world
