@@ -8,6 +8,10 @@ Conventions (shared by our engine and the VTK reference renderer):
 * A pixel's ray passes through the pixel centre.
 * The default view (azimuth 0, elevation 0, zoom 1) is ParaView's "reset camera": looking down
   -z at the volume centre, +y up, at the distance that fits the bounding sphere in a 30° view.
+* Cameras live in the volume's frame (``origin + spacing * index``), which is patient LPS
+  unless the volume is oblique.  :func:`patient_view` sets up a named view (``anterior`` ...
+  ``inferior``) in patient terms and rotates it into that frame; :meth:`Camera.in_volume_frame`
+  does the same for any world camera.
 """
 
 from __future__ import annotations

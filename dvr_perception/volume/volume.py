@@ -108,7 +108,11 @@ class Volume:
 
     @property
     def bounds(self) -> tuple[float, float, float, float, float, float]:
-        """World bounds ``(xmin, xmax, ymin, ymax, zmin, zmax)`` of the voxel centres."""
+        """Bounds ``(xmin, xmax, ymin, ymax, zmin, zmax)`` of the voxel centres in the frame.
+
+        The frame is ``origin + spacing * index`` -- world (patient LPS) coordinates unless
+        the volume is :attr:`oblique`; the engine and cameras work in it.
+        """
         out: list[float] = []
         for n, s, o in zip(self.dims, self.spacing, self.origin, strict=True):
             out += [o, o + (n - 1) * s]
@@ -146,7 +150,7 @@ class Volume:
 
     @property
     def center(self) -> tuple[float, float, float]:
-        """World centre of the bounds."""
+        """Centre of the bounds (in the frame; :meth:`to_world` maps it to patient LPS)."""
         b = self.bounds
         return ((b[0] + b[1]) / 2, (b[2] + b[3]) / 2, (b[4] + b[5]) / 2)
 
