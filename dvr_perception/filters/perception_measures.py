@@ -68,6 +68,7 @@ from dvr_perception.filters._base import (
 )
 from dvr_perception.measures import all_measures
 from dvr_perception.rays.camera import Camera
+from dvr_perception.volume.convert import has_identity_direction
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
 from dvr_perception.structures.io import attach_labels, check_spec_for_volume
@@ -267,6 +268,11 @@ class PerceptionMeasures(DVRFilterBase):
 
         if comm.rank != piece:
             raise DVRInputError(f"{self.label}: rank {comm.rank} was asked for piece {piece}")
+        if not has_identity_direction(image):  # pieces are placed by their index extents
+            raise DVRInputError(
+                f"{self.label}: an input image with a direction matrix cannot be split across "
+                "MPI ranks; run on one rank (or resample the image to the identity direction)"
+            )
         volume = self.load_input(image)
         spec = self.load_spec_parameters()
         ext = image.GetExtent()

@@ -283,7 +283,7 @@ def patient_view(
     >>> from dvr_perception.volume import Volume
     >>> v = Volume(np.zeros((2, 2, 2), np.uint8))
     >>> cam = patient_view(v, "anterior", width=8, height=8)
-    >>> [round(c, 3) for c in cam.basis()[0]], cam.view_up
+    >>> [round(float(c), 3) for c in cam.basis()[0]], cam.view_up
     ([0.0, 1.0, 0.0], (0.0, 0.0, 1.0))
     """
     if name not in PATIENT_VIEWS:

@@ -27,7 +27,7 @@ from dvr_perception._vtk import (
 from dvr_perception.errors import DVRInputError
 from dvr_perception.volume.volume import Volume
 
-__all__ = ["from_vtk_image", "to_vtk_image", "vtk_errors"]
+__all__ = ["from_vtk_image", "has_identity_direction", "to_vtk_image", "vtk_errors"]
 
 
 def to_vtk_image(
@@ -172,6 +172,21 @@ def from_vtk_image(
         if str(exc).startswith(where):
             raise
         raise DVRInputError(f"{where}: {exc}") from None
+
+
+def has_identity_direction(image) -> bool:
+    """Return whether a ``vtkImageData``'s direction matrix is the identity (or absent).
+
+    Examples
+    --------
+    >>> img = vtkImageData()
+    >>> has_identity_direction(img)
+    True
+    >>> img.SetDirectionMatrix(-1, 0, 0, 0, -1, 0, 0, 0, 1)
+    >>> has_identity_direction(img)
+    False
+    """
+    return bool(np.array_equal(_direction(image), np.eye(3)))
 
 
 def _direction(image) -> np.ndarray:

@@ -72,8 +72,8 @@ def from_axes(data: np.ndarray, axes, origin, *, name: str, source: str, where: 
     --------
     >>> d = np.arange(8, dtype=np.uint8).reshape(2, 2, 2)
     >>> v = from_axes(d, np.diag([1.0, 1.0, -2.0]), [0, 0, 2], name="v", source="")
-    >>> v.spacing, v.origin, v.data[0, 0, 0]
-    ((1.0, 1.0, 2.0), (0.0, 0.0, 0.0), np.uint8(4))
+    >>> v.spacing, v.origin, int(v.data[0, 0, 0])
+    ((1.0, 1.0, 2.0), (0.0, 0.0, 0.0), 4)
     """
     where = where or source or name
     m = np.asarray(axes, float)

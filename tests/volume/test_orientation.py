@@ -392,3 +392,17 @@ def test_world_camera_into_the_volume_frame():
     np.testing.assert_allclose(back.view_up, cam.view_up, atol=1e-12)
     assert _block().oblique is False
     assert world.in_volume_frame(_block()) is world
+
+
+def test_mpi_pieces_refuse_a_direction_matrix():
+    """ParaView pieces are placed by index extents: an image with a direction is one error."""
+    from types import SimpleNamespace
+
+    from dvr_perception.filters import PerceptionMeasures
+    from dvr_perception.volume import to_vtk_image
+
+    flipped = Volume(_block().data, direction=((-1, 0, 0), (0, -1, 0), (0, 0, 1)))
+    image = to_vtk_image(flipped, with_direction=True)
+    comm = SimpleNamespace(rank=0, size=2)
+    with pytest.raises(DVRInputError, match="direction matrix cannot be split across MPI"):
+        PerceptionMeasures().piece_scene(image, comm, 0, image.GetExtent())
