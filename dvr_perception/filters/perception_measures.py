@@ -68,10 +68,10 @@ from dvr_perception.filters._base import (
 )
 from dvr_perception.measures import all_measures
 from dvr_perception.rays.camera import Camera
-from dvr_perception.volume.convert import has_identity_direction
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
 from dvr_perception.structures.io import attach_labels, check_spec_for_volume
+from dvr_perception.volume.convert import has_identity_direction
 
 __all__ = ["PerceptionMeasures", "piece_extent"]
 
