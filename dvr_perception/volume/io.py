@@ -1,4 +1,4 @@
-"""Read and write volumes: NRRD/NHDR, MetaImage, VTI, legacy VTK, NIfTI, DICOM series, raw.
+"""Read and write volumes: NRRD/NHDR, MetaImage, VTI, legacy VTK, NIfTI, MGZ, DICOM, raw.
 
 :func:`load_volume` picks the reader from the file extension (a directory is read as a DICOM
 series) and :func:`save_volume` the writer.  Every failure is one
@@ -7,7 +7,12 @@ series) and :func:`save_volume` the writer.  Every failure is one
 NRRD is parsed here (not with ``vtkNrrdReader``): VTK 9.x reads a first axis shorter than 10
 samples as vector components, whatever ``kinds`` says, which silently corrupts small volumes.
 Headerless raw files follow the shared-data naming ``NAME_XxYxZ_DTYPE.raw`` (little-endian,
-x fastest).  The other formats go through VTK's readers and writers.
+x fastest).  DICOM and MGZ go through pydicom and nibabel (:mod:`dvr_perception.volume.medical`,
+the ``medical`` extra), the other formats through VTK's readers and writers.
+
+Geometry: every reader yields an origin and one world (patient LPS) vector per index axis;
+:func:`dvr_perception.volume.orient.from_axes` applies flips and permutations to the data order,
+so volumes come out axis-aligned unless the file's grid is oblique.
 
 Headers are untrusted (:mod:`dvr_perception.volume._limits`): a detached data file must lie in
 the header's folder (or a folder allowed with ``DVR_PERCEPTION_DATA_ROOTS``), and the sizes,
@@ -116,7 +121,7 @@ def load_volume(path, *, name: str | None = None, series: str | None = None) -> 
     ------
     DVRInputError
         Missing file, unknown extension, bad header, truncated data, unsupported type,
-        non-finite voxels, multi-component or non-image data, a DICOM or NIfTI/MGZ file
+        non-finite voxels, multi-component or non-image data, a DICOM file or ``.mgz``
         without the ``medical`` extra installed; the message names the file.
 
     Examples
