@@ -104,12 +104,16 @@ def _headers(path: Path) -> list[tuple[Path, object]]:
     out = []
     for f in files:
         try:
-            ds = pydicom.dcmread(f, stop_before_pixels=True)
-        except (InvalidDicomError, OSError, EOFError, ValueError, KeyError, TypeError) as exc:
+            # large elements (private blobs) stay on disk; pixel data is not read here
+            ds = pydicom.dcmread(f, stop_before_pixels=True, defer_size="1 MB")
+            image = "Rows" in ds and "Columns" in ds
+        except InvalidDicomError as exc:
             if path.is_dir():
                 continue  # not a DICOM file: other files may sit beside a series
-            raise DVRInputError(f"{f}: not a readable DICOM file ({str(exc)[:200]})") from None
-        if "Rows" in ds and "Columns" in ds:
+            raise DVRInputError(f"{f}: not a DICOM file ({str(exc)[:200]})") from None
+        except Exception as exc:  # a corrupt header: pydicom raises many types
+            raise DVRInputError(f"{f}: unreadable DICOM header ({str(exc)[:200]})") from None
+        if image:
             out.append((f, ds))
     if not out:
         raise DVRInputError(f"{path}: no DICOM image files found")
@@ -156,10 +160,20 @@ def _pixel_dtype(ds, where: str) -> np.dtype:
     return np.dtype(f"{'i' if signed else 'u'}{bits // 8}")
 
 
+def _int(ds, keyword: str, where: str) -> int:
+    try:
+        return int(getattr(ds, keyword))
+    except (TypeError, ValueError, AttributeError):
+        raise DVRInputError(
+            f"{where}: DICOM field {keyword!r}: expected an integer, got "
+            f"{str(getattr(ds, keyword, None))[:40]}"
+        ) from None
+
+
 def _check_sizes(where: str, ds, frames: int) -> None:
     """Refuse Rows x Columns x frames x BitsAllocated beyond the memory limit (pre-pixels)."""
     dt = _pixel_dtype(ds, where)
-    rows, cols = int(ds.Rows), int(ds.Columns)
+    rows, cols = _int(ds, "Rows", where), _int(ds, "Columns", where)
     if rows < 1 or cols < 1 or frames < 1:
         raise DVRInputError(f"{where}: DICOM fields 'Rows'/'Columns': empty image {rows}x{cols}")
     check_budget(where, (cols, rows, frames), dt, "Rows x Columns x NumberOfFrames x BitsAllocated")
@@ -265,6 +279,21 @@ def read_dicom(path: Path, *, name: str, series: str | None = None) -> Volume:
         geometry, colour images, sizes beyond the memory limit, undecodable pixel data.
     """
     require(f"{path}: DICOM files")
+    try:
+        return _read(path, name=name, series=series)
+    except DVRInputError:
+        raise
+    except MemoryError:
+        raise
+    except Exception as exc:  # pydicom parses elements lazily: a corrupt
+        # value raises on first access (ValueError, NotImplementedError for an unknown VR,
+        # struct.error, ...) in a field the checks above do not name one by one
+        raise DVRInputError(
+            f"{path}: malformed DICOM header value ({type(exc).__name__}: {str(exc)[:200]})"
+        ) from None
+
+
+def _read(path: Path, *, name: str, series: str | None) -> Volume:
     headers = _pick_series(path, _headers(path), series)
     if len(headers) == 1:
         return _read_multiframe(*headers[0], name=name, source=str(path))
@@ -303,7 +332,7 @@ def read_dicom(path: Path, *, name: str, series: str | None = None) -> Volume:
 
 def _read_multiframe(f: Path, ds, *, name: str, source: str) -> Volume:
     where = str(f)
-    n = int(getattr(ds, "NumberOfFrames", 1) or 1)
+    n = _int(ds, "NumberOfFrames", where) if ds.get("NumberOfFrames") else 1
     if n < 2:
         raise DVRInputError(
             f"{where}: a single 2-D image (NumberOfFrames {n}); expected a series folder or a "

@@ -262,3 +262,30 @@ def test_series_option_through_the_cli(tmp_path):
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
         assert main([*argv, "--series", "1.2.3.9.2", "--view", "anterior"]) == 0
     assert (tmp_path / "a.png").stat().st_size > 0
+
+
+def test_corrupt_dicom_files_give_one_clear_error(tmp_path):
+    """Seeded byte flips and truncations of a real series: a volume or one DVRInputError."""
+    src = _shipped("CT_small.dcm")
+    _series(tmp_path / "good", src, [0.0, 2.0, 4.0])
+    good = sorted((tmp_path / "good").iterdir())
+    rng = np.random.default_rng(18)
+    outcomes = {"volume": 0, "error": 0}
+    for trial in range(40):
+        folder = tmp_path / f"t{trial}"
+        shutil.copytree(tmp_path / "good", folder)
+        victim = folder / good[trial % 3].name
+        blob = bytearray(victim.read_bytes())
+        if trial % 4 == 0:
+            blob = blob[: int(rng.integers(140, len(blob)))]
+        else:
+            for pos in rng.integers(128, 1200, size=int(rng.integers(1, 6))):
+                blob[pos] = int(rng.integers(0, 256))
+        victim.write_bytes(bytes(blob))
+        try:
+            load_volume(folder)
+            outcomes["volume"] += 1
+        except DVRInputError as exc:
+            assert str(exc).startswith(str(tmp_path)), exc
+            outcomes["error"] += 1
+    assert outcomes["error"] >= 5, outcomes  # the mutations do break files
