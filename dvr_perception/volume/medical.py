@@ -209,20 +209,36 @@ def _rescale(ds, where: str) -> tuple[float, float]:
 
 
 def _apply(frames: list[np.ndarray], scales: list[tuple[float, float]]) -> np.ndarray:
-    stack = np.stack(frames)
+    """Stack the frames with their rescale, into one pre-allocated array of the output type.
+
+    Integer slopes and intercepts keep integers (int16 when the values fit, else int32);
+    others give float32.  No whole-volume intermediate of a wider type is made.
+    """
+    shape = (len(frames), *frames[0].shape)
     if all(s == (1.0, 0.0) for s in scales):
-        return stack
-    whole = all(float(s).is_integer() and float(i).is_integer() for s, i in scales)
+        out = np.empty(shape, frames[0].dtype)
+        for k, f in enumerate(frames):
+            out[k] = f
+        return out
+    whole = frames[0].dtype.kind in "ui" and all(
+        float(s).is_integer() and float(i).is_integer() for s, i in scales
+    )
+    dtype: type = np.float32
     if whole:
-        pairs = zip(frames, scales, strict=True)
-        out = np.stack([f.astype(np.int64) * int(s) + int(i) for f, (s, i) in pairs])
-        for dt in (np.int16, np.int32):
-            info = np.iinfo(dt)
-            if out.min() >= info.min and out.max() <= info.max:
-                return out.astype(dt)
-        return out.astype(np.float64)
-    pairs = zip(frames, scales, strict=True)
-    return np.stack([f * np.float32(s) + np.float32(i) for f, (s, i) in pairs])
+        ends = [v * s + i for f, (s, i) in zip(frames, scales, strict=True)
+                for v in (int(f.min()), int(f.max()))]  # fmt: skip
+        lo, hi = min(ends), max(ends)
+        fits = [
+            dt for dt in (np.int16, np.int32) if np.iinfo(dt).min <= lo <= hi <= np.iinfo(dt).max
+        ]
+        dtype = fits[0] if fits else np.float32
+    out = np.empty(shape, dtype)
+    for k, (f, (s, i)) in enumerate(zip(frames, scales, strict=True)):
+        if dtype is np.float32:
+            out[k] = f * np.float32(s) + np.float32(i)
+        else:
+            out[k] = f.astype(np.int64) * int(s) + int(i)
+    return out
 
 
 def _item(seq_owner, keyword: str):
