@@ -406,3 +406,26 @@ def test_mpi_pieces_refuse_a_direction_matrix():
     comm = SimpleNamespace(rank=0, size=2)
     with pytest.raises(DVRInputError, match="direction matrix cannot be split across MPI"):
         PerceptionMeasures().piece_scene(image, comm, 0, image.GetExtent())
+
+
+def test_pvbatch_forwards_series_and_checks_named_views(tmp_path):
+    """``pvbatch`` passes --series and a named view on; MPI ranks take numeric views only."""
+    import argparse
+    import contextlib
+    import io
+
+    from dvr_perception.cli import main
+    from dvr_perception.cli.pvbatch import _script_args
+
+    args = argparse.Namespace(volume="d", structures=None, camera=None, size=None,
+                              series="1.2.3", view="anterior,10,5", shade=None, sigma=1.0,
+                              out="o")  # fmt: skip
+    argv = _script_args(args)
+    assert argv[argv.index("--series") + 1] == "1.2.3"
+    assert "--view=anterior,10,5" in argv
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        code = main(["pvbatch", "phantom", "--view", "left", "--ranks", "2", "--out",
+                     str(tmp_path / "o")])  # fmt: skip
+    assert code == 2
+    assert "named patient view needs --ranks 1" in err.getvalue()
