@@ -40,6 +40,7 @@ from vtkmodules.vtkCommonExecutionModel import (
     vtkExtentTranslator,
     vtkStreamingDemandDrivenPipeline,
 )
+from vtkmodules.vtkCommonMath import vtkMatrix4x4
 from vtkmodules.vtkIOImage import (
     vtkDICOMImageReader,
     vtkMetaImageReader,
@@ -79,6 +80,7 @@ __all__ = [
     "vtkImageData",
     "vtkIntArray",
     "vtkLogger",
+    "vtkMatrix4x4",
     "vtkMetaImageReader",
     "vtkMetaImageWriter",
     "vtkNIFTIImageReader",

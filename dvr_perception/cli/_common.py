@@ -23,7 +23,7 @@ import numpy as np
 import dvr_perception
 from dvr_perception._files import json_ready, write_npz
 from dvr_perception.errors import DVRInputError
-from dvr_perception.rays.camera import MAX_IMAGE, Camera, parse_view
+from dvr_perception.rays.camera import MAX_IMAGE, Camera, parse_patient_view, patient_view
 
 __all__ = [
     "PROG",
@@ -95,10 +95,19 @@ def add_scene_args(
     cam = parser.add_mutually_exclusive_group()
     cam.add_argument(
         "--view",
-        metavar="A,E[,Z]",
-        help="azimuth, elevation (degrees) and zoom; use --view=-30,10 for negative angles",
+        metavar="[NAME,]A,E[,Z]",
+        help="azimuth, elevation (degrees) and zoom, relative to the default view (down -z, +y "
+        "up) or to a patient view NAME: anterior, posterior, left, right, superior, inferior "
+        "(patient LPS, e.g. --view anterior shows the face); use --view=-30,10 for negative "
+        "angles",
     )
     cam.add_argument("--camera", metavar="CAM.json", help="camera JSON (Camera.to_dict format)")
+    parser.add_argument(
+        "--series",
+        metavar="UID",
+        help="DICOM folder holding several series: the SeriesInstanceUID to read (without it, "
+        "such a folder is refused with the list of its series)",
+    )
     parser.add_argument(
         "--size", metavar="N|WxH", help=f"image size in pixels (default {DEFAULT_SIZE})"
     )
@@ -228,7 +237,7 @@ def state_files_dir() -> Path:
     return Path(dvr_perception.__file__).resolve().parents[1] / "state_files"
 
 
-def _load_volume(text: str, *, paired: bool = True):
+def _load_volume(text: str, *, paired: bool = True, series: str | None = None):
     """Return ``(volume, paired_spec_or_None, paired_source)`` for a VOLUME argument."""
     if text == "phantom":
         from dvr_perception.volume.phantom import make_phantom
@@ -238,7 +247,7 @@ def _load_volume(text: str, *, paired: bool = True):
     from dvr_perception.volume.io import load_volume
 
     path = Path(text)
-    volume = load_volume(path)
+    volume = load_volume(path, series=series) if series is not None else load_volume(path)
     spec_file = state_files_dir() / f"{path.name.split('.')[0]}.json"
     if paired and spec_file.is_file():
         from dvr_perception.structures.io import load_spec
@@ -276,7 +285,7 @@ def load_scene(args: argparse.Namespace) -> Scene:
         os.environ[DATA_ROOTS_ENV] = os.pathsep.join(args.allow_data_root)
     resample = getattr(args, "resample", None)  # only commands that declare --resample
     factors = parse_factors(resample) if resample is not None else None
-    view = parse_view(args.view) if args.view is not None else None
+    view = parse_patient_view(args.view) if args.view is not None else None
     camera = _read_camera(args.camera, size) if args.camera is not None else None
     save_to = getattr(args, "save_spec", None)
     if save_to is not None:
@@ -291,7 +300,9 @@ def load_scene(args: argparse.Namespace) -> Scene:
         memory.check_image(*size, k)
     t0 = time.perf_counter()
     log.info("loading volume %s", args.volume)
-    volume, spec, spec_source = _load_volume(args.volume, paired=given is None)
+    volume, spec, spec_source = _load_volume(
+        args.volume, paired=given is None, series=getattr(args, "series", None)
+    )
     load_s = time.perf_counter() - t0
     if given is not None:
         spec, spec_source = given, str(args.structures)
@@ -317,11 +328,16 @@ def load_scene(args: argparse.Namespace) -> Scene:
         save_spec(spec, save_to)
         log.info("wrote the structure spec to %s", save_to)
     if camera is None:
-        az, el, zoom = view if view is not None else (spec.view or (0.0, 0.0, 1.0))
+        name, az, el, zoom = view if view is not None else (None, *(spec.view or (0, 0, 1)))
         w, h = size if size is not None else (DEFAULT_SIZE, DEFAULT_SIZE)
-        camera = Camera.from_view(
-            volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
-        )
+        if name is not None:
+            camera = patient_view(
+                volume, name, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
+            )
+        else:
+            camera = Camera.from_view(
+                volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
+            )
     return Scene(volume, spec, camera, args.volume, spec_source, load_s)
 
 

@@ -38,7 +38,7 @@ from dvr_perception import _paraview_compat
 from dvr_perception._files import output_folder
 from dvr_perception.cli._common import PROG, add_scene_args, emit_json, log, parse_size
 from dvr_perception.errors import DVRInputError
-from dvr_perception.rays.camera import parse_view
+from dvr_perception.rays.camera import parse_patient_view
 
 __all__ = [
     "add_parser",
@@ -261,8 +261,8 @@ def rank_threads(ranks: int, cores: int | None = None) -> int:
 def _script_args(args: argparse.Namespace) -> list[str]:
     """Return the command line of ``plugin/batch_measure.py`` (or ``batch_optimize.py``)."""
     argv = [str(args.volume)]
-    for opt in ("structures", "camera", "size"):
-        if getattr(args, opt) is not None:
+    for opt in ("structures", "camera", "size", "series"):
+        if getattr(args, opt, None) is not None:
             argv += [f"--{opt}", str(getattr(args, opt))]
     if args.view is not None:
         argv.append(f"--view={args.view}")
@@ -413,7 +413,12 @@ def run(args: argparse.Namespace) -> int:
     if args.size is not None:
         parse_size(args.size)
     if args.view is not None:
-        parse_view(args.view)
+        name, *_ = parse_patient_view(args.view)
+        if name is not None and getattr(args, "ranks", 1) > 1:
+            raise DVRInputError(
+                f"--view {args.view}: a named patient view needs --ranks 1 (the MPI path "
+                "takes A,E[,Z])"
+            )
     if not (args.sigma > 0):
         raise DVRInputError(f"--sigma: expected a positive number, got {args.sigma}")
     if args.ranks < 1:

@@ -71,6 +71,7 @@ from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
 from dvr_perception.structures.io import attach_labels, check_spec_for_volume
+from dvr_perception.volume.convert import has_identity_direction
 
 __all__ = ["PerceptionMeasures", "piece_extent"]
 
@@ -157,8 +158,8 @@ class PerceptionMeasures(DVRFilterBase):
     def make_camera(self, volume, spec) -> Camera:
         """Return the camera for ``volume`` (``camera_json``, else the orbit ``view``)."""
         d = self._camera_dict()
-        if d is not None:
-            return Camera.from_dict(d, source="camera_json")
+        if d is not None:  # the view's camera, in world coordinates
+            return Camera.from_dict(d, source="camera_json").in_volume_frame(volume)
         az, el, zoom = self.view or spec.view or (0.0, 0.0, 1.0)
         return Camera.from_view(
             volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=self.width, height=self.height
@@ -267,6 +268,11 @@ class PerceptionMeasures(DVRFilterBase):
 
         if comm.rank != piece:
             raise DVRInputError(f"{self.label}: rank {comm.rank} was asked for piece {piece}")
+        if not has_identity_direction(image):  # pieces are placed by their index extents
+            raise DVRInputError(
+                f"{self.label}: an input image with a direction matrix cannot be split across "
+                "MPI ranks; run on one rank (or resample the image to the identity direction)"
+            )
         volume = self.load_input(image)
         spec = self.load_spec_parameters()
         ext = image.GetExtent()

@@ -8,6 +8,10 @@ Conventions (shared by our engine and the VTK reference renderer):
 * A pixel's ray passes through the pixel centre.
 * The default view (azimuth 0, elevation 0, zoom 1) is ParaView's "reset camera": looking down
   -z at the volume centre, +y up, at the distance that fits the bounding sphere in a 30° view.
+* Cameras live in the volume's frame (``origin + spacing * index``), which is patient LPS
+  unless the volume is oblique.  :func:`patient_view` sets up a named view (``anterior`` ...
+  ``inferior``) in patient terms and rotates it into that frame; :meth:`Camera.in_volume_frame`
+  does the same for any world camera.
 """
 
 from __future__ import annotations
@@ -19,7 +23,19 @@ import numpy as np
 
 from dvr_perception.errors import DVRInputError
 
-__all__ = ["MAX_IMAGE", "Camera", "parse_view"]
+__all__ = ["MAX_IMAGE", "PATIENT_VIEWS", "Camera", "parse_patient_view", "parse_view"]
+
+#: Named views in patient (LPS) terms: where the camera sits, seen from the volume centre,
+#: and the view-up.  Anterior/posterior/left/right views have the head (superior) up; the
+#: superior and inferior views have the face (anterior) up.
+PATIENT_VIEWS = {
+    "anterior": ((0.0, -1.0, 0.0), (0.0, 0.0, 1.0)),
+    "posterior": ((0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+    "left": ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+    "right": ((-1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+    "superior": ((0.0, 0.0, 1.0), (0.0, -1.0, 0.0)),
+    "inferior": ((0.0, 0.0, -1.0), (0.0, -1.0, 0.0)),
+}
 
 #: Largest image width or height from any source (``--size``, a camera file, the API).
 MAX_IMAGE = 16384
@@ -127,6 +143,23 @@ class Camera:
         """Return the same camera with another image size."""
         return replace(self, width=width, height=height)
 
+    def in_volume_frame(self, volume) -> Camera:
+        """Return this camera, given in world (patient LPS) coordinates, in ``volume``'s frame.
+
+        The engine renders in the frame ``origin + spacing * index``; for an oblique volume
+        (``volume.oblique``) a world camera -- e.g. ParaView's, which displays the image with
+        its direction matrix -- is rotated into it.  The identity for axis-aligned volumes.
+        """
+        if not getattr(volume, "oblique", False):
+            return self
+        d = np.asarray(volume.direction)
+        return replace(
+            self,
+            position=tuple(volume.to_frame(self.position)),
+            focal_point=tuple(volume.to_frame(self.focal_point)),
+            view_up=tuple(np.asarray(self.view_up) @ d),
+        )
+
     # -- serialisation ------------------------------------------------------------------------
     def to_dict(self) -> dict:
         """JSON-ready dictionary (the ``--camera CAM.json`` format)."""
@@ -204,6 +237,112 @@ class Camera:
             width=width,
             height=height,
         )
+
+
+def _orbit(center, back, up, *, dist, azimuth, elevation):
+    """Position and view-up after vtkCamera Azimuth then Elevation from ``center + dist*back``."""
+    back = np.asarray(back, float)
+    up = np.asarray(up, float)
+    right = np.cross(-back, up)
+    az, el = math.radians(azimuth), math.radians(elevation)
+    offset = math.sin(az) * math.cos(el) * right + math.sin(el) * up
+    offset = offset + math.cos(az) * math.cos(el) * back
+    new_up = -math.sin(az) * math.sin(el) * right + math.cos(el) * up
+    new_up = new_up - math.cos(az) * math.sin(el) * back
+    return np.asarray(center, float) + dist * offset, new_up
+
+
+def patient_view(
+    volume,
+    name: str,
+    *,
+    azimuth: float = 0.0,
+    elevation: float = 0.0,
+    zoom: float = 1.0,
+    width: int = 512,
+    height: int = 512,
+    view_angle: float = 30.0,
+) -> Camera:
+    """Camera for a named patient view of ``volume``, in the volume's frame.
+
+    The view is set up in world (patient LPS) coordinates -- e.g. ``"anterior"`` looks at the
+    face from in front, head up -- then ``azimuth``/``elevation`` turn it as
+    ``vtkCamera.Azimuth``/``Elevation`` and ``zoom`` dollies in, as in
+    :meth:`Camera.from_view`.  The result is mapped into the frame the engine renders in
+    (``Volume.to_frame``; the identity unless the volume is oblique).
+
+    Parameters
+    ----------
+    volume : Volume
+        The volume (its bounds, origin and direction are used).
+    name : str
+        One of :data:`PATIENT_VIEWS`.
+
+    Examples
+    --------
+    >>> from dvr_perception.volume import Volume
+    >>> v = Volume(np.zeros((2, 2, 2), np.uint8))
+    >>> cam = patient_view(v, "anterior", width=8, height=8)
+    >>> [round(float(c), 3) for c in cam.basis()[0]], cam.view_up
+    ([0.0, 1.0, 0.0], (0.0, 0.0, 1.0))
+    """
+    if name not in PATIENT_VIEWS:
+        raise DVRInputError(
+            f"--view: unknown view {str(name)[:40]!r}; expected one of {', '.join(PATIENT_VIEWS)}"
+        )
+    if not (math.isfinite(zoom) and zoom > 0):
+        raise DVRInputError(f"view: ZOOM must be a positive number, got {zoom}")
+    b = np.asarray(volume.bounds, float)
+    radius = 0.5 * float(np.linalg.norm(b[1::2] - b[0::2])) or 0.5
+    dist = radius / math.sin(math.radians(view_angle) / 2.0) / zoom
+    center = volume.to_world(volume.center)
+    back, up = PATIENT_VIEWS[name]
+    pos, new_up = _orbit(center, back, up, dist=dist, azimuth=azimuth, elevation=elevation)
+    d = np.asarray(volume.direction)
+    return Camera(
+        position=tuple(volume.to_frame(pos)),
+        focal_point=tuple(volume.to_frame(center)),
+        view_up=tuple(new_up @ d),
+        view_angle=view_angle,
+        width=width,
+        height=height,
+    )
+
+
+def parse_patient_view(text: str) -> tuple[str | None, float, float, float]:
+    """Parse ``--view``: ``NAME[,A,E[,Z]]`` (a patient view) or ``A,E[,Z]``.
+
+    Returns ``(name, azimuth, elevation, zoom)``; ``name`` is ``None`` for the numeric form
+    (angles relative to the volume's default view, :meth:`Camera.from_view`).
+
+    Examples
+    --------
+    >>> parse_patient_view("anterior")
+    ('anterior', 0.0, 0.0, 1.0)
+    >>> parse_patient_view("left,30,-10,2")
+    ('left', 30.0, -10.0, 2.0)
+    >>> parse_patient_view("30,-10")
+    (None, 30.0, -10.0, 1.0)
+    """
+    head, _, rest = str(text).partition(",")
+    name = head.strip().lower()
+    try:
+        float(name)
+        numeric = True
+    except ValueError:
+        numeric = False
+    if name and not numeric:
+        if name not in PATIENT_VIEWS:
+            raise DVRInputError(
+                f"--view: unknown view {head.strip()[:40]!r}; expected A,E[,Z] or one of "
+                f"{', '.join(PATIENT_VIEWS)} (optionally followed by ,A,E[,Z])"
+            )
+        if not rest.strip():
+            return name, 0.0, 0.0, 1.0
+        az, el, zoom = parse_view(rest)
+        return name, az, el, zoom
+    az, el, zoom = parse_view(text)
+    return None, az, el, zoom
 
 
 def parse_view(text: str) -> tuple[float, float, float]:

@@ -22,7 +22,8 @@ Geometry
     cropped to the segments' extent: its ``space origin`` then lies on the volume's grid at an
     index offset, and the voxels are placed there (``Segmentation_ReferenceImageExtentOffset``
     is not needed: the origin says the same in physical space).  Both grids are assumed to have
-    the segmentation's axis directions (the volume loaders keep spacing and origin only).
+    the same axis directions (both are loaded in canonical LPS order, see
+    :mod:`dvr_perception.volume.orient`).
     Segment voxels outside the volume, a spacing that differs or an origin off the volume's grid
     give one :class:`~dvr_perception.errors.DVRInputError` naming the file and what differs.
 
@@ -374,12 +375,13 @@ def segmentation_labels(path, volume) -> np.ndarray:
         )
     seg_dims = np.array(seg.dims)
     vol_dims = np.array(volume.dims)
-    directions = _directions(fields, path)
+    _directions(fields, path)  # the header's vectors are well formed
+    # both grids come from the loaders in canonical LPS order (flips and permutations applied
+    # to the data), so one direction matrix maps the origin difference to an index offset
+    if not np.allclose(seg.direction, volume.direction, atol=1e-4):
+        _fail(path, "space directions", "the axis directions differ from the volume's")
     delta = np.array(seg.origin, float) - np.array(volume.origin, float)
-    try:
-        offset = np.linalg.solve(directions.T, delta)
-    except np.linalg.LinAlgError:
-        _fail(path, "space directions", "the axis directions are degenerate")
+    offset = (np.asarray(seg.direction).T @ delta) / spacing
     if not np.all(np.abs(offset) < 2**31):  # far away (or not finite): certainly outside
         offset = np.full(3, 2.0**31)
     index = np.round(offset)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import re
-import warnings
 
 import numpy as np
 
@@ -25,13 +24,15 @@ from dvr_perception._vtk import (
     vtkOutputWindow,
     vtkStringOutputWindow,
 )
-from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.errors import DVRInputError
 from dvr_perception.volume.volume import Volume
 
-__all__ = ["from_vtk_image", "to_vtk_image", "vtk_errors"]
+__all__ = ["from_vtk_image", "has_identity_direction", "to_vtk_image", "vtk_errors"]
 
 
-def to_vtk_image(volume: Volume, *, name: str = "scalars") -> vtkImageData:
+def to_vtk_image(
+    volume: Volume, *, name: str = "scalars", with_direction: bool = False
+) -> vtkImageData:
     """Return a ``vtkImageData`` with the volume's dims, spacing, origin and point scalars.
 
     Parameters
@@ -40,6 +41,12 @@ def to_vtk_image(volume: Volume, *, name: str = "scalars") -> vtkImageData:
         The volume to wrap.
     name : str, optional
         Name of the point-scalar array.
+    with_direction : bool, optional
+        Also set the image's direction matrix (VTK >= 9.0), for files and displays in patient
+        coordinates.  Off by default: the engine, the VTK reference renderer and the displays
+        fed by the project render in the volume's frame, where the camera is placed
+        (:func:`dvr_perception.rays.camera.patient_view`); an axis-aligned volume's direction
+        is the identity anyway.
 
     Returns
     -------
@@ -63,6 +70,8 @@ def to_vtk_image(volume: Volume, *, name: str = "scalars") -> vtkImageData:
     image.SetDimensions(*volume.dims)
     image.SetSpacing(*volume.spacing)
     image.SetOrigin(*volume.origin)
+    if with_direction and hasattr(image, "SetDirectionMatrix"):
+        image.SetDirectionMatrix(*np.asarray(volume.direction).ravel())
     image.GetPointData().SetScalars(arr)
     return image
 
@@ -88,7 +97,10 @@ def from_vtk_image(
     -------
     Volume
         ``data[z, y, x]`` with the image's spacing and origin (the origin of a non-zero
-        extent is shifted to the first point).
+        extent is shifted to the first point).  A direction matrix (VTK >= 9.0) is honoured:
+        flips and permutations are applied to the data order
+        (:func:`dvr_perception.volume.orient.canonical`), an oblique rotation is kept in
+        ``Volume.direction``.
 
     Examples
     --------
@@ -142,31 +154,47 @@ def from_vtk_image(
             f"{where}: empty or inconsistent image (extent {image.GetExtent()}, "
             f"{arr.GetNumberOfTuples()} values); expected a non-empty 3-D volume"
         )
-    _warn_direction(image, where)
     data = np.array(vtk_to_numpy(arr), copy=True).reshape(shape)
-    spacing = image.GetSpacing()
-    origin = tuple(
-        o + e * s for o, e, s in zip(image.GetOrigin(), (x0, y0, z0), spacing, strict=True)
-    )
+    spacing = np.asarray(image.GetSpacing(), float)
+    direction = _direction(image)
+    first = direction @ (np.array([x0, y0, z0], float) * spacing)
+    origin = np.asarray(image.GetOrigin(), float) + first
+    if not all(np.isfinite(s) and 0 < s <= 1e6 for s in spacing):
+        raise DVRInputError(
+            f"{where}: volume {name!r}: spacing must be three numbers in (0, 1e6], got "
+            f"{tuple(spacing.tolist())}"
+        )
+    from dvr_perception.volume.orient import from_axes
+
     try:
-        return Volume(data, spacing=spacing, origin=origin, name=name, source=source)
+        return from_axes(data, direction * spacing, origin, name=name, source=source, where=where)
     except DVRInputError as exc:
+        if str(exc).startswith(where):
+            raise
         raise DVRInputError(f"{where}: {exc}") from None
 
 
-def _warn_direction(image, where: str) -> None:
+def has_identity_direction(image) -> bool:
+    """Return whether a ``vtkImageData``'s direction matrix is the identity (or absent).
+
+    Examples
+    --------
+    >>> img = vtkImageData()
+    >>> has_identity_direction(img)
+    True
+    >>> img.SetDirectionMatrix(-1, 0, 0, 0, -1, 0, 0, 0, 1)
+    >>> has_identity_direction(img)
+    False
+    """
+    return bool(np.array_equal(_direction(image), np.eye(3)))
+
+
+def _direction(image) -> np.ndarray:
     get = getattr(image, "GetDirectionMatrix", None)  # VTK >= 9.0
     if get is None:
-        return
+        return np.eye(3)
     m = get()
-    eye = all(m.GetElement(i, j) == float(i == j) for i in range(3) for j in range(3))
-    if not eye:
-        warnings.warn(
-            f"{where}: the image has a non-identity direction matrix; it is ignored "
-            "(the volume is treated as axis-aligned)",
-            DVRWarning,
-            stacklevel=3,
-        )
+    return np.array([[m.GetElement(i, j) for j in range(3)] for i in range(3)])
 
 
 @contextlib.contextmanager

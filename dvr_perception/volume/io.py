@@ -1,4 +1,4 @@
-"""Read and write volumes: NRRD/NHDR, MetaImage, VTI, legacy VTK, NIfTI, DICOM series, raw.
+"""Read and write volumes: NRRD/NHDR, MetaImage, VTI, legacy VTK, NIfTI, MGZ, DICOM, raw.
 
 :func:`load_volume` picks the reader from the file extension (a directory is read as a DICOM
 series) and :func:`save_volume` the writer.  Every failure is one
@@ -7,7 +7,12 @@ series) and :func:`save_volume` the writer.  Every failure is one
 NRRD is parsed here (not with ``vtkNrrdReader``): VTK 9.x reads a first axis shorter than 10
 samples as vector components, whatever ``kinds`` says, which silently corrupts small volumes.
 Headerless raw files follow the shared-data naming ``NAME_XxYxZ_DTYPE.raw`` (little-endian,
-x fastest).  The other formats go through VTK's readers and writers.
+x fastest).  DICOM and MGZ go through pydicom and nibabel (:mod:`dvr_perception.volume.medical`,
+the ``medical`` extra), the other formats through VTK's readers and writers.
+
+Geometry: every reader yields an origin and one world (patient LPS) vector per index axis;
+:func:`dvr_perception.volume.orient.from_axes` applies flips and permutations to the data order,
+so volumes come out axis-aligned unless the file's grid is oblique.
 
 Headers are untrusted (:mod:`dvr_perception.volume._limits`): a detached data file must lie in
 the header's folder (or a folder allowed with ``DVR_PERCEPTION_DATA_ROOTS``), and the sizes,
@@ -44,6 +49,7 @@ from dvr_perception.volume._limits import (
 )
 from dvr_perception.volume._vtk_headers import check_legacy_vtk, check_vti
 from dvr_perception.volume.convert import from_vtk_image, to_vtk_image, vtk_errors
+from dvr_perception.volume.orient import from_axes, ras_to_lps
 from dvr_perception.volume.volume import Volume
 
 __all__ = ["load_volume", "save_volume"]
@@ -66,7 +72,8 @@ _NRRD_TYPES = {alias: code for code, names in _NRRD_ALIASES.items() for alias in
 _NRRD_NAMES = {"i1": "int8", "u1": "uint8", "i2": "int16", "u2": "uint16", "i4": "int32"}
 _NRRD_NAMES |= {"u4": "uint32", "i8": "int64", "u8": "uint64", "f4": "float", "f8": "double"}
 _NRRD_ENCODINGS = {"raw": "raw", "gzip": "gzip", "gz": "gzip", "bzip2": "bzip2", "bz2": "bzip2"}
-_FORMATS = (".nhdr", ".nrrd", ".mha", ".mhd", ".vti", ".vtk", ".nii", ".nii.gz", ".raw")
+_FORMATS = (".nhdr", ".nrrd", ".mha", ".mhd", ".vti", ".vtk", ".nii", ".nii.gz", ".mgz", ".mgh")
+_FORMATS += (".dcm", ".raw")
 _WRITABLE = (".vti", ".nhdr", ".nrrd", ".mha", ".mhd", ".nii", ".nii.gz", ".vtk")
 
 
@@ -84,32 +91,38 @@ def _stem(path: Path) -> str:
     return m.group("name") if m else stem
 
 
-def load_volume(path, *, name: str | None = None) -> Volume:
+def load_volume(path, *, name: str | None = None, series: str | None = None) -> Volume:
     """Read a volume file (or a DICOM series folder) into a :class:`Volume`.
 
     Parameters
     ----------
     path : str or os.PathLike
         ``.nhdr`` (detached NRRD, ``data file:`` beside it), ``.nrrd``, ``.mha``/``.mhd``,
-        ``.vti``, legacy ``.vtk`` structured points, ``.nii``/``.nii.gz``, headerless
-        ``NAME_XxYxZ_DTYPE.raw`` or a directory holding one DICOM series.
+        ``.vti``, legacy ``.vtk`` structured points, ``.nii``/``.nii.gz``, ``.mgz``/``.mgh``,
+        a ``.dcm`` file (multi-frame DICOM), a folder of DICOM files, or headerless
+        ``NAME_XxYxZ_DTYPE.raw``.
     name : str, optional
         Volume name; default the file stem (``cthead.nhdr`` -> ``"cthead"``,
         ``engine_256x256x128_uint8.raw`` -> ``"engine"``).
+    series : str, optional
+        DICOM only: the SeriesInstanceUID to read from a folder that holds several series.
 
     Returns
     -------
     Volume
-        Data indexed ``[z, y, x]`` with the file's spacing (1 where it gives none) and origin.
-        A DICOM series comes as ``vtkDICOMImageReader`` (and ParaView) deliver it: rows
-        bottom-up and slices in descending position (a 180° turn about x relative to the
-        patient frame), origin 0.  A NIfTI origin is the q-form (else s-form) offset.
+        Data indexed ``[z, y, x]`` in patient LPS coordinates (millimetres): the file's
+        origin, spacing and axis directions are honoured, NIfTI/FreeSurfer RAS is converted,
+        and axis flips and permutations are applied to the data order
+        (:func:`dvr_perception.volume.orient.canonical`), so the direction is the identity
+        unless the file's grid is oblique.  A file without orientation (``spacings`` only,
+        raw) is taken as LPS-aligned.
 
     Raises
     ------
     DVRInputError
         Missing file, unknown extension, bad header, truncated data, unsupported type,
-        non-finite voxels, multi-component or non-image data; the message names the file.
+        non-finite voxels, multi-component or non-image data, a DICOM file or ``.mgz``
+        without the ``medical`` extra installed; the message names the file.
 
     Examples
     --------
@@ -126,9 +139,11 @@ def load_volume(path, *, name: str | None = None) -> Volume:
     if not path.exists():
         raise DVRInputError(f"{path}: file not found")
     vname = str(name) if name is not None else _stem(path)
-    if path.is_dir():
-        return _read_vtk(_vtk.vtkDICOMImageReader(), path, vname, dicom=True)
-    ext = _ext(path)
+    ext = "" if path.is_dir() else _ext(path)
+    if series is not None and not (path.is_dir() or ext == ".dcm"):
+        raise DVRInputError(f"{path}: --series applies to DICOM only")
+    if path.is_dir() or ext == ".dcm":
+        return _read_dicom(path, vname, series)
     if ext not in _FORMATS:
         raise DVRInputError(
             f"{path}: unknown volume format {ext or '(no extension)'!r}; expected one of "
@@ -137,12 +152,16 @@ def load_volume(path, *, name: str | None = None) -> Volume:
     if path.stat().st_size == 0:
         raise DVRInputError(f"{path}: the file is empty (0 bytes)")
     if ext in (".nhdr", ".nrrd"):
-        data, spacing, origin = _read_nrrd(path)
+        data, axes, origin = _read_nrrd(path)
     elif ext == ".raw":
-        data, spacing, origin = _read_raw(path), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0)
+        data, axes, origin = _read_raw(path), np.eye(3), (0.0, 0.0, 0.0)
+    elif ext in (".mgz", ".mgh"):
+        from dvr_perception.volume.medical import read_mgh
+
+        data, axes, origin = read_mgh(path)
     else:
         if ext in (".mha", ".mhd"):
-            _check_meta(path)
+            fields = _check_meta(path)
         elif ext in (".nii", ".nii.gz"):
             _check_nifti(path, ext)
         elif ext == ".vti":
@@ -157,13 +176,30 @@ def load_volume(path, *, name: str | None = None) -> Volume:
             ".nii": _vtk.vtkNIFTIImageReader,
             ".nii.gz": _vtk.vtkNIFTIImageReader,
         }[ext]()
-        return _read_vtk(reader, path, vname)
+        vol = _read_vtk(reader, path, vname)
+        if ext in (".mha", ".mhd"):
+            vol = _meta_geometry(fields, vol, path)
+        return vol
     if data.size == 0:
         raise DVRInputError(f"{path}: the volume is empty (shape (z, y, x) = {data.shape})")
-    try:
-        return Volume(data, spacing=spacing, origin=origin, name=vname, source=str(path))
-    except DVRInputError as exc:
-        raise DVRInputError(f"{path}: {exc}") from None
+    return from_axes(data, axes, origin, name=vname, source=str(path), where=str(path))
+
+
+def _read_dicom(path: Path, name: str, series: str | None) -> Volume:
+    from dvr_perception.volume import medical
+
+    if medical.available():
+        return medical.read_dicom(path, name=name, series=series)
+    if not path.is_dir() or series is not None:
+        medical.require("DICOM files and --series")
+    warnings.warn(
+        f"{path}: read with VTK's DICOM reader (pip install 'dvr-perception[medical]' for "
+        "patient orientation, several series, multi-frame and compressed files): rows "
+        "bottom-up, slices by position, origin 0",
+        DVRWarning,
+        stacklevel=3,
+    )
+    return _read_vtk(_vtk.vtkDICOMImageReader(), path, name, dicom=True)
 
 
 def _read_vtk(reader, path: Path, name: str, *, dicom: bool = False) -> Volume:
@@ -183,26 +219,52 @@ def _read_vtk(reader, path: Path, name: str, *, dicom: bool = False) -> Volume:
         raise DVRInputError(f"{path}: the volume is empty (dimensions {out.GetDimensions()})")
     if out.GetPointData().GetNumberOfArrays() == 0 and out.GetCellData().GetNumberOfArrays() == 0:
         raise DVRInputError(f"{path}: VTK read no voxel data from the file")
+    own_geometry = (_vtk.vtkNIFTIImageReader, _vtk.vtkMetaImageReader)
+    if isinstance(reader, own_geometry) and hasattr(out, "SetDirectionMatrix"):
+        out.SetDirectionMatrix(1, 0, 0, 0, 1, 0, 0, 0, 1)  # the header is applied below
     vol = from_vtk_image(out, name=name, source=str(path))
     if isinstance(reader, _vtk.vtkNIFTIImageReader):
-        vol = _nifti_origin(reader, vol)
+        vol = _nifti_geometry(reader, vol)
     return vol
 
 
-def _nifti_origin(reader, vol: Volume) -> Volume:
-    # vtkNIFTIImageReader leaves the origin at 0 and puts the offset in the q/s-form matrix
-    m = reader.GetQFormMatrix() or reader.GetSFormMatrix()
+def _nifti_geometry(reader, vol: Volume) -> Volume:
+    # vtkNIFTIImageReader gives data coordinates (origin + spacing * index, with the slice
+    # order already reversed when qfac is -1) and the matrix from them to RAS.  The s-form
+    # wins when its code is set (as nibabel's best affine), else the q-form.
+    m = reader.GetSFormMatrix() or reader.GetQFormMatrix()
     if m is None:
         return vol
-    rot = np.array([[m.GetElement(i, j) for j in range(3)] for i in range(3)])
-    if not np.allclose(rot, np.eye(3)):
-        warnings.warn(
-            f"{vol.source}: NIfTI orientation is not axis-aligned; only the offset is used",
-            DVRWarning,
-            stacklevel=4,
-        )
-    origin = tuple(m.GetElement(i, 3) + vol.origin[i] for i in range(3))
-    return Volume(vol.data, spacing=vol.spacing, origin=origin, name=vol.name, source=vol.source)
+    mat = np.array([[m.GetElement(i, j) for j in range(4)] for i in range(3)])
+    rot, shift = mat[:, :3], mat[:, 3]
+    axes = rot * np.asarray(vol.spacing)
+    origin = rot @ np.asarray(vol.origin) + shift
+    axes, origin = ras_to_lps(axes, origin)
+    where = f"{vol.source}: NIfTI s-form/q-form"
+    return from_axes(vol.data, axes, origin, name=vol.name, source=vol.source, where=where)
+
+
+def _meta_geometry(fields: dict[str, str], vol: Volume, path: Path) -> Volume:
+    """Apply a MetaImage header's ``TransformMatrix`` (one axis direction per triple)."""
+    for key in ("transformmatrix", "rotation", "orientation"):
+        if key in fields:
+            vals = [parse_float(v, path, "TransformMatrix") for v in fields[key].split()]
+            if len(vals) != 9:
+                raise DVRInputError(
+                    f"{path}: field 'TransformMatrix': expected 9 numbers, got {len(vals)}"
+                )
+            directions = np.array(vals).reshape(3, 3).T  # column k: index axis k
+            break
+    else:
+        return vol
+    origin = np.zeros(3)
+    for key in ("offset", "position", "origin"):
+        if key in fields:
+            origin = np.array([parse_float(v, path, "Offset") for v in fields[key].split()[:3]])
+            break
+    axes = directions * np.asarray(vol.spacing)
+    where = f"{path}: MetaImage TransformMatrix"
+    return from_axes(vol.data, axes, origin, name=vol.name, source=vol.source, where=where)
 
 
 def _read_raw(path: Path) -> np.ndarray:
@@ -323,7 +385,11 @@ def _read_nrrd(path: Path):
             raise DVRInputError(f"{path}: NRRD field {key!r} is not supported (must be 0)")
     endian = "<" if fields.get("endian", "little").lower() == "little" else ">"
     dt = np.dtype(endian + dtype)
-    spacing, origin = _nrrd_spacing(fields, path), _nrrd_origin(fields, path)
+    axes, origin = _nrrd_axes(fields, path), _nrrd_origin(fields, path)
+    if _nrrd_space(fields, path) == "ras":
+        axes, origin = ras_to_lps(axes, origin)
+    elif _nrrd_space(fields, path) == "las":
+        axes, origin = axes * [[-1.0], [1.0], [1.0]], np.multiply(origin, [-1.0, 1.0, 1.0])
     expected = check_budget(path, dims, dt)
     data_file = fields.get("data file", fields.get("datafile"))
     if data_file is not None:
@@ -344,7 +410,51 @@ def _read_nrrd(path: Path):
     data = data.reshape(dims[::-1])
     if not dt.isnative:
         data = data.astype(dt.newbyteorder("="))
-    return data, spacing, origin
+    return data, axes, origin
+
+
+_NRRD_SPACES = {
+    "left-posterior-superior": "lps",
+    "lps": "lps",
+    "right-anterior-superior": "ras",
+    "ras": "ras",
+    "left-anterior-superior": "las",
+    "las": "las",
+    "scanner-xyz": "lps",
+    "3d-right-handed": "lps",
+}
+
+
+def _nrrd_space(fields: dict[str, str], path: Path) -> str:
+    """Return the NRRD ``space`` as ``"lps"``, ``"ras"`` or ``"las"`` (LPS when absent)."""
+    if "space" not in fields:
+        return "lps"
+    got = _NRRD_SPACES.get(fields["space"].strip().lower())
+    if got is None:
+        raise DVRInputError(
+            f"{path}: NRRD field 'space': {shown(fields['space'])} is not supported; expected "
+            "one of left-posterior-superior, right-anterior-superior, left-anterior-superior, "
+            "scanner-xyz, 3D-right-handed"
+        )
+    return got
+
+
+def _nrrd_axes(fields: dict[str, str], path: Path) -> np.ndarray:
+    """Columns: the world vector of one step along index x, y, z (``space directions``)."""
+    if "space directions" in fields:
+        text = fields["space directions"]
+        if len(text) > 8 * MAX_TOKEN:
+            raise DVRInputError(f"{path}: NRRD field 'space directions' is too long")
+        vecs = re.findall(r"\(([^)]*)\)|none", text)
+        rows = [_vector(v, path, "space directions") for v in vecs if v]
+        if len(rows) != 3 or any(len(r) != 3 for r in rows):
+            raise DVRInputError(f"{path}: NRRD field 'space directions': expected 3 vectors")
+        mat = np.array(rows)
+        with np.errstate(over="ignore"):
+            lengths = np.linalg.norm(mat, axis=1)
+        check_spacing(lengths, path, "space directions")
+        return mat.T
+    return np.diag(_nrrd_spacing(fields, path))
 
 
 def _nrrd_spacing(fields: dict[str, str], path: Path) -> tuple[float, float, float]:
@@ -356,24 +466,6 @@ def _nrrd_spacing(fields: dict[str, str], path: Path) -> tuple[float, float, flo
             )
         out = [parse_float(v, path, "spacings") if v.lower() != "nan" else 1.0 for v in vals]
         return check_spacing(out, path, "spacings")
-    if "space directions" in fields:
-        text = fields["space directions"]
-        if len(text) > 8 * MAX_TOKEN:
-            raise DVRInputError(f"{path}: NRRD field 'space directions' is too long")
-        vecs = re.findall(r"\(([^)]*)\)|none", text)
-        rows = [_vector(v, path, "space directions") for v in vecs if v]
-        if len(rows) != 3 or any(len(r) != 3 for r in rows):
-            raise DVRInputError(f"{path}: NRRD field 'space directions': expected 3 vectors")
-        mat = np.array(rows)
-        if not np.allclose(mat, np.diag(np.diag(mat))):
-            warnings.warn(
-                f"{path}: NRRD space directions are not axis-aligned; only their lengths are used",
-                DVRWarning,
-                stacklevel=4,
-            )
-        with np.errstate(over="ignore"):
-            lengths = np.linalg.norm(mat, axis=1)
-        return check_spacing(lengths, path, "space directions")
     return (1.0, 1.0, 1.0)
 
 
@@ -418,7 +510,7 @@ def _meta_header(path: Path) -> tuple[dict[str, str], int]:
     return fields, min(offset, len(head))
 
 
-def _check_meta(path: Path) -> None:
+def _check_meta(path: Path) -> dict[str, str]:
     """Check a ``.mha``/``.mhd`` header (data file, sizes, spacing, size) before VTK reads it."""
     fields, offset = _meta_header(path)
 
@@ -470,6 +562,7 @@ def _check_meta(path: Path) -> None:
             f"{where}: truncated: expected {expected} bytes, found {max(available, 0)} "
             f"(DimSize {tuple(dims)})"
         )
+    return fields
 
 
 def _check_nifti(path: Path, ext: str) -> None:
@@ -546,7 +639,12 @@ def save_volume(volume: Volume, path) -> None:
 def _write(volume: Volume, target: Path, ext: str) -> list[Path]:
     if ext in (".nhdr", ".nrrd"):
         return _write_nrrd(volume, target, detached=ext == ".nhdr")
-    image = to_vtk_image(volume)
+    if volume.oblique and ext in (".mha", ".mhd", ".vtk"):
+        raise DVRInputError(
+            f"{target.name}: this format would lose the volume's oblique direction; write "
+            ".nrrd, .nhdr, .vti, .nii or .nii.gz"
+        )
+    image = to_vtk_image(volume, with_direction=ext == ".vti")
     out = [target]
     if ext == ".vti":
         writer = _vtk.vtkXMLImageDataWriter()
@@ -562,11 +660,28 @@ def _write(volume: Volume, target: Path, ext: str) -> list[Path]:
         writer.SetFileTypeToBinary()
     else:
         writer = _vtk.vtkNIFTIImageWriter()
+        _nifti_matrix(writer, volume)
     writer.SetInputData(image)
     writer.SetFileName(str(target))
     with vtk_errors(writer, str(target.name)):
         writer.Write()
     return out
+
+
+def _nifti_matrix(writer, volume: Volume) -> None:
+    """Give the NIfTI writer the q-form/s-form from data coordinates to RAS."""
+    d = np.asarray(volume.direction)
+    o = np.asarray(volume.origin)
+    flip = np.array([-1.0, -1.0, 1.0])
+    rot = flip[:, None] * d
+    shift = flip * (o - d @ o)  # data coordinates are origin + spacing * index
+    m = _vtk.vtkMatrix4x4()
+    for i in range(3):
+        for j in range(3):
+            m.SetElement(i, j, rot[i, j])
+        m.SetElement(i, 3, shift[i])
+    writer.SetQFormMatrix(m)
+    writer.SetSFormMatrix(m)
 
 
 def _write_nrrd(volume: Volume, target: Path, *, detached: bool) -> list[Path]:
@@ -582,10 +697,10 @@ def _write_nrrd(volume: Volume, target: Path, *, detached: bool) -> list[Path]:
         "dimension: 3",
         f"sizes: {x} {y} {z}",
         "kinds: domain domain domain",
-        "space dimension: 3",
+        "space: left-posterior-superior",
         "space directions: "
         + " ".join(
-            "(" + ",".join(repr(s if i == j else 0.0) for j in range(3)) + ")"
+            "(" + ",".join(repr(float(v)) for v in np.asarray(volume.direction)[:, i] * s) + ")"
             for i, s in enumerate(volume.spacing)
         ),
         "space origin: (" + ",".join(repr(o) for o in volume.origin) + ")",

@@ -86,10 +86,14 @@ def upsample(volume: Volume, factors) -> Volume:
         labels = np.ascontiguousarray(labels[:, :, np.arange(nx * fx) // fx])
     f = (fx, fy, fz)
     spacing = tuple(s / k for s, k in zip(volume.spacing, f, strict=True))
-    origin = tuple(
-        o + (1.0 / k - 1.0) * s / 2
-        for o, s, k in zip(volume.origin, volume.spacing, f, strict=True)
-    )
+    shift = [(1.0 / k - 1.0) * s / 2 for s, k in zip(volume.spacing, f, strict=True)]
+    origin = tuple(np.asarray(volume.origin) + np.asarray(volume.direction) @ shift)
     return Volume(
-        out, spacing=spacing, origin=origin, name=volume.name, source=volume.source, labels=labels
+        out,
+        spacing=spacing,
+        origin=origin,
+        name=volume.name,
+        source=volume.source,
+        labels=labels,
+        direction=volume.direction,
     )

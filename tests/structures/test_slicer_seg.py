@@ -117,8 +117,16 @@ def test_cropped_segmentation_is_placed_by_its_origin(files, tmp_path, y_sign):
     p = write_segmentation(
         tmp_path / "crop.seg.nrrd", crop, SEGMENTS, spacing=spacing, origin=origin
     )
-    vol = load_volume(d / "ct.nrrd")
-    assert np.array_equal(segmentation_labels(p, vol), labels)
+    ct = d / "ct.nrrd"
+    if y_sign < 0:  # the CT stored with the same negative y direction as its segmentation
+        ct = tmp_path / "ct_neg.nrrd"
+        head, sep, body = (d / "ct.nrrd").read_bytes().partition(b"\n\n")
+        ct.write_bytes(head.replace(b"(0.0,1.0,0.0)", b"(0.0,-1.0,0.0)") + sep + body)
+    vol = load_volume(ct)
+    # loaded in canonical LPS order: a negative y direction flips the rows of both grids
+    expected = labels if y_sign > 0 else labels[:, ::-1]
+    assert np.array_equal(vol.data, _phantom()[0] if y_sign > 0 else _phantom()[0][:, ::-1])
+    assert np.array_equal(segmentation_labels(p, vol), expected)
 
 
 @pytest.mark.parametrize(

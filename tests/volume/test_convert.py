@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dvr_perception._vtk import numpy_to_vtk, vtk_to_numpy, vtkImageData, vtkNrrdReader
-from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.errors import DVRInputError
 from dvr_perception.volume import Volume, from_vtk_image, to_vtk_image
 from dvr_perception.volume.convert import vtk_errors
 
@@ -91,12 +91,26 @@ def test_errors():
         from_vtk_image(nan, source="mem.vti")
 
 
-def test_direction_matrix_warns():
-    image = _image(np.zeros(24, np.uint8))
+def test_direction_matrix_is_honoured():
+    """A swap of x and y plus a flipped z: every point keeps its world position."""
+    values = np.arange(24, dtype=np.uint8)
+    image = _image(values)  # dims x=2, y=3, z=4
     image.GetPointData().SetActiveScalars("a")
-    image.SetDirectionMatrix(0, 1, 0, 1, 0, 0, 0, 0, 1)
-    with pytest.warns(DVRWarning, match="direction matrix"):
-        from_vtk_image(image)
+    image.SetSpacing(1.0, 2.0, 3.0)
+    image.SetOrigin(10.0, 20.0, 30.0)
+    image.SetDirectionMatrix(0, 1, 0, 1, 0, 0, 0, 0, -1)
+    vol = from_vtk_image(image)
+    assert not vol.oblique
+    assert vol.dims == (3, 2, 4)
+    assert vol.spacing == (2.0, 1.0, 3.0)
+    for pid in (0, 5, 17, 23):
+        world = image.GetPoint(pid)  # VTK applies the direction matrix
+        idx = np.round((np.subtract(world, vol.origin)) / vol.spacing).astype(int)
+        assert np.allclose(vol.origin + idx * np.asarray(vol.spacing), world)
+        assert vol.data[idx[2], idx[1], idx[0]] == values[pid]
+    # back to VTK with the direction: the same world points
+    again = to_vtk_image(vol, with_direction=True)
+    assert again.GetDimensions() == (3, 2, 4)
 
 
 def test_vtk_errors_context(tmp_path):

@@ -88,8 +88,25 @@ def test_dicom_series(tmp_path, dicom_writer):
     assert vol.dims == (5, 4, 3)
     assert vol.spacing == (0.5, 0.75, 2.0)
     assert vol.name == "series"
+    # patient LPS: rows top-down (+y posterior), slices by ascending z, origin the first IPP
+    np.testing.assert_array_equal(vol.data, data)
+    assert vol.origin == (0.0, 0.0, 10.0)
+
+
+def test_dicom_series_vtk_fallback(tmp_path, dicom_writer, monkeypatch):
+    """Without the medical extra a folder is read by VTK (with a warning naming the extra)."""
+    from dvr_perception.errors import DVRWarning
+    from dvr_perception.volume import medical
+
+    data = (np.arange(3 * 4 * 5, dtype=np.uint16) * 7).reshape(3, 4, 5)
+    dicom_writer(tmp_path / "series", data, spacing=(0.5, 0.75, 2.0))
+    monkeypatch.setattr(medical, "available", lambda module="pydicom": False)
+    with pytest.warns(DVRWarning, match=r"dvr-perception\[medical\]"):
+        vol = load_volume(tmp_path / "series")
     # VTK/ParaView convention: rows bottom-up, slices in descending position
     np.testing.assert_array_equal(vol.data, data[::-1, ::-1])
+    with pytest.raises(DVRInputError, match=r"dvr-perception\[medical\]"):
+        load_volume(tmp_path / "series" / "slice000.dcm")
 
 
 def test_empty_dicom_folder(tmp_path):

@@ -1,0 +1,168 @@
+"""Patient orientation: build a :class:`Volume` from a file's axes, canonical data order.
+
+Convention (as DICOM, ITK and 3D Slicer): world coordinates are patient **LPS** -- +x towards
+the patient's left, +y posterior, +z superior -- in millimetres.  A file's geometry is an
+origin (the world position of the first voxel) and one world vector per index axis (x, y, z;
+its length is the spacing).  NIfTI and FreeSurfer store RAS; :func:`ras_to_lps` turns such a
+geometry into LPS.
+
+:func:`canonical` re-orders the data so that every index axis runs along the world axis it is
+closest to, in the positive direction: a volume whose axes are flips or permutations of the
+world axes (the usual case: DICOM slices stored head first, NRRD with a negative direction,
+a NIfTI in RAS) becomes axis-aligned with the identity direction, exactly and without
+resampling.  Only a truly oblique volume keeps a rotation in ``Volume.direction``; the engine
+renders it in its own frame and a camera given in patient terms is rotated into that frame
+(:meth:`dvr_perception.rays.camera.Camera.for_volume`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dvr_perception.errors import DVRInputError
+from dvr_perception.volume.volume import Volume
+
+__all__ = ["canonical", "from_axes", "ras_to_lps"]
+
+#: Diagonal that turns RAS coordinates into LPS (and back).
+_FLIP_RAS = np.array([-1.0, -1.0, 1.0])
+
+
+def ras_to_lps(axes, origin) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``(axes, origin)`` of a RAS geometry expressed in LPS.
+
+    Parameters
+    ----------
+    axes : array-like, 3 x 3
+        Columns are the world vectors of one step along index x, y, z.
+    origin : array-like, 3
+        World position of the first voxel.
+
+    Examples
+    --------
+    >>> a, o = ras_to_lps(np.eye(3), [1.0, 2.0, 3.0])
+    >>> np.diag(a).tolist(), o.tolist()
+    ([-1.0, -1.0, 1.0], [-1.0, -2.0, 3.0])
+    """
+    return _FLIP_RAS[:, None] * np.asarray(axes, float), _FLIP_RAS * np.asarray(origin, float)
+
+
+def from_axes(data: np.ndarray, axes, origin, *, name: str, source: str, where: str = "") -> Volume:
+    """Build a canonical :class:`Volume` from data ``[z, y, x]`` and a file's axis vectors.
+
+    Parameters
+    ----------
+    data : numpy.ndarray
+        Voxels indexed ``[z, y, x]``.
+    axes : array-like, 3 x 3
+        Columns: world (LPS) vector of one step along index x, y and z.
+    origin : array-like, 3
+        World position of ``data[0, 0, 0]``.
+    name, source : str
+        Stored on the volume.
+    where : str, optional
+        Prefix of error messages (the file and field); default ``source``.
+
+    Raises
+    ------
+    DVRInputError
+        Zero, non-finite or non-orthogonal axis vectors (sheared grids are not supported).
+
+    Examples
+    --------
+    >>> d = np.arange(8, dtype=np.uint8).reshape(2, 2, 2)
+    >>> v = from_axes(d, np.diag([1.0, 1.0, -2.0]), [0, 0, 2], name="v", source="")
+    >>> v.spacing, v.origin, int(v.data[0, 0, 0])
+    ((1.0, 1.0, 2.0), (0.0, 0.0, 0.0), 4)
+    """
+    where = where or source or name
+    m = np.asarray(axes, float)
+    if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+        raise DVRInputError(f"{where}: expected three finite 3-D axis vectors, got {m.tolist()}")
+    with np.errstate(over="ignore"):
+        spacing = np.linalg.norm(m, axis=0)
+    if not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
+        raise DVRInputError(f"{where}: an axis vector is zero or too large ({m.T.tolist()})")
+    unit = m / spacing
+    gram = unit.T @ unit
+    if not np.allclose(gram, np.eye(3), atol=1e-3):
+        raise DVRInputError(
+            f"{where}: the axis vectors {np.round(m.T, 6).tolist()} are not orthogonal; "
+            "sheared grids are not supported (resample the volume first)"
+        )
+    return canonical_arrays(data, spacing, origin, unit, name=name, source=source, where=where)
+
+
+def canonical_arrays(data, spacing, origin, direction, *, name, source, where, labels=None):
+    """Flip/permute ``data`` so the direction is as close to the identity as it can get.
+
+    Returns the :class:`Volume`; see :func:`canonical`.
+    """
+    d = np.asarray(direction, float)
+    spacing = np.asarray(spacing, float)
+    origin = np.asarray(origin, float)
+    n_old = data.shape[::-1]  # voxels along index x, y, z
+    perm = _closest_permutation(d)  # new index axis a <- old index axis perm[a]
+    signs = np.array([1.0 if d[a, perm[a]] >= 0 else -1.0 for a in range(3)])
+    arrays = [data] if labels is None else [data, labels]
+    order = (2 - perm[2], 2 - perm[1], 2 - perm[0])
+    out = []
+    for arr in arrays:
+        arr = np.transpose(arr, order)
+        flips = tuple(2 - a for a in range(3) if signs[a] < 0)
+        out.append(np.ascontiguousarray(np.flip(arr, flips) if flips else arr))
+    new_origin = origin.copy()
+    for a in range(3):
+        if signs[a] < 0:
+            i = perm[a]
+            new_origin += d[:, i] * spacing[i] * (n_old[i] - 1)
+    new_dir = d[:, perm] * signs
+    try:
+        return Volume(
+            out[0],
+            spacing=tuple(spacing[perm]),
+            origin=tuple(new_origin),
+            direction=new_dir,
+            name=name,
+            source=source,
+            labels=out[1] if labels is not None else None,
+        )
+    except DVRInputError as exc:
+        raise DVRInputError(f"{where}: {exc}") from None
+
+
+def _closest_permutation(d: np.ndarray) -> list[int]:
+    """World axis a gets the index axis whose direction has the largest component along it."""
+    best, best_score = [0, 1, 2], -1.0
+    for p in ([0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]):
+        score = sum(abs(d[a, p[a]]) for a in range(3))
+        if score > best_score + 1e-9:
+            best, best_score = p, score
+    return best
+
+
+def canonical(volume: Volume) -> Volume:
+    """Return ``volume`` with its data flipped/permuted so the direction is nearest identity.
+
+    An axis-aligned volume (direction a signed permutation) comes back with the identity
+    direction, an oblique one with the smallest remaining rotation.  The world position of
+    every voxel is unchanged; labels follow the data.
+
+    Examples
+    --------
+    >>> d = ((-1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, 1.0))
+    >>> v = Volume(np.arange(8, dtype=np.uint8).reshape(2, 2, 2), origin=(5, 5, 0), direction=d)
+    >>> c = canonical(v)
+    >>> c.origin, c.oblique, int(c.data[0, 0, 0])
+    ((4.0, 4.0, 0.0), False, 3)
+    """
+    return canonical_arrays(
+        volume.data,
+        volume.spacing,
+        volume.origin,
+        volume.direction,
+        name=volume.name,
+        source=volume.source,
+        where=volume.source or volume.name,
+        labels=volume.labels,
+    )
