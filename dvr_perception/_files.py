@@ -199,7 +199,9 @@ def file_mode() -> int:
 @contextmanager
 def _deferred_sigint() -> Iterator[None]:
     """Hold Ctrl-C (SIGINT) back during the block and deliver it afterwards."""
-    if threading.current_thread() is not threading.main_thread():
+    if threading.current_thread() is not threading.main_thread() or (
+        signal.getsignal(signal.SIGINT) is None  # a C handler (pvpython's): cannot be restored
+    ):
         yield
         return
     caught: list = []

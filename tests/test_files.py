@@ -164,3 +164,20 @@ def test_npz_refuses_object_arrays(tmp_path):
     with pytest.raises(DVRInputError, match="'bad'"):
         write_npz(tmp_path / "b.npz", bad=np.array([{}, 1], dtype=object))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_files_are_written_when_sigint_has_a_c_handler(tmp_path, monkeypatch):
+    """pvpython installs its own C SIGINT handler: Python sees ``None`` and cannot restore it."""
+    from dvr_perception import _files
+
+    def refuse(*_):
+        raise AssertionError("signal.signal must not be called over a C handler")
+
+    monkeypatch.setattr(_files.signal, "getsignal", lambda _sig: None)
+    monkeypatch.setattr(_files.signal, "signal", refuse)
+    with _files.atomic_path(tmp_path / "a.txt") as tmp:
+        tmp.write_text("x")
+    with _files.output_folder(tmp_path / "out") as staged:
+        (staged.path / "b.txt").write_text("y")
+    assert (tmp_path / "a.txt").read_text() == "x"
+    assert (tmp_path / "out" / "b.txt").read_text() == "y"
