@@ -103,6 +103,13 @@ def add_scene_args(
     )
     cam.add_argument("--camera", metavar="CAM.json", help="camera JSON (Camera.to_dict format)")
     parser.add_argument(
+        "--orientation",
+        metavar="CODE",
+        help="where the volume's index axes x, y, z point, for a file that records no "
+        "orientation: three letters from L/R, P/A, S/I (e.g. LPI: slice 0 is the top of the "
+        "head); the data are re-ordered into patient LPS (default: as the file says, else LPS)",
+    )
+    parser.add_argument(
         "--series",
         metavar="UID",
         help="DICOM folder holding several series: the SeriesInstanceUID to read (without it, "
@@ -286,6 +293,10 @@ def load_scene(args: argparse.Namespace) -> Scene:
     resample = getattr(args, "resample", None)  # only commands that declare --resample
     factors = parse_factors(resample) if resample is not None else None
     view = parse_patient_view(args.view) if args.view is not None else None
+    if getattr(args, "orientation", None) is not None:
+        from dvr_perception.volume.orient import parse_orientation
+
+        parse_orientation(args.orientation)  # before the volume is read
     camera = _read_camera(args.camera, size) if args.camera is not None else None
     save_to = getattr(args, "save_spec", None)
     if save_to is not None:
@@ -312,6 +323,10 @@ def load_scene(args: argparse.Namespace) -> Scene:
         log.info("no spec given or paired with %s: proposing structures", args.volume)
         spec, spec_source = propose_structures(volume), "proposed"
     volume = attach_labels(volume, spec)
+    if getattr(args, "orientation", None) is not None:
+        from dvr_perception.volume.orient import reorient
+
+        volume = reorient(volume, args.orientation)
     if factors is not None and factors != (1, 1, 1):
         from dvr_perception.volume.resample import upsample
 

@@ -261,7 +261,7 @@ def rank_threads(ranks: int, cores: int | None = None) -> int:
 def _script_args(args: argparse.Namespace) -> list[str]:
     """Return the command line of ``plugin/batch_measure.py`` (or ``batch_optimize.py``)."""
     argv = [str(args.volume)]
-    for opt in ("structures", "camera", "size", "series"):
+    for opt in ("structures", "camera", "size", "series", "orientation"):
         if getattr(args, opt, None) is not None:
             argv += [f"--{opt}", str(getattr(args, opt))]
     if args.view is not None:
@@ -419,6 +419,10 @@ def run(args: argparse.Namespace) -> int:
                 f"--view {args.view}: a named patient view needs --ranks 1 (the MPI path "
                 "takes A,E[,Z])"
             )
+    if getattr(args, "orientation", None) is not None and getattr(args, "ranks", 1) > 1:
+        raise DVRInputError(
+            "--orientation: needs --ranks 1 (the MPI ranks read the file as it is stored)"
+        )
     if not (args.sigma > 0):
         raise DVRInputError(f"--sigma: expected a positive number, got {args.sigma}")
     if args.ranks < 1:

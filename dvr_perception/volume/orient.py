@@ -22,7 +22,7 @@ import numpy as np
 from dvr_perception.errors import DVRInputError
 from dvr_perception.volume.volume import Volume
 
-__all__ = ["canonical", "from_axes", "ras_to_lps"]
+__all__ = ["canonical", "from_axes", "parse_orientation", "ras_to_lps", "reorient"]
 
 #: Diagonal that turns RAS coordinates into LPS (and back).
 _FLIP_RAS = np.array([-1.0, -1.0, 1.0])
@@ -166,3 +166,65 @@ def canonical(volume: Volume) -> Volume:
         where=volume.source or volume.name,
         labels=volume.labels,
     )
+
+
+#: World (LPS) unit vector of each orientation letter.
+_LETTERS = {"L": (1, 0, 0), "R": (-1, 0, 0), "P": (0, 1, 0), "A": (0, -1, 0), "S": (0, 0, 1),
+            "I": (0, 0, -1)}  # fmt: skip
+
+
+def parse_orientation(code, *, name: str = "--orientation") -> np.ndarray:
+    """Direction matrix of a three-letter orientation code (``"LPS"``, ``"RAS"``, ``"LPI"``...).
+
+    Letter ``a`` says where index axis ``a`` (x, y, z) points in the patient: L(eft), R(ight),
+    P(osterior), A(nterior), S(uperior), I(nferior) -- the DICOM/ITK reading of a code.
+
+    Raises
+    ------
+    DVRInputError
+        Naming ``name`` when the code is not three letters covering the three patient axes.
+
+    Examples
+    --------
+    >>> parse_orientation("LPI").T.tolist()
+    [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]
+    """
+    text = str(code).strip().upper()
+    cols = [_LETTERS.get(ch) for ch in text]
+    axes = {abs(int(np.argmax(np.abs(c)))) for c in cols if c is not None}
+    if len(text) != 3 or None in cols or len(axes) != 3:
+        raise DVRInputError(
+            f"{name}: expected three letters from L/R, P/A, S/I, one per patient axis, naming "
+            f"where index x, y and z point (e.g. LPS, RAS, LPI), got {str(code)[:40]!r}"
+        )
+    return np.array(cols, dtype=float).T
+
+
+def reorient(volume: Volume, code, *, name: str = "--orientation") -> Volume:
+    """Declare where ``volume``'s index axes point (``code``) and bring it into patient LPS.
+
+    For a file that records no orientation (raw data, an NRRD without ``space``): the data are
+    flipped/permuted as :func:`canonical` does for a file's own directions, labels with them.
+    The origin (the first voxel's position) is kept.
+
+    Raises
+    ------
+    DVRInputError
+        A bad code, or a volume that already has an oblique direction.
+
+    Examples
+    --------
+    >>> v = Volume(np.arange(8, dtype=np.uint8).reshape(2, 2, 2))
+    >>> int(reorient(v, "LPI").data[0, 0, 0])  # slice z = 0 was the top: now the last
+    4
+    """
+    direction = parse_orientation(code, name=name)
+    if volume.oblique:
+        raise DVRInputError(
+            f"{name}: volume {volume.name!r} records an oblique orientation already; "
+            "an orientation code is for files that record none"
+        )
+    return canonical_arrays(
+        volume.data, volume.spacing, volume.origin, direction, name=volume.name,
+        source=volume.source, where=name, labels=volume.labels,
+    )  # fmt: skip

@@ -98,6 +98,7 @@ def test_script_args_forward_the_scene_options():
         shade=False,
         sigma=2,
         out="o",
+        orientation="LPI",
     )
     assert _script_args(args) == [
         "v.nhdr",
@@ -105,6 +106,8 @@ def test_script_args_forward_the_scene_options():
         "s.json",
         "--size",
         "64x32",
+        "--orientation",
+        "LPI",
         "--view=-30,10",
         "--no-shade",
         "--sigma",
@@ -145,7 +148,7 @@ def _fake_pvbatch(monkeypatch, tmp_path, codes, stderr="( 2.2s) FATL| Signal: SI
     def fake_run(cmd, **_kw):
         code = codes[len(calls)]
         calls.append(cmd)
-        out = tmp_path / "o"
+        out = Path(cmd[cmd.index("--out") + 1])  # the staging folder inside --out
         if code != 0:
             return subprocess.CompletedProcess(cmd, code, "", stderr)
         out.mkdir(exist_ok=True)

@@ -429,3 +429,52 @@ def test_pvbatch_forwards_series_and_checks_named_views(tmp_path):
                      str(tmp_path / "o")])  # fmt: skip
     assert code == 2
     assert "named patient view needs --ranks 1" in err.getvalue()
+
+
+def test_orientation_code_declares_a_file_without_orientation(stored, tmp_path):
+    """``--orientation LPI``: a plain file whose slice 0 is the top renders as its LPS copy."""
+    import contextlib
+    import io
+
+    from dvr_perception._files import read_png
+    from dvr_perception.cli import main
+    from dvr_perception.structures.io import save_spec
+    from dvr_perception.volume.orient import parse_orientation, reorient
+
+    d, ref = stored
+    top_first = ref.data[::-1]  # as cthead is stored: slice 0 at the top, no orientation
+    labels = (top_first > 1000).astype(np.uint8)
+    top_z = ref.origin[2] + (ref.dims[2] - 1) * SPACING[2]
+    plain = Volume(top_first.copy(), spacing=SPACING, origin=(*ref.origin[:2], top_z),
+                   labels=labels)  # fmt: skip
+    fixed = reorient(plain, "lpi")
+    np.testing.assert_array_equal(fixed.data, ref.data)
+    np.testing.assert_allclose(fixed.origin, ref.origin)
+    np.testing.assert_array_equal(fixed.labels, (ref.data > 1000).astype(np.uint8))
+    assert not fixed.oblique
+    np.testing.assert_array_equal(reorient(ref, "LPS").data, ref.data)
+    for bad in ("LP", "LLS", "LPX", "XYZ", "LPSI"):
+        with pytest.raises(DVRInputError, match="--orientation: expected three letters"):
+            parse_orientation(bad)
+    with pytest.raises(DVRInputError, match="oblique"):
+        reorient(_oblique(30.0), "LPS")
+    # through the CLI, on a plain NRRD (no 'space' field): the same image as the LPS copy
+    raw = tmp_path / "plain.raw"
+    raw.write_bytes(top_first.astype("<i2").tobytes())
+    (tmp_path / "plain.nhdr").write_text(
+        "NRRD0004\ntype: short\ndimension: 3\nsizes: 22 20 16\nspacings: 0.8 0.9 1.5\n"
+        "endian: little\nencoding: raw\ndata file: plain.raw\n"
+    )
+    save_spec(SPEC, tmp_path / "spec.json")
+    shots = {}
+    for name, src, extra in (("lps", d / "canonical.nrrd", []),
+                             ("plain", tmp_path / "plain.nhdr", ["--orientation", "LPI"]),
+                             ("raw", tmp_path / "plain.nhdr", [])):  # fmt: skip
+        out = tmp_path / f"{name}.png"
+        argv = ["render", str(src), "--structures", str(tmp_path / "spec.json"), "--view",
+                "anterior", "--size", "32", "--out", str(out), *extra]  # fmt: skip
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            assert main(argv) == 0
+        shots[name] = read_png(out)[..., :3] / 255.0
+    assert compare_images(shots["plain"], shots["lps"])["ssim"] >= 0.99
+    assert compare_images(shots["raw"], shots["lps"])["ssim"] < 0.95  # upside down without it
