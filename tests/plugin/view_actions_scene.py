@@ -2,10 +2,11 @@
 
 Environment: ``DVR_REPO`` (the repository), ``DVR_VOLUME``, ``DVR_OUT`` (a folder for the
 screenshots and ``result.json``), ``DVR_SPEC`` (a spec file), optional ``DVR_SERVER_PORT``
-(connect to a pvserver on 127.0.0.1 first).  Opens the volume in a 3-D view, sets a camera,
-runs *Optimise this view* (``dvr_view.optimise_this_view``), reads back what the view's
-volume representation now carries, saves both views' screenshots, then *Undo* and reads back
-again.  Writes ``result.json`` to ``DVR_OUT``; the test compares it with the library.
+(connect to a pvserver on 127.0.0.1 first) and ``DVR_DOC_IMAGES`` (also save the layout).
+Opens the volume in a 3-D view, sets a camera, runs *Optimise this view*
+(``dvr_view.optimise_this_view``), reads back what the view's volume representation carries,
+saves both views' screenshots, then *Undo* and reads back again.  Writes ``result.json`` to
+``DVR_OUT``; the test compares it with the library.
 """
 
 import json
@@ -33,6 +34,8 @@ reader = pvs.OpenDataFile(os.environ["DVR_VOLUME"])
 view = pvs.GetActiveViewOrCreate("RenderView")
 if PORT:
     view.ViewSize = [480, 320]
+else:
+    pvs.GetLayout(view).PreviewMode = [720, 400]  # the GUI's views at a small, fixed size
 display = pvs.Show(reader, view)
 display.SetRepresentationType("Volume")
 array = display.ColorArrayName[1]
@@ -79,9 +82,10 @@ for _, title in dvr_view.QUALITY_MAPS:
         pvs.SaveScreenshot(os.path.join(OUT, "quality_map.png"), qview, ImageResolution=[480, 320])
 table = pvs.FindView(dvr_view.TABLE_VIEW)
 pvs.SaveScreenshot(os.path.join(OUT, "view_3d.png"), view, ImageResolution=[480, 320])
-pvs.SaveScreenshot(
-    os.path.join(OUT, "layout.png"), pvs.GetLayout(view), ImageResolution=[1200, 640]
-)
+if os.environ.get("DVR_DOC_IMAGES"):
+    pvs.SaveScreenshot(
+        os.path.join(OUT, "layout.png"), pvs.GetLayout(view), ImageResolution=[1200, 640]
+    )
 print("@@T screenshots", time.time() - T0, flush=True)
 result = {
     "remote": bool(servermanager.ActiveConnection.IsRemote()),
@@ -99,7 +103,7 @@ result = {
     "preset_known": bool(presets.HasPreset(report["preset"])),
     "array": array,
     "data_range": list(reader.PointData[array].GetRange()),
-    "lut_range_mode": str(lut.AutomaticRescaleRangeMode),
+    "lut_range_mode": str(lut.AutomaticRescaleRangeMode).strip("'"),
     "RGBPoints": list(lut.RGBPoints),
     "Points": list(pwf.Points),
     "material": [display.Ambient, display.Diffuse, display.Specular, display.SpecularPower],
