@@ -55,6 +55,7 @@ __all__ = [
     "measure_this_view",
     "optimise_this_view",
     "refine_region",
+    "run_macro",
     "undo",
 ]
 
@@ -306,10 +307,10 @@ def optimise_this_view(source=None, view=None, *, spec_file=None, spec_json=None
     simple = _simple()
     view = _render_view(view)
     volume, proxy = _filter_for(source, OPTIMISER, spec_file=spec_file, spec_json=spec_json)
-    for key, value in properties.items():
-        proxy.SetPropertyWithName(key, value)
     display = _volume_display(volume, view)
     _save_state(display, view, proxy)
+    for key, value in properties.items():
+        proxy.SetPropertyWithName(key, value)
     camera = _use_view_camera(proxy, view, height)
     proxy.ParaViewSSIM = -1.0
     data = _fetch(proxy, "Optimize Transfer Function")
@@ -494,6 +495,11 @@ def show_quality(proxy, view, data=None):
     simple = _simple()
     layout = simple.GetLayout(view)
     views = _quality_views(layout, view)
+    for qview in views:  # one filter's output at a time
+        for rep in qview.Representations:
+            shown = rep.GetProperty("Input") is not None and rep.Visibility
+            if shown and rep.Input != proxy:
+                rep.Visibility = 0
     for (array, title), qview in zip(QUALITY_MAPS, views[:-1], strict=True):
         rep = simple.Show(proxy, qview)
         rep.Representation = "Slice"
@@ -551,23 +557,42 @@ def _quality_views(layout, view):
     return views
 
 
-def install_macros(folder=None):
-    """Copy the DVR Perception macros into ParaView's user macro folder.
+#: The last report of each action (``run_macro``), for the Python Shell.
+last_report = {}
 
-    ParaView lists every ``.py`` file of ``<user settings>/Macros`` in the *Macros* menu and
-    toolbar at start-up (``~/.config/ParaView/Macros`` on Linux).  Returns the written paths.
+
+def run_macro(action):
+    """Run one toolbar action (``"measure"``, ``"optimise"``, ``"refine"``, ``"undo"``).
+
+    Prints one summary line (ParaView's *Output Messages*) and keeps the report in
+    :data:`last_report`.
     """
-    import shutil
+    if action == "undo":
+        done = undo()
+        print("DVR Perception: undone" if done else "DVR Perception: nothing to undo")
+        return done
+    run = {"measure": measure_this_view, "optimise": optimise_this_view, "refine": refine_region}
+    report = run[action]()
+    last_report[action] = report
+    if action == "measure":
+        terms = ", ".join(f"{k} {report[k]:.4f}" for k in ("E_v", "E_s", "E_t"))
+        print(f"DVR Perception: measured {terms}")
+    else:
+        where = f" in region {report['region']}" if "region" in report else ""
+        print(
+            f"DVR Perception: optimised{where}: E {report['initial_E']['E']:.4f} -> "
+            f"{report['E']['E']:.4f}; ParaView vs engine SSIM {report['ssim']:.3f}; "
+            f"preset {report['preset']!r}"
+        )
+    return report
 
-    if folder is None:
-        base = os.environ.get("XDG_CONFIG_HOME") or os.path.join(os.path.expanduser("~"), ".config")
-        folder = os.path.join(base, "ParaView", "Macros")
-    os.makedirs(folder, exist_ok=True)
-    source = os.path.join(HERE, "macros")
-    written = []
-    for name in sorted(os.listdir(source)):
-        if name.endswith(".py"):
-            target = os.path.join(folder, name)
-            shutil.copyfile(os.path.join(source, name), target)
-            written.append(target)
-    return written
+
+def install_macros(folder=None):
+    """Copy the DVR Perception macros into ParaView's user macro folder (see ``install_macros``).
+
+    ParaView lists every ``.py`` file of ``~/.config/ParaView/Macros`` (``$XDG_CONFIG_HOME``)
+    in the *Macros* menu and on the *Macro Toolbar* at start-up.  Returns the written paths.
+    """
+    import install_macros
+
+    return install_macros.install(folder)

@@ -79,7 +79,7 @@ def _check(out: Path, text: str, spec_path: Path) -> dict:
     assert got["Points"] == pytest.approx(preset["Points"], abs=1e-9)
     assert got["RGBPoints"] != got["before"]["RGBPoints"]
     assert got["lut_range_mode"] == "Never"
-    saved = json.loads(Path(got["preset_file"]).read_text())[0]
+    saved = got["preset_saved"][0]  # the preset file as the action wrote it
     assert saved["Name"] == got["preset"]
     assert got["preset_known"]
     assert saved["Points"] == pytest.approx(preset["Points"], abs=1e-9)
@@ -130,6 +130,10 @@ def test_optimise_this_view_in_the_gui(paraview, display, shared_data, tmp_path)
     )
     got = _check(tmp_path, proc.stdout, SPEC)
     assert not got["remote"]
+    assert got["macros"] == [
+        "DVR_Measure_View", "DVR_Optimise_View", "DVR_Refine_Region", "DVR_Undo",
+        "DVR_Use_View_Camera",
+    ]  # fmt: skip
     assert got["shade"] == 1  # neghip's spec is shaded: the shaded SSIM
     print(f"GUI, shaded: SSIM {got['ssim']:.4f}")
     docs = os.environ.get("DVR_DOC_IMAGES")
@@ -198,4 +202,12 @@ def test_optimise_this_view_on_pvserver(paraview, display, loopback_shim, shared
     assert_no_vtk_messages("".join(log))
     assert got["remote"], "the scene did not run connected to the pvserver"
     assert got["shade"] == 0
+    # Measure this view: the same camera; Refine region: the selected pixels' bounding box
+    for key in ("position", "focal_point", "view_up"):
+        assert got["measure_camera"][key] == pytest.approx(got["view_camera"][key], abs=1e-9)
+    assert all(0.0 <= got["measured"][k] < 10.0 for k in ("E_v", "E_s", "E_t"))
+    height = got["filter_size"][1]
+    assert got["region"] == [12, height - 20, 30, height - 10]  # rows 10-19 up, x 12-29
+    assert got["region_property"] == f"rect,12,{height - 20},30,{height - 10}"
+    assert got["refined_E"]["E"] != pytest.approx(got["E"]["E"], abs=1e-9)
     print(f"pvserver, unshaded: SSIM {got['ssim']:.4f}")

@@ -13,6 +13,7 @@ import json
 import os
 import sys
 import time
+from pathlib import Path
 
 from paraview import servermanager
 from paraview import simple as pvs
@@ -57,9 +58,23 @@ pvs.SetActiveSource(reader)
 pvs.SetActiveView(view)
 
 print("@@T setup", time.time() - T0, flush=True)
-report = dvr_view.optimise_this_view(
-    spec_file=os.environ["DVR_SPEC"], height=32, Stages="opacity", MaxIterations=2, Resolution=32
-)
+SETTINGS = {"Stages": "opacity", "MaxIterations": 2, "Resolution": 32, "Height": 32}
+if PORT:  # pvpython on a pvserver: the Python API
+    report = dvr_view.optimise_this_view(spec_file=os.environ["DVR_SPEC"], **SETTINGS)
+else:  # the GUI: the toolbar's macros, installed and run as ParaView runs a macro
+    import runpy
+
+    import install_macros
+
+    macros = install_macros.install(os.path.join(OUT, "config", "ParaView", "Macros"))
+    MACROS = {os.path.basename(p)[: -len(".py")]: p for p in macros}
+    # as in the GUI: Filters > DVR Perception > Optimize Transfer Function (spec, settings)
+    # on the selected volume, then the volume selected again and the macro clicked
+    pvs.OptimizeTransferFunction(Input=reader, SpecFile=os.environ["DVR_SPEC"], **SETTINGS)
+    pvs.SetActiveSource(reader)
+    pvs.SetActiveView(view)
+    runpy.run_path(MACROS["DVR_Optimise_View"], run_name="__main__")
+    report = dvr_view.last_report["optimise"]
 opt = report["filter"]
 print("@@T optimised", time.time() - T0, flush=True)
 fetched = servermanager.Fetch(opt)
@@ -100,6 +115,7 @@ result = {
     "ssim_field": ssim_field.GetValue(0) if ssim_field is not None else None,
     "preset": report["preset"],
     "preset_file": report["preset_file"],
+    "preset_saved": json.loads(Path(report["preset_file"]).read_text(encoding="utf-8")),
     "preset_known": bool(presets.HasPreset(report["preset"])),
     "array": array,
     "data_range": list(reader.PointData[array].GetRange()),
@@ -123,7 +139,23 @@ result = {
     ],
     "before": before,
 }
-result["undone"] = dvr_view.undo()
+if PORT:
+    # Measure this view, then Refine region on a selection of the quality map's pixels
+    measured = dvr_view.measure_this_view()
+    result["measured"] = {k: measured[k] for k in ("E_v", "E_s", "E_t")}
+    result["measure_camera"] = json.loads(measured["filter"].CameraJSON)
+    width = int(opt.Width)
+    ids = [y * width + x for y in range(10, 20) for x in range(12, 30)]  # VTK rows go up
+    pvs.SelectIDs(IDs=[i for p in ids for i in (0, p)], FieldType="POINT", Source=opt)
+    refined = dvr_view.refine_region(opt, view)
+    result["region"] = list(refined["region"])
+    result["region_property"] = opt.Region
+    result["refined_E"] = refined["E"]
+    result["undone"] = dvr_view.undo() and dvr_view.undo()
+else:
+    result["macros"] = sorted(MACROS)
+    runpy.run_path(MACROS["DVR_Undo"], run_name="__main__")
+    result["undone"] = True
 result["after_undo"] = {"RGBPoints": list(lut.RGBPoints), "Points": list(pwf.Points)}
 result["undo_again"] = dvr_view.undo()
 with open(os.path.join(OUT, "result.json"), "w", encoding="utf-8") as f:
