@@ -515,7 +515,7 @@ def show_quality(proxy, view, data=None):
         bar.RangeLabelFormat = "%-#.2g"
         qview.InteractionMode = "2D"
         qview.OrientationAxesVisibility = 0
-        simple.ResetCamera(qview)
+        _frame_above_legend(qview)
         simple.Render(qview)
     table = views[-1]
     simple.Show(proxy, table)
@@ -529,6 +529,18 @@ def show_quality(proxy, view, data=None):
             if fd.GetAbstractArray(i).GetNumberOfTuples() != count
         ]
     return {title: v for (_, title), v in zip(QUALITY_MAPS, views, strict=False)}
+
+
+def _frame_above_legend(view):
+    """Fit the map in the upper part of a 2-D view, clear of the legend at the bottom."""
+    _simple().ResetCamera(view)
+    camera = view.GetActiveCamera()
+    scale = camera.GetParallelScale() * 1.3
+    (fx, fy, fz), (px, py, pz) = camera.GetFocalPoint(), camera.GetPosition()
+    shift = 0.3 * scale  # the camera down: the map up
+    camera.SetFocalPoint(fx, fy - shift, fz)
+    camera.SetPosition(px, py - shift, pz)
+    camera.SetParallelScale(scale)
 
 
 def _quality_views(layout, view):

@@ -94,7 +94,12 @@ for _, title in dvr_view.QUALITY_MAPS:
         "2d": qview.InteractionMode == "2D",
     }
     if title.startswith("Visibility"):
-        pvs.SaveScreenshot(os.path.join(OUT, "quality_map.png"), qview, ImageResolution=[480, 320])
+        pvs.SaveScreenshot(
+            os.path.join(OUT, "quality_map.png"),
+            qview,
+            ImageResolution=[480, 320],
+            FontScaling="Do not scale fonts",
+        )
 table = pvs.FindView(dvr_view.TABLE_VIEW)
 pvs.SaveScreenshot(os.path.join(OUT, "view_3d.png"), view, ImageResolution=[480, 320])
 if os.environ.get("DVR_DOC_IMAGES"):
