@@ -70,6 +70,8 @@ QUALITY_MAPS = (
 QUALITY_PREFIX = "DVR quality: "
 TABLE_VIEW = "DVR structures"
 PRESET_NAME = "DVR Perception optimised"
+#: Keep ParaView's rendering that :func:`paraview_ssim` compares at this path (None: deleted).
+SSIM_IMAGE = None
 _UNDO = []  # one saved state per action, newest last
 
 
@@ -434,7 +436,7 @@ def paraview_ssim(view, data, background):
 
     ParaView renders the view at the filter's image size (the camera is the filter's), with
     the orientation axes and the other sources hidden; the engine's premultiplied ``rgba`` is
-    composited over ``background``.
+    composited over ``background``.  ParaView's image is kept at :data:`SSIM_IMAGE` if set.
     """
     import numpy as np
     from vtkmodules.util.numpy_support import vtk_to_numpy
@@ -466,7 +468,12 @@ def paraview_ssim(view, data, background):
         for rep in others:
             rep.Visibility = 1
         if os.path.exists(path):
-            os.remove(path)
+            if SSIM_IMAGE:
+                import shutil
+
+                shutil.move(path, SSIM_IMAGE)
+            else:
+                os.remove(path)
         os.rmdir(os.path.dirname(path))
     return compare_images(shot / 255.0, np.clip(engine, 0.0, 1.0))["ssim"]
 

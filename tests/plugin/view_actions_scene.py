@@ -31,6 +31,8 @@ pvs.LoadPlugin(os.path.join(REPO, "plugin", "dvr_perception_plugin.py"), remote=
 
 import dvr_view  # noqa: E402
 
+dvr_view.SSIM_IMAGE = os.path.join(OUT, "paraview_capture.png")  # for the test's own SSIM
+
 reader = pvs.OpenDataFile(os.environ["DVR_VOLUME"])
 view = pvs.GetActiveViewOrCreate("RenderView")
 if PORT:
@@ -109,6 +111,7 @@ if os.environ.get("DVR_DOC_IMAGES"):
 print("@@T screenshots", time.time() - T0, flush=True)
 result = {
     "remote": bool(servermanager.ActiveConnection.IsRemote()),
+    "volume": os.environ["DVR_VOLUME"],
     "view_camera": view_camera,
     "filter_camera": json.loads(opt.CameraJSON),
     "filter_size": [int(opt.Width), int(opt.Height)],
@@ -146,6 +149,7 @@ result = {
 }
 if PORT:
     # Measure this view, then Refine region on a selection of the quality map's pixels
+    dvr_view.SSIM_IMAGE = None  # keep the capture of the first optimisation for the test
     measured = dvr_view.measure_this_view()
     result["measured"] = {k: measured[k] for k in ("E_v", "E_s", "E_t")}
     result["measure_camera"] = json.loads(measured["filter"].CameraJSON)
