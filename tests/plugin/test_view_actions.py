@@ -38,6 +38,10 @@ SSIM_MIN = 0.9
 
 def _scene_env(paraview, display, shared_data, out, spec, port=None):
     env = dict(paraview.env, DISPLAY=display, DVR_REPO=str(REPO), DVR_OUT=str(out))
+    # ParaView keeps imported presets in the user's settings: a private home for the run
+    home = out / "home"
+    (home / ".config").mkdir(parents=True, exist_ok=True)
+    env.update(HOME=str(home), XDG_CONFIG_HOME=str(home / ".config"))
     env.update(DVR_VOLUME=str(shared_data / "neghip.nhdr"), DVR_SPEC=str(spec))
     if port is not None:
         env["DVR_SERVER_PORT"] = str(port)
