@@ -49,26 +49,23 @@ from dvr_perception._paraview_compat import setup as _setup  # noqa: E402
 
 _setup()  # .pvdeps on sys.path and the numpy/inspect shims (idempotent)
 
+from dvr_quality import QUALITY_MAPS, QUALITY_PREFIX, TABLE_VIEW, show_quality  # noqa: E402
+
 __all__ = [
     "QUALITY_MAPS",
+    "QUALITY_PREFIX",
+    "TABLE_VIEW",
     "install_macros",
     "measure_this_view",
     "optimise_this_view",
     "refine_region",
     "run_macro",
+    "show_quality",
     "undo",
 ]
 
 OPTIMISER = "DVROptimizeTransferFunction"
 MEASURES = "DVRPerceptionMeasures"
-#: The measure images shown in the quality views: (point array, legend title).
-QUALITY_MAPS = (
-    ("visibility_deviation", "Visibility deviation"),
-    ("shape_deviation", "Shape deviation"),
-    ("transparency_deviation", "Transparency deviation"),
-)
-QUALITY_PREFIX = "DVR quality: "
-TABLE_VIEW = "DVR structures"
 PRESET_NAME = "DVR Perception optimised"
 #: Keep ParaView's rendering that :func:`paraview_ssim` compares at this path (None: deleted).
 SSIM_IMAGE = None
@@ -490,90 +487,6 @@ def _is_shown_volume(rep):
         return bool(rep.Visibility) and rep.Representation == "Volume"
     except AttributeError:
         return False
-
-
-def show_quality(proxy, view, data=None):
-    """The measure maps of ``proxy`` in 2-D views beside ``view``, the table below them.
-
-    The first call splits ``view``'s layout cell: the right half becomes a 2 x 2 grid of one
-    2-D render view per map of :data:`QUALITY_MAPS` (a scalar bar each) and a spreadsheet of
-    the per-structure field data; later calls reuse those views.  Returns ``{title: view}``.
-    """
-    simple = _simple()
-    layout = simple.GetLayout(view)
-    views = _quality_views(layout, view)
-    for qview in views:  # one filter's output at a time
-        for rep in qview.Representations:
-            shown = rep.GetProperty("Input") is not None and rep.Visibility
-            if shown and rep.Input != proxy:
-                rep.Visibility = 0
-    for (array, title), qview in zip(QUALITY_MAPS, views[:-1], strict=True):
-        rep = simple.Show(proxy, qview)
-        rep.Representation = "Slice"
-        simple.ColorBy(rep, ("POINTS", array))
-        lut = simple.GetColorTransferFunction(array)
-        lut.ApplyPreset("Viridis (matplotlib)", True)
-        rep.RescaleTransferFunctionToDataRange(False, True)
-        rep.SetScalarBarVisibility(qview, True)
-        bar = simple.GetScalarBar(lut, qview)
-        bar.Title, bar.ComponentTitle = title, ""
-        bar.Orientation, bar.WindowLocation = "Horizontal", "Lower Center"
-        bar.ScalarBarLength, bar.TitleFontSize, bar.LabelFontSize = 0.6, 12, 11
-        bar.RangeLabelFormat = "%-#.2g"
-        qview.InteractionMode = "2D"
-        qview.OrientationAxesVisibility = 0
-        _frame_above_legend(qview)
-        simple.Render(qview)
-    table = views[-1]
-    simple.Show(proxy, table)
-    table.FieldAssociation = "Field Data"
-    if data is not None:
-        count = len(_field(data, "structure_names") or [])
-        fd = data.GetFieldData()
-        table.HiddenColumnLabels = [
-            fd.GetAbstractArray(i).GetName()
-            for i in range(fd.GetNumberOfArrays())
-            if fd.GetAbstractArray(i).GetNumberOfTuples() != count
-        ]
-    return {title: v for (_, title), v in zip(QUALITY_MAPS, views, strict=False)}
-
-
-def _frame_above_legend(view):
-    """Fit the map in the upper part of a 2-D view, clear of the legend at the bottom."""
-    _simple().ResetCamera(view)
-    camera = view.GetActiveCamera()
-    scale = camera.GetParallelScale() * 1.3
-    (fx, fy, fz), (px, py, pz) = camera.GetFocalPoint(), camera.GetPosition()
-    shift = 0.3 * scale  # the camera down: the map up
-    camera.SetFocalPoint(fx, fy - shift, fz)
-    camera.SetPosition(px, py - shift, pz)
-    camera.SetParallelScale(scale)
-
-
-def _quality_views(layout, view):
-    """The 2-D views and the spreadsheet beside ``view`` (created and placed on first use)."""
-    simple = _simple()
-    names = [QUALITY_PREFIX + title for _, title in QUALITY_MAPS] + [TABLE_VIEW]
-    found = [simple.FindView(n) for n in names]
-    if all(v is not None for v in found):
-        return found
-    # the right half of the view's cell, as a 2 x 2 grid: the three maps, then the table
-    cell = layout.GetViewLocation(view)
-    layout.SplitHorizontal(cell, 0.5)
-    right = 2 * cell + 2
-    layout.SplitVertical(right, 0.5)
-    cells = []
-    for row in (2 * right + 1, 2 * right + 2):
-        layout.SplitHorizontal(row, 0.5)
-        cells += [2 * row + 1, 2 * row + 2]
-    views = []
-    for name, where in zip(names, cells, strict=True):
-        kind = "SpreadSheetView" if name == TABLE_VIEW else "RenderView"
-        v = simple.CreateView(kind)
-        simple.RenameView(name, v)
-        simple.AssignViewToLayout(view=v, layout=layout, hint=where)
-        views.append(v)
-    return views
 
 
 #: The last report of each action (``run_macro``), for the Python Shell.
