@@ -292,7 +292,8 @@ def optimise_this_view(source=None, view=None, *, spec_file=None, spec_json=None
         Folder of the preset file (default: a ``dvr_perception_presets`` folder in the
         temporary directory).
     **properties
-        Other properties of the filter (``Stages``, ``MaxIterations``, ``Region``...).
+        Other properties of the filter (``Stages``, ``MaxIterations``...); ``Region`` (the
+        lens) is reset to the whole image unless given (:func:`refine_region` gives it).
 
     Returns
     -------
@@ -308,6 +309,7 @@ def optimise_this_view(source=None, view=None, *, spec_file=None, spec_json=None
     volume, proxy = _filter_for(source, OPTIMISER, spec_file=spec_file, spec_json=spec_json)
     display = _volume_display(volume, view)
     _save_state(display, view, proxy)
+    properties.setdefault("Region", "")  # the whole view unless a lens is given (refine)
     for key, value in properties.items():
         proxy.SetPropertyWithName(key, value)
     camera = _use_view_camera(proxy, view, height)
