@@ -33,6 +33,9 @@ _ARRAY_LIST = (
     "</ArrayListDomain>"
 )
 _MULTI_LINE = '<Widget type="multi_line" />'
+#: On *Apply* the GUI shows the 2-D output in a view of its own (split beside the active one),
+#: never as a slab in the 3-D view: ParaView's preferred-view hint.
+_OWN_VIEW = '<View type="SpreadSheetView" />'
 #: The documented range of each numeric property: ``(min, max, integer)``.  The ``smdomain``
 #: decorators below show them in the GUI; :meth:`_LibraryShell._set_in_range` holds values set
 #: from Python to them too.
@@ -242,6 +245,7 @@ class StructuralLayers(_LibraryShell):
 
 @smproxy.filter(name="DVRPerceptionMeasures", label="Perception Measures", support_reload=False)
 @smhint.xml(_CATEGORY)
+@smhint.xml(_OWN_VIEW)
 @smproperty.input(name="Input", port_index=0)
 @smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
 @smdomain.xml(_IMAGE_INPUT)
@@ -327,6 +331,7 @@ class PerceptionMeasures(_LibraryShell):
     name="DVROptimizeTransferFunction", label="Optimize Transfer Function", support_reload=False
 )
 @smhint.xml(_CATEGORY)
+@smhint.xml(_OWN_VIEW)
 @smproperty.input(name="Input", port_index=0)
 @smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
 @smdomain.xml(_IMAGE_INPUT)

@@ -120,6 +120,7 @@ def _check(out: Path, text: str, spec_path: Path) -> dict:
     assert got["ssim_venv"] == pytest.approx(got["ssim"], abs=2e-3)
     # the maps beside the 3-D view (never in it), a legend each; the table in a spreadsheet
     assert not got["output_in_3d_view"]
+    assert got["preferred_view"] == "SpreadSheetView"  # a plain Apply: a view of its own
     assert len(got["quality"]) == 3
     for title, q in got["quality"].items():
         assert q == {"in_layout": True, "visible": True, "array": q["array"], "bar": True,

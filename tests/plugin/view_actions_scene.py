@@ -82,6 +82,7 @@ print("@@T optimised", time.time() - T0, flush=True)
 fetched = servermanager.Fetch(opt)
 ssim_field = fetched.GetFieldData().GetArray("paraview_ssim")
 presets = servermanager.vtkSMTransferFunctionPresets.GetInstance()
+CONTROLLER = servermanager.vtkSMParaViewPipelineControllerWithRendering()
 quality = {}
 for _, title in dvr_view.QUALITY_MAPS:
     qview = pvs.FindView(dvr_view.QUALITY_PREFIX + title)
@@ -134,6 +135,7 @@ result = {
     "shade": int(display.Shade),
     "unit_distance": display.ScalarOpacityUnitDistance,
     "background": list(view.Background),
+    "preferred_view": CONTROLLER.GetPreferredViewType(opt.SMProxy, 0),
     "output_in_3d_view": bool(getattr(servermanager.GetRepresentation(opt, view), "Visibility", 0)),
     "quality": quality,
     "table": {
