@@ -6,6 +6,7 @@
 #   make report  regenerate benchmarks/REPORT.md (the paper's experiments; REPORT_ARGS=--quick)
 #   make scale   benchmarks/scale.json: time and memory against volume size, MPI ranks
 #   make paraview-setup   ParaView, Xvfb and .pvdeps/ for the plugin and `dvr-perception pvbatch`
+#   make paraview-macros  the DVR Perception toolbar (macros) into ParaView's user macro folder
 #
 # "setup" installs the EGL/Mesa system libraries VTK needs to render off-screen (with apt-get,
 # when run as root and they are missing), creates $(VENV) and installs the package with its
@@ -38,7 +39,7 @@ ifeq ($(strip $(DISPLAY)),)
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
 endif
 
-.PHONY: help setup system-deps browser-deps paraview-setup paraview-system test lint demo bench report scale clean
+.PHONY: help setup system-deps browser-deps paraview-setup paraview-macros paraview-system test lint demo bench report scale clean
 
 help:
 	@echo "targets: demo, test, bench, report, setup, paraview-setup, lint, clean"
@@ -88,6 +89,11 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 paraview-setup: setup paraview-system $(PVDEPS_STAMP)
+
+# The DVR Perception toolbar (issue 19): the macros of plugin/macros in ParaView's user macro
+# folder (~/.config/ParaView/Macros); ParaView shows them on its Macro Toolbar at start-up.
+paraview-macros:
+	$(PYTHON) plugin/install_macros.py
 
 paraview-system:
 	@missing=""; \

@@ -70,7 +70,7 @@ def lighting_structure(spec):
     return max(spec.structures, key=lambda s: s.importance)  # max keeps the first on ties
 
 
-def apply_optimized(source_or_spec_json, volume_display, *, preset_path=None):
+def apply_optimized(source_or_spec_json, volume_display, *, preset_path=None, preset_name=None):
     """Set a volume display's transfer functions and material from an optimised spec.
 
     Parameters
@@ -84,6 +84,8 @@ def apply_optimized(source_or_spec_json, volume_display, *, preset_path=None):
     preset_path : str, optional
         Also write the transfer functions as a ParaView preset JSON
         (``dvr_perception.export.save_paraview_preset``; *Choose Preset > Import*).
+    preset_name : str, optional
+        The preset's name (default: the file name without ``.json``).
 
     The colour lookup table gets ``RGBPoints`` and the opacity function ``Points`` equal to
     ``to_vtk_transfer_functions`` of the spec (the LUT's range is fixed: no automatic
@@ -109,5 +111,7 @@ def apply_optimized(source_or_spec_json, volume_display, *, preset_path=None):
     if preset_path is not None:
         from dvr_perception.export import save_paraview_preset
 
-        save_paraview_preset(spec, preset_path, scalar_range=data_range(volume_display, array))
+        save_paraview_preset(
+            spec, preset_path, name=preset_name, scalar_range=data_range(volume_display, array)
+        )
     return spec

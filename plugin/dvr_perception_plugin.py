@@ -33,6 +33,9 @@ _ARRAY_LIST = (
     "</ArrayListDomain>"
 )
 _MULTI_LINE = '<Widget type="multi_line" />'
+#: On *Apply* the GUI shows the 2-D output in a view of its own (split beside the active one),
+#: never as a slab in the 3-D view: ParaView's preferred-view hint.
+_OWN_VIEW = '<View type="SpreadSheetView" />'
 #: The documented range of each numeric property: ``(min, max, integer)``.  The ``smdomain``
 #: decorators below show them in the GUI; :meth:`_LibraryShell._set_in_range` holds values set
 #: from Python to them too.
@@ -242,6 +245,7 @@ class StructuralLayers(_LibraryShell):
 
 @smproxy.filter(name="DVRPerceptionMeasures", label="Perception Measures", support_reload=False)
 @smhint.xml(_CATEGORY)
+@smhint.xml(_OWN_VIEW)
 @smproperty.input(name="Input", port_index=0)
 @smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
 @smdomain.xml(_IMAGE_INPUT)
@@ -327,6 +331,7 @@ class PerceptionMeasures(_LibraryShell):
     name="DVROptimizeTransferFunction", label="Optimize Transfer Function", support_reload=False
 )
 @smhint.xml(_CATEGORY)
+@smhint.xml(_OWN_VIEW)
 @smproperty.input(name="Input", port_index=0)
 @smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
 @smdomain.xml(_IMAGE_INPUT)
@@ -337,7 +342,12 @@ class OptimizeTransferFunction(_LibraryShell):
     and field data of *Perception Measures* for the optimised spec, plus the optimised
     per-structure ``opacity``, ``color``, ``ambient``, ``diffuse``, ``specular``,
     ``specular_power``, ``initial_E*`` and the string ``optimized_spec_json`` (apply it to a
-    volume display with ``plugin/apply_result.py``).
+    volume display with ``plugin/dvr_view.py``'s ``optimise_this_view``, the *DVR Optimise
+    View* macro, or ``plugin/apply_result.py``).
+
+    The last output is kept: setting only ``ParaViewSSIM`` (what ``optimise_this_view``
+    reports after rendering the applied result in ParaView) re-executes without optimising
+    again and adds the field array ``paraview_ssim`` to the same output.
     """
 
     _filter_name = "TransferFunctionOptimizer"
@@ -363,6 +373,9 @@ class OptimizeTransferFunction(_LibraryShell):
             "resolution": 0,
             "distributed": 0,
         }
+        self._ssim = -1.0
+        self._cache = None
+        self._cache_key = None
 
     _parameters = PerceptionMeasures._parameters
     SetDistributed = PerceptionMeasures.SetDistributed
@@ -419,3 +432,37 @@ class OptimizeTransferFunction(_LibraryShell):
     )
     def SetRegion(self, value):
         self._set("region", value)
+
+    @smproperty.doublevector(name="ParaViewSSIM", default_values=-1.0, panel_visibility="never")
+    def SetParaViewSSIM(self, value):
+        """SSIM of ParaView's rendering of the applied result vs the engine's (-1: none)."""
+        value = float(value)
+        if value != self._ssim:
+            self._ssim = value
+            self.Modified()
+
+    def RequestData(self, request, in_info, out_info):
+        impl = self._library_filter()
+        if impl is None or self._ranks_together(impl, out_info) or _requested_piece(out_info) > 0:
+            return _LibraryShell.RequestData(self, request, in_info, out_info)
+        from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData
+
+        source = in_info[0].GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT())
+        output = out_info.GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT())
+        key = (repr(sorted(self._values.items())), source.GetMTime() if source else 0)
+        if self._cache is not None and key == self._cache_key:
+            output.ShallowCopy(self._cache)  # only ParaViewSSIM changed: no new optimisation
+        else:
+            self._cache = self._cache_key = None
+            if not _LibraryShell.RequestData(self, request, in_info, out_info):
+                return 0
+            if output.GetFieldData().GetAbstractArray("optimized_spec_json") is None:
+                return 1  # failed: the library reported the error; nothing to keep
+            self._cache = vtkImageData()
+            self._cache.ShallowCopy(output)
+            self._cache_key = key
+        if self._ssim >= 0:
+            from dvr_perception.filters._base import double_array
+
+            output.GetFieldData().AddArray(double_array([self._ssim], "paraview_ssim"))
+        return 1

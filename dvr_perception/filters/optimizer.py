@@ -31,7 +31,10 @@ sum of Eq. 12 with ``weights``), ``initial_E_v``, ``initial_E_s``, ``initial_E_t
 strings ``optimized_spec_json`` (the optimised spec as JSON, the format of
 :func:`~dvr_perception.structures.io.spec_to_dict`) and ``status_message``; and ``why``, one
 line per structure: its opacity and share of the picture before -> target -> after and the
-optimiser's reason in words (:func:`~dvr_perception.optimize.explain.explain`).
+optimiser's reason in words (:func:`~dvr_perception.optimize.explain.explain`); per structure
+also ``opacity_before`` and ``share_before`` (the numbers of those lines before the
+optimisation), and one tuple ``opacity_unit_distance`` (the spec's, else the smallest voxel
+spacing: the value a ParaView volume display needs to match the engine's opacity).
 
 Progress is reported with ``UpdateProgress`` from the optimiser's callback (0.05 to 0.9 over
 the expected iterations); ``AbortExecute`` (ParaView's *Abort*) stops the optimiser after the
@@ -188,6 +191,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
     def __init__(self) -> None:
         super().__init__()
         self.result = None
+        self._spacing = (1.0, 1.0, 1.0)
 
     def _callback(self, total: int):
         def callback(info) -> None:
@@ -215,6 +219,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         volume = attach_labels(volume, spec)  # the spec's label volume, e.g. a .seg.nrrd
         check_spec_for_volume(spec, volume)
         camera = self.make_camera(volume, spec)
+        self._spacing = tuple(volume.spacing)
         res = self._optimize(volume, spec, camera)
         self.UpdateProgress(0.9)
         opt = res.spec
@@ -243,6 +248,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         self.UpdateProgress(0.0)
         self.result = None
         part, spec, camera = self.piece_scene(image, comm, piece, whole)
+        self._spacing = tuple(image.GetSpacing())
         session = RankSession(comm, part, spec, sigma=1.0)  # the optimiser's curvature scale
         if comm.rank != 0:
             session.serve()
@@ -315,5 +321,11 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         fd.AddArray(string_array([res.message], "status_message"))
         why = [explanation_line(n, res.structures[n]) for n in names if n in res.structures]
         fd.AddArray(string_array(why, "why"))
+        before = [res.structures.get(n, {}) for n in names]
+        for key in ("opacity_before", "share_before"):
+            fd.AddArray(double_array([_nan(b.get(key)) for b in before], key))
+        unit = opt.rendering.opacity_unit_distance
+        unit = float(min(self._spacing)) if unit is None else float(unit)
+        fd.AddArray(double_array([unit], "opacity_unit_distance"))
         fd.AddArray(string_array([json.dumps(spec_to_dict(opt))], "optimized_spec_json"))
         self.result = res

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
@@ -166,3 +167,30 @@ def mpiexec(paraview):
             pytest.fail("required under CI=true: mpiexec (openmpi-bin, make paraview-system)")
         pytest.skip("no mpiexec (apt-get install openmpi-bin)")
     return paraview
+
+
+@pytest.fixture(scope="module")
+def display():
+    """An X display for ParaView (``$DISPLAY`` or a private Xvfb for the module)."""
+    from dvr_perception.cli.pvbatch import virtual_display
+    from dvr_perception.errors import DVRInputError
+
+    try:
+        with virtual_display() as d:
+            yield d
+    except DVRInputError as exc:  # the ``paraview`` fixture's policy: skip locally, fail in CI
+        _missing(str(exc))
+
+
+@pytest.fixture(scope="module")
+def loopback_shim(tmp_path_factory) -> Path:
+    """``loopback_bind.c`` built into a shared library for ``LD_PRELOAD``."""
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        _missing("a C compiler (cc) to build the loopback bind shim for pvserver")
+    out = tmp_path_factory.mktemp("shim") / "libloopback_bind.so"
+    src = Path(__file__).with_name("loopback_bind.c")
+    cmd = [cc, "-shared", "-fPIC", "-O2", "-o", str(out), str(src), "-ldl"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    assert proc.returncode == 0, proc.stderr
+    return out

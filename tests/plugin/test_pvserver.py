@@ -17,7 +17,6 @@ from __future__ import annotations
 import ipaddress
 import os
 import queue
-import shutil
 import socket
 import subprocess
 import threading
@@ -26,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from dvr_perception.cli.pvbatch import find_paraview, virtual_display
+from dvr_perception.cli.pvbatch import find_paraview
 from dvr_perception.errors import DVRInputError
 from tests.plugin.conftest import CROSS_ENV_ABS
 
@@ -67,38 +66,6 @@ print({MARK!r} + json.dumps({{
 }}), flush=True)
 Disconnect()
 """
-
-
-@pytest.fixture(scope="module")
-def display():
-    try:
-        with virtual_display() as d:
-            yield d
-    except DVRInputError as exc:  # the ``paraview`` fixture's policy: skip locally, fail in CI
-        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
-            pytest.fail(f"required under CI=true: {exc}")
-        pytest.skip(str(exc))
-
-
-def _required(reason: str) -> None:
-    """The ``paraview`` fixture's policy: skip locally, fail under CI=true."""
-    if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
-        pytest.fail(f"required under CI=true: {reason}")
-    pytest.skip(reason)
-
-
-@pytest.fixture(scope="module")
-def loopback_shim(tmp_path_factory) -> Path:
-    """``loopback_bind.c`` built into a shared library for ``LD_PRELOAD``."""
-    cc = shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
-        _required("a C compiler (cc) to build the loopback bind shim for pvserver")
-    out = tmp_path_factory.mktemp("shim") / "libloopback_bind.so"
-    src = Path(__file__).with_name("loopback_bind.c")
-    cmd = [cc, "-shared", "-fPIC", "-O2", "-o", str(out), str(src), "-ldl"]
-    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    assert proc.returncode == 0, proc.stderr
-    return out
 
 
 def _listening(pid: int) -> list[tuple[str, int]]:

@@ -1,0 +1,61 @@
+"""Install the DVR Perception toolbar: copy ``plugin/macros/*.py`` into ParaView's macro folder.
+
+ParaView (5.11) lists every Python file of its user macro folder in the *Macros* menu and on
+the *Macro Toolbar* when it starts: ``$XDG_CONFIG_HOME/ParaView/Macros``, by default
+``~/.config/ParaView/Macros`` (Qt's settings folder).  Run once, then restart ParaView::
+
+    python3 plugin/install_macros.py          # or: make paraview-macros
+    python3 plugin/install_macros.py --folder DIR
+
+The macros find this folder through the loaded plugin, so the plugin must be loaded (*Tools >
+Manage Plugins*, *Auto Load*).  Only the standard library is used: any Python runs it.
+"""
+
+import argparse
+import os
+import shutil
+import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+SOURCE = os.path.join(HERE, "macros")
+
+__all__ = ["install", "macro_folder"]
+
+
+def macro_folder(environ=None):
+    """ParaView's macro folder: ``$XDG_CONFIG_HOME`` (or ``~/.config``)/ParaView/Macros."""
+    env = os.environ if environ is None else environ
+    base = env.get("XDG_CONFIG_HOME") or os.path.join(
+        env.get("HOME") or os.path.expanduser("~"), ".config"
+    )
+    return os.path.join(base, "ParaView", "Macros")
+
+
+def install(folder=None):
+    """Copy every macro of ``plugin/macros`` into ``folder`` (default :func:`macro_folder`).
+
+    Returns the written paths, sorted.
+    """
+    folder = folder or macro_folder()
+    os.makedirs(folder, exist_ok=True)
+    written = []
+    for name in sorted(os.listdir(SOURCE)):
+        if name.endswith(".py"):
+            target = os.path.join(folder, name)
+            shutil.copyfile(os.path.join(SOURCE, name), target)
+            written.append(target)
+    return written
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--folder", help="macro folder (default: ParaView's user macro folder)")
+    args = parser.parse_args(argv)
+    for path in install(args.folder):
+        print(f"installed {path}")
+    print("restart ParaView: the macros are on its Macro Toolbar and in the Macros menu")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,23 @@
+"""ParaView macro (DVR Perception toolbar). Measure this view: *Perception Measures* with the
+active 3D view's camera; the quality maps and the per-structure table open beside the view.
+
+Installed into ParaView's macro folder by ``make paraview-macros`` (or ``python3
+plugin/install_macros.py``); the plugin must be loaded.  Acts in one step on the active source
+(the volume, or a DVR Perception filter on it) and the active view.
+"""
+
+import os
+import sys
+
+plugin = sys.modules.get("dvr_perception_plugin")
+if plugin is None:
+    raise RuntimeError(
+        "DVR_Measure_View: load plugin/dvr_perception_plugin.py first (Tools > Manage Plugins)"
+    )
+folder = os.path.dirname(os.path.abspath(plugin.__file__))
+if folder not in sys.path:
+    sys.path.insert(0, folder)
+
+import dvr_view  # noqa: E402
+
+dvr_view.run_macro("measure")

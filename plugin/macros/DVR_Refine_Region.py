@@ -1,0 +1,24 @@
+"""ParaView macro (DVR Perception toolbar). Refine region: optimise again with the lens on the
+points selected in a quality-map view (*Select Points On*, then drag a rubber band over the part
+of the picture that matters).
+
+Installed into ParaView's macro folder by ``make paraview-macros`` (or ``python3
+plugin/install_macros.py``); the plugin must be loaded.  Acts in one step on the active source
+(the volume, or a DVR Perception filter on it) and the active view.
+"""
+
+import os
+import sys
+
+plugin = sys.modules.get("dvr_perception_plugin")
+if plugin is None:
+    raise RuntimeError(
+        "DVR_Refine_Region: load plugin/dvr_perception_plugin.py first (Tools > Manage Plugins)"
+    )
+folder = os.path.dirname(os.path.abspath(plugin.__file__))
+if folder not in sys.path:
+    sys.path.insert(0, folder)
+
+import dvr_view  # noqa: E402
+
+dvr_view.run_macro("refine")

@@ -1,0 +1,23 @@
+"""ParaView macro (DVR Perception toolbar). Undo: the volume's transfer functions, material, the
+view's background and the filter's camera as before the last DVR Perception action.
+
+Installed into ParaView's macro folder by ``make paraview-macros`` (or ``python3
+plugin/install_macros.py``); the plugin must be loaded.  Acts in one step on the active source
+(the volume, or a DVR Perception filter on it) and the active view.
+"""
+
+import os
+import sys
+
+plugin = sys.modules.get("dvr_perception_plugin")
+if plugin is None:
+    raise RuntimeError(
+        "DVR_Undo: load plugin/dvr_perception_plugin.py first (Tools > Manage Plugins)"
+    )
+folder = os.path.dirname(os.path.abspath(plugin.__file__))
+if folder not in sys.path:
+    sys.path.insert(0, folder)
+
+import dvr_view  # noqa: E402
+
+dvr_view.run_macro("undo")
