@@ -143,6 +143,19 @@ class ParaView:
         return json.loads(lines[-1][len(MARK) :])
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _private_paraview_settings(tmp_path_factory):
+    """ParaView keeps imported presets and macros in ``$XDG_CONFIG_HOME/ParaView``: the tests'
+    ParaView runs (``pvbatch`` through the CLI too) get a folder of their own, never the user's."""
+    old = os.environ.get("XDG_CONFIG_HOME")
+    os.environ["XDG_CONFIG_HOME"] = str(tmp_path_factory.mktemp("paraview-config"))
+    yield
+    if old is None:
+        os.environ.pop("XDG_CONFIG_HOME", None)
+    else:
+        os.environ["XDG_CONFIG_HOME"] = old
+
+
 @pytest.fixture(scope="session")
 def paraview() -> ParaView:
     """The ParaView installation; skips locally / fails under CI when it is missing."""
