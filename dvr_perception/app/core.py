@@ -46,6 +46,7 @@ from dvr_perception.app.session import (
 )
 from dvr_perception.app.study import png_data_url
 from dvr_perception.app.study_screens import RANKING_FILE, StudyHandlers
+from dvr_perception.app.tf_handlers import TFHandlers
 from dvr_perception.errors import DVRInputError
 
 __all__ = ["MAX_ITER", "STAGE_SETS", "DVRApp", "lens_region"]
@@ -109,7 +110,7 @@ def _style_bar(bar) -> None:
         prop.SetFontSize(size)
 
 
-class DVRApp(LensHandlers, StudyHandlers, TrameApp):
+class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
     """Web app: choose a volume, edit structures, see the quality map, optimise, export.
 
     Parameters
@@ -275,6 +276,14 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         s.rank_result = ""
         s.rank_saved = False
         s.rank_file_label = str(self.session.export_dir / RANKING_FILE)
+        # transfer-function view (geometry from dvr_perception.app.tf_view)
+        s.tf = None
+        s.tf_bar = []
+        s.tf_value_range = [0, 1]
+        s.tf_edit = None  # a dropped handle: {index, kind, fx, fy}
+        s.tf_drag = None  # the handle being dragged (the page's own)
+        s.client_only("tf_drag")
+        s.show_legend = True
         # upload
         s.upload = None
         s.max_upload_mb = round(self.max_upload_bytes / 1e6, 2)
@@ -338,6 +347,7 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         self.state.structure_names = [
             {"title": s.name, "value": k} for k, s in enumerate(self.session.spec.structures)
         ]
+        self._update_tf()
 
     def _snapshot(self) -> str:
         """Return the current view as a small PNG data URL (for the before/after comparison)."""
@@ -373,6 +383,7 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         from dvr_perception.rays import Camera
 
         volume, spec = self.session.load_volume(name)
+        self._tf_before = None
         self.plotter.clear_actors()
         self.handle = add_structures(self.plotter, volume, spec)
         az, el, zoom = spec.view or (0.0, 0.0, 1.0)
@@ -753,6 +764,7 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
             self.state.busy = False
             label += " (cancelled)" if cancelled else ""
             self.session.push_undo(label)
+            self._tf_before = self.session.spec  # drawn dashed in the transfer-function view
             self.session.spec = result.spec
             self.state.why_lines = _why_lines(result)
             self._render_spec(result.spec)

@@ -3,7 +3,8 @@
 Screens (tabs in the top bar):
 
 1. **Data** -- volume (list of the data folder, upload), structure table (colour, importance,
-   current opacity), spec JSON load/save;
+   current opacity), the transfer-function view (histogram with each structure's range and
+   opacity, draggable), spec JSON load/save;
 2. **Quality map** -- what the three errors mean, the map overlay (kind, strength) and the
    visible share of every structure against the wanted share;
 3. **Optimise** -- opacity only or all stages, live progress, cancel, before/after, history
@@ -15,6 +16,8 @@ Screens (tabs in the top bar):
 7. **Export** -- PNG, spec JSON, ParaView preset, Slicer file.
 
 The three error numbers, the progress bar and Cancel stay visible on the view screens.
+Over the view: a legend with the structures' colours and opacities and a colour bar of the
+value range (:mod:`.ui_tf`), and buttons for the reset and the six axis views.
 Elements the browser tests use carry ``id`` attributes.
 """
 
@@ -33,6 +36,7 @@ from dvr_perception.app.ui_study import (
     ranking_panel,
     ranking_screen,
 )
+from dvr_perception.app.ui_tf import tf_editor, view_overlay
 
 __all__ = ["TABS", "build_ui"]
 
@@ -201,6 +205,8 @@ def _data_panel(app) -> None:
                 )
             html.Td("{{ row.opacity.toFixed(2) }}", classes="text-right")
     html.Div("Importance: 0 = may vanish, 1 = must stay clearly visible.", classes="text-caption")
+    heading("Transfer function", "Each structure's value range and opacity over the histogram.")
+    tf_editor(app)
     with v3.VRow(dense=True, classes="mt-2", align="center"):
         with v3.VCol(cols=6):
             v3.VTextField(
@@ -396,6 +402,12 @@ def _optimise_panel(app) -> None:
                     raw_attrs=[':data-key="opt_key"'],
                     id="after-text",
                 )
+    with html.Div(v_if="before_url", classes="mt-2"):
+        html.Div(
+            "Transfer function: now (solid) and before the optimisation (dashed)",
+            classes="text-body-2 font-weight-bold",
+        )
+        tf_editor(app, element_id="tf-optimise", editable=False)
     with html.Div(
         v_if=f"why_lines.length && {OPT_FRESH}",
         classes="mt-2 measured",
@@ -516,6 +528,7 @@ def build_ui(app):
             )
             app.ctrl.view_update = app.view.update
             lens_pad(app)
+            view_overlay(app)
             with html.Div(
                 v_if=STUDY_TABS,
                 style="position: absolute; inset: 0; z-index: 6; background: #fff; overflow: auto;",
