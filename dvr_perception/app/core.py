@@ -193,6 +193,11 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         self._map_on = False
         self._init_state()
         self._show_volume(volume or PHANTOM)
+        from dvr_perception.app.preview import Preview
+
+        self.preview = Preview(self.session.volume, self.session.spec)
+        self._sync_preview()
+        self._preview_dirty = False  # the page gets the scene with its first state
         from dvr_perception.app.ui import build_ui
 
         self.ui = build_ui(self)
@@ -284,6 +289,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         s.tf_drag = None  # the handle being dragged (the page's own)
         s.client_only("tf_drag")
         s.show_legend = True
+        s.view_mode = "exact"  # on screen: the engine's "exact" image or the vtk.js "preview"
         # upload
         s.upload = None
         s.max_upload_mb = round(self.max_upload_bytes / 1e6, 2)
@@ -348,6 +354,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
             {"title": s.name, "value": k} for k, s in enumerate(self.session.spec.structures)
         ]
         self._update_tf()
+        self._sync_preview()
 
     def _snapshot(self) -> str:
         """Return the current view as a small PNG data URL (for the before/after comparison)."""
@@ -392,6 +399,8 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
             volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
         )
         set_plotter_camera(self.plotter, cam, window_size=False)
+        if self.preview is not None:
+            self.preview.set_volume(volume, spec)
         self._changed(view=True)
         self._changed(label=f"loaded {name}")
         self.state.opt_key = ""
