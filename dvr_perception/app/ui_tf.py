@@ -164,7 +164,7 @@ def tf_editor(app, *, element_id: str = "tf-editor", editable: bool = True) -> N
 def view_overlay(app) -> None:
     """Legend and colour bar over the rendering, and the reset and axis-view buttons."""
     with html.Div(
-        v_if="show_legend && tf && !['calibration', 'ranking'].includes(tab)",
+        v_if="show_legend && tf && !['calibration', 'ranking', 'lens'].includes(tab)",
         id="view-legend",
         style="position: absolute; left: 8px; top: 8px; z-index: 4; pointer-events: none; "
         "background: rgba(0,0,0,0.55); color: #fff; padding: 4px 8px; border-radius: 4px; "
