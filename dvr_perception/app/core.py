@@ -46,6 +46,7 @@ from dvr_perception.app.session import (
 )
 from dvr_perception.app.study import png_data_url
 from dvr_perception.app.study_screens import RANKING_FILE, StudyHandlers
+from dvr_perception.app.tf_handlers import TFHandlers
 from dvr_perception.errors import DVRInputError
 
 __all__ = ["MAX_ITER", "STAGE_SETS", "DVRApp", "lens_region"]
@@ -109,7 +110,7 @@ def _style_bar(bar) -> None:
         prop.SetFontSize(size)
 
 
-class DVRApp(LensHandlers, StudyHandlers, TrameApp):
+class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
     """Web app: choose a volume, edit structures, see the quality map, optimise, export.
 
     Parameters
@@ -192,6 +193,11 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         self._map_on = False
         self._init_state()
         self._show_volume(volume or PHANTOM)
+        from dvr_perception.app.preview import Preview
+
+        self.preview = Preview(self.session.volume, self.session.spec)
+        self._sync_preview()
+        self._preview_dirty = False  # the page gets the scene with its first state
         from dvr_perception.app.ui import build_ui
 
         self.ui = build_ui(self)
@@ -275,6 +281,15 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         s.rank_result = ""
         s.rank_saved = False
         s.rank_file_label = str(self.session.export_dir / RANKING_FILE)
+        # transfer-function view (geometry from dvr_perception.app.tf_view)
+        s.tf = None
+        s.tf_bar = []
+        s.tf_value_range = [0, 1]
+        s.tf_edit = None  # a dropped handle: {index, kind, fx, fy}
+        s.tf_drag = None  # the handle being dragged (the page's own)
+        s.client_only("tf_drag")
+        s.show_legend = True
+        s.view_mode = "exact"  # on screen: the engine's "exact" image or the vtk.js "preview"
         # upload
         s.upload = None
         s.max_upload_mb = round(self.max_upload_bytes / 1e6, 2)
@@ -338,6 +353,8 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         self.state.structure_names = [
             {"title": s.name, "value": k} for k, s in enumerate(self.session.spec.structures)
         ]
+        self._update_tf()
+        self._sync_preview()
 
     def _snapshot(self) -> str:
         """Return the current view as a small PNG data URL (for the before/after comparison)."""
@@ -373,6 +390,7 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
         from dvr_perception.rays import Camera
 
         volume, spec = self.session.load_volume(name)
+        self._tf_before = None
         self.plotter.clear_actors()
         self.handle = add_structures(self.plotter, volume, spec)
         az, el, zoom = spec.view or (0.0, 0.0, 1.0)
@@ -381,6 +399,8 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
             volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
         )
         set_plotter_camera(self.plotter, cam, window_size=False)
+        if self.preview is not None:
+            self.preview.set_volume(volume, spec)
         self._changed(view=True)
         self._changed(label=f"loaded {name}")
         self.state.opt_key = ""
@@ -753,6 +773,7 @@ class DVRApp(LensHandlers, StudyHandlers, TrameApp):
             self.state.busy = False
             label += " (cancelled)" if cancelled else ""
             self.session.push_undo(label)
+            self._tf_before = self.session.spec  # drawn dashed in the transfer-function view
             self.session.spec = result.spec
             self.state.why_lines = _why_lines(result)
             self._render_spec(result.spec)

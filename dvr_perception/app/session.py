@@ -369,8 +369,13 @@ class Session:
         n = len(self.undo_labels)
         return [{"steps": n - k, "label": self.undo_labels[k]} for k in range(n - 1, -1, -1)]
 
-    def set_structure(self, index: int, *, importance=None, color=None, value_range=None):
-        """Change one structure's importance (its opacity then follows it), colour or range."""
+    def set_structure(
+        self, index: int, *, importance=None, color=None, value_range=None, opacity=None
+    ):
+        """Change one structure's importance (its opacity then follows it), colour or range.
+
+        ``opacity`` sets the rendering opacity alone (the transfer-function view's handle).
+        """
         k = int(index)
         if not 0 <= k < len(self.spec.structures):
             raise DVRInputError(f"structure {index}: no such structure")
@@ -394,11 +399,17 @@ class Session:
             if not (math.isfinite(v) and 0.0 <= v <= 1.0):
                 raise DVRInputError(f"importance of {s.name}: expected 0 to 1, got {importance}")
             s = replace(s, importance=v, opacity=None)
+        if opacity is not None:
+            v = float(opacity)
+            if not (math.isfinite(v) and 0.0 <= v <= 1.0):
+                raise DVRInputError(f"opacity of {s.name}: expected 0 to 1, got {opacity}")
+            s = replace(s, opacity=v)
         if color is not None:
             s = replace(s, color=hex_to_rgb(color))
         if s == self.spec.structures[k]:
             return self.spec
         what = "importance" if importance is not None else "colour"
+        what = "opacity" if opacity is not None else what
         what = "range" if value_range is not None else what
         self.push_undo(f"{what} of {s.name}")
         structures = list(self.spec.structures)

@@ -3,7 +3,8 @@
 Screens (tabs in the top bar):
 
 1. **Data** -- volume (list of the data folder, upload), structure table (colour, importance,
-   current opacity), spec JSON load/save;
+   current opacity), the transfer-function view (histogram with each structure's range and
+   opacity, draggable), spec JSON load/save;
 2. **Quality map** -- what the three errors mean, the map overlay (kind, strength) and the
    visible share of every structure against the wanted share;
 3. **Optimise** -- opacity only or all stages, live progress, cancel, before/after, history
@@ -15,6 +16,8 @@ Screens (tabs in the top bar):
 7. **Export** -- PNG, spec JSON, ParaView preset, Slicer file.
 
 The three error numbers, the progress bar and Cancel stay visible on the view screens.
+Over the view: a legend with the structures' colours and opacities and a colour bar of the
+value range (:mod:`.ui_tf`), and buttons for the reset and the six axis views.
 Elements the browser tests use carry ``id`` attributes.
 """
 
@@ -33,6 +36,7 @@ from dvr_perception.app.ui_study import (
     ranking_panel,
     ranking_screen,
 )
+from dvr_perception.app.ui_tf import tf_editor, view_overlay
 
 __all__ = ["TABS", "build_ui"]
 
@@ -201,6 +205,8 @@ def _data_panel(app) -> None:
                 )
             html.Td("{{ row.opacity.toFixed(2) }}", classes="text-right")
     html.Div("Importance: 0 = may vanish, 1 = must stay clearly visible.", classes="text-caption")
+    heading("Transfer function", "Each structure's value range and opacity over the histogram.")
+    tf_editor(app)
     with v3.VRow(dense=True, classes="mt-2", align="center"):
         with v3.VCol(cols=6):
             v3.VTextField(
@@ -396,6 +402,12 @@ def _optimise_panel(app) -> None:
                     raw_attrs=[':data-key="opt_key"'],
                     id="after-text",
                 )
+    with html.Div(v_if="before_url", classes="mt-2"):
+        html.Div(
+            "Transfer function: now (solid) and before the optimisation (dashed)",
+            classes="text-body-2 font-weight-bold",
+        )
+        tf_editor(app, element_id="tf-optimise", editable=False)
     with html.Div(
         v_if=f"why_lines.length && {OPT_FRESH}",
         classes="mt-2 measured",
@@ -439,6 +451,47 @@ def _export_panel(app) -> None:
     html.Div("Export folder: {{ export_dir_label }}", classes="text-caption mt-1")
     html.Div("Written:", v_if="exports.length", classes="text-body-2 mt-2")
     html.Div("{{ name }}", v_for="name in exports", classes="text-body-2 ml-2", id="export-list")
+
+
+def _views(app) -> None:
+    """Add the quick preview (vtk.js, takes the mouse) under the engine's exact image.
+
+    A drag or a wheel turn in the preview shows the preview alone (``view_mode``
+    ``"preview"``); when the camera rests the server renders the exact image for it, which
+    covers the preview again.
+    """
+    end = (app.local_camera, "[trame.refs.local.getCamera()]")
+    with html.Div(style="position: absolute; inset: 0; z-index: 0;", id="local-view"):
+        app.local_view = vtk_widgets.VtkLocalView(
+            app.preview.window,
+            ref="local",
+            interactor_events=(
+                "local_events",
+                ["StartAnimation", "EndAnimation", "StartMouseWheel", "EndMouseWheel"],
+            ),
+            StartAnimation=app.preview_start,
+            StartMouseWheel=app.preview_start,
+            EndAnimation=end,
+            EndMouseWheel=end,
+        )
+    with html.Div(
+        style=(
+            "{position: 'absolute', inset: 0, zIndex: 1, pointerEvents: 'none', "
+            "visibility: view_mode === 'exact' ? 'visible' : 'hidden'}",
+        ),
+        id="exact-view",
+    ):
+        app.view = vtk_widgets.VtkRemoteView(app.plotter.ren_win, ref="view", interactive_ratio=1)
+    app.ctrl.view_update = app.view.update
+    html.Div(
+        "{{ view_mode === 'exact' ? 'exact image (engine)' : "
+        "'quick preview (vtk.js, small copy)' }}",
+        style="position: absolute; right: 8px; bottom: 8px; z-index: 4; pointer-events: none; "
+        "color: #fff; background: rgba(0,0,0,0.55); padding: 2px 8px; border-radius: 4px;",
+        classes="text-caption",
+        raw_attrs=[':data-mode="view_mode"'],
+        id="view-mode",
+    )
 
 
 def build_ui(app):
@@ -507,15 +560,9 @@ def build_ui(app):
                 fluid=True, classes="pa-0 fill-height", style="position: relative;", id="view"
             ),
         ):
-            app.view = vtk_widgets.VtkRemoteView(
-                app.plotter.ren_win,
-                ref="view",
-                interactive_ratio=1,
-                interactor_events=("view_events", ["EndAnimation"]),
-                EndAnimation=app.measure_view,
-            )
-            app.ctrl.view_update = app.view.update
+            _views(app)
             lens_pad(app)
+            view_overlay(app)
             with html.Div(
                 v_if=STUDY_TABS,
                 style="position: absolute; inset: 0; z-index: 6; background: #fff; overflow: auto;",

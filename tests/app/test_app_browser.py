@@ -246,6 +246,9 @@ def test_optimise_opacity_lowers_visibility_error_and_changes_image(page):
     assert page.locator("#error-history polyline").count() == 3  # E_v, E_s, E_t
     assert page.locator("#share-chart-live .share-value").count() == 6
     assert "optimise opacity" in page.inner_text("#history-list")
+    # the transfer-function view draws the curves before the optimisation dashed
+    assert page.locator("#tf-optimise .tf-before").count() == 6
+    assert page.locator("#tf-optimise .tf-curve").count() == 6
     why = page.inner_text("#why")  # one line per structure, with the reason in words
     assert why.count("share of the picture") == 6
     assert any(w in why for w in ("lowered:", "raised:"))
@@ -597,6 +600,112 @@ def test_export_writes_valid_files(page, server):
     json.loads(files["phantom_paraview.json"].read_text())
     json.loads(files["phantom.vp.json"].read_text())
     assert server["proc"].poll() is None
+
+
+def _handle_centre(page, selector: str) -> tuple[float, float]:
+    box = page.locator(selector).bounding_box()
+    return box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+
+
+def _drag_handle(page, selector: str, dx: float, dy: float) -> tuple[float, float]:
+    """Drag a handle of the transfer-function view by (dx, dy) px; return its centre mid-drag."""
+    page.locator(selector).scroll_into_view_if_needed()
+    x, y = _handle_centre(page, selector)
+    page.mouse.move(x, y)
+    page.mouse.down()
+    page.mouse.move(x + dx / 2, y + dy / 2, steps=4)
+    page.mouse.move(x + dx, y + dy, steps=4)
+    mid = _handle_centre(page, selector)
+    page.mouse.up()
+    return mid
+
+
+def test_transfer_function_view_drag_changes_rendering_and_terms(page):
+    _close_messages(page)
+    _tab(page, "data")
+    _settled(page)
+    editor = "#tf-editor"
+    page.wait_for_selector(f"{editor} .tf-histogram")
+    assert page.locator(f"{editor} .tf-curve").count() == 6
+    assert page.locator(f"{editor} .tf-handle").count() == 18  # two range ends + opacity each
+    assert page.locator(f"{editor} .tf-swatch").count() == 6
+    # the legend and the colour bar on the rendering
+    assert page.locator("#view-legend .legend-name").all_inner_texts()[2] == "brain"
+    assert page.locator("#colour-bar > div").count() == 6
+    # drag the brain's upper range end to the left
+    hi = page.locator("#structure-table .range-hi").nth(2)
+    old_hi = float(hi.input_value())
+    handle = f'{editor} .tf-hi[data-index="2"]'
+    page.locator(handle).scroll_into_view_if_needed()
+    x0, _ = _handle_centre(page, handle)
+    ev = page.inner_text("#value-E_v").strip()
+    es = page.inner_text("#value-E_s").strip()
+    key = _now_key(page)
+    before = _view_image(page)
+    mid_x, _ = _drag_handle(page, handle, -30, 0)
+    assert mid_x < x0 - 20  # the handle follows the pointer on the page
+    page.wait_for_function(
+        "([sel, old]) => parseFloat(document.querySelector(sel).value) < old",
+        arg=["#structure-table tr:nth-child(4) .range-hi", old_hi],
+    )
+    new_hi = float(hi.input_value())
+    assert new_hi < old_hi
+    assert _now_key(page) != key  # the old terms went stale at once
+    # the terms and the rendering follow
+    page.wait_for_selector("#measuring", state="hidden")
+    page.wait_for_function(
+        "(key) => document.querySelector('#value-E_v').dataset.key === "
+        "document.querySelector('#now-key').dataset.now && "
+        "!isNaN(parseFloat(document.querySelector('#value-E_v').innerText))",
+        arg=key,
+    )
+    assert (page.inner_text("#value-E_v").strip(), page.inner_text("#value-E_s").strip()) != (
+        ev,
+        es,
+    )
+    after = _wait_image_change(page, before)
+    assert np.abs(after - before).mean() > 1e-4, "the rendering did not follow the range"
+    x1, _ = _handle_centre(page, handle)
+    assert abs(x1 - mid_x) < 12  # the server put the handle where it was dropped
+    _shot(page, "transfer_function")
+    # the opacity handle of the skin, dragged down, lowers its opacity
+    op = f'{editor} .tf-opacity[data-index="0"]'
+    row = page.locator(f"{editor} .tf-row").nth(0)
+    old_op = float(row.inner_text().split("opacity")[-1])
+    _drag_handle(page, op, 0, 25)
+    page.wait_for_function(
+        "([el, old]) => parseFloat(el.innerText.split('opacity').pop()) < old",
+        arg=[row.element_handle(), old_op],
+    )
+    page.wait_for_selector("#measuring", state="hidden")
+    # view buttons: +X shows another side; Reset comes back
+    key = _now_key(page)
+    front = _view_image(page)
+    page.click("#view-px")
+    side = _wait_image_change(page, front, min_change=1e-3)
+    assert np.abs(side - front).mean() > 1e-3
+    page.wait_for_function(
+        "(old) => document.querySelector('#now-key').dataset.now !== old", arg=key
+    )
+    page.wait_for_selector("#measuring", state="hidden")
+    assert "azimuth 90 deg" in page.inner_text("#measured-for")
+    page.click("#view-reset")
+    page.wait_for_function("() => /azimuth -?0 deg/.test(document.querySelector('#measured-for')"
+                           ".innerText)")  # fmt: skip
+    # both edits are in the history; undo them
+    _tab(page, "optimise")
+    history = page.inner_text("#history-list")
+    assert "range of brain" in history
+    assert "opacity of skin" in history
+    page.click("#undo")
+    page.wait_for_selector("#measuring", state="hidden")
+    page.click("#undo")
+    page.wait_for_selector("#measuring", state="hidden")
+    _tab(page, "data")
+    page.wait_for_function(
+        "([sel, old]) => parseFloat(document.querySelector(sel).value) === old",
+        arg=["#structure-table tr:nth-child(4) .range-hi", old_hi],
+    )
 
 
 def test_two_tabs_share_one_consistent_state(page, server):

@@ -1,0 +1,177 @@
+"""Handlers of the transfer-function view and the view-direction buttons (a DVRApp mixin).
+
+They only call the library (:mod:`dvr_perception.app.tf_view` and the session) and show the
+result: the page reports a dropped handle in ``tf_edit``; the histogram is counted once per
+volume.
+"""
+
+from __future__ import annotations
+
+from trame.decorators import change
+
+from dvr_perception.app._guard import guard
+from dvr_perception.app.tf_view import (
+    axis_camera,
+    colour_bar_stops,
+    dropped_edit,
+    tf_chart,
+    value_histogram,
+)
+
+__all__ = ["TFHandlers"]
+
+#: Seconds after which the exact image has been pushed (see ``DVRApp._push_image``).
+REPUSH_S = 0.8
+
+
+def _three(camera, key: str) -> tuple[float, float, float]:
+    """Three finite numbers ``camera[key]`` from the page, or one clear error."""
+    import math
+
+    from dvr_perception.errors import DVRInputError
+
+    try:
+        v = tuple(float(c) for c in camera[key])
+    except (TypeError, ValueError, KeyError):
+        raise DVRInputError(f"camera from the page: {key} missing or not numbers") from None
+    if len(v) != 3 or not all(math.isfinite(c) for c in v):
+        raise DVRInputError(f"camera from the page: {key} must be three finite numbers")
+    return v
+
+
+class TFHandlers:
+    """Transfer-function editor and standard views of :class:`~dvr_perception.app.core.DVRApp`."""
+
+    _tf_hist = (None, None)  # (volume id, histogram)
+    _tf_before = None  # the spec before the last optimisation
+    preview = None  # the quick preview (dvr_perception.app.preview.Preview)
+    local_view = None  # its view in the page
+    _preview_dirty = False  # the preview changed since its scene was last sent
+
+    def _histogram(self) -> dict:
+        volume = self.session.volume
+        if self._tf_hist[0] != id(volume):
+            self._tf_hist = (id(volume), value_histogram(volume))
+        return self._tf_hist[1]
+
+    def _update_tf(self) -> None:
+        """Put the editor's geometry, the colour bar and the legend into the page state."""
+        spec = self.session.spec
+        if spec is None or self.session.volume is None:
+            return
+        hist = self._histogram()
+        self.state.tf = tf_chart(hist, spec, before=self._tf_before)
+        self.state.tf_bar = colour_bar_stops(spec, hist)
+        self.state.tf_value_range = [round(hist["lo"], 1), round(hist["hi"], 1)]
+
+    @change("tf_edit")
+    @guard
+    def on_tf_edit(self, tf_edit, **_):
+        """Set the range end or opacity of a dropped handle's structure, render, measure."""
+        if not tf_edit:
+            return
+        self.state.tf_edit = None
+        if self._task_running:
+            self._update_tf()  # the handle goes back where it was
+            return
+        edit = dropped_edit(
+            self._histogram(),
+            self.session.spec,
+            index=tf_edit.get("index"),
+            kind=tf_edit.get("kind"),
+            fx=tf_edit.get("fx"),
+            fy=tf_edit.get("fy"),
+        )
+        self.state.error = ""
+        before = self.session.spec
+        self.session.set_structure(tf_edit["index"], **edit)
+        if self.session.spec is before:
+            self._update_tf()
+            return
+        self._show_spec(restructured="value_range" in edit)
+
+    def _sync_preview(self) -> None:
+        """Give the browser's quick preview the current spec and camera (sent at the next drag).
+
+        Sending the new scene as soon as the spec changed (``VtkLocalView.update`` or a scene
+        delta) made the page drop state set just before (a banner vanished at once), so the
+        scene goes out when a drag or zoom starts (:meth:`preview_start`); its first frames may
+        still show the previous transfer function.
+        """
+        if self.preview is None:
+            return
+        self.preview.set_spec(self.session.spec)
+        self.preview.set_camera(self.plotter.camera, self.plotter.window_size)
+        self._preview_dirty = True
+
+    @guard
+    def preview_start(self):
+        """Mark the preview as shown at a drag's start; send its scene if it changed."""
+        self.state.view_mode = "preview"
+        protocol = self.server.protocol
+        if not self._preview_dirty or protocol is None or self.local_view is None:
+            return
+        self._preview_dirty = False
+        delta = self.local_view._helper.scene(self.preview.window, new_state=False, widgets=[])
+        protocol.publish("trame.vtk.delta", delta)
+
+    @guard
+    def local_camera(self, camera):
+        """Show the exact image for the camera the preview rests at after a drag or zoom."""
+        self.plotter.camera.SetPosition(*_three(camera, "position"))
+        self.plotter.camera.SetFocalPoint(*_three(camera, "focalPoint"))
+        self.plotter.camera.SetViewUp(*_three(camera, "viewUp"))
+        self.plotter.renderer.ResetCameraClippingRange()
+        self._sync_preview()
+        self._changed(view=True)
+        if self.state.show_map:
+            self._update_map()
+        self._push_image()
+        self._exact_shown()
+        self.remeasure()
+
+    def _exact_shown(self) -> None:
+        """Say the exact image is on screen once its (repeated) push has gone out."""
+        import asyncio
+
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            self.state.view_mode = "exact"
+            return
+
+        def done():
+            with self.state:
+                self.state.view_mode = "exact"
+
+        loop.call_later(REPUSH_S, done)
+
+    def _set_camera(self, camera) -> None:
+        from dvr_perception.plotting import set_plotter_camera
+
+        set_plotter_camera(self.plotter, camera, window_size=False)
+        self._sync_preview()
+        self._changed(view=True)
+        if self.state.show_map:
+            self._update_map()
+        self._push_image()
+        self.remeasure()
+
+    @guard
+    def view_axis(self, axis):
+        """Look at the volume along ``axis`` (``"+X"`` ... ``"-Z"``)."""
+        w, h = (int(v) for v in self.plotter.window_size)
+        self._set_camera(axis_camera(self.session.volume.bounds, axis, width=w, height=h))
+
+    @guard
+    def reset_view(self):
+        """Go back to the spec's view (or the default front view), the whole volume in sight."""
+        from dvr_perception.rays import Camera
+
+        az, el, zoom = self.session.spec.view or (0.0, 0.0, 1.0)
+        w, h = (int(v) for v in self.plotter.window_size)
+        self._set_camera(
+            Camera.from_view(
+                self.session.volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
+            )
+        )
