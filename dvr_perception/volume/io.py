@@ -199,7 +199,31 @@ def _read_dicom(path: Path, name: str, series: str | None) -> Volume:
         DVRWarning,
         stacklevel=3,
     )
+    _check_dicom_folder_size(path)
     return _read_vtk(_vtk.vtkDICOMImageReader(), path, name, dicom=True)
+
+
+def _check_dicom_folder_size(path: Path) -> None:
+    """Bound VTK's DICOM reader before it reads: its voxels never outnumber the files' bytes.
+
+    VTK's reader decodes only uncompressed pixel data, so the folder's regular files hold at
+    least as many bytes as the volume it makes; their total must fit the memory limit.
+    """
+    from dvr_perception.rays import memory
+
+    total = 0
+    with os.scandir(path) as entries:
+        for entry in entries:
+            if entry.is_file(follow_symlinks=False):
+                total += entry.stat(follow_symlinks=False).st_size
+    cap = memory.limit()
+    if total > cap:
+        raise DVRInputError(
+            f"{path}: the DICOM files hold {total / 2**20:.0f} MiB, more than the memory limit "
+            f"of {cap / 2**20:.0f} MiB that VTK's DICOM reader may fill; raise it with "
+            f"--memory-limit (or {memory.ENV}), or install the medical extra, which checks "
+            "each header first"
+        )
 
 
 def _read_vtk(reader, path: Path, name: str, *, dicom: bool = False) -> Volume:

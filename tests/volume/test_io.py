@@ -107,6 +107,16 @@ def test_dicom_series_vtk_fallback(tmp_path, dicom_writer, monkeypatch):
     np.testing.assert_array_equal(vol.data, data[::-1, ::-1])
     with pytest.raises(DVRInputError, match=r"dvr-perception\[medical\]"):
         load_volume(tmp_path / "series" / "slice000.dcm")
+    # the files' bytes bound what VTK reads: over the memory limit it never starts
+    from dvr_perception.rays import memory
+
+    monkeypatch.setattr(memory, "limit", lambda value=None: 1024)  # bytes
+    from dvr_perception import _vtk as vtk_module
+
+    monkeypatch.setattr(vtk_module, "vtkDICOMImageReader", None)  # fails if VTK is asked
+    with pytest.warns(DVRWarning), pytest.raises(DVRInputError, match="memory limit") as info:
+        load_volume(tmp_path / "series")
+    assert str(tmp_path / "series") in str(info.value)
 
 
 def test_empty_dicom_folder(tmp_path):
