@@ -143,6 +143,11 @@ class ParaView:
         return json.loads(lines[-1][len(MARK) :])
 
 
+#: Scripts that ParaView runs (``paraview --script``): they import ``paraview``, so pytest's
+#: doctest collection must not import them in the venv.
+collect_ignore = ["view_actions_scene.py"]
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _private_paraview_settings(tmp_path_factory):
     """ParaView keeps imported presets and macros in ``$XDG_CONFIG_HOME/ParaView``: the tests'
