@@ -522,6 +522,7 @@ class Session:
                 "opacity": round(float(s.render_opacity), 3),
                 "color": rgb_to_hex(s.color),
                 "range": [round(float(v), 1) for v in s.range] if s.range else None,
+                "label": None if s.label is None else int(s.label),
             }
             for k, s in enumerate(self.spec.structures)
         ]

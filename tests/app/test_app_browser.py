@@ -60,6 +60,18 @@ def server(tmp_path_factory, vtk_can_render, app_server):
     save_spec(spec.with_opacities([0.6, 0.6, 0.6, 0.2, 0.2, 0.2]), data / "poor.json")
     (data / "bad.json").write_text('{"version": 1, "structures": [', encoding="utf-8")
     (root / "outside.json").write_text("{}", encoding="utf-8")
+    from dvr_perception.structures.slicer import write_segmentation
+
+    # a segmentation of the phantom's grid: a box of one segment holding a smaller one
+    seg = np.zeros((PHANTOM_SIZE,) * 3, np.uint8)
+    q = PHANTOM_SIZE // 4
+    seg[q : 3 * q, q : 3 * q, q : 3 * q] = 3
+    seg[3 * q // 2 : 5 * q // 2, 3 * q // 2 : 5 * q // 2, 3 * q // 2 : 5 * q // 2] = 5
+    segments = [
+        {"name": "Segment box", "color": (0.1, 0.3, 1.0), "label": 3},
+        {"name": "Segment core", "color": (1.0, 0.9, 0.0), "label": 5},
+    ]
+    write_segmentation(data / "organs.seg.nrrd", seg, segments)
     uploads = root / "uploads"
     uploads.mkdir()
     from dvr_perception.volume.io import save_volume
@@ -212,7 +224,7 @@ def _optimise(page, button: str, *, expect: str = "done") -> None:
 
 def _load_spec(page, name: str) -> None:
     _tab(page, "data")
-    page.get_by_label("Settings file (.json)").fill(name)
+    page.get_by_label("Settings file (.json or Slicer .seg.nrrd)").fill(name)
     page.click("#load-spec")
 
 
@@ -578,6 +590,34 @@ def test_malformed_spec_is_a_visible_error(page, server):
     assert "JSON" in _error_text(page) or "json" in _error_text(page)
     assert server["proc"].poll() is None
     assert _wait_value(page, "E_v") >= 0.0  # the page still works
+
+
+def test_slicer_segmentation_loads_as_label_structures(page, server):
+    _close_messages(page)
+    _settled(page)
+    assert "organs.seg.nrrd" in page.inner_text("#spec-choices")
+    before = _view_image(page)
+    _load_spec(page, "organs.seg.nrrd")
+    page.wait_for_function(
+        "() => document.querySelector('#structure-table')?.innerText.includes('Segment core')"
+    )
+    table = page.inner_text("#structure-table")
+    assert "Segment box" in table
+    assert page.locator("#structure-table tr").count() == 1 + 2
+    assert page.locator("#structure-table .label-id").count() == 2
+    img = _wait_image_change(page, before, min_change=0.01)
+    assert np.abs(img - before).mean() > 0.01, "the view did not change"
+    # the box's blue now shows where the phantom was rendered by intensity before
+    blue = (img[..., 2] > 0.3) & (img[..., 2] > img[..., 0] + 0.15)
+    assert blue.mean() > 0.01
+    assert _wait_value(page, "E_v") >= 0.0
+    _settled(page)
+    _shot(page, "segmentation")
+    assert server["proc"].poll() is None
+    _tab(page, "optimise")
+    page.click("#undo")  # back to the phantom's own structures for the following tests
+    page.wait_for_function("() => document.querySelectorAll('#structure-table tr').length === 7")
+    page.wait_for_selector("#measuring", state="hidden")
 
 
 def test_export_writes_valid_files(page, server):
