@@ -27,11 +27,15 @@ is sampled at the nearest voxel): the mask is ``1 + j`` on the voxels of label s
 (:func:`dvr_perception.rays._grid.label_map`) and 0 elsewhere; mask 0 uses the range
 structures' transfer functions, mask ``1 + j`` a constant colour and opacity
 (``vtkVolumeProperty.SetLabelColor`` / ``SetLabelScalarOpacity``).  Jittering and automatic
-sample distances are off.  Measured against the engine (64x64, a 24^3 ramp with a labelled
-cube, VTK 9.7, EGL + llvmpipe): SSIM 0.964 unshaded and 0.956 shaded, where the
-fixed-point mapper on the same scene without the label gets 0.970 and 0.976.  Limit: one
-material for the whole volume (the most important structure's lighting; a
-:class:`~dvr_perception.errors.DVRWarning` when the spec has several).
+sample distances are off.  The GPU mapper's shading differs from the fixed-point one in one
+way that matters: it adds the ambient term uncoloured (a grey wash), so the ambient
+coefficient is moved into the diffuse one (see :func:`_label_property`).  Measured against the
+engine (VTK 9.7, EGL + llvmpipe): a 24^3 ramp with a labelled cube at 64x64, SSIM 0.967
+unshaded and 0.948 shaded (0.932 with the uncoloured ambient); the 40^3 phantom with a
+two-segment Slicer segmentation at 96x96, SSIM 0.986 unshaded and 0.951 shaded (0.913).  The
+fixed-point mapper reaches 0.97-0.99 on range structures.  Limit: one material for the whole
+volume (the most important structure's lighting; a :class:`~dvr_perception.errors.DVRWarning`
+when the spec has several).
 
 Limit: VTK has at most 4 independent components.  Unshaded specs always use one component.
 A shaded spec with more than 4 distinct materials falls back to merging the most similar
@@ -280,8 +284,13 @@ def _label_property(spec, volume, ops):
         prop.SetLabelScalarOpacity(1 + j, o)
     prop.SetScalarOpacityUnitDistance(unit)
     prop.SetShade(int(bool(spec.rendering.shade)))
-    prop.SetAmbient(lt.ambient)
-    prop.SetDiffuse(lt.diffuse)
+    # The GPU mapper adds the ambient term uncoloured (ka x the light's ambient colour, the
+    # same grey on every structure: measured ambient-only on a red ramp, it gives
+    # (0.18, 0.18, 0.18) where the engine and the fixed-point mapper give (0.18, 0, 0)).  The
+    # ambient part goes into the diffuse one instead: exact where a surface faces the camera
+    # light, darker where it turns away, and no grey wash over the colours.
+    prop.SetAmbient(0.0)
+    prop.SetDiffuse(min(1.0, lt.diffuse + lt.ambient))
     prop.SetSpecular(lt.specular)
     prop.SetSpecularPower(lt.specular_power)
     return prop

@@ -17,9 +17,9 @@ from dvr_perception.structures.spec import Lighting, RenderSettings, Structure, 
 from dvr_perception.volume.volume import Volume
 
 #: Unshaded, VTK's label-map path agrees with the engine as its fixed-point mapper does
-#: (0.967 here); shaded, the GPU mapper's lighting is not the fixed-point mapper's that the
-#: engine reproduces (0.932 here; the README's label-structure paragraph has the figures).
-SSIM_MIN = {False: 0.95, True: 0.9}
+#: (0.967 here); shaded 0.948 (the GPU mapper's lighting is not quite the fixed-point mapper's
+#: that the engine reproduces; see dvr_perception/plotting/_scene.py).
+SSIM_MIN = {False: 0.95, True: 0.93}
 
 
 def _scene(*, shade: bool):
@@ -62,6 +62,9 @@ def test_label_structure_matches_engine(vtk_can_render, shade):
     assert np.abs(centre_ours - centre_vtk).max() < 1.5, (centre_ours, centre_vtk)
     redness = [(im[..., 0] - im[..., 1]).ravel() for im in (ours, vtk)]
     assert np.corrcoef(*redness)[0, 1] > 0.9
+    # no grey wash over the label's colour (the GPU mapper's uncoloured ambient term)
+    cube = red_ours & red_vtk
+    assert vtk[cube][:, 1].mean() < 0.1 * vtk[cube][:, 0].mean() + 0.02
     without = replace(spec, structures=spec.structures[:1])
     assert _red(render_plotter(vol, without, cam)).sum() == 0
 
