@@ -490,8 +490,9 @@ def _views(app) -> None:
         app.view = vtk_widgets.VtkRemoteView(app.plotter.ren_win, ref="view", interactive_ratio=1)
     app.ctrl.view_update = app.view.update
     html.Div(
-        "{{ view_mode === 'exact' ? 'exact image (engine)' : "
-        "'quick preview (vtk.js, small copy)' }}",
+        "{{ view_mode !== 'exact' ? 'quick preview (vtk.js, small copy)' : "
+        "structures.some(r => r.label !== null && r.label !== undefined) ? "
+        "'VTK label map (near the engine, one material)' : 'exact image (engine)' }}",
         style="position: absolute; right: 8px; bottom: 8px; z-index: 4; pointer-events: none; "
         "color: #fff; background: rgba(0,0,0,0.55); padding: 2px 8px; border-radius: 4px;",
         classes="text-caption",

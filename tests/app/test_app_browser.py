@@ -612,12 +612,16 @@ def test_slicer_segmentation_loads_as_label_structures(page, server):
     assert blue.mean() > 0.01
     assert _wait_value(page, "E_v") >= 0.0
     _settled(page)
+    page.wait_for_function(
+        "() => document.querySelector('#view-mode')?.innerText.includes('VTK label map')"
+    )
     _shot(page, "segmentation")
     assert server["proc"].poll() is None
     _tab(page, "optimise")
     page.click("#undo")  # back to the phantom's own structures for the following tests
     page.wait_for_function("() => document.querySelectorAll('#structure-table tr').length === 7")
     page.wait_for_selector("#measuring", state="hidden")
+    assert "exact image (engine)" in page.inner_text("#view-mode")
 
 
 def test_export_writes_valid_files(page, server):
