@@ -605,11 +605,18 @@ def test_slicer_segmentation_loads_as_label_structures(page, server):
     assert "Segment box" in table
     assert page.locator("#structure-table tr").count() == 1 + 2
     assert page.locator("#structure-table .label-id").count() == 2
-    img = _wait_image_change(page, before, min_change=0.01)
+
+    def blue(img):  # the box's colour, where the phantom was rendered by intensity before
+        return ((img[..., 2] > 0.3) & (img[..., 2] > img[..., 0] + 0.15)).mean()
+
+    for _ in range(120):  # the pushed image arrives asynchronously (later under load)
+        img = _view_image(page)
+        if blue(img) > 0.01:
+            break
+        page.wait_for_timeout(250)
     assert np.abs(img - before).mean() > 0.01, "the view did not change"
-    # the box's blue now shows where the phantom was rendered by intensity before
-    blue = (img[..., 2] > 0.3) & (img[..., 2] > img[..., 0] + 0.15)
-    assert blue.mean() > 0.01
+    assert blue(img) > 0.01
+    assert blue(before) < 0.001
     assert _wait_value(page, "E_v") >= 0.0
     _settled(page)
     page.wait_for_function(
@@ -733,6 +740,17 @@ def test_transfer_function_view_drag_changes_rendering_and_terms(page):
     )
     page.wait_for_selector("#measuring", state="hidden")
     assert "azimuth 90 deg" in page.inner_text("#measured-for")
+    # patient-side buttons (the phantom's frame is LPS): anterior looks along +Y (posterior)
+    assert page.locator("#view-buttons button").count() == 1 + 6 + 6
+    key = _now_key(page)
+    page.click("#view-anterior")
+    front_p = _wait_image_change(page, side, min_change=1e-3)
+    assert np.abs(front_p - side).mean() > 1e-3
+    page.wait_for_function(
+        "(old) => document.querySelector('#now-key').dataset.now !== old", arg=key
+    )
+    page.wait_for_selector("#measuring", state="hidden")
+    assert "elevation -90 deg" in page.inner_text("#measured-for")  # camera on the -Y side
     page.click("#view-reset")
     page.wait_for_function("() => /azimuth -?0 deg/.test(document.querySelector('#measured-for')"
                            ".innerText)")  # fmt: skip
