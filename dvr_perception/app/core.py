@@ -573,8 +573,15 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         """Load the offered spec JSON named in the file field (data folder or ``saved/``)."""
         name = self.state.spec_name if name is None else name
         self.state.error = ""
+        before = self.session.snapshot()
         self.session.load_spec_file(name)
-        self._show_spec(restructured=True)
+        try:
+            self._show_spec(restructured=True)
+        except Exception:
+            # the view could not show it: the session goes back to what is still shown
+            self.session.restore(before)
+            self._show_spec(restructured=True, measure=False)
+            raise
         self.state.info = f"loaded {name}"
 
     @guard

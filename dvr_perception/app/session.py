@@ -30,6 +30,7 @@ __all__ = [
     "MAX_UPLOAD_BYTES",
     "MEASURE_SIZE",
     "PHANTOM",
+    "SPEC_SUFFIXES",
     "VOLUME_SUFFIXES",
     "Measures",
     "Session",
@@ -44,6 +45,9 @@ __all__ = [
 PHANTOM = "phantom"
 #: File suffixes listed as volumes in the data folder.
 VOLUME_SUFFIXES = (".nhdr", ".nrrd", ".mha", ".mhd", ".vti", ".nii", ".nii.gz")
+#: File suffixes listed as structures (settings) in the data folder: spec JSON files and 3D
+#: Slicer segmentations (never listed as volumes).
+SPEC_SUFFIXES = (".json", ".seg.nrrd", ".seg.nhdr")
 #: Long side, in pixels, of the camera the measures and the optimiser are evaluated on.
 MEASURE_SIZE = 256
 #: Most specs kept for undo.
@@ -91,6 +95,10 @@ def plain_name(text, what: str, suffixes=None) -> str:
     if suffixes and not name.lower().endswith(tuple(suffixes)):
         raise DVRInputError(f"{what} {name}: expected a name ending in {', '.join(suffixes)}")
     return name
+
+
+def _ends(name: str, suffixes) -> bool:
+    return name.lower().endswith(tuple(suffixes))
 
 
 def rgb_to_hex(color) -> str:
@@ -204,6 +212,8 @@ class Session:
         self.max_volume_bytes = int(max_volume_bytes)
         self.volume = None
         self.volume_name = ""
+        self.base_volume = None  # the volume as loaded, before a spec's label file
+        self.labels_file = None  # the label file whose labels ``volume`` carries
         self.spec = None
         self.spec_source = ""
         self.undo_stack: list = []
@@ -225,13 +235,22 @@ class Session:
         )
 
     def volume_choices(self) -> list[str]:
-        """List the phantom, the data folder's volumes and the uploaded ones (``uploaded/``)."""
-        names = [PHANTOM, *self._listed(self.data_dir, VOLUME_SUFFIXES)]
-        return names + [UPLOADED + n for n in self._listed(self.upload_dir, VOLUME_SUFFIXES)]
+        """List the phantom, the data folder's volumes and the uploaded ones (``uploaded/``).
+
+        3D Slicer segmentations (``*.seg.nrrd``, ``*.seg.nhdr``) are structures, not volumes:
+        :meth:`spec_choices` offers them.
+        """
+        segs = SPEC_SUFFIXES[1:]
+        names = [n for n in self._listed(self.data_dir, VOLUME_SUFFIXES) if not _ends(n, segs)]
+        ups = [n for n in self._listed(self.upload_dir, VOLUME_SUFFIXES) if not _ends(n, segs)]
+        return [PHANTOM, *names] + [UPLOADED + n for n in ups]
 
     def spec_choices(self) -> list[str]:
-        """List the data folder's spec JSON files and the saved ones (``saved/``)."""
-        names = self._listed(self.data_dir, (".json",))
+        """List the data folder's spec JSON files and segmentations, and the saved specs.
+
+        The saved ones (JSON only) are prefixed ``saved/``.
+        """
+        names = self._listed(self.data_dir, SPEC_SUFFIXES)
         return names + [SAVED + n for n in self._listed(self.settings_dir, (".json",))]
 
     def data_path(self, text: str, *, must_exist: bool = True) -> Path:
@@ -300,7 +319,14 @@ class Session:
                 spec, source = load_spec(paired), f"preset {paired.name}"
             else:
                 spec, source = propose(volume), "automatic proposal"
+        base, labels_file = volume, None
+        if spec.labels_file is not None:  # a preset of the server's own with a label volume
+            from dvr_perception.structures.io import attach_labels
+
+            volume = attach_labels(volume, spec)
+            labels_file = str(Path(spec.labels_file).resolve())
         check_spec_for_volume(spec, volume)
+        self.base_volume, self.labels_file = base, labels_file
         self.volume, self.volume_name = volume, name
         self.spec, self.spec_source = spec, source
         self.undo_stack.clear()
@@ -308,15 +334,61 @@ class Session:
         return volume, spec
 
     def load_spec_file(self, text: str):
-        """Read an offered spec JSON (data folder or ``saved/``) and check it for the volume."""
-        from dvr_perception.structures import check_spec_for_volume, load_spec
+        """Read an offered spec JSON or Slicer segmentation and check it for the volume.
 
+        A segmentation (``*.seg.nrrd``/``*.seg.nhdr`` in the data folder) becomes one label
+        structure per segment
+        (:func:`~dvr_perception.structures.slicer.spec_from_segmentation`).  The label volume
+        of a spec with a ``labels`` file is attached to the volume
+        (:func:`~dvr_perception.structures.io.attach_labels`); the label file must lie in the
+        data folder or the settings folder.  Everything is read and checked before the
+        session's volume and spec change, so a bad file leaves them as they were.
+        """
+        from dvr_perception.structures import check_spec_for_volume, load_spec
+        from dvr_perception.structures.slicer import is_segmentation, spec_from_segmentation
+
+        if self.volume is None:
+            raise DVRInputError(f"{text}: load a volume before its structures")
         path = self._chosen(text, self.spec_choices(), "settings files", SAVED, self.settings_dir)
-        spec = load_spec(path)
-        check_spec_for_volume(spec, self.volume)
+        if path.name.lower().endswith(SPEC_SUFFIXES[1:]) and is_segmentation(path):
+            spec = spec_from_segmentation(path, self.volume)
+        else:
+            spec = load_spec(path)
+        volume, labels = self.with_labels(spec, source=str(text))
+        check_spec_for_volume(spec, volume)
         self.push_undo(f"load {text}")
+        self.volume, self.labels_file = volume, labels
         self.spec, self.spec_source = spec, str(text)
         return spec
+
+    def with_labels(self, spec, *, source: str = "spec"):
+        """Return the session's volume with the label volume of ``spec``, and that file.
+
+        The volume as loaded (:attr:`base_volume`) when ``spec`` names no ``labels`` file, the
+        current one when it already carries that file's labels.  A label file outside the data
+        folder and the settings folder is refused (no file a client names may be read outside
+        the app's folders).
+
+        Returns
+        -------
+        volume : Volume
+        labels_file : str or None
+            The resolved label file the returned volume carries.
+        """
+        from dvr_perception.structures.io import attach_labels
+
+        if spec.labels_file is None:
+            return self.base_volume, None
+        path = Path(spec.labels_file).resolve()
+        allowed = [d for d in (self.data_dir, self.settings_dir.resolve()) if d is not None]
+        if not any(path.is_relative_to(d) for d in allowed):
+            raise DVRInputError(
+                f"{source}: labels file {spec.labels_file} is outside the data folder and the "
+                "settings folder; only label files in them are read"
+            )
+        if self.labels_file == str(path):
+            return self.volume, self.labels_file
+        return attach_labels(self.base_volume, replace(spec, labels_file=str(path))), str(path)
 
     def save_spec_file(self, text: str) -> str:
         """Write the current spec as JSON into the settings folder; return its offered name."""
@@ -345,6 +417,23 @@ class Session:
         out.append(save_slicer_vp(self.spec, stem.with_name(stem.name + ".vp.json"), self.volume))
         return [Path(p) for p in out]
 
+    def snapshot(self) -> tuple:
+        """Return what :meth:`restore` needs to undo a load (volume, labels, spec, undo)."""
+        return (
+            self.volume,
+            self.labels_file,
+            self.spec,
+            self.spec_source,
+            list(self.undo_stack),
+            list(self.undo_labels),
+        )
+
+    def restore(self, snapshot: tuple) -> None:
+        """Go back to a :meth:`snapshot` (e.g. when the view cannot show a loaded spec)."""
+        self.volume, self.labels_file, self.spec, self.spec_source = snapshot[:4]
+        self.undo_stack[:] = snapshot[4]
+        self.undo_labels[:] = snapshot[5]
+
     # -- editing -----------------------------------------------------------------------------
     def push_undo(self, label: str = "edit") -> None:
         """Remember the current spec before a change described by ``label``."""
@@ -359,7 +448,9 @@ class Session:
         n = int(steps)
         if n < 1 or n > len(self.undo_stack):
             return None
-        self.spec = self.undo_stack[-n]
+        spec = self.undo_stack[-n]
+        self.volume, self.labels_file = self.with_labels(spec, source="undo")
+        self.spec = spec
         del self.undo_stack[-n:]
         del self.undo_labels[-n:]
         return self.spec
@@ -431,6 +522,7 @@ class Session:
                 "opacity": round(float(s.render_opacity), 3),
                 "color": rgb_to_hex(s.color),
                 "range": [round(float(v), 1) for v in s.range] if s.range else None,
+                "label": None if s.label is None else int(s.label),
             }
             for k, s in enumerate(self.spec.structures)
         ]
@@ -446,8 +538,10 @@ class Session:
         from dvr_perception.rays.curvature_field import curvature_source
 
         spec = self.spec if spec is None else spec
-        key = (id(self.volume), tuple((s.range, s.label, s.edge) for s in spec.structures))
-        if self._curvature[0] != key:
+        # the volume itself (compared by identity): an id could be reused by a later volume
+        key = (self.volume, tuple((s.range, s.label, s.edge) for s in spec.structures))
+        old = self._curvature[0]
+        if old is None or old[0] is not key[0] or old[1] != key[1]:
             self._curvature = (key, curvature_source(self.volume, spec))
         return self._curvature[1]
 

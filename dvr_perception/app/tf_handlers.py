@@ -164,6 +164,23 @@ class TFHandlers:
         self._set_camera(axis_camera(self.session.volume.bounds, axis, width=w, height=h))
 
     @guard
+    def view_patient(self, name):
+        """Look at the volume from a patient side (``"anterior"`` ... ``"inferior"``).
+
+        :func:`~dvr_perception.rays.camera.patient_view`: in the volume's patient (LPS) frame,
+        e.g. ``"anterior"`` looks at the face from in front, head up.
+        """
+        from dvr_perception.errors import DVRInputError
+        from dvr_perception.rays.camera import PATIENT_VIEWS, patient_view
+
+        if name not in PATIENT_VIEWS:
+            raise DVRInputError(
+                f"view {str(name)[:40]!r}: expected one of {', '.join(PATIENT_VIEWS)}"
+            )
+        w, h = (int(v) for v in self.plotter.window_size)
+        self._set_camera(patient_view(self.session.volume, name, width=w, height=h))
+
+    @guard
     def reset_view(self):
         """Go back to the spec's view (or the default front view), the whole volume in sight."""
         from dvr_perception.rays import Camera

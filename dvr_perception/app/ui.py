@@ -177,6 +177,11 @@ def _data_panel(app) -> None:
                 )
             with html.Td():
                 html.Div("{{ row.name }}")
+                html.Div(
+                    "label {{ row.label }} (segmentation)",
+                    v_if="row.label !== null && row.label !== undefined",
+                    classes="text-caption label-id",
+                )
                 with html.Div(v_if="row.range", classes="text-caption d-flex align-center"):
                     for end in (0, 1):
                         html.Input(
@@ -210,7 +215,7 @@ def _data_panel(app) -> None:
     with v3.VRow(dense=True, classes="mt-2", align="center"):
         with v3.VCol(cols=6):
             v3.VTextField(
-                label="Settings file (.json)",
+                label="Settings file (.json or Slicer .seg.nrrd)",
                 v_model=("spec_name",),
                 density="compact",
                 hide_details=True,
@@ -227,7 +232,8 @@ def _data_panel(app) -> None:
         with v3.VCol(cols=3):
             v3.VBtn("Save", click=(app.save_spec, "[spec_name]"), block=True, id="save-spec")
     html.Div(
-        "Settings files to load: {{ spec_choices.join(', ') || 'none yet' }}. "
+        "Settings files and 3D Slicer segmentations (.seg.nrrd) to load: "
+        "{{ spec_choices.join(', ') || 'none yet' }}. "
         "Load reads them from the data folder ({{ data_dir_label || 'none' }}; saved/...: "
         "the app's folder); Save writes a plain name into the app's folder "
         "{{ state_dir_label }}/settings.",
@@ -484,8 +490,9 @@ def _views(app) -> None:
         app.view = vtk_widgets.VtkRemoteView(app.plotter.ren_win, ref="view", interactive_ratio=1)
     app.ctrl.view_update = app.view.update
     html.Div(
-        "{{ view_mode === 'exact' ? 'exact image (engine)' : "
-        "'quick preview (vtk.js, small copy)' }}",
+        "{{ view_mode !== 'exact' ? 'quick preview (vtk.js, small copy)' : "
+        "structures.some(r => r.label !== null && r.label !== undefined) ? "
+        "'VTK label map (near the engine, one material)' : 'exact image (engine)' }}",
         style="position: absolute; right: 8px; bottom: 8px; z-index: 4; pointer-events: none; "
         "color: #fff; background: rgba(0,0,0,0.55); padding: 2px 8px; border-radius: 4px;",
         classes="text-caption",

@@ -15,6 +15,9 @@ from trame_client.widgets.html import HtmlElement
 
 from dvr_perception.app.tf_view import AXES, HEIGHT, WIDTH
 
+#: Patient-side view buttons (:data:`dvr_perception.rays.camera.PATIENT_VIEWS`), by initial.
+PATIENT_BUTTONS = ("anterior", "posterior", "left", "right", "superior", "inferior")
+
 __all__ = ["tf_editor", "view_overlay"]
 
 #: Pointer position in viewBox units (the event's element is the chart's ``svg``).
@@ -220,4 +223,14 @@ def view_overlay(app) -> None:
                 id=f"view-{'p' if axis[0] == '+' else 'm'}{axis[1].lower()}",
                 classes="mr-1",
                 title=f"look along {axis}",
+            )
+        for name in PATIENT_BUTTONS:
+            v3.VBtn(
+                name[0].upper(),
+                click=(app.view_patient, f"['{name}']"),
+                size="x-small",
+                disabled=("busy",),
+                id=f"view-{name}",
+                classes="mr-1" + (" ml-2" if name == PATIENT_BUTTONS[0] else ""),
+                title=f"{name} view (patient frame)",
             )

@@ -60,6 +60,18 @@ def server(tmp_path_factory, vtk_can_render, app_server):
     save_spec(spec.with_opacities([0.6, 0.6, 0.6, 0.2, 0.2, 0.2]), data / "poor.json")
     (data / "bad.json").write_text('{"version": 1, "structures": [', encoding="utf-8")
     (root / "outside.json").write_text("{}", encoding="utf-8")
+    from dvr_perception.structures.slicer import write_segmentation
+
+    # a segmentation of the phantom's grid: a box of one segment holding a smaller one
+    seg = np.zeros((PHANTOM_SIZE,) * 3, np.uint8)
+    q = PHANTOM_SIZE // 4
+    seg[q : 3 * q, q : 3 * q, q : 3 * q] = 3
+    seg[3 * q // 2 : 5 * q // 2, 3 * q // 2 : 5 * q // 2, 3 * q // 2 : 5 * q // 2] = 5
+    segments = [
+        {"name": "Segment box", "color": (0.1, 0.3, 1.0), "label": 3},
+        {"name": "Segment core", "color": (1.0, 0.9, 0.0), "label": 5},
+    ]
+    write_segmentation(data / "organs.seg.nrrd", seg, segments)
     uploads = root / "uploads"
     uploads.mkdir()
     from dvr_perception.volume.io import save_volume
@@ -212,7 +224,7 @@ def _optimise(page, button: str, *, expect: str = "done") -> None:
 
 def _load_spec(page, name: str) -> None:
     _tab(page, "data")
-    page.get_by_label("Settings file (.json)").fill(name)
+    page.get_by_label("Settings file (.json or Slicer .seg.nrrd)").fill(name)
     page.click("#load-spec")
 
 
@@ -580,6 +592,45 @@ def test_malformed_spec_is_a_visible_error(page, server):
     assert _wait_value(page, "E_v") >= 0.0  # the page still works
 
 
+def test_slicer_segmentation_loads_as_label_structures(page, server):
+    _close_messages(page)
+    _settled(page)
+    assert "organs.seg.nrrd" in page.inner_text("#spec-choices")
+    before = _view_image(page)
+    _load_spec(page, "organs.seg.nrrd")
+    page.wait_for_function(
+        "() => document.querySelector('#structure-table')?.innerText.includes('Segment core')"
+    )
+    table = page.inner_text("#structure-table")
+    assert "Segment box" in table
+    assert page.locator("#structure-table tr").count() == 1 + 2
+    assert page.locator("#structure-table .label-id").count() == 2
+
+    def blue(img):  # the box's colour, where the phantom was rendered by intensity before
+        return ((img[..., 2] > 0.3) & (img[..., 2] > img[..., 0] + 0.15)).mean()
+
+    for _ in range(120):  # the pushed image arrives asynchronously (later under load)
+        img = _view_image(page)
+        if blue(img) > 0.01:
+            break
+        page.wait_for_timeout(250)
+    assert np.abs(img - before).mean() > 0.01, "the view did not change"
+    assert blue(img) > 0.01
+    assert blue(before) < 0.001
+    assert _wait_value(page, "E_v") >= 0.0
+    _settled(page)
+    page.wait_for_function(
+        "() => document.querySelector('#view-mode')?.innerText.includes('VTK label map')"
+    )
+    _shot(page, "segmentation")
+    assert server["proc"].poll() is None
+    _tab(page, "optimise")
+    page.click("#undo")  # back to the phantom's own structures for the following tests
+    page.wait_for_function("() => document.querySelectorAll('#structure-table tr').length === 7")
+    page.wait_for_selector("#measuring", state="hidden")
+    assert "exact image (engine)" in page.inner_text("#view-mode")
+
+
 def test_export_writes_valid_files(page, server):
     _close_messages(page)
     _tab(page, "export")
@@ -689,6 +740,17 @@ def test_transfer_function_view_drag_changes_rendering_and_terms(page):
     )
     page.wait_for_selector("#measuring", state="hidden")
     assert "azimuth 90 deg" in page.inner_text("#measured-for")
+    # patient-side buttons (the phantom's frame is LPS): anterior looks along +Y (posterior)
+    assert page.locator("#view-buttons button").count() == 1 + 6 + 6
+    key = _now_key(page)
+    page.click("#view-anterior")
+    front_p = _wait_image_change(page, side, min_change=1e-3)
+    assert np.abs(front_p - side).mean() > 1e-3
+    page.wait_for_function(
+        "(old) => document.querySelector('#now-key').dataset.now !== old", arg=key
+    )
+    page.wait_for_selector("#measuring", state="hidden")
+    assert "elevation -90 deg" in page.inner_text("#measured-for")  # camera on the -Y side
     page.click("#view-reset")
     page.wait_for_function("() => /azimuth -?0 deg/.test(document.querySelector('#measured-for')"
                            ".innerText)")  # fmt: skip

@@ -171,8 +171,8 @@ def test_bad_input_errors(phantom):
     pl = pv.Plotter(off_screen=True)
     try:
         labelled = replace(spec, structures=(Structure("x", 0.5, (1, 0, 0), label=1),))
-        with pytest.raises(DVRInputError, match=r"spec: structure 0 .*label structure"):
-            add_structures(pl, vol, labelled)
+        with pytest.raises(DVRInputError, match=r"volume\.labels: the spec has label structures"):
+            add_structures(pl, replace(vol, labels=None), labelled)
         with pytest.raises(DVRInputError, match="opacities: expected 6"):
             add_structures(pl, vol, spec, opacities=[0.5])
         with pytest.raises(DVRInputError, match=r"plotter: expected a pyvista\.Plotter"):
