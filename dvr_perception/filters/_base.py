@@ -242,6 +242,34 @@ class DVRFilterBase(VTKPythonAlgorithmBase):
         raise NotImplementedError
 
     # -- helpers for subclasses ---------------------------------------------------------------
+    def progress_range(self, lo: float, hi: float):
+        """Return a library ``progress`` callback that moves the bar from ``lo`` to ``hi``.
+
+        The long steps (:func:`~dvr_perception.rays.curvature.curvature_volume`,
+        :func:`~dvr_perception.rays.engine.analyze`) report their fraction ``f`` from inside;
+        it becomes ``UpdateProgress(lo + (hi - lo) * f)``, so ParaView's progress bar moves
+        during the step.  When an abort was requested (``GetAbortExecute``) the callback raises
+        :class:`StopIteration`: the step stops with
+        :class:`~dvr_perception.errors.DVRCancelled`, reported as the filter's error.
+
+        Parameters
+        ----------
+        lo, hi : float
+            The part of the filter's progress (0 to 1) the step covers.
+
+        Returns
+        -------
+        callable
+            ``progress(fraction)``.
+        """
+
+        def progress(fraction: float) -> None:
+            self.UpdateProgress(lo + (hi - lo) * fraction)
+            if self.GetAbortExecute():
+                raise StopIteration
+
+        return progress
+
     @property
     def label(self) -> str:
         """Name used at the start of the filter's messages."""

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dvr_perception._numba import kernels
+from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError
 from dvr_perception.rays import _grid, _tables
 from dvr_perception.rays._results import RayAnalysis, RayCache
@@ -696,16 +697,23 @@ KEEP_CODES_SHARE = 0.25
 
 def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, brick=(64, 64, 64),
                     opacities=None, curvature=None, build_cache: bool = True,
-                    occlusion_free: bool = True, memory_limit=None) -> RayAnalysis:  # fmt: skip
+                    occlusion_free: bool = True, memory_limit=None,
+                    progress=None) -> RayAnalysis:  # fmt: skip
     """:func:`~dvr_perception.rays.engine.analyze`, walking the volume brick by brick.
 
     Parameters
     ----------
     brick : tuple of int
         Cells per brick ``(z, y, x)``.
-    volume, spec, camera, opacities, curvature, build_cache, occlusion_free
+    volume, spec, camera, opacities, curvature, build_cache, occlusion_free, memory_limit
         As :func:`~dvr_perception.rays.engine.analyze` (``curvature``: a whole-volume array,
-        or ``None``).
+        a :class:`~dvr_perception.rays.curvature_field.CurvatureField`, or ``None``).
+    progress : callable, optional
+        Called from the calling thread with the fraction done (float in [0, 1]): 0.0 first,
+        after each brick walked (its curvature piece included), 1.0 once the bricks' caches
+        are merged; at most about 100 calls, non-decreasing.  A callback that raises
+        :class:`StopIteration` cancels the analysis with
+        :class:`~dvr_perception.errors.DVRCancelled`.
 
     Examples
     --------
@@ -721,19 +729,21 @@ def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, bric
     return analyze_bricked_views(
         volume, spec, [camera], brick=brick, opacities=opacities, curvature=curvature,
         build_cache=build_cache, occlusion_free=occlusion_free, memory_limit=memory_limit,
+        progress=progress,
     )[0]  # fmt: skip
 
 
 def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick=(64, 64, 64),
                           opacities=None, curvature=None, build_cache: bool = True,
-                          occlusion_free: bool = True,
-                          memory_limit=None) -> list[RayAnalysis]:  # fmt: skip
+                          occlusion_free: bool = True, memory_limit=None,
+                          progress=None) -> list[RayAnalysis]:  # fmt: skip
     """:func:`analyze_bricked` for several cameras, deriving each brick once for all of them.
 
     Cameras that meet the bricks in the same order (e.g. one view at several resolutions, as
     the optimiser uses) share one pass over the volume: each brick's derived volumes and
     curvature are computed once and every camera's rays walk it.  The results equal one
-    :func:`analyze_bricked` per camera.
+    :func:`analyze_bricked` per camera.  ``progress``: as :func:`analyze_bricked`, over all
+    the cameras.
 
     Examples
     --------
@@ -752,6 +762,7 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
     cameras = list(cameras)
     for cam in cameras:
         engine._check_inputs(volume, spec, cam, "numba")
+    report = reporter(progress)
     curv = engine._check_curvature(curvature, volume)
     every = split(volume.data.shape, brick)
     rng = _grid.scalar_range(volume)
@@ -771,22 +782,30 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
         groups.setdefault(tuple(view_order(every, st)), []).append(n)
     cap = memory.limit(memory_limit)
     out = [None] * len(cameras)
+    report(0.0)
+    walked = 0  # cameras whose pass is done: each pass's share of the bar is its cameras'
     for order, members in groups.items():
         bricks = [every[i] for i in order]
-        got = _pass(volume, [states[n] for n in members], bricks, curv, cap, build_cache)
+        share = report.sub(0.95 * walked / len(cameras),
+                           0.95 * (walked + len(members)) / len(cameras))  # fmt: skip
+        got = _pass(volume, [states[n] for n in members], bricks, curv, cap, build_cache, share)
+        walked += len(members)
         for n, res in zip(members, got, strict=True):
             out[n] = res
     seconds = time.perf_counter() - t0
-    return [
+    results = [
         finish(st, caches, refill=refill, seconds=seconds) for st, (caches, refill) in
         zip(states, out, strict=True)
     ]  # fmt: skip
+    report(1.0)
+    return results
 
 
-def _pass(volume, states, bricks, curv, cap, build_cache) -> list:
+def _pass(volume, states, bricks, curv, cap, build_cache, report=None) -> list:
     """Walk ``bricks`` (in the states' common view order) for every state; caches and refill.
 
-    Each brick is read and derived once (or taken from the memo) for all the states.
+    Each brick is read and derived once (or taken from the memo) for all the states;
+    ``report(fraction)`` follows after each brick.
     """
     memo, cmemo = _memo(volume, states[0], bricks, cap, curv)
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
@@ -795,7 +814,7 @@ def _pass(volume, states, bricks, curv, cap, build_cache) -> list:
     caches = [[] if build_cache else None for _ in states]
     kept = [[] for _ in states]
     pieces = _pieces(volume, bricks, curv, skip=known, skip_curvature=set(cmemo or ()))
-    for br, piece, off, cv in pieces:
+    for done, (br, piece, off, cv) in enumerate(pieces, 1):
         if cmemo is not None:
             cv = cmemo.setdefault(br, cv)
         derived = memo.get(br) if memo is not None else None
@@ -817,6 +836,8 @@ def _pass(volume, states, bricks, curv, cap, build_cache) -> list:
             else:
                 k = (derived[0], 16) if derived is not None and memo is not None else None
             kept[n].append(None if k is None else (*k, off))
+        if report:
+            report(done / len(bricks))
     out = []
     for st, cs, kp in zip(states, caches, kept, strict=True):
         refill = None
