@@ -66,10 +66,9 @@ class Reporter:
         self._last[0] = f
         try:
             self._callback(f)
-        except StopIteration:
-            raise DVRCancelled(
-                "progress: the callback raised StopIteration; the step was cancelled"
-            ) from None
+        except StopIteration as stop:
+            why = str(stop.args[0]) if stop.args else "the callback raised StopIteration"
+            raise DVRCancelled(f"progress: cancelled ({why})") from None
 
     def sub(self, lo: float, hi: float) -> Reporter:
         """Return the reporter of a sub-step covering ``[lo, hi]`` of this step."""

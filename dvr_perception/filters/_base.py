@@ -42,7 +42,7 @@ from dvr_perception._vtk import (
     vtkStreamingDemandDrivenPipeline,
     vtkStringArray,
 )
-from dvr_perception.errors import DVRInputError
+from dvr_perception.errors import DVRCancelled, DVRInputError
 from dvr_perception.structures.io import load_spec, spec_from_dict
 from dvr_perception.volume.convert import from_vtk_image
 
@@ -266,7 +266,7 @@ class DVRFilterBase(VTKPythonAlgorithmBase):
         def progress(fraction: float) -> None:
             self.UpdateProgress(lo + (hi - lo) * fraction)
             if self.GetAbortExecute():
-                raise StopIteration
+                raise StopIteration("abort requested")
 
         return progress
 
@@ -313,6 +313,9 @@ class DVRFilterBase(VTKPythonAlgorithmBase):
                 function(*args)
         except DVRInputError as exc:
             self.report_error(str(exc))
+            return 0
+        except DVRCancelled as exc:  # ParaView's abort inside a long step
+            self.report_error(f"{self.label}: {exc}")
             return 0
         except Exception as exc:  # never let an exception escape into VTK's C++ code
             self.report_error(f"{self.label}: internal error ({type(exc).__name__}: {exc})")
