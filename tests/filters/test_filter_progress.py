@@ -77,9 +77,7 @@ def _inside(progress, lo, hi) -> int:
 
 
 @pytest.mark.parametrize("bricked", [False, True])
-def test_perception_measures_progress_moves_inside_curvature_and_rays(
-    phantom, request, bricked
-):
+def test_perception_measures_progress_moves_inside_curvature_and_rays(phantom, request, bricked):
     spec, image, spec_json = phantom
     if bricked:
         request.getfixturevalue("small_memory")
