@@ -399,8 +399,8 @@ def _runs(state: RayState, brick: Brick) -> tuple[np.ndarray, np.ndarray]:
 
 
 def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curvature=None,
-         build_cache: bool = True, keep_codes: bool = False,
-         derived=None) -> BrickCache | None:  # fmt: skip
+         build_cache: bool = True, keep_codes: bool = False, derived=None,
+         progress=None) -> BrickCache | None:  # fmt: skip
     """Walk ``brick``'s samples of every ray, continuing ``state`` (changed in place).
 
     Parameters
@@ -424,12 +424,18 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     derived : tuple, optional
         The brick's derived volumes from an earlier walk (:func:`derive`); ``piece`` is then
         only checked, not read.
+    progress : callable, optional
+        Called with the fraction of the brick's rays walked (a float in [0, 1], reaching 1.0)
+        after each group of ray tiles: the rays then go to the kernel in groups of chunks, one
+        call each, with the same result.  :class:`StopIteration` from it raises
+        :class:`~dvr_perception.errors.DVRCancelled` (the state is then partly walked).
 
     Returns
     -------
     BrickCache or None
     """
     nk, nb = _kernels()
+    report = reporter(progress)
     off = _check_piece(piece, brick, offset, state, curvature)
     if build_cache and not state.occlusion_free:
         raise DVRInputError("build_cache: needs an occlusion-free state (occlusion_free=True)")
@@ -458,12 +464,19 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     count = np.empty(nrays, np.int64)
     walked = np.empty(nrays, np.int64)
     geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
-    nb.walk_brick(
-        vol, *maps, cv, seg["a"], seg["b"], seg["t"], j0, j1, t["step"], order, chunk_ptr,
-        nchunk, t["ids"], t["memb"], t["alpha_r"], t["alpha_w"], t["cols"], t["light"], t["tab"],
-        shade, has_curv, build_cache, state.occlusion_free, chunk_base, _tables.ERT, geo,
-        state.st, state.bits, state.vis, state.asg, *src, start, count, walked,
-    )  # fmt: skip
+    from dvr_perception.rays.engine import _threads
+
+    per = max(8, 2 * _threads()) if report else nchunk  # groups of chunks: see progress
+    for c0 in range(0, nchunk, per):
+        c1 = min(c0 + per, nchunk)
+        nb.walk_brick(
+            vol, *maps, cv, seg["a"], seg["b"], seg["t"], j0, j1, t["step"], order,
+            chunk_ptr[c0 : c1 + 1], c1 - c0, t["ids"], t["memb"], t["alpha_r"], t["alpha_w"],
+            t["cols"], t["light"], t["tab"], shade, has_curv, build_cache, state.occlusion_free,
+            chunk_base[c0:c1], _tables.ERT, geo, state.st, state.bits, state.vis, state.asg,
+            *src, start, count, walked,
+        )  # fmt: skip
+        report(c1 / nchunk)
     state.stats["samples_walked"] += int(walked.sum())
     state.stats["bricks"] += 1
     if not build_cache:
@@ -824,8 +837,13 @@ def _pass(volume, states, bricks, curv, cap, build_cache, report=None) -> list:
             derived = derive(piece, states[0])  # once for every state
         codes = None
         for n, st in enumerate(states):
+            part = None  # this state's share of the brick's part of the bar
+            if report:
+                part = report.sub((done - 1 + n / len(states)) / len(bricks),
+                                  (done - 1 + (n + 1) / len(states)) / len(bricks))  # fmt: skip
             c = walk(st, piece, br, offset=off, curvature=cv, build_cache=build_cache,
-                     keep_codes=keep and codes is None, derived=derived)  # fmt: skip
+                     keep_codes=keep and codes is None, derived=derived,
+                     progress=part)  # fmt: skip
             if not build_cache or c is None:
                 continue
             caches[n].append(c)

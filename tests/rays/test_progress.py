@@ -79,14 +79,15 @@ def test_curvature_stops_when_the_callback_raises_stop_iteration(scene, monkeypa
     assert np.array_equal(curvature_volume(vol, spec)[0], plain)  # nothing left behind
 
 
-@pytest.mark.parametrize("brick", [None, (9, 13, 20)])
-def test_analysis_reports_inside_and_gives_the_same_bits(scene, brick):
+@pytest.mark.parametrize(("brick", "inner"), [(None, 3), ((9, 13, 20), 20), ((20, 39, 39), 3)])
+def test_analysis_reports_inside_and_gives_the_same_bits(scene, brick, inner):
     vol, spec, cam, curv = scene
     plain = analyze(vol, spec, cam, curvature=curv, brick=brick)
     got: list[float] = []
     res = analyze(vol, spec, cam, curvature=curv, brick=brick, progress=got.append)
-    # whole: set-up, then 2 groups of 8 chunks (64 x 64 pixels: 16 tiles); bricks: 30 of them
-    _check_fractions(got, inner=3 if brick is None else 20)
+    # whole: set-up, then 2 groups of 8 chunks (64 x 64 pixels: 16 tiles); 30 bricks: after
+    # each; 2 bricks: also inside each, after each group of chunks (one brick alone gives 1)
+    _check_fractions(got, inner=inner)
     assert ("bricks" in res.stats) == (brick is not None)
     _same(plain, res)
     for name in ("start", "count", "lut", "shading", "curvature"):
