@@ -651,7 +651,7 @@ def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, mod
     nchunk = len(chunk_ptr) - 1
     # with a progress callback the chunks go in groups (one kernel call each, the same work
     # per ray: the result does not change), reported between the calls
-    per = nchunk if not report else max(8, 2 * _threads())
+    per = nchunk if not report else max(16, 4 * _threads())
     for c0 in range(0, nchunk, per):
         c1 = min(c0 + per, nchunk)
         nk.walk(
