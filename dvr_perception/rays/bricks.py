@@ -446,9 +446,11 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     vol, maps, cv = _piece_arrays(piece, state, curvature, derived)
     has_curv = curvature is not None
     shade = t["shade"]
-    from dvr_perception.rays.engine import ray_order
+    from dvr_perception.rays.engine import _group, _interleaved, ray_order
 
     order, chunk_ptr = ray_order(cam.height, cam.width)
+    if report:
+        order, chunk_ptr = _interleaved(order, chunk_ptr, _group())
     nchunk = len(chunk_ptr) - 1
     runs = (j1 - j0)[order]
     per_chunk = np.add.reduceat(runs, chunk_ptr[:-1]) if build_cache else np.zeros(nchunk, int)
@@ -464,9 +466,7 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     count = np.empty(nrays, np.int64)
     walked = np.empty(nrays, np.int64)
     geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
-    from dvr_perception.rays.engine import _threads
-
-    per = max(16, 4 * _threads()) if report else nchunk  # groups of chunks: see progress
+    per = _group() if report else nchunk  # groups of chunks: see progress
     for c0 in range(0, nchunk, per):
         c1 = min(c0 + per, nchunk)
         nb.walk_brick(

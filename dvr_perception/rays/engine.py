@@ -545,6 +545,8 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     cells = _grid.cell_map(volume, idx, ids, memb, lab[0] if lab[1] >= 0 else None)
     rep = _plateau_entries(ids, memb, k)
     order, chunk_ptr = ray_order(h, w)
+    if report:
+        order, chunk_ptr = _interleaved(order, chunk_ptr, _group())
     nchunk = len(chunk_ptr) - 1
     # every ray's outputs are written by the kernel: no zeroing needed
     rgba = _scratch("rgba", nrays, (4,), np.float64, locked)
@@ -582,6 +584,27 @@ def _threads() -> int:
     import numba
 
     return max(1, int(numba.get_num_threads()))
+
+
+def _group() -> int:
+    """Chunks per kernel call when a progress callback is reported between calls."""
+    return max(16, 4 * _threads())
+
+
+def _interleaved(order, chunk_ptr, per: int):
+    """Reorder the chunks so that every ``per`` consecutive ones are spread over the image.
+
+    Chunk ``c`` of :func:`ray_order` holds neighbouring tiles of ``c + 1``; a kernel call over
+    ``per`` consecutive chunks would hand its threads unequal shares of a region (a brick's
+    footprint).  Here run ``g`` takes chunks ``g, g + G, g + 2G, ...`` (``G`` runs), as the
+    threads of one call over all the chunks do.  Every ray is still visited once.
+    """
+    nchunk = len(chunk_ptr) - 1
+    runs = -(-nchunk // per)
+    perm = [c for g in range(runs) for c in range(g, nchunk, runs)]
+    parts = [order[chunk_ptr[c] : chunk_ptr[c + 1]] for c in perm]
+    ptr = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
+    return np.ascontiguousarray(np.concatenate(parts)), ptr
 
 
 def _tail_tables(ids, memb, alpha_w, rep, k):
@@ -651,7 +674,7 @@ def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, mod
     nchunk = len(chunk_ptr) - 1
     # with a progress callback the chunks go in groups (one kernel call each, the same work
     # per ray: the result does not change), reported between the calls
-    per = nchunk if not report else max(16, 4 * _threads())
+    per = _group() if report else nchunk
     for c0 in range(0, nchunk, per):
         c1 = min(c0 + per, nchunk)
         nk.walk(

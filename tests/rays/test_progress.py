@@ -30,7 +30,7 @@ BUFFERS = ("rgba", "image", "visible", "assigned", "present", "curvature",
 @pytest.fixture(scope="module")
 def scene():
     vol, spec = make_phantom(size=40)
-    cam = Camera.from_view(vol.bounds, width=64, height=64, azimuth=30.0, elevation=20.0)
+    cam = Camera.from_view(vol.bounds, width=128, height=128, azimuth=30.0, elevation=20.0)
     return vol, spec, cam, curvature_volume(vol, spec)[0]
 
 
@@ -85,7 +85,7 @@ def test_analysis_reports_inside_and_gives_the_same_bits(scene, brick, inner):
     plain = analyze(vol, spec, cam, curvature=curv, brick=brick)
     got: list[float] = []
     res = analyze(vol, spec, cam, curvature=curv, brick=brick, progress=got.append)
-    # whole: set-up, then 2 groups of 8 chunks (64 x 64 pixels: 16 tiles); 30 bricks: after
+    # whole: set-up, then 4 groups of 16 chunks (128 x 128 pixels: 64 tiles); 30 bricks: after
     # each; 2 bricks: also inside each, after each group of chunks (one brick alone gives 1)
     _check_fractions(got, inner=inner)
     assert ("bricks" in res.stats) == (brick is not None)
