@@ -6,7 +6,7 @@ file, field or parameter at fault and what was expected, so front ends can show 
 
 from __future__ import annotations
 
-__all__ = ["DVRInputError", "DVRWarning"]
+__all__ = ["DVRCancelled", "DVRInputError", "DVRWarning"]
 
 
 class DVRInputError(ValueError):
@@ -15,3 +15,7 @@ class DVRInputError(ValueError):
 
 class DVRWarning(UserWarning):
     """A well-defined but suspicious situation (e.g. a camera that sees none of the volume)."""
+
+
+class DVRCancelled(RuntimeError):
+    """A long step stopped because its ``progress`` callback raised :class:`StopIteration`."""

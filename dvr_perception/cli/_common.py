@@ -34,6 +34,7 @@ __all__ = [
     "common_parent",
     "emit_json",
     "load_scene",
+    "log_progress",
     "parse_factors",
     "parse_size",
     "read_json_file",
@@ -43,6 +44,24 @@ __all__ = [
 PROG = "dvr-perception"
 DEFAULT_SIZE = 512
 log = logging.getLogger("dvr_perception.cli")
+
+
+def log_progress(what: str):
+    """Return a library ``progress`` callback logging ``what: N %`` every quarter (``-v``).
+
+    ``None`` when the log is quiet, so the step skips its reports.
+    """
+    if not log.isEnabledFor(logging.INFO):
+        return None
+    last = [0]
+
+    def progress(fraction: float) -> None:
+        quarter = int(fraction * 4)
+        if quarter > last[0]:
+            last[0] = quarter
+            log.info("%s: %d %%", what, 25 * quarter)
+
+    return progress
 
 
 class CLIParser(argparse.ArgumentParser):

@@ -25,6 +25,7 @@ from dvr_perception.cli._common import (
     emit_json,
     load_scene,
     log,
+    log_progress,
 )
 
 __all__ = ["FIGURES", "add_parser", "run"]
@@ -217,11 +218,12 @@ def _run(args, scene, t_start: float, staged) -> int:
 
     log.info("computing the curvature volume")
     t0 = time.perf_counter()
-    curvature = curvature_source(scene.volume, scene.spec)
+    curvature = curvature_source(scene.volume, scene.spec, progress=log_progress("curvature"))
     t_curv = time.perf_counter() - t0
     log.info("analysing %dx%d rays", scene.camera.width, scene.camera.height)
     t0 = time.perf_counter()
-    result = analyze(scene.volume, scene.spec, scene.camera, curvature=curvature, build_cache=False)
+    result = analyze(scene.volume, scene.spec, scene.camera, curvature=curvature, build_cache=False,
+                     progress=log_progress("rays"))  # fmt: skip
     t_analysis = time.perf_counter() - t0
     log.info("computing the measures")
     t0 = time.perf_counter()

@@ -38,6 +38,7 @@ from dvr_perception.cli._common import (
     emit_json,
     load_scene,
     log,
+    log_progress,
 )
 from dvr_perception.cli.measure import _positive_int
 from dvr_perception.errors import DVRInputError
@@ -330,6 +331,7 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
         cameras=cameras or None,
         seed=seed,
         callback=progress,
+        progress=log_progress("curvature and first ray analyses"),
         max_iter=max_iter,
         resolution=resolution,
         coverage_keep=coverage_keep,

@@ -42,7 +42,7 @@ from dvr_perception._vtk import (
     vtkStreamingDemandDrivenPipeline,
     vtkStringArray,
 )
-from dvr_perception.errors import DVRInputError
+from dvr_perception.errors import DVRCancelled, DVRInputError
 from dvr_perception.structures.io import load_spec, spec_from_dict
 from dvr_perception.volume.convert import from_vtk_image
 
@@ -242,6 +242,34 @@ class DVRFilterBase(VTKPythonAlgorithmBase):
         raise NotImplementedError
 
     # -- helpers for subclasses ---------------------------------------------------------------
+    def progress_range(self, lo: float, hi: float):
+        """Return a library ``progress`` callback that moves the bar from ``lo`` to ``hi``.
+
+        The long steps (:func:`~dvr_perception.rays.curvature.curvature_volume`,
+        :func:`~dvr_perception.rays.engine.analyze`) report their fraction ``f`` from inside;
+        it becomes ``UpdateProgress(lo + (hi - lo) * f)``, so ParaView's progress bar moves
+        during the step.  When an abort was requested (``GetAbortExecute``) the callback raises
+        :class:`StopIteration`: the step stops with
+        :class:`~dvr_perception.errors.DVRCancelled`, reported as the filter's error.
+
+        Parameters
+        ----------
+        lo, hi : float
+            The part of the filter's progress (0 to 1) the step covers.
+
+        Returns
+        -------
+        callable
+            ``progress(fraction)``.
+        """
+
+        def progress(fraction: float) -> None:
+            self.UpdateProgress(lo + (hi - lo) * fraction)
+            if self.GetAbortExecute():
+                raise StopIteration("abort requested")
+
+        return progress
+
     @property
     def label(self) -> str:
         """Name used at the start of the filter's messages."""
@@ -285,6 +313,9 @@ class DVRFilterBase(VTKPythonAlgorithmBase):
                 function(*args)
         except DVRInputError as exc:
             self.report_error(str(exc))
+            return 0
+        except DVRCancelled as exc:  # ParaView's abort inside a long step
+            self.report_error(f"{self.label}: {exc}")
             return 0
         except Exception as exc:  # never let an exception escape into VTK's C++ code
             self.report_error(f"{self.label}: internal error ({type(exc).__name__}: {exc})")

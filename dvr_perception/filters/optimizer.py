@@ -36,10 +36,12 @@ also ``opacity_before`` and ``share_before`` (the numbers of those lines before 
 optimisation), and one tuple ``opacity_unit_distance`` (the spec's, else the smallest voxel
 spacing: the value a ParaView volume display needs to match the engine's opacity).
 
-Progress is reported with ``UpdateProgress`` from the optimiser's callback (0.05 to 0.9 over
-the expected iterations); ``AbortExecute`` (ParaView's *Abort*) stops the optimiser after the
-current iteration with the best parameters so far.  Errors are reported through VTK's error
-mechanism (see :mod:`dvr_perception.filters._base`).
+Progress is reported with ``UpdateProgress``: the curvature volume and the first ray analyses
+from inside (0 to 0.2, :meth:`~dvr_perception.filters._base.DVRFilterBase.progress_range`),
+then the optimiser's callback (0.2 to 0.9 over the expected iterations).  ``AbortExecute``
+(ParaView's *Abort*) stops the optimiser after the current iteration with the best parameters
+so far (during the preparation: the filter fails with a "cancelled" error).  Errors are
+reported through VTK's error mechanism (see :mod:`dvr_perception.filters._base`).
 """
 
 from __future__ import annotations
@@ -195,7 +197,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
 
     def _callback(self, total: int):
         def callback(info) -> None:
-            self.UpdateProgress(0.05 + 0.85 * min(1.0, info.nit / total))
+            self.UpdateProgress(0.2 + 0.7 * min(1.0, info.nit / total))
             if self.GetAbortExecute():
                 raise StopIteration
 
@@ -208,7 +210,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         return optimize(volume, spec, camera, stages=stages, weights=self.weights, seed=self.seed,
                         region=self.region, callback=self._callback(len(stages) * self.max_iter),
                         max_iter=self.max_iter, resolution=self.resolution or None,
-                        analyzer=analyzer)  # fmt: skip
+                        analyzer=analyzer, progress=self.progress_range(0.0, 0.2))  # fmt: skip
 
     def execute(self, image, output) -> None:
         """Optimise, render and measure the optimised spec, and fill the output."""
@@ -228,8 +230,9 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         # which the transparency measure reads where an encloser's plain view is missing
         result = res.analyses[-1] if res.analyses else None
         if result is None:
-            curvature, _ = curvature_volume(volume, opt)
-            result = analyze(volume, opt, camera, curvature=curvature, build_cache=False)
+            curvature, _ = curvature_volume(volume, opt, progress=self.progress_range(0.9, 0.93))
+            result = analyze(volume, opt, camera, curvature=curvature, build_cache=False,
+                             progress=self.progress_range(0.93, 0.96))  # fmt: skip
         self._fill_result(output, result, res, camera)
 
     def execute_piece(self, image, output, comm, piece: int, whole) -> None:

@@ -184,10 +184,10 @@ class PerceptionMeasures(DVRFilterBase):
         check_spec_for_volume(spec, volume)
         camera = self.make_camera(volume, spec)
         self.UpdateProgress(0.05)
-        curvature, _ = curvature_volume(volume, spec, sigma=self.sigma)
-        self.UpdateProgress(0.3)
-        result = analyze(volume, spec, camera, curvature=curvature, build_cache=False)
-        self.UpdateProgress(0.7)
+        curvature, _ = curvature_volume(volume, spec, sigma=self.sigma,
+                                        progress=self.progress_range(0.05, 0.3))  # fmt: skip
+        result = analyze(volume, spec, camera, curvature=curvature, build_cache=False,
+                         progress=self.progress_range(0.3, 0.7))  # fmt: skip
         self._fill(output, result, spec, camera)
 
     # -- several MPI ranks ------------------------------------------------------------------------

@@ -77,7 +77,9 @@ class StructuralLayers(DVRFilterBase):
         self.UpdateProgress(0.1)
         ids = classify_structures(volume, spec)
         self.UpdateProgress(0.2)
-        curvature, boundary = curvature_volume(volume, spec, sigma=self.sigma)
+        curvature, boundary = curvature_volume(
+            volume, spec, sigma=self.sigma, progress=self.progress_range(0.2, 0.9)
+        )
         self.UpdateProgress(0.9)
         output.ShallowCopy(image)
         pd = output.GetPointData()

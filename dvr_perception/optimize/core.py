@@ -7,6 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures import calibrate
 from dvr_perception.measures.visibility import COMPOSITIONS
@@ -150,6 +151,7 @@ def optimize(
     composition="importance",
     objective="mean",
     analyzer=None,
+    progress=None,
 ) -> OptimizationResult:
     """Optimise opacity, lighting and colour of ``spec`` for a readable rendering (Eq. 12-15).
 
@@ -234,6 +236,12 @@ def optimize(
         ``analyzer(camera) -> RayAnalysis`` with a re-evaluation cache, instead of analysing
         ``volume`` (then ``None``) with ``curvature``: the MPI ranks' analysis, whose cache
         re-evaluates over the ranks (:meth:`~dvr_perception.rays.ranks.RankSession.analyze`).
+    progress : callable, optional
+        The preparation's progress before the first iteration (the curvature volume and the
+        views' ray analyses; :func:`~dvr_perception.rays.engine.analyze`'s ``progress``): a
+        fraction in [0, 1], ending with 1.0; the iterations report through ``callback``.  A
+        ``progress`` that raises :class:`StopIteration` cancels the optimisation with
+        :class:`~dvr_perception.errors.DVRCancelled`.
 
     Returns
     -------
@@ -272,13 +280,15 @@ def optimize(
     coarse_cams = [_reduced(cam, FD_RESOLUTION) for cam in views] if want_coarse else []
     todo = [*views, *(s for s, cam in zip(smalls, views, strict=True) if s is not cam)]
     todo += coarse_cams
+    prep = reporter(progress)
     if analyzer is None:
         if curvature is None:
-            curvature = curvature_source(volume, spec)
+            curvature = curvature_source(volume, spec, progress=prep.sub(0.0, 0.3))
         # every camera in one call: a volume analysed in bricks is read once for all
-        found = analyze_views(volume, spec, todo, curvature=curvature)
+        found = analyze_views(volume, spec, todo, curvature=curvature, progress=prep.sub(0.3, 1))
     else:
         found = [analyzer(cam) for cam in todo]
+    prep(1.0)
     got = dict(zip(map(id, todo), found, strict=True))
     full_analyses = [got[id(cam)] for cam in views]
     opt_analyses = [got[id(s)] for s in smalls]

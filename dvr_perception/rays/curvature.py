@@ -18,14 +18,15 @@ import copy
 import itertools
 import math
 import os
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
 
 from dvr_perception._numba import kernels
-from dvr_perception.errors import DVRInputError
+from dvr_perception._progress import reporter
+from dvr_perception.errors import DVRCancelled, DVRInputError
 
 __all__ = [
     "CurvatureGlobals",
@@ -539,11 +540,12 @@ def _row_ranges(mask: np.ndarray, x_first: int) -> tuple[np.ndarray, np.ndarray]
     return lo.astype(np.int64), hi.astype(np.int64)
 
 
-def _pass_boundary(volume, spec, geo: _Geometry, nk, boundary: np.ndarray):
+def _pass_boundary(volume, spec, geo: _Geometry, nk, boundary: np.ndarray, tick=None):
     """Classify and find the boundary voxels of the extent, slice by slice.
 
     Fills ``boundary`` and returns, per field key, the x ranges of its points per extent slice
     and block row, and the points of the label fields per extent slice (window flat indices).
+    ``tick()`` is called after each slice.
     """
     (ez0, ez1), _, _ = geo.extent
     nz = geo.shape[0]
@@ -576,6 +578,8 @@ def _pass_boundary(volume, spec, geo: _Geometry, nk, boundary: np.ndarray):
         return ids_cache[z]
 
     for z in range(ez0, ez1):
+        if tick is not None:
+            tick()
         prev = ids_of(z - 1) if z > 0 else None
         nxt = ids_of(z + 1) if z + 1 < nz else None
         cur = ids_of(z)
@@ -680,11 +684,13 @@ def _z_numpy(ring, slots, ys, xs, geo: _Geometry):
     return num, gz * gz + gy * gy + gx * gx
 
 
-def _field_pass(fld: _Field, geo: _Geometry, nk, rowlo, rowhi, points_of, emit) -> None:
+def _field_pass(fld: _Field, geo: _Geometry, nk, rowlo, rowhi, points_of, emit,
+                tick=None) -> None:  # fmt: skip
     """Stream the block's slices through the in-plane passes and finish the points along z.
 
     ``points_of(k)`` gives the points (block rows, block columns) of extent slice ``k``;
-    ``emit(k, ys, xs, num, mag2)`` receives them with their numerator and ``|grad f|^2``.
+    ``emit(k, ys, xs, num, mag2)`` receives them with their numerator and ``|grad f|^2``;
+    ``tick()`` is called after each slice with points.
     """
     (ez0, ez1), _, _ = geo.extent
     bz0, bz1 = geo.block[0]
@@ -741,6 +747,8 @@ def _field_pass(fld: _Field, geo: _Geometry, nk, rowlo, rowhi, points_of, emit) 
                     num, mag2 = _z_numpy(ring, slots, ys, xs, geo)
                 emit(k, ys, xs, num, mag2)
             p += 1
+            if tick is not None:
+                tick()
 
 
 def _cell_diffs_numpy(fld: _Field, org, ncell, size: int) -> np.ndarray:
@@ -922,8 +930,9 @@ def curvature_globals(volume, spec, *, sigma: float = 1.0, extent=None) -> Curva
 
 
 def curvature_volume(
-    volume, spec, *, sigma: float = 1.0, extent=None, gradient_max=None, offset=None
-) -> tuple[np.ndarray, np.ndarray]:
+    volume, spec, *, sigma: float = 1.0, extent=None, gradient_max=None, offset=None,
+    progress=None,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """``|H|`` on the boundary voxels of the structures of ``spec``.
 
     Voxels are classified with :func:`classify_structures`; a boundary voxel is one whose
@@ -952,6 +961,12 @@ def curvature_volume(
     offset : float, optional
         Subtracted from the data before filtering (default: the globals', else the median of
         every ``nz // 8``-th slice); it only conditions float32 precision.
+    progress : callable, optional
+        Called from the calling thread with the fraction done, a float in [0, 1]: 0.0 first,
+        then as the bands' z slices are classified and filtered (at most about 100 calls in
+        all, non-decreasing), 1.0 last.  A callback that raises :class:`StopIteration`
+        cancels the computation: :class:`~dvr_perception.errors.DVRCancelled` is raised.
+        The result does not depend on it.
 
     Returns
     -------
@@ -982,6 +997,7 @@ def curvature_volume(
     """
     sig = _check_sigma(sigma)
     _check_labels(volume, spec)
+    report = reporter(progress)
     data = volume.data
     ext = _check_extent(extent, data.shape)
     globals_ = None
@@ -1026,17 +1042,37 @@ def curvature_volume(
     cuts = [ey0 + ((ey1 - ey0) * i) // bands for i in range(bands + 1)]
     chunks = [(ext[0], (a, b), ext[2]) for a, b in itertools.pairwise(cuts)]
 
-    def run(chunk):
+    workers = min(_threads(), len(chunks))
+    # progress: slices done per band (one writer each), reported from the calling thread
+    per_band = (ext[0][1] - ext[0][0]) * (1 + len(fields))
+    done = [0] * len(chunks)
+    stopped: list = []
+    report(0.0)
+
+    def run(n):
+        chunk = chunks[n]
         wy = slice(chunk[1][0] - ey0, chunk[1][1] - ey0)
         sub = geo.with_extent(chunk)
-        return _chunk(volume, spec, sub, nk, fields, out[:, wy], boundary[:, wy])
 
-    workers = min(_threads(), len(chunks))
+        def tick():
+            if stopped:
+                raise DVRCancelled("progress: cancelled")  # another band's caller stopped
+            done[n] = min(done[n] + 1, per_band)
+            if workers == 1:
+                report(0.95 * sum(done) / (per_band * len(chunks)))
+
+        res = _chunk(volume, spec, sub, nk, fields, out[:, wy], boundary[:, wy],
+                     tick if report else None)  # fmt: skip
+        done[n] = per_band
+        return res
+
     if workers == 1:
-        results = [run(c) for c in chunks]
+        results = [run(n) for n in range(len(chunks))]
     else:
         with ThreadPoolExecutor(workers) as pool:
-            results = list(pool.map(run, chunks))
+            futures = [pool.submit(run, n) for n in range(len(chunks))]
+            _follow(futures, done, per_band * len(chunks), report, stopped)
+            results = [f.result() for f in futures]
     for n, fld in enumerate(fields):
         seen = max(r[n][0] for r in results)
         maybe = [
@@ -1045,7 +1081,28 @@ def curvature_volume(
             for k, ys, xs, mag2 in r[n][1]
         ]
         _resolve_flat(fld, geo, nk, seen, maybe, out)
+    report(1.0)
     return out, boundary
+
+
+def _follow(futures, done, total, report, stopped) -> None:
+    """Report the bands' progress from the calling thread until they are all done.
+
+    A cancelled report (:class:`~dvr_perception.errors.DVRCancelled`) makes the bands stop at
+    their next slice before it is raised.
+    """
+    if not report:
+        return
+    pending = set(futures)
+    try:
+        while pending:
+            _, pending = wait(pending, timeout=0.05, return_when=FIRST_COMPLETED)
+            report(0.95 * sum(done) / total)
+    except DVRCancelled:
+        stopped.append(True)
+        for f in futures:
+            f.cancel()
+        raise
 
 
 def _threads() -> int:
@@ -1058,9 +1115,9 @@ def _threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _chunk(volume, spec, geo: _Geometry, nk, fields, out, boundary) -> list:
+def _chunk(volume, spec, geo: _Geometry, nk, fields, out, boundary, tick=None) -> list:
     """Boundary and ``|H|`` of one z chunk; per field, what :func:`_field_curvature` returns."""
-    rowlo, rowhi, label_points = _pass_boundary(volume, spec, geo, nk, boundary)
+    rowlo, rowhi, label_points = _pass_boundary(volume, spec, geo, nk, boundary, tick)
     res = [(0.0, []) for _ in fields]
     if not boundary.any():
         return res
@@ -1091,11 +1148,11 @@ def _chunk(volume, spec, geo: _Geometry, nk, fields, out, boundary) -> list:
                 return idx // width + wy.start, idx % width + wx.start
 
             ranges = _label_ranges(own, nze, nyb, wy, wx, width)
-        res[n] = _field_curvature(fld, geo, nk, ranges, points_of, out)
+        res[n] = _field_curvature(fld, geo, nk, ranges, points_of, out, tick)
     return res
 
 
-def _field_curvature(fld: _Field, geo: _Geometry, nk, ranges, points_of, out):
+def _field_curvature(fld: _Field, geo: _Geometry, nk, ranges, points_of, out, tick=None):
     """Write ``|H|`` of one field at its points into ``out``, testing flatness when possible.
 
     Returns the largest ``|grad f|^2`` seen and the points that may be flat (slice, ys, xs,
@@ -1123,7 +1180,7 @@ def _field_curvature(fld: _Field, geo: _Geometry, nk, ranges, points_of, out):
             if cand.any():
                 maybe.append((k, ys[cand], xs[cand], mag2[cand]))
 
-    _field_pass(fld, geo, nk, *ranges, points_of, emit)
+    _field_pass(fld, geo, nk, *ranges, points_of, emit, tick)
     return seen, maybe
 
 

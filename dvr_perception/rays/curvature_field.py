@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dvr_perception._progress import reporter
 from dvr_perception.rays.curvature import curvature_globals, curvature_volume
 
 __all__ = ["CurvatureField", "curvature_source"]
@@ -65,16 +66,21 @@ class CurvatureField:
         return out if dtype is None else out.astype(dtype)
 
 
-def curvature_source(volume, spec, *, sigma: float = 1.0, memory_limit=None):
+def curvature_source(volume, spec, *, sigma: float = 1.0, memory_limit=None, progress=None):
     """Return the ``curvature`` to give :func:`~dvr_perception.rays.engine.analyze`.
 
     The float32 volume when the volume is analysed whole (:func:`~dvr_perception.rays.memory.
     plan`: small enough) and the array takes at most an eighth of the memory limit, else a
-    :class:`CurvatureField`.
+    :class:`CurvatureField`.  ``progress``: as
+    :func:`~dvr_perception.rays.curvature.curvature_volume`'s (a field reports 0.0 and 1.0
+    at once: its pieces are computed, and reported, by the bricked analysis that walks them).
     """
     from dvr_perception.rays import memory
 
+    report = reporter(progress)
     voxels = int(volume.data.size)
     if voxels <= memory.WHOLE_VOXELS and 4 * voxels <= memory.limit(memory_limit) / 8:
-        return curvature_volume(volume, spec, sigma=sigma)[0]
+        return curvature_volume(volume, spec, sigma=sigma, progress=report)[0]
+    report(0.0)
+    report(1.0)
     return CurvatureField(volume, spec, sigma=sigma)

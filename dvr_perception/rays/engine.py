@@ -42,6 +42,7 @@ import weakref
 import numpy as np
 
 from dvr_perception._numba import kernels
+from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.rays import _grid, _tables, memory
 from dvr_perception.rays import _numpy_kernels as _npk
@@ -211,6 +212,7 @@ def analyze(
     occlusion_free: bool = True,
     brick=None,
     memory_limit=None,
+    progress=None,
 ) -> RayAnalysis:
     """Render ``volume`` with ``spec`` from ``camera`` and measure every structure per pixel.
 
@@ -249,6 +251,13 @@ def analyze(
         Bytes (or ``"8G"``) the analysis may use; default
         :func:`dvr_perception.rays.memory.limit`.  An analysis that cannot fit raises
         :class:`~dvr_perception.errors.DVRInputError` before allocating.
+    progress : callable, optional
+        Called from the calling thread with the fraction done, a float in [0, 1]: 0.0 first,
+        then after each brick (bricked analysis) or each group of ray tiles (whole volume,
+        numba), at most about 100 calls in all, non-decreasing, 1.0 last.  Never called
+        inside a kernel; the result does not depend on it.  A callback that raises
+        :class:`StopIteration` cancels the analysis:
+        :class:`~dvr_perception.errors.DVRCancelled` is raised (nothing is returned).
 
     Returns
     -------
@@ -268,6 +277,7 @@ def analyze(
     """
     t_start = time.perf_counter()
     _check_inputs(volume, spec, camera, backend)
+    report = reporter(progress)
     if not occlusion_free and build_cache:
         raise DVRInputError(
             "occlusion_free=False renders only (rays stop at early termination): "
@@ -298,12 +308,14 @@ def analyze(
     need = _plan(volume, spec, camera, seg, lut, memb, has_curv, build_cache, memory_limit, brick)
     if need["mode"] == "whole" and curv is not None and not isinstance(curv, np.ndarray):
         curv = _check_curvature(np.asarray(curv), volume)  # a field, read whole
+    report(0.0)
     if need["mode"] == "bricks":
         from dvr_perception.rays.bricks import analyze_bricked
 
         return analyze_bricked(
             volume, spec, camera, brick=need["brick"], opacities=ops, curvature=curv,
             build_cache=build_cache, occlusion_free=occlusion_free, memory_limit=memory_limit,
+            progress=report,
         )  # fmt: skip
     idx = _grid.index_volume(volume, lut.lo, lut.scale, lut.size)
     cells = None if nk is None else _grid.cell_map(volume, idx, ids, memb, labmap)
@@ -314,12 +326,14 @@ def analyze(
     args = (ids, alpha_r, cols, light, tab, shade, has_curv, _tables.ERT)
     walked = int(seg["n"].sum())
     lazy = None
+    report(0.1)  # the derived volumes are ready; the walk follows
     # float64 accumulators come from reused scratch (fresh memory costs page faults); the
     # lock is held until _finish has copied them out
     locked = nk is not None and _SCRATCH_LOCK.acquire(blocking=False)
     try:
         if nk is None:
             out = _npk.walk(idx, *lab, cv, seg, step, ids, memb, alpha_w, has_curv, k, _tables.ERT)
+            report(0.6)
             start, count = out["off"][:-1], np.diff(out["off"])
             c_lut, c_j, c_curv = out["lut"], out["steps"], out["curv"]
             c_sh = _npk.shade_entries(vol, seg, step, start, count, c_j, ids[c_lut], tab, shade)
@@ -327,7 +341,8 @@ def analyze(
             present, asg, aimp = out["present"], out["assigned"], out["importance_accumulated"]
         else:
             res = _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
-                              camera, build_cache, occlusion_free, locked)  # fmt: skip
+                              camera, build_cache, occlusion_free, locked,
+                              report.sub(0.1, 0.9))  # fmt: skip
             rgba, vis, asg, present, cimg, start, count, entries, walked, aimp = res
             if entries is not None:
                 c_lut, c_j = entries["lut"], entries["steps"]
@@ -383,7 +398,9 @@ def analyze(
             )
             stats["cache_entries"] = len(c_lut)
             stats["cache_bytes"] = cache.nbytes
-        return _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
+        res = _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
+        report(1.0)
+        return res
     finally:
         if locked:
             _SCRATCH_LOCK.release()
@@ -415,6 +432,7 @@ def analyze_views(
     curvature=None,
     build_cache: bool = True,
     memory_limit=None,
+    progress=None,
 ) -> list[RayAnalysis]:
     """:func:`analyze` for each camera; a volume analysed in bricks is read once for all.
 
@@ -422,6 +440,7 @@ def analyze_views(
     that meet the bricks in the same order (one view at several resolutions) share a pass
     over the volume (:func:`~dvr_perception.rays.bricks.analyze_bricked_views`): each brick
     is derived once instead of once per camera.  The results equal separate calls.
+    ``progress``: as :func:`analyze`, over all the cameras.
 
     Examples
     --------
@@ -434,6 +453,7 @@ def analyze_views(
     cameras = list(cameras)
     if not cameras:
         raise DVRInputError("cameras: expected at least one camera")
+    report = reporter(progress)
     curv = _check_curvature(curvature, volume)
     for cam in cameras:
         _check_inputs(volume, spec, cam, "auto")
@@ -450,10 +470,12 @@ def analyze_views(
 
         return analyze_bricked_views(
             volume, spec, cameras, brick=bricks.pop(), curvature=curv, build_cache=build_cache,
-            memory_limit=memory_limit,
+            memory_limit=memory_limit, progress=report,
         )  # fmt: skip
     kw = {"curvature": curvature, "build_cache": build_cache, "memory_limit": memory_limit}
-    return [analyze(volume, spec, cam, **kw) for cam in cameras]
+    n = len(cameras)
+    return [analyze(volume, spec, cam, progress=report.sub(i / n, (i + 1) / n), **kw)
+            for i, cam in enumerate(cameras)]  # fmt: skip
 
 
 #: The walk casts rays in tiles of this many pixels (rows, columns): neighbouring rays meet
@@ -512,7 +534,7 @@ _SCRATCH_LOCK = threading.Lock()
 
 
 def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k, camera, build,
-                tail, locked):  # fmt: skip
+                tail, locked, report=None):  # fmt: skip
     """Run the numba walk (with the cache: fused build and compositing, then compaction)."""
     shade, has_curv = args[5], args[6]
     h, w = camera.height, camera.width
@@ -523,6 +545,8 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     cells = _grid.cell_map(volume, idx, ids, memb, lab[0] if lab[1] >= 0 else None)
     rep = _plateau_entries(ids, memb, k)
     order, chunk_ptr = ray_order(h, w)
+    if report:
+        order, chunk_ptr = _interleaved(order, chunk_ptr, _group())
     nchunk = len(chunk_ptr) - 1
     # every ray's outputs are written by the kernel: no zeroing needed
     rgba = _scratch("rgba", nrays, (4,), np.float64, locked)
@@ -551,8 +575,36 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     out = _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args,
                         (build, tail), chunk_base, rgba, vis, asg_all, present, cimg, src_lut,
                         src_j, src_sh, src_curv, start, count, chunk_end, walked, aimp,
-                        _scratch("state", nrays, (7,), np.float64, locked))  # fmt: skip
+                        _scratch("state", nrays, (7,), np.float64, locked), report)  # fmt: skip
     return (out[0], out[1], asg_all[:k], *out[3:], aimp)
+
+
+def _threads() -> int:
+    """Return numba's thread count (how many chunks run at once)."""
+    import numba
+
+    return max(1, int(numba.get_num_threads()))
+
+
+def _group() -> int:
+    """Chunks per kernel call when a progress callback is reported between calls."""
+    return max(16, 4 * _threads())
+
+
+def _interleaved(order, chunk_ptr, per: int):
+    """Reorder the chunks so that every ``per`` consecutive ones are spread over the image.
+
+    Chunk ``c`` of :func:`ray_order` holds neighbouring tiles of ``c + 1``; a kernel call over
+    ``per`` consecutive chunks would hand its threads unequal shares of a region (a brick's
+    footprint).  Here run ``g`` takes chunks ``g, g + G, g + 2G, ...`` (``G`` runs), as the
+    threads of one call over all the chunks do.  Every ray is still visited once.
+    """
+    nchunk = len(chunk_ptr) - 1
+    runs = -(-nchunk // per)
+    perm = [c for g in range(runs) for c in range(g, nchunk, runs)]
+    parts = [order[chunk_ptr[c] : chunk_ptr[c + 1]] for c in perm]
+    ptr = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
+    return np.ascontiguousarray(np.concatenate(parts)), ptr
 
 
 def _tail_tables(ids, memb, alpha_w, rep, k):
@@ -614,18 +666,25 @@ def _scratch(name, n, tail, dtype, shared):
 
 def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, modes,
                   chunk_base, rgba, vis, asg, present, cimg, src_lut, src_j, src_sh, src_curv,
-                  start, count, chunk_end, walked, aimp, state):  # fmt: skip
+                  start, count, chunk_end, walked, aimp, state, report=None):  # fmt: skip
     ids, alpha_r, cols, light, tab, shade, has_curv, ert = args
     build, tail = modes
     n = seg["n"]
     order, chunk_ptr, h, w = layout
     nchunk = len(chunk_ptr) - 1
-    nk.walk(
-        vol, *maps, cv, seg["a"], seg["b"], seg["t"], n, step, order, chunk_ptr, nchunk, ids,
-        memb, alpha_r, alpha_w, cols, light, tab, shade, has_curv, build, tail, chunk_base, ert,
-        rgba, vis, asg, present, cimg, src_lut, src_j, src_sh, src_curv, start, count, chunk_end,
-        walked, aimp, state,
-    )  # fmt: skip
+    # with a progress callback the chunks go in groups (one kernel call each, the same work
+    # per ray: the result does not change), reported between the calls
+    per = _group() if report else nchunk
+    for c0 in range(0, nchunk, per):
+        c1 = min(c0 + per, nchunk)
+        nk.walk(
+            vol, *maps, cv, seg["a"], seg["b"], seg["t"], n, step, order, chunk_ptr[c0 : c1 + 1],
+            c1 - c0, ids, memb, alpha_r, alpha_w, cols, light, tab, shade, has_curv, build, tail,
+            chunk_base[c0:c1], ert, rgba, vis, asg, present, cimg, src_lut, src_j, src_sh,
+            src_curv, start, count, chunk_end[c0:c1], walked, aimp, state,
+        )  # fmt: skip
+        if report:
+            report(c1 / nchunk)
     entries = None
     if build:
         # entries move to row-major pixel order, the order compositing reads them in

@@ -202,3 +202,17 @@ def test_measure_uniform_volume(capsys, tmp_path, ext):
     saved = (out_dir / "measures.json").read_text(encoding="utf-8")
     assert "NaN" not in saved
     assert "Infinity" not in saved
+
+
+def test_measure_verbose_logs_progress_inside_the_long_steps(capsys):
+    code = main(["measure", "phantom", "--size", "32", "-v"])
+    assert code == 0
+    err = capsys.readouterr().err
+    for step in ("curvature", "rays"):  # every quarter, from the library's progress callbacks
+        lines = [line for line in err.splitlines() if line.startswith(f"dvr-perception: {step}: ")]
+        got = [int(line.rsplit(" ", 2)[-2]) for line in lines]
+        assert got == sorted(set(got)), err
+        assert got[-1] == 100, err
+        assert len(got) >= 2, err
+        assert set(got) <= {25, 50, 75, 100}
+    assert "dvr-perception: curvature: 50 %" in err  # z slices: every quarter is passed

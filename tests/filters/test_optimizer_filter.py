@@ -77,7 +77,11 @@ def test_output_image_and_field_data(filtered, phantom):
     np.testing.assert_allclose(_field(out, "opacity"), [s.render_opacity for s in opt.structures])
     np.testing.assert_allclose(_field(out, "color"), [s.color for s in opt.structures])
     assert max(progress) == pytest.approx(1.0)
-    assert any(0.05 < p < 0.9 for p in progress)  # reported from the optimiser's callback
+    assert any(0.2 < p < 0.9 for p in progress)  # reported from the optimiser's callback
+    # the curvature volume and the first analyses report from inside (issue 19)
+    prep = progress[: next(i for i, p in enumerate(progress) if p >= 0.2)]
+    assert len([p for p in prep if 0.0 < p < 0.2]) >= 3
+    assert prep == sorted(prep)
 
 
 def test_terms_equal_optimize(filtered, phantom):

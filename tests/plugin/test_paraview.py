@@ -170,6 +170,10 @@ emit({{"E": {{k: fd.GetArray(k).GetValue(0) for k in ("E_v", "E_s", "E_t")}},
     assert prog[-1] == 1.0
     assert len({round(p, 3) for p in prog if 0 < p < 1}) >= 3
     assert all(b >= a for a, b in itertools.pairwise(prog))
+    # and from inside the long steps (issue 19): the curvature volume (0.05 to 0.3) and the
+    # ray analysis (0.3 to 0.7) each move the bar more than once
+    assert len({round(p, 4) for p in prog if 0.05 < p < 0.3}) >= 2, prog
+    assert len({round(p, 4) for p in prog if 0.3 < p < 0.7}) >= 2, prog
 
 
 def test_batch_script_writes_rendering_measure_images_and_json(
