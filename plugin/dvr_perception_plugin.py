@@ -68,6 +68,20 @@ def _setup_paths():
 _setup_paths()
 
 
+def run_macro(action):
+    """Run one DVR Perception toolbar action (``plugin/macros/DVR_*.py`` call this).
+
+    ``action`` is ``"measure"``, ``"optimise"``, ``"refine"`` or ``"undo"``; see
+    ``plugin/dvr_view.py``, imported from this plugin's folder.
+    """
+    here = os.path.dirname(os.path.abspath(__file__))
+    if here not in sys.path:
+        sys.path.insert(0, here)
+    import dvr_view
+
+    return dvr_view.run_macro(action)
+
+
 class _LibraryShell(VTKPythonAlgorithmBase):
     """Forwards the pipeline passes to a lazily created ``dvr_perception.filters`` filter."""
 

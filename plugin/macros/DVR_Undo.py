@@ -6,7 +6,6 @@ plugin/install_macros.py``); the plugin must be loaded.  Acts in one step on the
 (the volume, or a DVR Perception filter on it) and the active view.
 """
 
-import os
 import sys
 
 plugin = sys.modules.get("dvr_perception_plugin")
@@ -14,10 +13,4 @@ if plugin is None:
     raise RuntimeError(
         "DVR_Undo: load plugin/dvr_perception_plugin.py first (Tools > Manage Plugins)"
     )
-folder = os.path.dirname(os.path.abspath(plugin.__file__))
-if folder not in sys.path:
-    sys.path.insert(0, folder)
-
-import dvr_view  # noqa: E402
-
-dvr_view.run_macro("undo")
+plugin.run_macro("undo")
