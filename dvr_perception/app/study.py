@@ -140,7 +140,10 @@ class CalibrationTest:
         """Record the current stimulus' rating: how see-through it looks, 0 to 1."""
         if self.done:
             raise DVRInputError("calibration: every image is already rated; save the curve")
-        v = float(value)
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            v = float("nan")
         if not 0.0 <= v <= 1.0:
             raise DVRInputError(f"calibration rating: expected 0 to 1, got {value}")
         self.ratings.append(v)

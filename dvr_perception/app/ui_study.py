@@ -85,7 +85,8 @@ def calibration_screen(app) -> None:
                     html.Span("1: everything (no square)")
                 v3.VBtn(
                     "Next image",
-                    click=app.rate_stimulus,
+                    # the value on screen, not a later state sync
+                    click=(app.rate_stimulus, "[cal_rating]"),
                     color="primary",
                     classes="mt-3",
                     id="cal-next",

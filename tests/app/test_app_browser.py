@@ -495,6 +495,12 @@ def test_calibration_flow_saves_a_curve_file(page, server):
         thumb.focus()
         for _ in range(k):  # ratings 0.5, 0.55, ... (the slider steps by 0.05)
             page.keyboard.press("ArrowRight")
+        want = f"{0.5 + 0.05 * k:.2f}"
+        page.wait_for_function(  # the slider shows the rating before Next is pressed
+            "(w) => Number(document.querySelector('.cal-rating [aria-valuenow]')"
+            "?.getAttribute('aria-valuenow')).toFixed(2) === w",
+            arg=want,
+        )
         page.click("#cal-next")
     page.wait_for_selector("#cal-saved")
     path = server["exports"] / "my_calibration.json"
