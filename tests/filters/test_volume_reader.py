@@ -128,3 +128,17 @@ def test_structural_layers_puts_its_arrays_on_the_voxels_of_a_directed_image(fli
         np.testing.assert_array_equal(directed[key], expect, err_msg=key)
     assert not np.array_equal(directed["structure_id"], plain["structure_id"])
     assert set(np.unique(plain["structure_id"])) == {-1, 0, 1}
+
+
+def test_reader_gives_native_values_of_a_big_endian_mgz(tmp_path):
+    """nibabel hands MGH data over big-endian; VTK arrays must get native values."""
+    import nibabel  # the medical extra, installed with dev
+
+    data = np.arange(60, dtype=np.float32).reshape(3, 4, 5)  # nibabel order: [x, y, z]
+    nibabel.save(nibabel.MGHImage(data, np.eye(4)), tmp_path / "t.mgz")
+    reader, ok, out = _read(tmp_path / "t.mgz")
+    assert ok, reader.error_message
+    got = _values(out)
+    assert got.dtype.isnative
+    # RAS identity -> LPS: x and y flipped into canonical order
+    np.testing.assert_array_equal(got, data.transpose(2, 1, 0)[:, ::-1, ::-1])

@@ -87,6 +87,14 @@ for name, path in job["files"].items():
         reader, array = DVRPerceptionvolume(FileName=path), "scalars"
     reader.UpdatePipeline()
     rec = {"bounds": list(reader.GetDataInformation().GetBounds()), "E": []}
+    if not job["cameras"].get(name):  # read only: the values that reach ParaView
+        image = servermanager.Fetch(reader)
+        values = image.GetPointData().GetScalars()
+        rec.update(dims=list(image.GetDimensions()), origin=list(image.GetOrigin()),
+                   sum=sum(values.GetValue(i) for i in range(values.GetNumberOfValues())),
+                   first=values.GetValue(0))
+        out[name] = rec
+        continue
     display = Show(reader, view)
     display.SetRepresentationType("Volume")
     ColorBy(display, ("POINTS", array))
@@ -111,6 +119,22 @@ for name, path in job["files"].items():
     out[name] = rec
 print(MARK + json.dumps(out), flush=True)
 """
+
+
+def _dicom_series(folder: Path) -> Path:
+    """pydicom's CT_small as a 3-slice series, head first, in a sub-folder; names unsorted."""
+    import pydicom
+    from pydicom.data import get_testdata_file
+
+    series = folder / "ct"
+    series.mkdir(parents=True)
+    for name, z in (("b.dcm", 6.0), ("a.dcm", 0.0), ("c.dcm", 3.0)):
+        ds = pydicom.dcmread(get_testdata_file("CT_small.dcm"))
+        ds.SeriesInstanceUID = "1.2.3.21"
+        ds.SOPInstanceUID = pydicom.uid.generate_uid()
+        ds.ImagePositionPatient = [-10.0, -20.0, z]
+        ds.save_as(series / name)
+    return series
 
 
 def _rotated(camera: Camera, rot: np.ndarray, about) -> Camera:
@@ -144,6 +168,8 @@ def pv_run(paraview, display, tmp_path_factory):
     cameras["oblique"] = [_rotated(c, rot, ORIGIN).to_dict() for c in cams]
     files["canonical_turned"], cameras["canonical_turned"] = files["canonical"], cameras["oblique"]
     measure = ["canonical", "negz", "oblique", "paraview_own"]
+    files["dicom"] = str(_dicom_series(tmp / "study") / "b.dcm")  # one file: its series
+    cameras["dicom"] = []
     job = {"spec": SPEC, "files": files, "cameras": cameras, "views": VIEWS, "size": SIZE,
            "spacing": list(SPACING), "measure": measure}  # fmt: skip
     (tmp / "job.json").write_text(json.dumps(job), encoding="utf-8")
@@ -156,7 +182,7 @@ def pv_run(paraview, display, tmp_path_factory):
     got = paraview.result(proc, clean=False)
     (tmp / "result.json").write_text(json.dumps(got, indent=1), encoding="utf-8")
     images = {n: [read_png(tmp / f"{n}_{k}.png")[..., :3] / 255.0 for k in range(len(VIEWS))]
-              for n in files}  # fmt: skip
+              for n in files if cameras[n]}  # fmt: skip
     return got, images, tmp
 
 
@@ -194,3 +220,15 @@ def test_oblique_nrrd_in_paraview_gpu_rotated_cpu_ray_caster_not(pv_run):
         np.testing.assert_allclose(got["oblique"]["E"][k], got["canonical"]["E"][k], atol=1e-6)
     # the turned cameras do see something else in the canonical volume (the test can fail)
     assert _ssim(images["canonical_turned"][0], images["canonical"][0]) < 0.95
+
+
+def test_dicom_file_opens_its_series_in_patient_order(pv_run):
+    """One file of a series: the reader reads the series (pydicom in ParaView's Python)."""
+    got, _images, tmp = pv_run
+    ref = load_volume(tmp / "study")  # the venv's reader: sorted by position, in HU
+    rec = got["dicom"]
+    assert rec["dims"] == [128, 128, 3]
+    assert rec["origin"] == pytest.approx(ref.origin)
+    assert ref.origin[2] == 0.0
+    assert rec["sum"] == int(ref.data.astype(np.int64).sum())
+    assert rec["first"] == int(ref.data[0, 0, 0])
