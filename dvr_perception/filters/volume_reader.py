@@ -156,7 +156,9 @@ class VolumeReader(DVRFilterBase):
         image.SetOrigin(*vol.origin)
         if hasattr(image, "SetDirectionMatrix"):
             image.SetDirectionMatrix(*np.asarray(vol.direction).ravel())
-        arr = numpy_to_vtk(block.reshape(-1), deep=True)
+        # the whole extent shares the kept volume's memory (no second copy of a large volume);
+        # the VTK array holds a reference to the numpy buffer
+        arr = numpy_to_vtk(block.reshape(-1), deep=False)
         arr.SetName(ARRAY_NAME)
         image.GetPointData().SetScalars(arr)
         output.ShallowCopy(image)
