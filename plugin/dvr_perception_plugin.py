@@ -66,6 +66,8 @@ def _setup_paths():
 
 
 _setup_paths()
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # the plugin's own modules
+from dvr_volume_reader import VolumeReader  # noqa: E402, F401  (reader "DVR Perception volume")
 
 
 def run_macro(action):

@@ -34,6 +34,8 @@ import sys
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
+
 from dvr_perception import _paraview_compat
 from dvr_perception._files import output_folder
 from dvr_perception.cli._common import PROG, add_scene_args, emit_json, log, parse_size
@@ -408,6 +410,29 @@ def _launch(args: argparse.Namespace, pvbatch: Path) -> subprocess.CompletedProc
     return proc
 
 
+def _check_file_order(volume: str) -> None:
+    """Refuse ``--ranks N`` for a file whose axes are not the patient axes in LPS order.
+
+    The ranks read their pieces with ParaView's readers, in file order; a flipped, permuted or
+    rotated file would be measured mirrored or turned (``--ranks 1`` reads it in patient LPS).
+    """
+    from dvr_perception.volume.io import header_axes
+
+    if not os.path.isfile(volume):
+        return  # the run reports a missing file itself
+    axes = header_axes(volume)
+    if axes is None:
+        return
+    if np.count_nonzero(axes - np.diag(np.diag(axes))) or np.any(np.diag(axes) <= 0):
+        vectors = " ".join(f"({','.join(f'{v:g}' for v in col)})" for col in axes.T)
+        raise DVRInputError(
+            f"--ranks: {volume} stores its axes flipped, permuted or rotated (axis vectors "
+            f"{vectors} in LPS); the MPI ranks read the file as it is stored, which would "
+            "measure it mirrored or turned: run with --ranks 1 (read in patient LPS), or "
+            "re-save it in LPS order first"
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     """Execute ``pvbatch``."""
     if args.size is not None:
@@ -423,6 +448,8 @@ def run(args: argparse.Namespace) -> int:
         raise DVRInputError(
             "--orientation: needs --ranks 1 (the MPI ranks read the file as it is stored)"
         )
+    if getattr(args, "ranks", 1) > 1:
+        _check_file_order(args.volume)
     if not (args.sigma > 0):
         raise DVRInputError(f"--sigma: expected a positive number, got {args.sigma}")
     if args.ranks < 1:

@@ -16,6 +16,11 @@ Label structures need a label volume, which a single input image does not carry;
 label structures is therefore reported as an error (the library's "no label volume" message).
 Errors (missing or malformed spec, input without point scalars, ...) are reported through
 VTK's error mechanism; see :mod:`dvr_perception.filters._base`.
+
+An input with a direction matrix (VTK >= 9) is analysed in patient LPS like a file is
+(:func:`~dvr_perception.volume.from_vtk_image` flips/permutes it into canonical order); the three
+arrays are put back into the input's own point order
+(:func:`~dvr_perception.volume.orient.file_order`), so they lie on the voxels they describe.
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ import numpy as np
 from dvr_perception.filters._base import DVRFilterBase, Parameter, as_positive_float, point_array
 from dvr_perception.rays.curvature import classify_structures, curvature_volume
 from dvr_perception.structures.io import attach_labels, check_spec_for_volume
+from dvr_perception.volume.convert import image_direction
+from dvr_perception.volume.orient import file_order
 
 __all__ = ["StructuralLayers"]
 
@@ -83,6 +90,11 @@ class StructuralLayers(DVRFilterBase):
         self.UpdateProgress(0.9)
         output.ShallowCopy(image)
         pd = output.GetPointData()
-        pd.AddArray(point_array(ids.reshape(-1), "structure_id"))
-        pd.AddArray(point_array(boundary.reshape(-1).astype(np.uint8), "boundary"))
-        pd.AddArray(point_array(curvature.reshape(-1), "curvature"))
+        direction = image_direction(image)  # the canonical order back to the input's
+
+        def put(values, name):
+            pd.AddArray(point_array(file_order(values, direction).reshape(-1), name))
+
+        put(ids, "structure_id")
+        put(boundary.astype(np.uint8), "boundary")
+        put(curvature, "curvature")

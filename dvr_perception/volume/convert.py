@@ -27,7 +27,13 @@ from dvr_perception._vtk import (
 from dvr_perception.errors import DVRInputError
 from dvr_perception.volume.volume import Volume
 
-__all__ = ["from_vtk_image", "has_identity_direction", "to_vtk_image", "vtk_errors"]
+__all__ = [
+    "from_vtk_image",
+    "has_identity_direction",
+    "image_direction",
+    "to_vtk_image",
+    "vtk_errors",
+]
 
 
 def to_vtk_image(
@@ -187,6 +193,11 @@ def has_identity_direction(image) -> bool:
     False
     """
     return bool(np.array_equal(_direction(image), np.eye(3)))
+
+
+def image_direction(image) -> np.ndarray:
+    """Return a ``vtkImageData``'s 3 x 3 direction matrix (the identity before VTK 9.0)."""
+    return _direction(image)
 
 
 def _direction(image) -> np.ndarray:

@@ -52,7 +52,7 @@ from dvr_perception.volume.convert import from_vtk_image, to_vtk_image, vtk_erro
 from dvr_perception.volume.orient import from_axes, ras_to_lps
 from dvr_perception.volume.volume import Volume
 
-__all__ = ["load_volume", "save_volume"]
+__all__ = ["header_axes", "load_volume", "save_volume"]
 
 RAW_DTYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
 _RAW_NAME = re.compile(r"^(?P<name>.+)_(?P<x>\d+)x(?P<y>\d+)x(?P<z>\d+)_(?P<dtype>\w+)\.raw$")
@@ -183,6 +183,53 @@ def load_volume(path, *, name: str | None = None, series: str | None = None) -> 
     if data.size == 0:
         raise DVRInputError(f"{path}: the volume is empty (shape (z, y, x) = {data.shape})")
     return from_axes(data, axes, origin, name=vname, source=str(path), where=str(path))
+
+
+def header_axes(path) -> np.ndarray | None:
+    """Return a NRRD or MetaImage file's axis vectors (LPS columns) from its header only.
+
+    ``None`` for other formats.  For callers that must not read the data, e.g. the MPI path
+    of ``dvr-perception pvbatch``, whose ranks read their pieces with ParaView's readers in
+    file order: they need to know whether the file's axes are flipped, permuted or rotated.
+
+    Raises
+    ------
+    DVRInputError
+        A malformed header (the message names the file and field).
+
+    Examples
+    --------
+    >>> import tempfile, os
+    >>> d = tempfile.mkdtemp()
+    >>> save_volume(Volume(np.zeros((2, 2, 2), np.uint8), spacing=(1, 1, 2)), f"{d}/v.nrrd")
+    >>> np.diag(header_axes(f"{d}/v.nrrd")).tolist()
+    [1.0, 1.0, 2.0]
+    """
+    path = Path(os.fspath(path))
+    ext = "" if path.is_dir() else _ext(path)
+    if ext in (".nhdr", ".nrrd"):
+        fields, _ = _nrrd_header(path)
+        axes = _nrrd_axes(fields, path)
+        space = _nrrd_space(fields, path)
+        if space == "ras":
+            axes, _ = ras_to_lps(axes, np.zeros(3))
+        elif space == "las":
+            axes = axes * [[-1.0], [1.0], [1.0]]
+        return axes
+    if ext in (".mha", ".mhd"):
+        fields, _ = _meta_header(path)
+        spacing = np.ones(3)
+        for key in ("elementspacing", "elementsize"):
+            if key in fields:
+                spacing = np.array([parse_float(v, path, key) for v in fields[key].split()[:3]])
+                break
+        for key in ("transformmatrix", "rotation", "orientation"):
+            if key in fields:
+                vals = [parse_float(v, path, "TransformMatrix") for v in fields[key].split()]
+                if len(vals) == 9:
+                    return np.array(vals).reshape(3, 3).T * spacing
+        return np.diag(spacing)
+    return None
 
 
 def _read_dicom(path: Path, name: str, series: str | None) -> Volume:

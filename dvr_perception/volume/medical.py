@@ -13,17 +13,31 @@ Pixel values go through ``RescaleSlope``/``RescaleIntercept`` (per frame in enha
 ``DoseGridScaling`` for RT dose), so a CT comes out in Hounsfield units.  Headers are read
 first and checked (one series, grey-scale, sizes against the memory limit) before any pixel
 data is decoded.
+
+A folder is searched recursively (at most :data:`MAX_FILES` files, :data:`MAX_DEPTH` folder
+levels, symbolic links not followed); several series in it are listed with the sub-folder each
+lies in.  The files of the series read must total at most the memory limit (as VTK's DICOM
+reader's folder is bounded in :mod:`dvr_perception.volume.io`).  Colour images (RGB, YBR) are
+refused with one error: a DICOM colour image is a photograph or a rendering, not a measured
+scalar, and a luminance made up from it has no unit that a transfer function's ranges could
+mean.  A tilted-gantry series (slice positions stepping off the slice normal) is resampled
+onto the regular grid along the normal, as 3D Slicer's acquisition-geometry regularisation
+does: each slice is shifted in its plane by linear interpolation, with a warning naming the
+tilt.
 """
 
 from __future__ import annotations
 
 import contextlib
 import importlib.util
+import math
+import os
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from dvr_perception.errors import DVRInputError
+from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.volume._limits import check_budget
 from dvr_perception.volume.orient import from_axes, ras_to_lps
 from dvr_perception.volume.volume import Volume
@@ -31,8 +45,10 @@ from dvr_perception.volume.volume import Volume
 __all__ = ["available", "read_dicom", "read_mgh", "require"]
 
 _EXTRA = "pip install 'dvr-perception[medical]'"
-#: Most files a DICOM folder may hold (headers are read one by one).
+#: Most files a DICOM folder (with its sub-folders) may hold (headers are read one by one).
 MAX_FILES = 20000
+#: Deepest sub-folder level searched below a DICOM folder.
+MAX_DEPTH = 8
 
 
 def available(module: str = "pydicom") -> bool:
@@ -94,11 +110,9 @@ def _headers(path: Path) -> list[tuple[Path, object]]:
     from pydicom.errors import InvalidDicomError
 
     if path.is_dir():
-        files = sorted(p for p in path.iterdir() if p.is_file() and p.name != "DICOMDIR")
+        files = _walk(path)
         if not files:
             raise DVRInputError(f"{path}: the directory holds no files (expected a DICOM series)")
-        if len(files) > MAX_FILES:
-            raise DVRInputError(f"{path}: more than {MAX_FILES} files; expected one series")
     else:
         files = [path]
     out = []
@@ -120,6 +134,41 @@ def _headers(path: Path) -> list[tuple[Path, object]]:
     return out
 
 
+def _walk(root: Path) -> list[Path]:
+    """Return the regular files below ``root`` (sorted), at most :data:`MAX_FILES`."""
+    files: list[Path] = []
+    for folder, dirs, names in os.walk(root, followlinks=False):
+        depth = len(Path(folder).relative_to(root).parts)
+        if depth >= MAX_DEPTH:
+            dirs[:] = []  # not deeper
+        dirs.sort()
+        for name in sorted(names):
+            f = Path(folder) / name
+            if name == "DICOMDIR" or not f.is_file() or f.is_symlink():
+                continue
+            files.append(f)
+            if len(files) > MAX_FILES:
+                raise DVRInputError(
+                    f"{root}: more than {MAX_FILES} files in the folder and its sub-folders; "
+                    "point to the folder of one study or series"
+                )
+    return sorted(files)
+
+
+def _check_series_bytes(path: Path, files) -> None:
+    """Refuse a series whose files (read whole) hold more bytes than the memory limit."""
+    from dvr_perception.rays import memory
+
+    total = sum(f.stat().st_size for f in files)
+    cap = memory.limit()
+    if total > cap:
+        raise DVRInputError(
+            f"{path}: the series' {len(files)} DICOM files hold {total / 2**20:.0f} MiB, more "
+            f"than the memory limit of {cap / 2**20:.0f} MiB; raise it with --memory-limit "
+            f"(or {memory.ENV})"
+        )
+
+
 def _pick_series(path: Path, headers, series: str | None):
     groups: dict[str, list] = {}
     for f, ds in headers:
@@ -127,32 +176,43 @@ def _pick_series(path: Path, headers, series: str | None):
     if series is not None:
         if series not in groups:
             raise DVRInputError(
-                f"{path}: --series {series[:80]!r} not found; the folder holds {_describe(groups)}"
+                f"{path}: --series {series[:80]!r} not found; the folder holds "
+                f"{_describe(groups, path)}"
             )
         return groups[series]
     if len(groups) > 1:
         raise DVRInputError(
             f"{path}: the folder holds {len(groups)} DICOM series; choose one with --series "
-            f"UID: {_describe(groups)}"
+            f"UID: {_describe(groups, path)}"
         )
     return next(iter(groups.values()))
 
 
-def _describe(groups) -> str:
+def _describe(groups, root: Path) -> str:
     parts = []
     for uid, items in sorted(groups.items()):
         ds = items[0][1]
         desc = str(getattr(ds, "SeriesDescription", "") or getattr(ds, "Modality", ""))
-        parts.append(f"{uid or '(no UID)'} ({len(items)} file(s){', ' + desc if desc else ''})")
+        where = ""
+        if root.is_dir():
+            folders = sorted({str(f.parent.relative_to(root)) for f, _ in items})
+            shown = ", ".join(folders[:3]) + (", ..." if len(folders) > 3 else "")
+            where = f" in {shown}" if folders != ["."] else ""
+        parts.append(
+            f"{uid or '(no UID)'} ({len(items)} file(s){where}{', ' + desc if desc else ''})"
+        )
     return "; ".join(parts)
 
 
 def _pixel_dtype(ds, where: str) -> np.dtype:
     bits = int(getattr(ds, "BitsAllocated", 0) or 0)
     samples = int(getattr(ds, "SamplesPerPixel", 1) or 1)
-    if samples != 1:
+    photometric = str(getattr(ds, "PhotometricInterpretation", "") or "").strip()
+    if samples != 1 or photometric.startswith(("RGB", "YBR", "PALETTE")):
         raise DVRInputError(
-            f"{where}: DICOM field 'SamplesPerPixel' is {samples}; expected 1 (grey-scale)"
+            f"{where}: a colour DICOM image (DICOM field 'SamplesPerPixel' is {samples}, "
+            f"'PhotometricInterpretation' {photometric or 'missing'}); expected 1 sample per "
+            "pixel, grey-scale (MONOCHROME1/2): volume rendering needs measured scalar values"
         )
     if bits not in (8, 16, 32):
         raise DVRInputError(f"{where}: DICOM field 'BitsAllocated' is {bits}; expected 8, 16, 32")
@@ -315,9 +375,11 @@ def _read(path: Path, *, name: str, series: str | None) -> Volume:
         return _read_multiframe(*headers[0], name=name, source=str(path))
     first = headers[0][1]
     _check_sizes(str(path), first, len(headers))
+    _check_series_bytes(path, [f for f, _ in headers])
     entries = []
     for f, ds in headers:
         where = str(f)
+        _pixel_dtype(ds, where)  # every file grey-scale, not only the first
         if int(getattr(ds, "NumberOfFrames", 1) or 1) != 1:
             raise DVRInputError(f"{where}: a multi-frame file inside a series; read it alone")
         if (int(ds.Rows), int(ds.Columns)) != (int(first.Rows), int(first.Columns)):
@@ -333,7 +395,7 @@ def _read(path: Path, *, name: str, series: str | None) -> Volume:
                 f,
             )
         )
-    order, axes, origin = _stack_geometry([(p, o, s) for p, o, s, _ in entries], str(path))
+    order, axes, origin, shear = _stack_geometry([(p, o, s) for p, o, s, _ in entries], str(path))
     frames, scales = [], []
     for i in order:
         f = entries[i][3]
@@ -342,7 +404,7 @@ def _read(path: Path, *, name: str, series: str | None) -> Volume:
             raise DVRInputError(f"{f}: decoded pixel data has shape {arr.shape}")
         frames.append(arr)
         scales.append(_rescale(ds, str(f)))
-    data = _apply(frames, scales)
+    data = _regularise(_apply(frames, scales), shear)
     return from_axes(data, axes, origin, name=name, source=str(path), where=str(path))
 
 
@@ -358,7 +420,7 @@ def _read_multiframe(f: Path, ds, *, name: str, source: str) -> Volume:
     if "PerFrameFunctionalGroupsSequence" in ds:
         geo = [_frame_geometry(ds, i, where) for i in range(n)]
         scales = [g[3] for g in geo]
-        order, axes, origin = _stack_geometry([g[:3] for g in geo], where)
+        order, axes, origin, shear = _stack_geometry([g[:3] for g in geo], where)
     elif "GridFrameOffsetVector" in ds:
         ipp = _floats(ds, "ImagePositionPatient", 3, where)
         iop = _floats(ds, "ImageOrientationPatient", 6, where)
@@ -366,7 +428,7 @@ def _read_multiframe(f: Path, ds, *, name: str, source: str) -> Volume:
         offsets = _floats(ds, "GridFrameOffsetVector", n, where)
         normal = np.cross(iop[:3], iop[3:])
         slices = [(ipp + off * normal, iop, ps) for off in offsets]
-        order, axes, origin = _stack_geometry(slices, where)
+        order, axes, origin, shear = _stack_geometry(slices, where)
         scales = [_rescale(ds, where)] * n
     else:
         raise DVRInputError(
@@ -376,14 +438,17 @@ def _read_multiframe(f: Path, ds, *, name: str, source: str) -> Volume:
     _full, arr = _pixels(f, where)
     if arr.shape != (n, int(ds.Rows), int(ds.Columns)):
         raise DVRInputError(f"{where}: decoded pixel data has shape {arr.shape}")
-    data = _apply([arr[i] for i in order], [scales[i] for i in order])
+    data = _regularise(_apply([arr[i] for i in order], [scales[i] for i in order]), shear)
     return from_axes(data, axes, origin, name=name, source=source, where=where)
 
 
 def _stack_geometry(slices, where: str):
-    """Sort slices along their normal; return ``(order, axes, origin)``.
+    """Sort slices along their normal; return ``(order, axes, origin, shear)``.
 
     ``slices`` holds ``(ImagePositionPatient, ImageOrientationPatient, PixelSpacing)``.
+    ``shear`` is ``None`` when the positions lie on a line along the normal; for a tilted
+    gantry (positions stepping evenly off the normal) it is the in-plane step per slice in
+    pixels, ``(rows, columns)``, that :func:`_regularise` undoes.
     """
     _pos0, iop, ps = slices[0]
     for _p, o, s in slices[1:]:
@@ -414,12 +479,52 @@ def _stack_geometry(slices, where: str):
             "(ImagePositionPatient); expected evenly spaced slices"
         )
     first = slices[order[0]][0]
-    offset = first - np.dot(first, normal) * normal
-    offsets = [p - np.dot(p, normal) * normal for p, _, _ in slices]
-    if any(not np.allclose(o, offset, atol=1e-3 * max(1.0, dz)) for o in offsets):
-        raise DVRInputError(
-            f"{where}: the slices' ImagePositionPatient do not lie on one line along the slice "
-            "normal (a tilted gantry is not supported)"
-        )
+    # in-plane offset of each slice (in sorted order) from the first one
+    offsets = np.array([slices[i][0] - first for i in order])
+    offsets -= np.outer(offsets @ normal, normal)
+    tol = 1e-3 * max(1.0, dz)
     axes = np.column_stack([row * ps[1], col * ps[0], normal * dz])
-    return [int(i) for i in order], axes, first
+    if np.all(np.abs(offsets) <= tol):
+        return [int(i) for i in order], axes, first, None
+    step = offsets[-1] / (len(order) - 1)
+    linear = offsets - np.outer(np.arange(len(order)), step)
+    if np.any(np.abs(linear) > tol):
+        raise DVRInputError(
+            f"{where}: the slices' ImagePositionPatient lie neither on one line along the slice "
+            "normal nor on one evenly tilted line (a varying gantry tilt or table shift); "
+            "expected one regular grid"
+        )
+    tilt = math.degrees(math.atan2(float(np.linalg.norm(step)), dz))
+    warnings.warn(
+        f"{where}: tilted gantry ({tilt:.2f} degrees: the slices step {np.linalg.norm(step):.3g} "
+        "mm off the slice normal); resampled onto the regular grid along the normal",
+        DVRWarning,
+        stacklevel=4,
+    )
+    # pixels per slice (rounded: a whole-pixel step must move pixels exactly)
+    shear = (round(float(step @ col) / ps[0], 6), round(float(step @ row) / ps[1], 6))
+    return [int(i) for i in order], axes, first, shear
+
+
+def _regularise(data: np.ndarray, shear) -> np.ndarray:
+    """Shift slice ``k`` of a tilted-gantry stack by ``k * shear`` pixels (linear, in place).
+
+    Output voxel ``(i, j, k)`` lies at ``first + i*row + j*col + k*dz*normal``; in the
+    acquired slice ``k`` that point is pixel ``(j, i) - k * shear``.  Pixels shifted in from
+    outside the slice get the volume's minimum; integer data are rounded back.
+    """
+    if shear is None:
+        return data
+    from scipy import ndimage
+
+    fill = float(data.min())
+    for k in range(1, data.shape[0]):
+        moved = ndimage.shift(
+            data[k].astype(np.float64),
+            (k * shear[0], k * shear[1]),
+            order=1,
+            mode="grid-constant",
+            cval=fill,
+        )
+        data[k] = np.rint(moved) if data.dtype.kind in "ui" else moved
+    return data

@@ -22,7 +22,14 @@ import numpy as np
 from dvr_perception.errors import DVRInputError
 from dvr_perception.volume.volume import Volume
 
-__all__ = ["canonical", "from_axes", "parse_orientation", "ras_to_lps", "reorient"]
+__all__ = [
+    "canonical",
+    "file_order",
+    "from_axes",
+    "parse_orientation",
+    "ras_to_lps",
+    "reorient",
+]
 
 #: Diagonal that turns RAS coordinates into LPS (and back).
 _FLIP_RAS = np.array([-1.0, -1.0, 1.0])
@@ -102,14 +109,11 @@ def canonical_arrays(data, spacing, origin, direction, *, name, source, where, l
     spacing = np.asarray(spacing, float)
     origin = np.asarray(origin, float)
     n_old = data.shape[::-1]  # voxels along index x, y, z
-    perm = _closest_permutation(d)  # new index axis a <- old index axis perm[a]
-    signs = np.array([1.0 if d[a, perm[a]] >= 0 else -1.0 for a in range(3)])
+    perm, signs, order, flips = _reordering(d)
     arrays = [data] if labels is None else [data, labels]
-    order = (2 - perm[2], 2 - perm[1], 2 - perm[0])
     out = []
     for arr in arrays:
         arr = np.transpose(arr, order)
-        flips = tuple(2 - a for a in range(3) if signs[a] < 0)
         out.append(np.ascontiguousarray(np.flip(arr, flips) if flips else arr))
     new_origin = origin.copy()
     for a in range(3):
@@ -129,6 +133,40 @@ def canonical_arrays(data, spacing, origin, direction, *, name, source, where, l
         )
     except DVRInputError as exc:
         raise DVRInputError(f"{where}: {exc}") from None
+
+
+def _reordering(d: np.ndarray):
+    """``(perm, signs, order, flips)``: how :func:`canonical_arrays` re-orders ``[z, y, x]``.
+
+    New index axis ``a`` is old axis ``perm[a]`` (flipped when ``signs[a] < 0``); on the
+    array: ``np.flip(np.transpose(arr, order), flips)``.
+    """
+    perm = _closest_permutation(d)  # new index axis a <- old index axis perm[a]
+    signs = np.array([1.0 if d[a, perm[a]] >= 0 else -1.0 for a in range(3)])
+    order = (2 - perm[2], 2 - perm[1], 2 - perm[0])
+    flips = tuple(2 - a for a in range(3) if signs[a] < 0)
+    return perm, signs, order, flips
+
+
+def file_order(values: np.ndarray, direction) -> np.ndarray:
+    """Undo :func:`canonical`'s re-ordering: canonical ``[z, y, x]`` values back to file order.
+
+    ``direction`` is the file's (an image's) direction matrix, whose flips and permutation
+    :func:`canonical` applied; ``values`` has the canonical volume's shape.  The filters use
+    this to write arrays computed on the canonical volume onto the image they were given.
+
+    Examples
+    --------
+    >>> d = np.diag([1.0, -1.0, -1.0])
+    >>> a = np.arange(8).reshape(2, 2, 2)
+    >>> c = canonical_arrays(a.astype(np.uint8), (1, 1, 1), (0, 0, 0), d, name="c", source="",
+    ...                      where="")
+    >>> bool(np.array_equal(file_order(c.data, d), a))
+    True
+    """
+    _perm, _signs, order, flips = _reordering(np.asarray(direction, float))
+    arr = np.flip(values, flips) if flips else values
+    return np.ascontiguousarray(np.transpose(arr, np.argsort(order)))
 
 
 def _closest_permutation(d: np.ndarray) -> list[int]:

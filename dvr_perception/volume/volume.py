@@ -96,6 +96,8 @@ class Volume:
                 )
             object.__setattr__(self, "labels", np.ascontiguousarray(labels))
         object.__setattr__(self, "direction", _check_direction(self.direction, self.name))
+        if not data.dtype.isnative:  # e.g. nibabel's big-endian MGH data: VTK needs native
+            data = data.astype(data.dtype.newbyteorder("="))
         object.__setattr__(self, "data", np.ascontiguousarray(data))
         object.__setattr__(self, "spacing", spacing)
         object.__setattr__(self, "origin", origin)

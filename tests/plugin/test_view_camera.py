@@ -160,4 +160,5 @@ def test_filter_uses_the_active_view_camera(paraview, tmp_path, shared_data):
     assert got["macro_width"] == round(20 * VIEW_SIZE[0] / VIEW_SIZE[1])
 
     assert "no CameraJSON" in got["error"]
-    assert "'NrrdReader1' (Nrrd Reader)" in got["error"]  # the Pipeline Browser's name
+    # the Pipeline Browser's name: OpenDataFile picks the plugin's reader once it is loaded
+    assert "'DVRPerceptionvolume1' (DVR Perception volume)" in got["error"]

@@ -17,8 +17,9 @@ import pytest
 from pydicom.data import get_testdata_file
 from pydicom.pixels import apply_rescale
 from pydicom.uid import generate_uid
+from scipy import ndimage
 
-from dvr_perception.errors import DVRInputError
+from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.rays import memory
 from dvr_perception.volume import Volume, load_volume, medical
 
@@ -188,7 +189,7 @@ def test_dicom_headers_are_checked_before_pixels(tmp_path, monkeypatch):
             load_volume(tmp_path / "huge.dcm")
     finally:
         memory.set_limit(None)
-    with pytest.raises(DVRInputError, match=r"SamplesPerPixel' is 3; expected 1"):
+    with pytest.raises(DVRInputError, match=r"colour DICOM image .*'SamplesPerPixel' is 3.*RGB"):
         load_volume(_shipped("SC_rgb_rle_2frame.dcm"))
     with pytest.raises(DVRInputError, match=r"CT_small\.dcm: a single 2-D image"):
         load_volume(_shipped("CT_small.dcm"))
@@ -290,3 +291,87 @@ def test_corrupt_dicom_files_give_one_clear_error(tmp_path):
         outcomes["error" if message else "volume"] += 1
         assert not message or message.startswith(str(folder)), message  # names the file
     assert outcomes["error"] >= 5, outcomes  # the mutations do break files
+
+
+def test_series_in_sub_folders_are_found_and_listed_with_their_folder(tmp_path):
+    """A study folder: series in nested sub-folders (as scanners export), read recursively."""
+    src = _shipped("CT_small.dcm")
+    (tmp_path / "study" / "ct").mkdir(parents=True)
+    _series(tmp_path / "study" / "ct" / "a", src, [0.0, 2.0], series_uid="1.2.3.9.1")
+    _series(tmp_path / "study" / "ct" / "b", src, [4.0], series_uid="1.2.3.9.1", names=["z"])
+    _series(tmp_path / "study" / "mr", src, [0.0, 3.0], series_uid="1.2.3.9.2")
+    with pytest.raises(DVRInputError, match=r"2 DICOM series.*9\.1 \(3 file\(s\) in ct/a, ct/b"):
+        load_volume(tmp_path / "study")
+    vol = load_volume(tmp_path / "study", series="1.2.3.9.1")
+    assert vol.dims[2] == 3  # slices from both sub-folders, sorted by position
+    assert vol.spacing[2] == pytest.approx(2.0)
+
+
+def test_dicom_folder_walk_and_series_bytes_are_bounded(tmp_path, monkeypatch):
+    src = _shipped("CT_small.dcm")
+    _series(tmp_path / "ct", src, [0.0, 2.0, 4.0])
+    monkeypatch.setattr(medical, "MAX_FILES", 2)
+    with pytest.raises(DVRInputError, match=r"ct: more than 2 files in the folder and its sub"):
+        load_volume(tmp_path / "ct")
+    monkeypatch.setattr(medical, "MAX_FILES", 20000)
+
+    def bloat(ds, k):  # 400 KB of private data per file: the pixels fit, the files do not
+        ds.add_new(0x00091010, "OB", bytes(400_000))
+
+    _series(tmp_path / "big", src, [0.0, 2.0, 4.0], edit=bloat)
+    memory.set_limit("1M")
+    try:
+        with pytest.raises(DVRInputError, match=r"big: the series' 3 DICOM files hold 1 MiB, m"):
+            load_volume(tmp_path / "big")
+        assert load_volume(tmp_path / "ct").dims == (128, 128, 3)  # 3 x 39 KB: read
+    finally:
+        memory.set_limit(None)
+
+
+def test_colour_series_is_one_clear_error(tmp_path):
+    src = _shipped("CT_small.dcm")
+
+    def colour(ds, k):
+        if k == 1:  # only the second file: every file is checked, not only the first
+            ds.PhotometricInterpretation = "YBR_FULL"
+
+    _series(tmp_path / "ybr", src, [0.0, 2.0, 4.0], edit=colour)
+    with pytest.raises(DVRInputError, match=r"s1\.dcm: a colour DICOM image.*YBR_FULL.*grey"):
+        load_volume(tmp_path / "ybr")
+
+
+@pytest.mark.parametrize("step", [(0.0, 1.0), (0.5, -0.25)])
+def test_tilted_gantry_series_is_resampled_onto_the_regular_grid(tmp_path, step):
+    """Slices stepping ``step`` pixels (columns, rows) off the normal per slice, as a tilted
+    gantry acquires them: each voxel of the result lies where its world position says."""
+    src = _shipped("CT_small.dcm")
+    ref = pydicom.dcmread(src)
+    hu = apply_rescale(ref.pixel_array, ref).astype(np.float64)
+    ps = [float(v) for v in ref.PixelSpacing]  # (between rows, between columns)
+    x0, y0, _ = (float(v) for v in ref.ImagePositionPatient)
+
+    def tilt(ds, k):  # slice k at z = 3k, moved k*step pixels in its plane
+        ds.ImagePositionPatient = [x0 + k * step[0] * ps[1], y0 + k * step[1] * ps[0], 3.0 * k]
+
+    _series(tmp_path / "tilt", src, [0.0, 3.0, 6.0, 9.0], edit=tilt)
+    with pytest.warns(DVRWarning, match=r"tilted gantry \([0-9.]+ degrees.*resampled"):
+        vol = load_volume(tmp_path / "tilt")
+    assert vol.dims == (128, 128, 4)
+    assert vol.spacing == pytest.approx((ps[1], ps[0], 3.0))
+    assert vol.origin == pytest.approx((x0, y0, 0.0))
+    assert not vol.oblique
+    for k in range(4):
+        # output pixel (row j, column i) of slice k is acquired pixel (j, i) - k * step
+        shifted = ndimage.shift(hu, (k * step[1], k * step[0]), order=1, cval=hu.min())
+        inner = (slice(4, -4), slice(4, -4))
+        np.testing.assert_allclose(vol.data[k][inner], np.rint(shifted[inner]), atol=1.0)
+    if step == (0.0, 1.0):  # whole pixels: exactly the acquired values, one row further down
+        np.testing.assert_array_equal(vol.data[2, 2:], hu[:-2].astype(np.int16))
+
+    # a tilt that changes from slice to slice is not a regular grid: one clear error
+    def wobble(ds, k):
+        ds.ImagePositionPatient = [x0, y0 + (k % 2) * ps[0], 3.0 * k]
+
+    _series(tmp_path / "wobble", src, [0.0, 3.0, 6.0], edit=wobble)
+    with pytest.raises(DVRInputError, match="neither on one line along the slice normal nor"):
+        load_volume(tmp_path / "wobble")

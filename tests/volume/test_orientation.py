@@ -431,6 +431,30 @@ def test_pvbatch_forwards_series_and_checks_named_views(tmp_path):
     assert "named patient view needs --ranks 1" in err.getvalue()
 
 
+def test_pvbatch_ranks_refuse_a_file_stored_flipped(stored, tmp_path, monkeypatch):
+    """``--ranks N`` reads pieces in file order: a negative-z NRRD is one error, before any
+    ParaView starts; the canonical NRRD passes this check."""
+    import contextlib
+    import io
+
+    from dvr_perception.cli import main, pvbatch
+    from dvr_perception.volume.io import header_axes
+
+    d, _ref = stored
+    assert header_axes(d / "negz.nrrd")[2, 2] < 0
+    assert header_axes(d / "flipped.nii.gz") is None  # not a header this check reads
+    monkeypatch.setattr(pvbatch, "find_paraview", lambda *a: pytest.fail("ParaView started"))
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        code = main(["pvbatch", str(d / "negz.nrrd"), "--ranks", "2", "--out",
+                     str(tmp_path / "o")])  # fmt: skip
+    assert code == 2
+    assert "negz.nrrd stores its axes flipped, permuted or rotated" in err.getvalue()
+    assert "(0,0,-" in err.getvalue()
+    assert "Traceback" not in err.getvalue()
+    pvbatch._check_file_order(str(d / "canonical.nrrd"))  # axis-aligned, positive: no error
+
+
 def test_orientation_code_declares_a_file_without_orientation(stored, tmp_path):
     """``--orientation LPI``: a plain file whose slice 0 is the top renders as its LPS copy."""
     import contextlib
