@@ -140,6 +140,18 @@ def _check(out: Path, text: str, spec_path: Path) -> dict:
     return got
 
 
+def _assert_band_lens(got: dict) -> None:
+    """The lens is the rubber band (display pixels, y up) scaled to the filter's image."""
+    vw, vh = got["view_size"]
+    w, h = got["band_size"]
+    assert w == round(h * vw / vh)
+    x0, y0, x1, y1 = got["rubber_band"]
+    expected = [x0 * w / vw, (vh - y1) * h / vh, x1 * w / vw, (vh - y0) * h / vh]
+    assert got["band_lens"] == pytest.approx(expected, abs=1.0), (got["band_lens"], expected)
+    print(f"rubber band {x0, y0, x1, y1} in the {vw} x {vh} view -> lens "
+          f"{tuple(got['band_lens'])} of the {w} x {h} image (scaled {expected})")  # fmt: skip
+
+
 def test_optimise_this_view_in_the_gui(paraview, display, shared_data, tmp_path):
     gui = shutil.which("paraview")
     if gui is None:
@@ -162,6 +174,15 @@ def test_optimise_this_view_in_the_gui(paraview, display, shared_data, tmp_path)
         "DVR_Use_View_Camera",
     ]  # fmt: skip
     assert got["shade"] == 1  # neghip's spec is shaded: the shaded SSIM
+    # Refine region from the rubber band drawn in the 3-D view: its pixels, in the filter's
+    assert got["region_from"] == "3d view"
+    _assert_band_lens(got)
+    assert got["region_property"] == "rect,{},{},{},{}".format(*got["band_lens"])
+    assert got["refined_lens"] == got["region_property"]
+    assert got["lens_E"]["E"] <= got["lens_initial_E"]["E"] + 1e-9  # the lens improved
+    assert got["lens_initial_E"]["E"] != pytest.approx(got["refined_initial_E"]["E"], abs=1e-6)
+    print(f"lens E {got['lens_initial_E']['E']:.4f} -> {got['lens_E']['E']:.4f}; whole image "
+          f"{got['refined_initial_E']['E']:.4f} -> {got['refined_E']['E']:.4f}")  # fmt: skip
     print(f"GUI, shaded: SSIM {got['ssim']:.4f} (venv {got['ssim_venv']:.4f})")
     docs = os.environ.get("DVR_DOC_IMAGES")
     if docs:
@@ -236,5 +257,10 @@ def test_optimise_this_view_on_pvserver(paraview, display, loopback_shim, shared
     height = got["filter_size"][1]
     assert got["region"] == [12, height - 20, 30, height - 10]  # rows 10-19 up, x 12-29
     assert got["region_property"] == f"rect,12,{height - 20},30,{height - 10}"
+    assert got["region_from"] == "quality map"
+    assert got["refined_lens"] == got["region_property"]
     assert got["refined_E"]["E"] != pytest.approx(got["E"]["E"], abs=1e-9)
+    # a rubber band in the 3-D view read back through the server; no selection: one error
+    _assert_band_lens(got)
+    assert "select a region first" in got["no_selection_error"]
     print(f"pvserver, unshaded: SSIM {got['ssim']:.4f} (venv {got['ssim_venv']:.4f})")

@@ -30,6 +30,7 @@ if PORT:
 pvs.LoadPlugin(os.path.join(REPO, "plugin", "dvr_perception_plugin.py"), remote=True)
 
 import dvr_view  # noqa: E402
+from view_camera import matched_width  # noqa: E402
 
 dvr_view.SSIM_IMAGE = os.path.join(OUT, "paraview_capture.png")  # for the test's own SSIM
 
@@ -58,6 +59,13 @@ view_camera = {
 }
 pvs.SetActiveSource(reader)
 pvs.SetActiveView(view)
+
+
+def rubber_band(v):
+    """A rubber band (display pixels, y up) over the middle of the view: x 30-65 %, y 25-70 %."""
+    vw, vh = (int(c) for c in v.ViewSize)
+    return [round(0.30 * vw), round(0.25 * vh), round(0.65 * vw), round(0.70 * vh)]
+
 
 print("@@T setup", time.time() - T0, flush=True)
 SETTINGS = {"Stages": "opacity", "MaxIterations": 2, "Resolution": 32, "Height": 32}
@@ -160,13 +168,47 @@ if PORT:
     pvs.SelectIDs(IDs=[i for p in ids for i in (0, p)], FieldType="POINT", Source=opt)
     refined = dvr_view.refine_region(opt, view)
     result["region"] = list(refined["region"])
+    result["region_from"] = refined["region_from"]
     result["region_property"] = opt.Region
     result["refined_E"] = refined["E"]
+    result["refined_lens"] = refined["lens_region"]
     result["undone"] = dvr_view.undo() and dvr_view.undo()
+    # a rubber band in the 3-D view, read back through the server: the lens without optimising
+    pvs.ClearSelection(opt)
+    result["rubber_band"] = rubber_band(view)
+    pvs.SelectCellsThrough(Rectangle=result["rubber_band"], View=view)
+    result["band_lens"] = list(dvr_view.rubber_band_region(reader, opt, view))
+    result["band_size"] = [matched_width(opt, view), int(opt.Height)]
+    # nothing selected: one clear error, nothing optimised
+    pvs.ClearSelection(reader)
+    try:
+        dvr_view.refine_region(opt, view)
+        result["no_selection_error"] = None
+    except ValueError as exc:
+        result["no_selection_error"] = str(exc)
 else:
     result["macros"] = sorted(MACROS)
+    # Refine region from a rubber band drawn over the volume in the 3-D view (the macro)
+    dvr_view.SSIM_IMAGE = None  # keep the capture of the first optimisation for the test
+    result["rubber_band"] = rubber_band(view)
+    pvs.SetActiveSource(reader)
+    pvs.SelectCellsThrough(Rectangle=result["rubber_band"], View=view)
+    pvs.SetActiveView(view)
+    runpy.run_path(MACROS["DVR_Refine_Region"], run_name="__main__")
+    refined = dvr_view.last_report["refine"]
+    result["band_lens"] = list(refined["region"])
+    result["band_size"] = [int(opt.Width), int(opt.Height)]
+    result["region_from"] = refined["region_from"]
+    result["region_property"] = opt.Region
+    result["refined_E"] = refined["E"]
+    result["refined_initial_E"] = refined["initial_E"]
+    result["refined_lens"] = refined["lens_region"]
+    result["lens_E"] = refined["lens_E"]
+    result["lens_initial_E"] = refined["lens_initial_E"]
+    runpy.run_path(MACROS["DVR_Undo"], run_name="__main__")
     runpy.run_path(MACROS["DVR_Undo"], run_name="__main__")
     result["undone"] = True
+result["view_size"] = [int(v) for v in view.ViewSize]
 result["after_undo"] = {"RGBPoints": list(lut.RGBPoints), "Points": list(pwf.Points)}
 result["undo_again"] = dvr_view.undo()
 with open(os.path.join(OUT, "result.json"), "w", encoding="utf-8") as f:
