@@ -31,8 +31,13 @@ The actions (each also a macro in ``plugin/macros``, see :func:`install_macros`)
 
 **One material per representation.**  ParaView's volume representation has one material
 (``Ambient``, ``Diffuse``, ``Specular``, ``SpecularPower``); the most important structure's is
-used (:func:`apply_result.lighting_structure`), and the optimised light direction is not
-applied (ParaView's light kit follows the camera).
+used (:func:`apply_result.lighting_structure`).
+
+**The light.**  For a shaded spec the view's light kit is switched off and the view gets one
+light of its own (:mod:`view_light`): the headlight or a camera light at the optimised
+direction, whichever renders closer to the engine (ParaView's GPU volume mapper drops the
+ambient term with any light but a single headlight); the report's ``ssim_by_light`` has the
+SSIM of the view's lights before and of each light tried.
 """
 
 import json
@@ -51,6 +56,7 @@ from dvr_perception._paraview_compat import setup as _setup  # noqa: E402
 _setup()  # .pvdeps on sys.path and the numpy/inspect shims (idempotent)
 
 from dvr_quality import QUALITY_MAPS, QUALITY_PREFIX, TABLE_VIEW, show_quality  # noqa: E402
+from view_light import apply_light, restore_lights, save_lights  # noqa: E402
 
 __all__ = [
     "QUALITY_MAPS",
@@ -169,6 +175,7 @@ def _save_state(display, view, proxy):
         "pwf": (pwf, {"Points": list(pwf.Points)}),
         "display_values": {k: display.GetPropertyValue(k) for k in _DISPLAY_KEYS},
         "view_values": {k: view.GetPropertyValue(k) for k in _VIEW_KEYS},
+        "lights": save_lights(view),
         "proxy_values": {k: proxy.GetPropertyValue(k) for k in _PROXY_KEYS if proxy is not None},
     }
     for key, value in list(state["lut"][1].items()):
@@ -206,6 +213,7 @@ def undo():
     ):
         for key, value in values.items():
             target.SetPropertyWithName(key, list(value) if isinstance(value, tuple) else value)
+    restore_lights(state["view"], state["lights"])
     _simple().Render(state["view"])
     return True
 
@@ -303,7 +311,8 @@ def optimise_this_view(source=None, view=None, *, spec_file=None, spec_json=None
     dict
         ``camera`` (the view's, as set in the filter), ``spec`` (the optimised spec as a
         dict), ``E``/``initial_E`` (dicts of the terms), ``ssim`` (ParaView's rendering vs the
-        engine's), ``preset`` (name), ``preset_file``, ``filter`` and ``display``.
+        engine's), ``light`` (the light kept, None unshaded) and ``ssim_by_light``,
+        ``preset`` (name), ``preset_file``, ``filter`` and ``display``.
     """
     from apply_result import apply_optimized
 
@@ -330,7 +339,14 @@ def optimise_this_view(source=None, view=None, *, spec_file=None, spec_json=None
     _import_preset(preset_file, preset_name)
     simple.Hide(proxy, view)  # the output image is a 2-D map: never a slab in the 3-D view
     _tick("applied")
-    ssim = paraview_ssim(view, data, spec.background)
+    lights = {"view's lights": paraview_ssim(view, data, spec.background)}
+    light = None
+    if spec.rendering.shade:  # the engine's light (unshaded: no light acts)
+        light, tried = apply_light(view, spec, lambda: paraview_ssim(view, data, spec.background))
+        lights.update(tried)
+        if SSIM_IMAGE and light != list(tried)[-1]:  # keep the capture of the kept light
+            tried[light] = paraview_ssim(view, data, spec.background)
+    ssim = lights[light] if light else lights["view's lights"]
     _tick("ssim")
     proxy.ParaViewSSIM = ssim
     proxy.UpdatePipeline()
@@ -355,6 +371,8 @@ def optimise_this_view(source=None, view=None, *, spec_file=None, spec_json=None
         "E": {k: _field(data, k)[0] for k in terms},
         "initial_E": {k: _field(data, f"initial_{k}")[0] for k in terms},
         "ssim": ssim,
+        "light": light,
+        "ssim_by_light": lights,
         "preset": preset_name,
         "preset_file": preset_file,
         "filter": proxy,
@@ -561,9 +579,10 @@ def run_macro(action):
                 f" in region {report['region']} (from the {report['region_from']}; lens E "
                 f"{report['lens_initial_E']['E']:.4f} -> {report['lens_E']['E']:.4f})"
             )
+        light = f" ({report['light']})" if report["light"] else ""
         print(
             f"DVR Perception: optimised{where}: E {report['initial_E']['E']:.4f} -> "
-            f"{report['E']['E']:.4f}; ParaView vs engine SSIM {report['ssim']:.3f}; "
+            f"{report['E']['E']:.4f}; ParaView vs engine SSIM {report['ssim']:.3f}{light}; "
             f"preset {report['preset']!r}"
         )
     return report

@@ -34,6 +34,8 @@ REPO = Path(__file__).resolve().parents[2]
 SCENE = Path(__file__).with_name("view_actions_scene.py")
 SPEC = REPO / "state_files" / "neghip.json"
 SSIM_MIN = 0.9
+#: The GUI test's light direction (camera coordinates, unit): 25 degrees off the headlight.
+LIGHT = [0.33809, 0.25357, 0.90631]
 
 
 def _scene_env(paraview, display, shared_data, out, spec, port=None):
@@ -156,7 +158,11 @@ def test_optimise_this_view_in_the_gui(paraview, display, shared_data, tmp_path)
     gui = shutil.which("paraview")
     if gui is None:
         _missing("the ParaView GUI (paraview) is not installed (make paraview-system)")
-    env = _scene_env(paraview, display, shared_data, tmp_path, SPEC)
+    spec = json.loads(SPEC.read_text())
+    spec["rendering"]["light_direction"] = LIGHT  # an optimised light off the headlight
+    spec_path = tmp_path / "neghip_light.json"
+    spec_path.write_text(json.dumps(spec))
+    env = _scene_env(paraview, display, shared_data, tmp_path, spec_path)
     proc = paraview.call(
         [gui, "--dr", f"--script={SCENE}", "--exit"],
         env=env,
@@ -167,8 +173,26 @@ def test_optimise_this_view_in_the_gui(paraview, display, shared_data, tmp_path)
         check=False,
         cwd=tmp_path,
     )
-    got = _check(tmp_path, proc.stdout, SPEC)
+    got = _check(tmp_path, proc.stdout, spec_path)
     assert not got["remote"]
+    # the light: the kit off, one light of the action's, the better of the two tried
+    assert got["spec"]["rendering"]["light_direction"] == pytest.approx(LIGHT, abs=1e-4)
+    tried = got["ssim_by_light"]
+    assert set(tried) == {"view's lights", "headlight", "optimised direction"}
+    assert got["ssim"] == pytest.approx(max(tried["headlight"], tried["optimised direction"]))
+    assert got["ssim"] == pytest.approx(tried[got["light"]])
+    assert got["lights"]["use_light"] == 0
+    (light,) = got["lights"]["extra"]
+    assert light["Name"] == "DVR Perception light"
+    assert light["Enable"] == 1
+    assert light["Intensity"] == pytest.approx(1.0)
+    if got["light"] == "headlight":
+        assert light["Coords"] == "Headlight"
+    else:
+        assert light["Coords"] == "Camera"
+        assert light["Position"] == pytest.approx(LIGHT, abs=1e-4)
+        assert light["FocalPoint"] == pytest.approx([0.0, 0.0, 0.0])
+    assert got["lights_after_undo"] == {"use_light": 1, "extra": []}  # Undo: the kit again
     assert got["macros"] == [
         "DVR_Measure_View", "DVR_Optimise_View", "DVR_Refine_Region", "DVR_Undo",
         "DVR_Use_View_Camera",
@@ -183,7 +207,8 @@ def test_optimise_this_view_in_the_gui(paraview, display, shared_data, tmp_path)
     assert got["lens_initial_E"]["E"] != pytest.approx(got["refined_initial_E"]["E"], abs=1e-6)
     print(f"lens E {got['lens_initial_E']['E']:.4f} -> {got['lens_E']['E']:.4f}; whole image "
           f"{got['refined_initial_E']['E']:.4f} -> {got['refined_E']['E']:.4f}")  # fmt: skip
-    print(f"GUI, shaded: SSIM {got['ssim']:.4f} (venv {got['ssim_venv']:.4f})")
+    print(f"GUI, shaded: SSIM {got['ssim']:.4f} (venv {got['ssim_venv']:.4f}), light "
+          f"{got['light']}; by light {tried}")  # fmt: skip
     docs = os.environ.get("DVR_DOC_IMAGES")
     if docs:
         for name in ("view_3d.png", "quality_map.png", "layout.png"):  # the scene saw the env
@@ -250,6 +275,8 @@ def test_optimise_this_view_on_pvserver(paraview, display, loopback_shim, shared
     assert_no_vtk_messages("".join(log))
     assert got["remote"], "the scene did not run connected to the pvserver"
     assert got["shade"] == 0
+    assert got["light"] is None  # unshaded: no light acts, the view's lights stay
+    assert got["lights"] == got["lights_after_undo"] == {"use_light": 1, "extra": []}
     # Measure this view: the same camera; Refine region: the selected pixels' bounding box
     for key in ("position", "focal_point", "view_up"):
         assert got["measure_camera"][key] == pytest.approx(got["view_camera"][key], abs=1e-9)

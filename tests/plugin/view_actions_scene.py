@@ -88,6 +88,26 @@ else:  # the GUI: the toolbar's macros, installed and run as ParaView runs a mac
 opt = report["filter"]
 print("@@T optimised", time.time() - T0, flush=True)
 fetched = servermanager.Fetch(opt)
+
+
+def plain(value):
+    """A property value as JSON: text, a number or a list of numbers."""
+    if isinstance(value, (int, float)):
+        return value
+    try:
+        return [float(c) for c in value]
+    except (TypeError, ValueError):  # text, or an enumeration's value
+        return str(value).strip("'")
+
+
+def lights(v):
+    """The view's light set-up: the light kit's switch and the extra lights."""
+    keys = ("Name", "Enable", "Coords", "Position", "FocalPoint", "Intensity")
+    extra = [{k: plain(light.GetPropertyValue(k)) for k in keys} for light in v.AdditionalLights]
+    return {"use_light": int(v.UseLight), "extra": extra}
+
+
+applied_lights = lights(view)
 ssim_field = fetched.GetFieldData().GetArray("paraview_ssim")
 presets = servermanager.vtkSMTransferFunctionPresets.GetInstance()
 CONTROLLER = servermanager.vtkSMParaViewPipelineControllerWithRendering()
@@ -129,6 +149,9 @@ result = {
     "E": report["E"],
     "initial_E": report["initial_E"],
     "ssim": report["ssim"],
+    "light": report["light"],
+    "ssim_by_light": report["ssim_by_light"],
+    "lights": applied_lights,
     "ssim_field": ssim_field.GetValue(0) if ssim_field is not None else None,
     "preset": report["preset"],
     "preset_file": report["preset_file"],
@@ -210,6 +233,7 @@ else:
     result["undone"] = True
 result["view_size"] = [int(v) for v in view.ViewSize]
 result["after_undo"] = {"RGBPoints": list(lut.RGBPoints), "Points": list(pwf.Points)}
+result["lights_after_undo"] = lights(view)
 result["undo_again"] = dvr_view.undo()
 with open(os.path.join(OUT, "result.json"), "w", encoding="utf-8") as f:
     json.dump(result, f)
