@@ -85,6 +85,7 @@ def _engine_ssim(got: dict, out: Path, volume_path: Path) -> float:
 def _check(out: Path, text: str, spec_path: Path) -> dict:
     """The assertions both runs share; returns the scene's result."""
     assert "@@DONE@@" in text, text
+    print("".join(f"{ln} " for ln in text.splitlines() if ln.startswith("@@T ")))  # timings
     assert_no_vtk_messages(text)
     got = json.loads((out / "result.json").read_text())
     given = load_spec(spec_path)

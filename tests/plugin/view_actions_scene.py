@@ -189,7 +189,9 @@ if PORT:
     width = int(opt.Width)
     ids = [y * width + x for y in range(10, 20) for x in range(12, 30)]  # VTK rows go up
     pvs.SelectIDs(IDs=[i for p in ids for i in (0, p)], FieldType="POINT", Source=opt)
+    print("@@T measured", time.time() - T0, flush=True)
     refined = dvr_view.refine_region(opt, view)
+    print("@@T refined", time.time() - T0, flush=True)
     result["region"] = list(refined["region"])
     result["region_from"] = refined["region_from"]
     result["region_property"] = opt.Region
@@ -218,6 +220,7 @@ else:
     pvs.SelectCellsThrough(Rectangle=result["rubber_band"], View=view)
     pvs.SetActiveView(view)
     runpy.run_path(MACROS["DVR_Refine_Region"], run_name="__main__")
+    print("@@T refined", time.time() - T0, flush=True)
     refined = dvr_view.last_report["refine"]
     result["band_lens"] = list(refined["region"])
     result["band_size"] = [int(opt.Width), int(opt.Height)]
@@ -235,6 +238,7 @@ result["view_size"] = [int(v) for v in view.ViewSize]
 result["after_undo"] = {"RGBPoints": list(lut.RGBPoints), "Points": list(pwf.Points)}
 result["lights_after_undo"] = lights(view)
 result["undo_again"] = dvr_view.undo()
+print("@@T done", time.time() - T0, flush=True)
 with open(os.path.join(OUT, "result.json"), "w", encoding="utf-8") as f:
     json.dump(result, f)
 print("@@DONE@@", flush=True)
