@@ -199,6 +199,8 @@ def test_optimise_this_view_in_the_gui(paraview, display, shared_data, tmp_path)
         "DVR_Use_View_Camera",
     ]  # fmt: skip
     assert got["shade"] == 1  # neghip's spec is shaded: the shaded SSIM
+    # a plain Apply in the GUI follows the 3-D view's camera (FollowView)
+    assert got["plain_apply"]["plain"] == pytest.approx(got["plain_apply"]["given"], abs=1e-12)
     # Refine region from the rubber band drawn in the 3-D view: its pixels, in the filter's
     assert got["region_from"] == "3d view"
     _assert_band_lens(got)
@@ -275,6 +277,11 @@ def test_optimise_this_view_on_pvserver(paraview, display, loopback_shim, shared
     got = _check(tmp_path, client.stdout, spec_path)
     assert_no_vtk_messages("".join(log))
     assert got["remote"], "the scene did not run connected to the pvserver"
+    # a plain Apply on pvserver: the spec's view (the server cannot see the client's view),
+    # said once in the server's output
+    assert got["plain_apply"]["plain"] != pytest.approx(got["plain_apply"]["given"], abs=1e-6)
+    told = [ln for ln in log if "on pvserver takes the spec's view" in ln]
+    assert len(told) == 1, "".join(log)
     assert got["shade"] == 0
     assert got["light"] is None  # unshaded: no light acts, the view's lights stay
     assert got["lights"] == got["lights_after_undo"] == {"use_light": 1, "extra": []}

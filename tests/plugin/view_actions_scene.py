@@ -61,6 +61,23 @@ pvs.SetActiveSource(reader)
 pvs.SetActiveView(view)
 
 
+def terms(proxy):
+    """The E terms of a DVR filter's output."""
+    fd = servermanager.Fetch(proxy).GetFieldData()
+    return [fd.GetArray(k).GetValue(0) for k in ("E_v", "E_s", "E_t")]
+
+
+# a plain Apply of Perception Measures (FollowView, the default) vs the view's camera given
+size = {"Width": 32, "Height": 32}
+plain = pvs.PerceptionMeasures(Input=reader, SpecFile=os.environ["DVR_SPEC"], **size)
+given = pvs.PerceptionMeasures(Input=reader, SpecFile=os.environ["DVR_SPEC"], UseSpecView=0,
+                               CameraJSON=json.dumps(view_camera), **size)  # fmt: skip
+plain_terms = {"plain": terms(plain), "given": terms(given)}
+for proxy in (plain, given):
+    pvs.Delete(proxy)
+pvs.SetActiveSource(reader)
+
+
 def rubber_band(v):
     """A rubber band (display pixels, y up) over the middle of the view: x 30-65 %, y 25-70 %."""
     vw, vh = (int(c) for c in v.ViewSize)
@@ -179,6 +196,7 @@ result = {
         for i in range(fetched.GetFieldData().GetAbstractArray("why").GetNumberOfValues())
     ],
     "before": before,
+    "plain_apply": plain_terms,
 }
 if PORT:
     # Measure this view, then Refine region on a selection of the quality map's pixels
