@@ -14,7 +14,8 @@ diffuse, specular and specular power, but a ParaView volume representation has a
 material (``Ambient``, ``Diffuse``, ``Specular``, ``SpecularPower``).  ``apply_optimized``
 uses the material of the *most important* structure (highest ``importance``; the first one
 on ties) for the whole volume; the other structures' lighting and the optimised light
-direction are not applied.  The colour and opacity transfer functions are exact.
+direction are not applied here (the toolbar's actions also set the view's light:
+``view_light.py``).  The colour and opacity transfer functions are exact.
 """
 
 import json

@@ -47,6 +47,7 @@ RANGES = {
     "Width": (16, 4096, True),
     "Height": (16, 4096, True),
     "UseSpecView": (0, 1, True),
+    "FollowView": (0, 1, True),
     "Distributed": (0, 1, True),
     "Weights": (0.0, 100.0, False),
     "Seed": (0, 1000000, True),
@@ -186,6 +187,13 @@ class _LibraryShell(VTKPythonAlgorithmBase):
         return 1
 
     def RequestData(self, request, in_info, out_info):
+        self._executing = True  # FollowView's pvserver message: when it runs, not on Apply
+        try:
+            return self._request_data(request, in_info, out_info)
+        finally:
+            self._executing = False
+
+    def _request_data(self, request, in_info, out_info):
         impl = self._library_filter()
         if impl is not None and self._ranks_together(impl, out_info):
             return impl.RequestData(request, in_info, out_info)  # every rank, collectively
@@ -197,6 +205,62 @@ class _LibraryShell(VTKPythonAlgorithmBase):
             return 1
         impl = self._library_filter()
         return 0 if impl is None else impl.RequestData(request, in_info, out_info)
+
+
+def _view_camera(algorithm):
+    """``CameraJSON`` of the render view showing ``algorithm``'s input, or None.
+
+    Only where the filter runs in the client's own process (the GUI, pvpython without
+    ``Connect``; one MPI rank): the filter's proxy (the one whose VTK object is ``algorithm``)
+    and its input are found among the session's sources, and the render views that show the
+    input; the active view if it is one of them, else the first.  Only properties are read
+    (``FindRepresentation`` never creates a representation), so no pipeline runs from here.
+    Under pvserver the server has no session of its own: None, and one line says so.
+    """
+    from paraview import servermanager
+    from paraview.modules.vtkRemotingCore import vtkProcessModule
+
+    pm = vtkProcessModule.GetProcessModule()
+    conn = servermanager.ActiveConnection
+    if conn is None or conn.IsRemote() or pm.GetNumberOfLocalPartitions() > 1:
+        server = (vtkProcessModule.PROCESS_SERVER, vtkProcessModule.PROCESS_DATA_SERVER)
+        executing = getattr(algorithm, "_executing", False)
+        if vtkProcessModule.GetProcessType() in server and executing and not algorithm._told:
+            algorithm._told = True
+            print(
+                f"DVR Perception: {algorithm._label} on pvserver takes the spec's view "
+                "(FollowView needs the client's view: use the toolbar's actions)",
+                flush=True,
+            )
+        return None
+    import json
+
+    from paraview import simple
+
+    own = [p for p in simple.GetSources().values() if p.GetClientSideObject() is algorithm]
+    source = own[0].Input if own else None
+    if source is None:
+        return None
+    views = []
+    for view in simple.GetViews():
+        if view.GetXMLName() != "RenderView":
+            continue
+        rep = servermanager.GetRepresentation(source, view)
+        if rep is not None and rep.Visibility:
+            views.append(view)
+    if not views:
+        return None
+    active = simple.GetActiveView()
+    view = active if active in views else views[0]
+    cam = view.GetActiveCamera()
+    return json.dumps({
+        "position": [float(c) for c in cam.GetPosition()],
+        "focal_point": [float(c) for c in cam.GetFocalPoint()],
+        "view_up": [float(c) for c in cam.GetViewUp()],
+        "view_angle": float(cam.GetViewAngle()),
+        "parallel_projection": bool(cam.GetParallelProjection()),
+        "parallel_scale": float(cam.GetParallelScale()),
+    })  # fmt: skip
 
 
 def _requested_piece(out_info):
@@ -286,13 +350,21 @@ class PerceptionMeasures(_LibraryShell):
             "width": 512,
             "height": 512,
             "distributed": 0,
+            "follow_view": 1,
         }
+        self._followed = None
+        self._told = False
 
     def _parameters(self):
         v = dict(self._values)
         v["distributed"] = bool(v["distributed"])
         view = (v.pop("azimuth"), v.pop("elevation"), v.pop("zoom"))
+        given = (v["camera_json"] or "").strip()
+        follow = v.pop("follow_view") and v["use_spec_view"] and not given
         v["view"] = None if v.pop("use_spec_view") else view
+        self._followed = _view_camera(self) if follow else None
+        if self._followed:
+            v["camera_json"] = self._followed
         return v
 
     # the properties both filters share (the module-level functions above)
@@ -316,6 +388,17 @@ class PerceptionMeasures(_LibraryShell):
     @smdomain.xml('<BooleanDomain name="bool" />')
     def SetUseSpecView(self, value):
         self._set_in_range("use_spec_view", value, "UseSpecView")
+
+    @smproperty.intvector(name="FollowView", default_values=1, panel_visibility="advanced")
+    @smdomain.xml(
+        '<BooleanDomain name="bool" /><Documentation>With no CameraJSON and UseSpecView on: '
+        "the camera of the render view that shows the input (the active one if several), "
+        "read whenever the filter executes, in the GUI and in pvpython without Connect; "
+        "under pvserver the spec's view (the toolbar's actions pass the client's view)."
+        "</Documentation>"
+    )
+    def SetFollowView(self, value):
+        self._set_in_range("follow_view", value, "FollowView")
 
     @smproperty.doublevector(name="Azimuth", default_values=0.0)
     @smdomain.doublerange(min=RANGES["Azimuth"][0], max=RANGES["Azimuth"][1])
@@ -388,7 +471,10 @@ class OptimizeTransferFunction(_LibraryShell):
             "max_iter": 10,
             "resolution": 0,
             "distributed": 0,
+            "follow_view": 1,
         }
+        self._followed = None
+        self._told = False
         self._ssim = -1.0
         self._cache = None
         self._cache_key = None
@@ -402,6 +488,7 @@ class OptimizeTransferFunction(_LibraryShell):
     SetSpecJSON = SetSpecJSON
     SetCameraJSON = PerceptionMeasures.SetCameraJSON
     SetUseSpecView = PerceptionMeasures.SetUseSpecView
+    SetFollowView = PerceptionMeasures.SetFollowView
     SetAzimuth = PerceptionMeasures.SetAzimuth
     SetElevation = PerceptionMeasures.SetElevation
     SetZoom = PerceptionMeasures.SetZoom
@@ -457,20 +544,24 @@ class OptimizeTransferFunction(_LibraryShell):
             self._ssim = value
             self.Modified()
 
-    def RequestData(self, request, in_info, out_info):
+    def _request_data(self, request, in_info, out_info):
         impl = self._library_filter()
         if impl is None or self._ranks_together(impl, out_info) or _requested_piece(out_info) > 0:
-            return _LibraryShell.RequestData(self, request, in_info, out_info)
+            return _LibraryShell._request_data(self, request, in_info, out_info)
         from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData
 
         source = in_info[0].GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT())
         output = out_info.GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT())
-        key = (repr(sorted(self._values.items())), source.GetMTime() if source else 0)
+        key = (
+            repr(sorted(self._values.items())),
+            self._followed,
+            source.GetMTime() if source else 0,
+        )
         if self._cache is not None and key == self._cache_key:
             output.ShallowCopy(self._cache)  # only ParaViewSSIM changed: no new optimisation
         else:
             self._cache = self._cache_key = None
-            if not _LibraryShell.RequestData(self, request, in_info, out_info):
+            if not _LibraryShell._request_data(self, request, in_info, out_info):
                 return 0
             if output.GetFieldData().GetAbstractArray("optimized_spec_json") is None:
                 return 1  # failed: the library reported the error; nothing to keep

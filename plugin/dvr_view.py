@@ -23,15 +23,21 @@ The actions (each also a macro in ``plugin/macros``, see :func:`install_macros`)
     ParaView's rendering is compared with the engine's (SSIM, the output's field array
     ``paraview_ssim``); the quality maps and the per-structure table open beside the view.
 :func:`refine_region`
-    The same, with the lens (``Region``) set to the bounding box of the points selected
-    (rubber band, *Select Points On*) in a quality-map view.
+    The same, with the lens (``Region``) set to the rubber band drawn over the volume in the
+    3-D view (*Select Cells Through*), or to the bounding box of the points selected (*Select
+    Points On*) in a quality-map view.
 :func:`undo`
     Restores the representation, view and filter as they were before the last action.
 
 **One material per representation.**  ParaView's volume representation has one material
 (``Ambient``, ``Diffuse``, ``Specular``, ``SpecularPower``); the most important structure's is
-used (:func:`apply_result.lighting_structure`), and the optimised light direction is not
-applied (ParaView's light kit follows the camera).
+used (:func:`apply_result.lighting_structure`).
+
+**The light.**  For a shaded spec the view's light kit is switched off and the view gets one
+light of its own (:mod:`view_light`): the headlight or a camera light at the optimised
+direction, whichever renders closer to the engine (ParaView's GPU volume mapper drops the
+ambient term with any light but a single headlight); the report's ``ssim_by_light`` has the
+SSIM of the view's lights before and of each light tried.
 """
 
 import json
@@ -50,6 +56,7 @@ from dvr_perception._paraview_compat import setup as _setup  # noqa: E402
 _setup()  # .pvdeps on sys.path and the numpy/inspect shims (idempotent)
 
 from dvr_quality import QUALITY_MAPS, QUALITY_PREFIX, TABLE_VIEW, show_quality  # noqa: E402
+from view_light import apply_light, restore_lights, save_lights  # noqa: E402
 
 __all__ = [
     "QUALITY_MAPS",
@@ -59,7 +66,9 @@ __all__ = [
     "measure_this_view",
     "optimise_this_view",
     "refine_region",
+    "rubber_band_region",
     "run_macro",
+    "selected_region",
     "show_quality",
     "undo",
 ]
@@ -166,6 +175,7 @@ def _save_state(display, view, proxy):
         "pwf": (pwf, {"Points": list(pwf.Points)}),
         "display_values": {k: display.GetPropertyValue(k) for k in _DISPLAY_KEYS},
         "view_values": {k: view.GetPropertyValue(k) for k in _VIEW_KEYS},
+        "lights": save_lights(view),
         "proxy_values": {k: proxy.GetPropertyValue(k) for k in _PROXY_KEYS if proxy is not None},
     }
     for key, value in list(state["lut"][1].items()):
@@ -203,6 +213,7 @@ def undo():
     ):
         for key, value in values.items():
             target.SetPropertyWithName(key, list(value) if isinstance(value, tuple) else value)
+    restore_lights(state["view"], state["lights"])
     _simple().Render(state["view"])
     return True
 
@@ -300,7 +311,8 @@ def optimise_this_view(source=None, view=None, *, spec_file=None, spec_json=None
     dict
         ``camera`` (the view's, as set in the filter), ``spec`` (the optimised spec as a
         dict), ``E``/``initial_E`` (dicts of the terms), ``ssim`` (ParaView's rendering vs the
-        engine's), ``preset`` (name), ``preset_file``, ``filter`` and ``display``.
+        engine's), ``light`` (the light kept, None unshaded) and ``ssim_by_light``,
+        ``preset`` (name), ``preset_file``, ``filter`` and ``display``.
     """
     from apply_result import apply_optimized
 
@@ -327,7 +339,14 @@ def optimise_this_view(source=None, view=None, *, spec_file=None, spec_json=None
     _import_preset(preset_file, preset_name)
     simple.Hide(proxy, view)  # the output image is a 2-D map: never a slab in the 3-D view
     _tick("applied")
-    ssim = paraview_ssim(view, data, spec.background)
+    lights = {"view's lights": paraview_ssim(view, data, spec.background)}
+    light = None
+    if spec.rendering.shade:  # the engine's light (unshaded: no light acts)
+        light, tried = apply_light(view, spec, lambda: paraview_ssim(view, data, spec.background))
+        lights.update(tried)
+        if SSIM_IMAGE and light != list(tried)[-1]:  # keep the capture of the kept light
+            tried[light] = paraview_ssim(view, data, spec.background)
+    ssim = lights[light] if light else lights["view's lights"]
     _tick("ssim")
     proxy.ParaViewSSIM = ssim
     proxy.UpdatePipeline()
@@ -338,12 +357,22 @@ def optimise_this_view(source=None, view=None, *, spec_file=None, spec_json=None
     simple.SetActiveView(view)
     simple.Render(view)
     terms = ("E_v", "E_s", "E_t", "E")
+    lens = {}
+    if _field(data, "lens_E") is not None:  # a Region: the optimiser's terms inside the lens
+        lens = {
+            "lens_E": {k: _field(data, f"lens_{k}")[0] for k in terms},
+            "lens_initial_E": {k: _field(data, f"lens_initial_{k}")[0] for k in terms},
+            "lens_region": _field(data, "lens_region")[0],
+        }
     return {
+        **lens,
         "camera": camera,
         "spec": json.loads(spec_text),
         "E": {k: _field(data, k)[0] for k in terms},
         "initial_E": {k: _field(data, f"initial_{k}")[0] for k in terms},
         "ssim": ssim,
+        "light": light,
+        "ssim_by_light": lights,
         "preset": preset_name,
         "preset_file": preset_file,
         "filter": proxy,
@@ -352,32 +381,64 @@ def optimise_this_view(source=None, view=None, *, spec_file=None, spec_json=None
 
 
 def refine_region(source=None, view=None, *, region=None, **kwargs):
-    """Optimise again with the lens on the selected part of the quality map.
+    """Optimise again with the lens on the selected region.
 
     Parameters
     ----------
     source, view
         As :func:`optimise_this_view`.
     region : (x0, y0, x1, y1), optional
-        The lens in output pixels (x right, y down); default: the bounding box of the points
-        selected on the optimiser's output (*Select Points On* with a rubber band in a
-        quality-map view).
+        The lens in output pixels (x right, y down).  Default: the rubber band drawn in the 3-D
+        view (*Select Cells Through* or *Select Points Through* on the volume,
+        :func:`rubber_band_region`), else the bounding box of the points selected on the
+        optimiser's output in a quality-map view (*Select Points On*, :func:`selected_region`).
     **kwargs
         Passed to :func:`optimise_this_view`.
 
     Returns
     -------
     dict
-        :func:`optimise_this_view`'s report plus ``region``.
+        :func:`optimise_this_view`'s report plus ``region`` and ``region_from`` (``"given"``,
+        ``"3d view"`` or ``"quality map"``).
     """
     view = _render_view(view)
-    _, proxy = _filter_for(source, OPTIMISER, spec_file=kwargs.pop("spec_file", None))
+    volume, proxy = _filter_for(source, OPTIMISER, spec_file=kwargs.pop("spec_file", None))
+    where = "given"
     if region is None:
-        region = selected_region(proxy)
+        region = rubber_band_region(volume, proxy, view, height=kwargs.get("height"))
+        where = "3d view"
+    if region is None:
+        region, where = selected_region(proxy), "quality map"
     x0, y0, x1, y1 = (int(v) for v in region)
     report = optimise_this_view(proxy, view, Region=f"rect,{x0},{y0},{x1},{y1}", **kwargs)
     report["region"] = (x0, y0, x1, y1)
+    report["region_from"] = where
     return report
+
+
+def rubber_band_region(volume, proxy, view, *, height=None):
+    """The lens of the rubber band drawn on ``volume`` in the 3-D ``view`` (None: none drawn).
+
+    The frustum of *Select Cells/Points Through* (:func:`view_lens.view_frustum`) projected
+    through the camera ``proxy`` will use: ``view``'s, at ``height`` (default: the filter's
+    ``Height``) and the width of the view's aspect ratio (:func:`view_lens.lens_from_frustum`).
+    Several frustums (the *Add* modifier) give the bounding box of their lenses.
+    """
+    from view_camera import camera_from_view, matched_width
+    from view_lens import lens_from_frustum, view_frustum
+
+    from dvr_perception.rays.camera import Camera
+
+    frustums = view_frustum(volume)
+    if not frustums:
+        return None
+    h = int(proxy.Height) if height is None else int(height)
+    camera = Camera.from_dict(
+        dict(camera_from_view(view), width=matched_width(proxy, view, height=h), height=h)
+    )
+    boxes = [lens_from_frustum(f, camera) for f in frustums]
+    return (min(b[0] for b in boxes), min(b[1] for b in boxes),
+            max(b[2] for b in boxes), max(b[3] for b in boxes))  # fmt: skip
 
 
 def selected_region(proxy):
@@ -388,8 +449,8 @@ def selected_region(proxy):
     selection = proxy.SMProxy.GetSelectionInput(0)
     if selection is None:
         raise ValueError(
-            "DVR Perception: select a region first (Select Points On, then drag a rubber "
-            "band in a quality-map view)"
+            "DVR Perception: select a region first: drag a rubber band over the volume in the "
+            "3D view (Select Cells Through), or over a quality map (Select Points On)"
         )
     extract = simple.ExtractSelection(Input=proxy, Selection=servermanager._getPyProxy(selection))
     try:
@@ -512,10 +573,16 @@ def run_macro(action):
         terms = ", ".join(f"{k} {report[k]:.4f}" for k in ("E_v", "E_s", "E_t"))
         print(f"DVR Perception: measured {terms}")
     else:
-        where = f" in region {report['region']}" if "region" in report else ""
+        where = ""
+        if "lens_E" in report:
+            where = (
+                f" in region {report['region']} (from the {report['region_from']}; lens E "
+                f"{report['lens_initial_E']['E']:.4f} -> {report['lens_E']['E']:.4f})"
+            )
+        light = f" ({report['light']})" if report["light"] else ""
         print(
             f"DVR Perception: optimised{where}: E {report['initial_E']['E']:.4f} -> "
-            f"{report['E']['E']:.4f}; ParaView vs engine SSIM {report['ssim']:.3f}; "
+            f"{report['E']['E']:.4f}; ParaView vs engine SSIM {report['ssim']:.3f}{light}; "
             f"preset {report['preset']!r}"
         )
     return report

@@ -9,6 +9,12 @@ the *Macro Toolbar* when it starts: ``$XDG_CONFIG_HOME/ParaView/Macros``, by def
 
 The macros find this folder through the loaded plugin, so the plugin must be loaded (*Tools >
 Manage Plugins*, *Auto Load*).  Only the standard library is used: any Python runs it.
+
+**No icons in 5.11.**  ParaView 5.11's macro toolbar shows each macro's name only: its
+``pqPythonMacroSupervisor`` has no icon look-up (``iconPathFromFileName``, the ``.svg`` /
+``.png`` beside ``NAME.py``, arrived in 5.12), and it lists *every* file of the macro folder
+whose name does not start with a dot as a macro, so an icon file copied there would become a
+toolbar button that runs the image as Python.  Only the ``.py`` files are copied.
 """
 
 import argparse

@@ -20,7 +20,7 @@ as a ParaView macro (*Macros > Import new macro...*; then select the filter and 
 
 import json
 
-__all__ = ["camera_from_view", "use_active_view_camera"]
+__all__ = ["camera_from_view", "matched_width", "use_active_view_camera"]
 
 _MIN_SIZE, _MAX_SIZE = 16, 4096  # the Width/Height domain of the filters
 
@@ -68,10 +68,19 @@ def use_active_view_camera(proxy=None, view=None, *, match_aspect=True):
     view = view or simple.GetActiveView()
     camera = camera_from_view(view)
     if match_aspect:
-        vw, vh = (int(v) for v in view.ViewSize)
-        if vw > 0 and vh > 0:
-            height = int(proxy.GetPropertyValue("Height"))
-            width = round(height * vw / vh)
-            proxy.SetPropertyWithName("Width", min(_MAX_SIZE, max(_MIN_SIZE, width)))
+        proxy.SetPropertyWithName("Width", matched_width(proxy, view))
     proxy.SetPropertyWithName("CameraJSON", json.dumps(camera))
     return camera
+
+
+def matched_width(proxy, view, *, height=None):
+    """The ``Width`` that gives ``proxy`` the aspect ratio of ``view`` at ``height``.
+
+    ``height`` defaults to the filter's ``Height``; the result is clamped to 16-4096 (the
+    filter's current ``Width`` when the view has no size yet).
+    """
+    height = int(proxy.GetPropertyValue("Height")) if height is None else int(height)
+    vw, vh = (int(v) for v in view.ViewSize)
+    if vw <= 0 or vh <= 0:
+        return int(proxy.GetPropertyValue("Width"))
+    return min(_MAX_SIZE, max(_MIN_SIZE, round(height * vw / vh)))

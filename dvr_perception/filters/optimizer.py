@@ -26,15 +26,18 @@ filter a plain image filter in ParaView; a ``vtkTable`` can be made from them wi
 
 One tuple each: ``light_direction`` (3 components, camera coordinates), ``E`` (the weighted
 sum of Eq. 12 with ``weights``), ``initial_E_v``, ``initial_E_s``, ``initial_E_t``,
-``initial_E`` (the optimiser's terms before), ``status`` (0 converged, 1 stopped, 2 a stage hit
-``max_iter``; see :data:`~dvr_perception.optimize.STATUS_MESSAGES`), ``iterations``; and the
-strings ``optimized_spec_json`` (the optimised spec as JSON, the format of
+``initial_E`` (the optimiser's whole-image terms before), ``status`` (0 converged, 1 stopped,
+2 a stage hit ``max_iter``; see :data:`~dvr_perception.optimize.STATUS_MESSAGES`),
+``iterations``; and the strings ``optimized_spec_json`` (the optimised spec as JSON, the format of
 :func:`~dvr_perception.structures.io.spec_to_dict`) and ``status_message``; and ``why``, one
 line per structure: its opacity and share of the picture before -> target -> after and the
 optimiser's reason in words (:func:`~dvr_perception.optimize.explain.explain`); per structure
 also ``opacity_before`` and ``share_before`` (the numbers of those lines before the
 optimisation), and one tuple ``opacity_unit_distance`` (the spec's, else the smallest voxel
-spacing: the value a ParaView volume display needs to match the engine's opacity).
+spacing: the value a ParaView volume display needs to match the engine's opacity).  With a
+``region`` (the lens) also ``lens_region`` (the lens as a string) and, one tuple each,
+``lens_initial_E_v`` ... ``lens_initial_E`` and ``lens_E_v`` ... ``lens_E``: the optimiser's
+terms inside the lens before and after (what it minimised).
 
 Progress is reported with ``UpdateProgress``: the curvature volume and the first ray analyses
 from inside (0 to 0.2, :meth:`~dvr_perception.filters._base.DVRFilterBase.progress_range`),
@@ -153,6 +156,15 @@ def as_region(value, name: str):
             f"output pixels, got {value!r}"
         )
     return (kind, *nums)
+
+
+def _region_text(region) -> str:
+    """Spell the lens as the ``Region`` property does (``"rect,4,4,16,12"``).
+
+    >>> _region_text(("rect", 4.0, 4.0, 16.0, 12.5))
+    'rect,4,4,16,12.5'
+    """
+    return ",".join([region[0], *(f"{v:g}" for v in region[1:])])
 
 
 class TransferFunctionOptimizer(PerceptionMeasures):
@@ -300,8 +312,14 @@ class TransferFunctionOptimizer(PerceptionMeasures):
             fd.AddArray(double_array([final[term]], term))
         total = sum(a * final[t] for a, t in zip(weights, _TERMS, strict=True))
         fd.AddArray(double_array([total], "E"))
+        whole = res.initial.get("whole", res.initial)  # the image's terms, like E_* above
         for term in (*_TERMS, "E"):
-            fd.AddArray(double_array([res.initial[term]], f"initial_{term}"))
+            fd.AddArray(double_array([whole[term]], f"initial_{term}"))
+        if self.region is not None:  # the lens's own terms, before and after
+            for term in (*_TERMS, "E"):
+                fd.AddArray(double_array([res.initial[term]], f"lens_initial_{term}"))
+                fd.AddArray(double_array([res.final[term]], f"lens_{term}"))
+            fd.AddArray(string_array([_region_text(self.region)], "lens_region"))
         fd.AddArray(string_array(names, "structure_names"))
         pv, pt = vis.per_structure, trn.per_structure
         for key, values in (

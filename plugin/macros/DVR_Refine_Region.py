@@ -1,6 +1,6 @@
 """ParaView macro (DVR Perception toolbar). Refine region: optimise again with the lens on the
-points selected in a quality-map view (*Select Points On*, then drag a rubber band over the part
-of the picture that matters).
+rubber band dragged over the volume in the 3D view (*Select Cells Through*), or else on the
+points selected in a quality-map view (*Select Points On*, then a rubber band).
 
 Installed into ParaView's macro folder by ``make paraview-macros`` (or ``python3
 plugin/install_macros.py``); the plugin must be loaded.  Acts in one step on the active source

@@ -1,5 +1,5 @@
 """ParaView macro (DVR Perception toolbar). Undo: the volume's transfer functions, material, the
-view's background and the filter's camera as before the last DVR Perception action.
+view's background and lights and the filter's camera as before the last DVR Perception action.
 
 Installed into ParaView's macro folder by ``make paraview-macros`` (or ``python3
 plugin/install_macros.py``); the plugin must be loaded.  Acts in one step on the active source

@@ -157,10 +157,27 @@ def test_region_reaches_the_optimiser(monkeypatch, phantom):
     f.width = f.height = 24
     f.max_iter = 1
     f.SetStages("opacity")
+    results = []
+
+    def keep(*args, **kwargs):
+        results.append(spy(*args, **kwargs))
+        return results[-1]
+
+    monkeypatch.setattr(opt_mod, "optimize", keep)
+    f.Update()
+    assert f.GetOutputDataObject(0).GetFieldData().GetAbstractArray("lens_E") is None
     f.region = "rect, 4, 4, 16, 12"
     f.Update()
     assert f.error_message == ""
     assert seen["region"] == ("rect", 4.0, 4.0, 16.0, 12.0)
+    # the lens's own terms beside the whole image's: what the optimiser minimised
+    out, res = f.GetOutputDataObject(0), results[-1]
+    assert _field(out, "lens_region") == ["rect,4,4,16,12"]
+    for term in ("E_v", "E_s", "E_t", "E"):
+        assert _field(out, f"lens_{term}")[0] == pytest.approx(res.final[term], abs=1e-12)
+        assert _field(out, f"lens_initial_{term}")[0] == pytest.approx(res.initial[term])
+        assert _field(out, f"initial_{term}")[0] == pytest.approx(res.initial["whole"][term])
+    assert res.initial["E"] != pytest.approx(res.initial["whole"]["E"], abs=1e-6)
     window = vtkStringOutputWindow()
     old = vtkOutputWindow.GetInstance()
     vtkOutputWindow.SetInstance(window)

@@ -34,6 +34,8 @@ REPO = Path(__file__).resolve().parents[2]
 SCENE = Path(__file__).with_name("view_actions_scene.py")
 SPEC = REPO / "state_files" / "neghip.json"
 SSIM_MIN = 0.9
+#: The GUI test's light direction (camera coordinates, unit): 25 degrees off the headlight.
+LIGHT = [0.33809, 0.25357, 0.90631]
 
 
 def _scene_env(paraview, display, shared_data, out, spec, port=None):
@@ -83,6 +85,7 @@ def _engine_ssim(got: dict, out: Path, volume_path: Path) -> float:
 def _check(out: Path, text: str, spec_path: Path) -> dict:
     """The assertions both runs share; returns the scene's result."""
     assert "@@DONE@@" in text, text
+    print("".join(f"{ln} " for ln in text.splitlines() if ln.startswith("@@T ")))  # timings
     assert_no_vtk_messages(text)
     got = json.loads((out / "result.json").read_text())
     given = load_spec(spec_path)
@@ -140,11 +143,27 @@ def _check(out: Path, text: str, spec_path: Path) -> dict:
     return got
 
 
+def _assert_band_lens(got: dict) -> None:
+    """The lens is the rubber band (display pixels, y up) scaled to the filter's image."""
+    vw, vh = got["view_size"]
+    w, h = got["band_size"]
+    assert w == round(h * vw / vh)
+    x0, y0, x1, y1 = got["rubber_band"]
+    expected = [x0 * w / vw, (vh - y1) * h / vh, x1 * w / vw, (vh - y0) * h / vh]
+    assert got["band_lens"] == pytest.approx(expected, abs=1.0), (got["band_lens"], expected)
+    print(f"rubber band {x0, y0, x1, y1} in the {vw} x {vh} view -> lens "
+          f"{tuple(got['band_lens'])} of the {w} x {h} image (scaled {expected})")  # fmt: skip
+
+
 def test_optimise_this_view_in_the_gui(paraview, display, shared_data, tmp_path):
     gui = shutil.which("paraview")
     if gui is None:
         _missing("the ParaView GUI (paraview) is not installed (make paraview-system)")
-    env = _scene_env(paraview, display, shared_data, tmp_path, SPEC)
+    spec = json.loads(SPEC.read_text())
+    spec["rendering"]["light_direction"] = LIGHT  # an optimised light off the headlight
+    spec_path = tmp_path / "neghip_light.json"
+    spec_path.write_text(json.dumps(spec))
+    env = _scene_env(paraview, display, shared_data, tmp_path, spec_path)
     proc = paraview.call(
         [gui, "--dr", f"--script={SCENE}", "--exit"],
         env=env,
@@ -155,14 +174,44 @@ def test_optimise_this_view_in_the_gui(paraview, display, shared_data, tmp_path)
         check=False,
         cwd=tmp_path,
     )
-    got = _check(tmp_path, proc.stdout, SPEC)
+    got = _check(tmp_path, proc.stdout, spec_path)
     assert not got["remote"]
+    # the light: the kit off, one light of the action's, the better of the two tried
+    assert got["spec"]["rendering"]["light_direction"] == pytest.approx(LIGHT, abs=1e-4)
+    tried = got["ssim_by_light"]
+    assert set(tried) == {"view's lights", "headlight", "optimised direction"}
+    assert got["ssim"] == pytest.approx(max(tried["headlight"], tried["optimised direction"]))
+    assert got["ssim"] == pytest.approx(tried[got["light"]])
+    assert got["lights"]["use_light"] == 0
+    (light,) = got["lights"]["extra"]
+    assert light["Name"] == "DVR Perception light"
+    assert light["Enable"] == 1
+    assert light["Intensity"] == pytest.approx(1.0)
+    if got["light"] == "headlight":
+        assert light["Coords"] == "Headlight"
+    else:
+        assert light["Coords"] == "Camera"
+        assert light["Position"] == pytest.approx(LIGHT, abs=1e-4)
+        assert light["FocalPoint"] == pytest.approx([0.0, 0.0, 0.0])
+    assert got["lights_after_undo"] == {"use_light": 1, "extra": []}  # Undo: the kit again
     assert got["macros"] == [
         "DVR_Measure_View", "DVR_Optimise_View", "DVR_Refine_Region", "DVR_Undo",
         "DVR_Use_View_Camera",
     ]  # fmt: skip
     assert got["shade"] == 1  # neghip's spec is shaded: the shaded SSIM
-    print(f"GUI, shaded: SSIM {got['ssim']:.4f} (venv {got['ssim_venv']:.4f})")
+    # a plain Apply in the GUI follows the 3-D view's camera (FollowView)
+    assert got["plain_apply"]["plain"] == pytest.approx(got["plain_apply"]["given"], abs=1e-12)
+    # Refine region from the rubber band drawn in the 3-D view: its pixels, in the filter's
+    assert got["region_from"] == "3d view"
+    _assert_band_lens(got)
+    assert got["region_property"] == "rect,{},{},{},{}".format(*got["band_lens"])
+    assert got["refined_lens"] == got["region_property"]
+    assert got["lens_E"]["E"] <= got["lens_initial_E"]["E"] + 1e-9  # the lens improved
+    assert got["lens_initial_E"]["E"] != pytest.approx(got["refined_initial_E"]["E"], abs=1e-6)
+    print(f"lens E {got['lens_initial_E']['E']:.4f} -> {got['lens_E']['E']:.4f}; whole image "
+          f"{got['refined_initial_E']['E']:.4f} -> {got['refined_E']['E']:.4f}")  # fmt: skip
+    print(f"GUI, shaded: SSIM {got['ssim']:.4f} (venv {got['ssim_venv']:.4f}), light "
+          f"{got['light']}; by light {tried}")  # fmt: skip
     docs = os.environ.get("DVR_DOC_IMAGES")
     if docs:
         for name in ("view_3d.png", "quality_map.png", "layout.png"):  # the scene saw the env
@@ -228,7 +277,14 @@ def test_optimise_this_view_on_pvserver(paraview, display, loopback_shim, shared
     got = _check(tmp_path, client.stdout, spec_path)
     assert_no_vtk_messages("".join(log))
     assert got["remote"], "the scene did not run connected to the pvserver"
+    # a plain Apply on pvserver: the spec's view (the server cannot see the client's view),
+    # said once in the server's output
+    assert got["plain_apply"]["plain"] != pytest.approx(got["plain_apply"]["given"], abs=1e-6)
+    told = [ln for ln in log if "on pvserver takes the spec's view" in ln]
+    assert len(told) == 1, "".join(log)
     assert got["shade"] == 0
+    assert got["light"] is None  # unshaded: no light acts, the view's lights stay
+    assert got["lights"] == got["lights_after_undo"] == {"use_light": 1, "extra": []}
     # Measure this view: the same camera; Refine region: the selected pixels' bounding box
     for key in ("position", "focal_point", "view_up"):
         assert got["measure_camera"][key] == pytest.approx(got["view_camera"][key], abs=1e-9)
@@ -236,5 +292,10 @@ def test_optimise_this_view_on_pvserver(paraview, display, loopback_shim, shared
     height = got["filter_size"][1]
     assert got["region"] == [12, height - 20, 30, height - 10]  # rows 10-19 up, x 12-29
     assert got["region_property"] == f"rect,12,{height - 20},30,{height - 10}"
+    assert got["region_from"] == "quality map"
+    assert got["refined_lens"] == got["region_property"]
     assert got["refined_E"]["E"] != pytest.approx(got["E"]["E"], abs=1e-9)
+    # a rubber band in the 3-D view read back through the server; no selection: one error
+    _assert_band_lens(got)
+    assert "select a region first" in got["no_selection_error"]
     print(f"pvserver, unshaded: SSIM {got['ssim']:.4f} (venv {got['ssim_venv']:.4f})")

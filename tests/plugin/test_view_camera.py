@@ -5,7 +5,8 @@ view angle and a 3:2 view); ``use_active_view_camera`` copies it into *Perceptio
 whose E values and image must then equal the library's for that very camera -- and differ from
 the filter's default (the spec's view).  The macro file is run as ParaView runs macros (after
 the plugin is loaded) on *Optimize Transfer Function*; a parallel projection and a source
-without ``CameraJSON`` are checked too.
+without ``CameraJSON`` are checked too.  A plain filter (``FollowView`` on, the default) takes
+the camera of the render view showing its input by itself; with ``FollowView=0`` the spec's.
 """
 
 from __future__ import annotations
@@ -63,7 +64,16 @@ cam.Roll(15.0)
 cam.SetViewAngle(24.0)
 cam.Dolly(1.3)
 cam.OrthogonalizeViewUp()
-pm = PerceptionMeasures(Input=reader, SpecFile={str(SPEC)!r}, Width={HEIGHT}, Height={HEIGHT})
+# a plain Apply: the filter follows the camera of the render view that shows its input, even
+# with another view active (Apply makes the output's spreadsheet view active first)
+sheet = CreateView("SpreadSheetView")
+SetActiveView(sheet)
+plain = PerceptionMeasures(Input=reader, SpecFile={str(SPEC)!r}, Width={HEIGHT}, Height={HEIGHT})
+Show(plain, sheet)
+out["follow"] = run(plain)
+SetActiveView(view)
+pm = PerceptionMeasures(Input=reader, SpecFile={str(SPEC)!r}, Width={HEIGHT}, Height={HEIGHT},
+                        FollowView=0)
 out["default"] = run(pm)
 SetActiveSource(pm)
 out["camera"] = use_active_view_camera()
@@ -139,7 +149,12 @@ def test_filter_uses_the_active_view_camera(paraview, tmp_path, shared_data):
     for k in ("E_v", "E_s", "E_t"):
         assert got["view_camera"]["E"][k] == pytest.approx(expected[k], abs=CROSS_ENV_ABS), k
     np.testing.assert_allclose(got["view_camera"]["alpha"], expected["alpha"], atol=1e-6)
-    # ... and not the default view's
+    # a plain Apply (FollowView, the default) measured that camera at the filter's own size
+    square = _library(volume, camera.with_size(HEIGHT, HEIGHT))
+    for k in ("E_v", "E_s", "E_t"):
+        assert got["follow"]["E"][k] == pytest.approx(square[k], abs=CROSS_ENV_ABS), k
+    assert got["follow"]["dims"] == [HEIGHT, HEIGHT, 1]
+    # ... and with FollowView off, not the view's but the spec's
     spec_view = load_spec(SPEC).view or (0.0, 0.0, 1.0)
     vol = load_volume(volume)
     az, el, zoom = spec_view

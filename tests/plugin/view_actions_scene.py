@@ -30,6 +30,7 @@ if PORT:
 pvs.LoadPlugin(os.path.join(REPO, "plugin", "dvr_perception_plugin.py"), remote=True)
 
 import dvr_view  # noqa: E402
+from view_camera import matched_width  # noqa: E402
 
 dvr_view.SSIM_IMAGE = os.path.join(OUT, "paraview_capture.png")  # for the test's own SSIM
 
@@ -59,6 +60,30 @@ view_camera = {
 pvs.SetActiveSource(reader)
 pvs.SetActiveView(view)
 
+
+def terms(proxy):
+    """The E terms of a DVR filter's output."""
+    fd = servermanager.Fetch(proxy).GetFieldData()
+    return [fd.GetArray(k).GetValue(0) for k in ("E_v", "E_s", "E_t")]
+
+
+# a plain Apply of Perception Measures (FollowView, the default) vs the view's camera given
+size = {"Width": 32, "Height": 32}
+plain = pvs.PerceptionMeasures(Input=reader, SpecFile=os.environ["DVR_SPEC"], **size)
+given = pvs.PerceptionMeasures(Input=reader, SpecFile=os.environ["DVR_SPEC"], UseSpecView=0,
+                               CameraJSON=json.dumps(view_camera), **size)  # fmt: skip
+plain_terms = {"plain": terms(plain), "given": terms(given)}
+for proxy in (plain, given):
+    pvs.Delete(proxy)
+pvs.SetActiveSource(reader)
+
+
+def rubber_band(v):
+    """A rubber band (display pixels, y up) over the middle of the view: x 30-65 %, y 25-70 %."""
+    vw, vh = (int(c) for c in v.ViewSize)
+    return [round(0.30 * vw), round(0.25 * vh), round(0.65 * vw), round(0.70 * vh)]
+
+
 print("@@T setup", time.time() - T0, flush=True)
 SETTINGS = {"Stages": "opacity", "MaxIterations": 2, "Resolution": 32, "Height": 32}
 if PORT:  # pvpython on a pvserver: the Python API
@@ -80,6 +105,26 @@ else:  # the GUI: the toolbar's macros, installed and run as ParaView runs a mac
 opt = report["filter"]
 print("@@T optimised", time.time() - T0, flush=True)
 fetched = servermanager.Fetch(opt)
+
+
+def plain(value):
+    """A property value as JSON: text, a number or a list of numbers."""
+    if isinstance(value, (int, float)):
+        return value
+    try:
+        return [float(c) for c in value]
+    except (TypeError, ValueError):  # text, or an enumeration's value
+        return str(value).strip("'")
+
+
+def lights(v):
+    """The view's light set-up: the light kit's switch and the extra lights."""
+    keys = ("Name", "Enable", "Coords", "Position", "FocalPoint", "Intensity")
+    extra = [{k: plain(light.GetPropertyValue(k)) for k in keys} for light in v.AdditionalLights]
+    return {"use_light": int(v.UseLight), "extra": extra}
+
+
+applied_lights = lights(view)
 ssim_field = fetched.GetFieldData().GetArray("paraview_ssim")
 presets = servermanager.vtkSMTransferFunctionPresets.GetInstance()
 CONTROLLER = servermanager.vtkSMParaViewPipelineControllerWithRendering()
@@ -121,6 +166,9 @@ result = {
     "E": report["E"],
     "initial_E": report["initial_E"],
     "ssim": report["ssim"],
+    "light": report["light"],
+    "ssim_by_light": report["ssim_by_light"],
+    "lights": applied_lights,
     "ssim_field": ssim_field.GetValue(0) if ssim_field is not None else None,
     "preset": report["preset"],
     "preset_file": report["preset_file"],
@@ -148,6 +196,7 @@ result = {
         for i in range(fetched.GetFieldData().GetAbstractArray("why").GetNumberOfValues())
     ],
     "before": before,
+    "plain_apply": plain_terms,
 }
 if PORT:
     # Measure this view, then Refine region on a selection of the quality map's pixels
@@ -158,17 +207,56 @@ if PORT:
     width = int(opt.Width)
     ids = [y * width + x for y in range(10, 20) for x in range(12, 30)]  # VTK rows go up
     pvs.SelectIDs(IDs=[i for p in ids for i in (0, p)], FieldType="POINT", Source=opt)
+    print("@@T measured", time.time() - T0, flush=True)
     refined = dvr_view.refine_region(opt, view)
+    print("@@T refined", time.time() - T0, flush=True)
     result["region"] = list(refined["region"])
+    result["region_from"] = refined["region_from"]
     result["region_property"] = opt.Region
     result["refined_E"] = refined["E"]
+    result["refined_lens"] = refined["lens_region"]
     result["undone"] = dvr_view.undo() and dvr_view.undo()
+    # a rubber band in the 3-D view, read back through the server: the lens without optimising
+    pvs.ClearSelection(opt)
+    result["rubber_band"] = rubber_band(view)
+    pvs.SelectCellsThrough(Rectangle=result["rubber_band"], View=view)
+    result["band_lens"] = list(dvr_view.rubber_band_region(reader, opt, view))
+    result["band_size"] = [matched_width(opt, view), int(opt.Height)]
+    # nothing selected: one clear error, nothing optimised
+    pvs.ClearSelection(reader)
+    try:
+        dvr_view.refine_region(opt, view)
+        result["no_selection_error"] = None
+    except ValueError as exc:
+        result["no_selection_error"] = str(exc)
 else:
     result["macros"] = sorted(MACROS)
+    # Refine region from a rubber band drawn over the volume in the 3-D view (the macro)
+    dvr_view.SSIM_IMAGE = None  # keep the capture of the first optimisation for the test
+    result["rubber_band"] = rubber_band(view)
+    pvs.SetActiveSource(reader)
+    pvs.SelectCellsThrough(Rectangle=result["rubber_band"], View=view)
+    pvs.SetActiveView(view)
+    runpy.run_path(MACROS["DVR_Refine_Region"], run_name="__main__")
+    print("@@T refined", time.time() - T0, flush=True)
+    refined = dvr_view.last_report["refine"]
+    result["band_lens"] = list(refined["region"])
+    result["band_size"] = [int(opt.Width), int(opt.Height)]
+    result["region_from"] = refined["region_from"]
+    result["region_property"] = opt.Region
+    result["refined_E"] = refined["E"]
+    result["refined_initial_E"] = refined["initial_E"]
+    result["refined_lens"] = refined["lens_region"]
+    result["lens_E"] = refined["lens_E"]
+    result["lens_initial_E"] = refined["lens_initial_E"]
+    runpy.run_path(MACROS["DVR_Undo"], run_name="__main__")
     runpy.run_path(MACROS["DVR_Undo"], run_name="__main__")
     result["undone"] = True
+result["view_size"] = [int(v) for v in view.ViewSize]
 result["after_undo"] = {"RGBPoints": list(lut.RGBPoints), "Points": list(pwf.Points)}
+result["lights_after_undo"] = lights(view)
 result["undo_again"] = dvr_view.undo()
+print("@@T done", time.time() - T0, flush=True)
 with open(os.path.join(OUT, "result.json"), "w", encoding="utf-8") as f:
     json.dump(result, f)
 print("@@DONE@@", flush=True)
