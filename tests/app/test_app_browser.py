@@ -628,7 +628,7 @@ def test_slicer_segmentation_loads_as_label_structures(page, server):
     page.click("#undo")  # back to the phantom's own structures for the following tests
     page.wait_for_function("() => document.querySelectorAll('#structure-table tr').length === 7")
     page.wait_for_selector("#measuring", state="hidden")
-    assert "exact image (engine)" in page.inner_text("#view-mode")
+    assert "VTK fixed-point ray caster" in page.inner_text("#view-mode")
 
 
 def test_export_writes_valid_files(page, server):

@@ -151,7 +151,7 @@ DRAG = """
 async ([x0, y0, ms, every]) => {
   const el = document.elementFromPoint(x0, y0);
   const F = Object.assign(window.__frames, {on: true, n: 0, t0: performance.now()});
-  let k = 0, x = x0, y = y0, mode = '';
+  let k = 0, x = x0, y = y0;
   await new Promise(done => {
     const id = setInterval(() => {
       k += 1;
@@ -165,19 +165,19 @@ async ([x0, y0, ms, every]) => {
   });
   F.on = false;
   F.t1 = performance.now();
-  mode = document.querySelector('#view-mode').dataset.mode;
-  return {n: F.n, t0: F.t0, t1: F.t1, moves: k, x, y, mode,
-          target: el.tagName};
+  const label = document.querySelector('#view-mode');
+  const canvas = document.querySelector('#local-view canvas');
+  return {n: F.n, t0: F.t0, t1: F.t1, moves: k, x, y, mode: label.dataset.mode,
+          label: label.innerText, canvas: [canvas.width, canvas.height], target: el.tagName};
 }
 """
 DRAG_MS, MOVE_MS = 2000, 8
 VIEW_512 = 512
 FOOTER_PX = 20
-#: The issue asks for 10 frames/s at 512x512.  On this 2-core machine shared with other jobs the
-#: same drag measured 11.8 frames/s at load 3.0 and 4.8-7.3 at load 4.5-5 (numbers in the issue
-#: note), so the test prints the figure with the load and asserts only that the preview runs
-#: (MIN_FPS) -- the 10 frames/s is reported, not guaranteed here.
-MIN_FPS = 3.0
+#: The issue's 10 frames/s at 512x512.  The preview's canvas is half the view's size (stretched
+#: to it) and vtk.js lowers the resolution further while moving: 31-35 frames/s at load 6 on the
+#: shared 2-core machine, where the full-size canvas gave 9.5 (see dvr_perception.app.ui_preview).
+MIN_FPS = 10.0
 #: Seconds from the end of a drag until the numbers for the new view are on the page (the issue's
 #: 2 s held at load 3.0 and 4.5, not at load 5: 4.1 s; asserted with room for the load).
 MAX_REMEASURE_S = 6.0
@@ -232,6 +232,9 @@ def test_rotation_in_the_preview_counts_frames_at_512(cthead_page):
         pg.mouse.down()
         frames = pg.evaluate(DRAG, [cx, cy, DRAG_MS, MOVE_MS])
         assert frames["mode"] == "preview", frames  # what was on screen during the drag
+        # ... at half resolution, and the label says so
+        assert frames["canvas"] == [VIEW_512 // 2, VIEW_512 // 2], frames
+        assert "half resolution" in frames["label"], frames
         pg.mouse.move(frames["x"], frames["y"])
         pg.mouse.up()
         t_up = time.monotonic()
