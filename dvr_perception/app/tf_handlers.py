@@ -22,6 +22,8 @@ __all__ = ["TFHandlers"]
 
 #: Seconds after which the exact image has been pushed (see ``DVRApp._push_image``).
 REPUSH_S = 0.8
+#: Seconds between a change of the transfer function or camera and sending the preview's scene.
+PREVIEW_SEND_S = 0.1
 
 
 def _three(camera, key: str) -> tuple[float, float, float]:
@@ -47,6 +49,7 @@ class TFHandlers:
     preview = None  # the quick preview (dvr_perception.app.preview.Preview)
     local_view = None  # its view in the page
     _preview_dirty = False  # the preview changed since its scene was last sent
+    _preview_timer = None  # the pending _send_preview
 
     def _histogram(self) -> dict:
         volume = self.session.volume
@@ -91,29 +94,43 @@ class TFHandlers:
         self._show_spec(restructured="value_range" in edit)
 
     def _sync_preview(self) -> None:
-        """Give the browser's quick preview the current spec and camera (sent at the next drag).
+        """Give the browser's quick preview the current spec and camera, sent a moment later.
 
-        Sending the new scene as soon as the spec changed (``VtkLocalView.update`` or a scene
-        delta) made the page drop state set just before (a banner vanished at once), so the
-        scene goes out when a drag or zoom starts (:meth:`preview_start`); its first frames may
-        still show the previous transfer function.
+        Publishing the new scene in the same event-loop tick as the state of a change made the
+        page drop that state (a banner vanished at once); waiting for the next drag to send it
+        showed the previous transfer function in the drag's first frames.  So the scene goes
+        out :data:`PREVIEW_SEND_S` after the change, once the state is flushed
+        (:meth:`_send_preview`), and at a drag's start if it is still unsent.
         """
         if self.preview is None:
             return
+        import asyncio
+
         self.preview.set_spec(self.session.spec)
         self.preview.set_camera(self.plotter.camera, self.plotter.window_size)
         self._preview_dirty = True
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            return  # no server yet: the page gets the scene with its first state
+        if self._preview_timer is None:
+            self._preview_timer = loop.call_later(PREVIEW_SEND_S, self._send_preview)
 
-    @guard
-    def preview_start(self):
-        """Mark the preview as shown at a drag's start; send its scene if it changed."""
-        self.state.view_mode = "preview"
+    def _send_preview(self) -> None:
+        """Publish the preview's scene to the page if it changed since it was last sent."""
+        self._preview_timer = None
         protocol = self.server.protocol
         if not self._preview_dirty or protocol is None or self.local_view is None:
             return
         self._preview_dirty = False
         delta = self.local_view._helper.scene(self.preview.window, new_state=False, widgets=[])
         protocol.publish("trame.vtk.delta", delta)
+
+    @guard
+    def preview_start(self):
+        """Mark the preview as shown at a drag's start; send its scene if still unsent."""
+        self.state.view_mode = "preview"
+        self._send_preview()
 
     @guard
     def local_camera(self, camera):

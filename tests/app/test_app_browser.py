@@ -671,6 +671,14 @@ def _drag_handle(page, selector: str, dx: float, dy: float) -> tuple[float, floa
     return mid
 
 
+#: True when the quick preview's (vtk.js) scalar opacity at value x is op (to the caption's
+#: two decimals).
+PREVIEW_OPACITY_IS = """([x, op]) => {
+  const vol = window.trame.refs.local?.$?.provides?.view?.renderer?.getVolumes()[0];
+  return !!vol && Math.abs(vol.getProperty().getScalarOpacity(0).getValue(x) - op) < 0.006;
+}"""
+
+
 def test_transfer_function_view_drag_changes_rendering_and_terms(page):
     _close_messages(page)
     _tab(page, "data")
@@ -729,6 +737,12 @@ def test_transfer_function_view_drag_changes_rendering_and_terms(page):
         arg=[row.element_handle(), old_op],
     )
     page.wait_for_selector("#measuring", state="hidden")
+    # the browser's quick preview has the new transfer function before any drag (not only
+    # from a drag's first frames on): its opacity in the middle of the skin's range
+    m = re.search(r"([\d.]+)-([\d.]+), opacity ([\d.]+)", row.inner_text())
+    mid, new_op = (float(m.group(1)) + float(m.group(2))) / 2, float(m.group(3))
+    assert new_op < old_op
+    page.wait_for_function(PREVIEW_OPACITY_IS, arg=[mid, new_op], timeout=10_000)
     # view buttons: +X shows another side; Reset comes back
     key = _now_key(page)
     front = _view_image(page)
