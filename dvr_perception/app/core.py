@@ -188,6 +188,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         self._view_no = 0  # counts camera changes
         self._tf_no = 0  # counts changes of the transfer function (spec) shown
         self._tf_label = "as loaded"
+        self._view_name = None  # the patient view chosen last (None: none, or another view)
         self._run = None  # the optimisation under way: start time, stages, camera, key
         self._banner_timer = None
         self._map_on = False
@@ -238,6 +239,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         s.lens_whole_text = ""
         s.lens_worse = False
         s.show_map = False
+        s.map_shown = ""  # the quality map in the pushed image ("": none)
         s.map_kind = "visibility"
         s.E_v = s.E_s = s.E_t = None
         s.measuring = False
@@ -333,15 +335,29 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         self.state.now_key = self._key()
 
     def _describe(self, camera) -> str:
-        """Return the view, size and settings numbers for a caption."""
-        d = [p - f for p, f in zip(camera.position, camera.focal_point, strict=True)]
-        r = math.sqrt(sum(c * c for c in d)) or 1.0
-        el = math.degrees(math.asin(max(-1.0, min(1.0, d[1] / r))))
-        az = math.degrees(math.atan2(d[0], d[2]))
+        """Return the view, size and settings numbers for a caption.
+
+        After a patient-side button the view is named and its angles are from that view
+        (``anterior, azimuth +30 deg, elevation -10 deg from it``: the CLI's ``--view
+        anterior,30,-10``); otherwise azimuth and elevation are VTK's, with y up.
+        """
+        if self._view_name is not None:
+            from dvr_perception.rays.camera import patient_angles
+
+            az, el = patient_angles(self.session.volume, camera, self._view_name)
+            where = (
+                f"{self._view_name}, azimuth {round(az) + 0:+d} deg, elevation "
+                f"{round(el) + 0:+d} deg from it"
+            )
+        else:
+            d = [p - f for p, f in zip(camera.position, camera.focal_point, strict=True)]
+            r = math.sqrt(sum(c * c for c in d)) or 1.0
+            el = math.degrees(math.asin(max(-1.0, min(1.0, d[1] / r))))
+            az = math.degrees(math.atan2(d[0], d[2]))
+            where = f"azimuth {az:.0f} deg, elevation {el:.0f} deg"
         return (
-            f"view {self._view_no} (azimuth {az:.0f} deg, elevation {el:.0f} deg, "
-            f"{camera.width}\u00d7{camera.height} px), settings {self._tf_no} "
-            f"({self._tf_label})"
+            f"view {self._view_no} ({where}, {camera.width}\u00d7{camera.height} px), "
+            f"settings {self._tf_no} ({self._tf_label})"
         )
 
     def _sync(self) -> None:
@@ -372,7 +388,9 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         """
         if self.view is None:
             return
+        t0 = time.monotonic()
         self.view.update()
+        log.info("view.settings %s: image rendered in %.2f s", self._key(), time.monotonic() - t0)
         try:
             loop = asyncio.get_running_loop()
         except RuntimeError:
@@ -391,6 +409,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
 
         volume, spec = self.session.load_volume(name)
         self._tf_before = None
+        self._view_name = None
         self.plotter.clear_actors()
         self.handle = add_structures(self.plotter, volume, spec)
         az, el, zoom = spec.view or (0.0, 0.0, 1.0)
@@ -462,11 +481,13 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
             self._measure_again = False
             key, cam = self._key(), self.current_camera()
             described = self._describe(cam)
+            t0 = time.monotonic()
             try:
                 measures = await loop.run_in_executor(None, self.session.measure, cam)
             except Exception as exc:  # shown in the page; the server keeps running
                 log.exception("measuring failed")
                 measures, error = None, f"measuring failed: {exc}"
+            log.info("view.settings %s: measured in %.2f s", key, time.monotonic() - t0)
             if not self._measure_again:
                 break
         self._measuring = False
@@ -511,6 +532,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
             self.plotter.remove_actor(name, render=False)
         fresh = self.state.measured_key == self.state.now_key
         self._map_on = bool(self.state.show_map and self.measures is not None and fresh)
+        self.state.map_shown = self.state.map_kind if self._map_on else ""
         if not (self._map_on or was_on):
             return  # nothing shown before or now: no new image to push
         if self._map_on:
@@ -603,10 +625,17 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
 
     @guard
     def export(self):
-        """Write the PNG, spec JSON, ParaView preset and Slicer file to the export folder."""
+        """Write the PNG (with the legend), spec JSON, ParaView preset and Slicer file."""
         self.state.error = ""
         self.plotter.render()
-        self.state.exports = [p.name for p in self.session.export(self.plotter)]
+        legend = None
+        if self.state.show_legend:  # as on screen: the legend and colour bar beside the view
+            legend = {
+                "rows": self.session.structure_rows(),
+                "bar": list(self.state.tf_bar or []),
+                "value_range": tuple(self.state.tf_value_range),
+            }
+        self.state.exports = [p.name for p in self.session.export(self.plotter, legend=legend)]
         self.state.info = f"exported {len(self.state.exports)} files to {self.session.export_dir}"
 
     @guard

@@ -50,6 +50,8 @@ class TFHandlers:
     local_view = None  # its view in the page
     _preview_dirty = False  # the preview changed since its scene was last sent
     _preview_timer = None  # the pending _send_preview
+    _view_name = None  # the patient view chosen last (named in the captions)
+    _exact_timer = None  # the pending switch back to the exact image after a drag
 
     def _histogram(self) -> dict:
         volume = self.session.volume
@@ -100,7 +102,9 @@ class TFHandlers:
         page drop that state (a banner vanished at once); waiting for the next drag to send it
         showed the previous transfer function in the drag's first frames.  So the scene goes
         out :data:`PREVIEW_SEND_S` after the change, once the state is flushed
-        (:meth:`_send_preview`), and at a drag's start if it is still unsent.
+        (:meth:`_send_preview`), and at a drag's start if it is still unsent.  Not after a
+        drag: the page's preview has that camera already, and a scene arriving in the next
+        drag kept the page busy rebuilding it (half the frames).
         """
         if self.preview is None:
             return
@@ -130,6 +134,9 @@ class TFHandlers:
     def preview_start(self):
         """Mark the preview as shown at a drag's start; send its scene if still unsent."""
         self.state.view_mode = "preview"
+        if self._exact_timer is not None:  # the last drag's "exact" must not end this one
+            self._exact_timer.cancel()
+            self._exact_timer = None
         self._send_preview()
 
     @guard
@@ -139,7 +146,8 @@ class TFHandlers:
         self.plotter.camera.SetFocalPoint(*_three(camera, "focalPoint"))
         self.plotter.camera.SetViewUp(*_three(camera, "viewUp"))
         self.plotter.renderer.ResetCameraClippingRange()
-        self._sync_preview()
+        if self.preview is not None:  # the page's preview has this camera: nothing to send
+            self.preview.set_camera(self.plotter.camera, self.plotter.window_size)
         self._changed(view=True)
         if self.state.show_map:
             self._update_map()
@@ -158,10 +166,13 @@ class TFHandlers:
             return
 
         def done():
+            self._exact_timer = None
             with self.state:
                 self.state.view_mode = "exact"
 
-        loop.call_later(REPUSH_S, done)
+        if self._exact_timer is not None:
+            self._exact_timer.cancel()
+        self._exact_timer = loop.call_later(REPUSH_S, done)
 
     def _set_camera(self, camera) -> None:
         from dvr_perception.plotting import set_plotter_camera
@@ -178,6 +189,7 @@ class TFHandlers:
     def view_axis(self, axis):
         """Look at the volume along ``axis`` (``"+X"`` ... ``"-Z"``)."""
         w, h = (int(v) for v in self.plotter.window_size)
+        self._view_name = None
         self._set_camera(axis_camera(self.session.volume.bounds, axis, width=w, height=h))
 
     @guard
@@ -195,6 +207,7 @@ class TFHandlers:
                 f"view {str(name)[:40]!r}: expected one of {', '.join(PATIENT_VIEWS)}"
             )
         w, h = (int(v) for v in self.plotter.window_size)
+        self._view_name = name  # the captions name it; later rotations are relative to it
         self._set_camera(patient_view(self.session.volume, name, width=w, height=h))
 
     @guard
@@ -204,6 +217,7 @@ class TFHandlers:
 
         az, el, zoom = self.session.spec.view or (0.0, 0.0, 1.0)
         w, h = (int(v) for v in self.plotter.window_size)
+        self._view_name = None
         self._set_camera(
             Camera.from_view(
                 self.session.volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h

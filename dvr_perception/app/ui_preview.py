@@ -53,14 +53,15 @@ _SCALE_SCRIPT = """
 })();
 """
 
-#: The label at the view's bottom right: which image is on screen.
+#: The label at the view's top right: which image is on screen.
 LABEL = (
     "{{ view_mode !== 'exact' ? 'quick preview (vtk.js, small copy, ' + "
     "(preview_scale === 1 ? 'full' : preview_scale === 0.5 ? 'half' : "
     "Math.round(100 * preview_scale) + ' %') + ' resolution, coarser while moving)' : "
-    "structures.some(r => r.label !== null && r.label !== undefined) ? "
+    "(structures.some(r => r.label !== null && r.label !== undefined) ? "
     "'VTK label map (GPU ray caster, near the engine, one material)' : "
-    "'VTK fixed-point ray caster (the engine\\'s model)' }}"
+    "'VTK fixed-point ray caster (the engine\\'s model)') + "
+    "(map_shown ? ' + ' + map_shown + ' quality map' : '') }}"
 )
 
 
@@ -102,6 +103,10 @@ def view_area(app) -> None:
         style="position: absolute; right: 8px; top: 8px; z-index: 4; pointer-events: none; "
         "color: #fff; background: rgba(0,0,0,0.55); padding: 2px 8px; border-radius: 4px;",
         classes="text-caption",
-        raw_attrs=[':data-mode="view_mode"', ':data-scale="preview_scale"'],
+        raw_attrs=[
+            ':data-mode="view_mode"',
+            ':data-scale="preview_scale"',
+            ':data-map="map_shown"',
+        ],
         id="view-mode",
     )
