@@ -47,7 +47,7 @@ from dvr_perception.app.session import (
 from dvr_perception.app.study import png_data_url
 from dvr_perception.app.study_screens import RANKING_FILE, StudyHandlers
 from dvr_perception.app.tf_handlers import TFHandlers
-from dvr_perception.errors import DVRInputError
+from dvr_perception.errors import DVRCancelled, DVRInputError
 
 __all__ = ["MAX_ITER", "STAGE_SETS", "DVRApp", "lens_region"]
 
@@ -61,6 +61,8 @@ MAX_ITER = 10
 #: are pushed: a VTK rendering holds the GIL for its whole duration (2-3 s for cthead at
 #: 512\u00b2 in software GL), and one per second starved the optimiser's thread (issue 20).
 LIVE_INTERVAL_S = 0.25
+#: Share of the progress bar for the analysis before the optimiser's first iteration.
+PREP_SHARE = 0.1
 #: Seconds an info banner stays; an error banner stays until closed or for ERROR_S.
 INFO_S = 5.0
 ERROR_S = 30.0
@@ -180,6 +182,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         self._cancel = threading.Event()
         self._pending = None
         self._last_live = 0.0
+        self._last_prep = 0.0  # when the preparation's progress was last handed on
         self._task_running = False
         self._measuring = False
         self._measure_again = False
@@ -715,6 +718,30 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         if first:
             loop.call_soon_threadsafe(self._schedule_show, loop)
 
+    def _on_prep(self, loop, fraction) -> None:
+        """Optimiser's preparation progress (worker thread; the library's ``progress=``)."""
+        if self._cancel.is_set():
+            raise StopIteration("cancelled in the page")
+        now = time.monotonic()
+        if fraction < 1.0 and now - self._last_prep < LIVE_INTERVAL_S:
+            return
+        self._last_prep = now
+        loop.call_soon_threadsafe(self._show_prep, float(fraction))
+
+    def _show_prep(self, fraction: float) -> None:
+        """Progress of the analysis before the first iteration (the bar's first PREP_SHARE)."""
+        if not self._task_running or self._cancel.is_set() or self._e_history:
+            return  # the iterations report from now on
+        elapsed = time.monotonic() - self._run["t0"]
+        left = elapsed / fraction * (1.0 - fraction) if fraction > 0 else 0.0
+        with self.state:
+            self.state.progress = round(100 * PREP_SHARE * fraction)
+            self.state.progress_text = (
+                f"analysing the view before the first iteration: {100 * fraction:.0f} %; "
+                f"{elapsed:.0f} s so far"
+                + (f", about {left:.0f} s left for this step" if fraction > 0 else "")
+            )
+
     def _schedule_show(self, loop) -> None:
         wait = self._last_live + LIVE_INTERVAL_S - loop.time()
         loop.call_later(max(0.0, wait), self._show_intermediate)
@@ -737,7 +764,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         with self.state:
             self.state.error_history_svg = _history_chart(list(self._e_history))
             self._set_shares(r.terms.get("visible_share", {}), "live_shares")
-            self.state.progress = round(100 * done / total)
+            self.state.progress = round(100 * (PREP_SHARE + (1 - PREP_SHARE) * done / total))
             self.state.progress_text = (
                 f"step {stages.index(r.stage) + 1} of {len(stages)} ({r.stage}): "
                 f"iteration {r.iteration} of {n}; total error {e:.3g} at the optimiser's "
@@ -745,7 +772,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
                 f"{left:.0f} s left"
             )
 
-    def _optimise_in_worker(self, stages, camera, region, targets, callback):
+    def _optimise_in_worker(self, stages, camera, region, targets, callback, progress=None):
         """Run the optimiser (worker thread); return the result and the whole view's measures.
 
         The measures before and after come from the optimiser's own analyses of ``camera``
@@ -767,6 +794,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
             seed=0,
             callback=callback,
             curvature=session.curvature(spec),
+            progress=progress,
         )
         first, last = result.analyses or (None, None)
         if first is None:
@@ -776,10 +804,16 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
     async def _optimise(self, stages, camera, region, targets, label) -> None:
         loop = asyncio.get_running_loop()
         callback = functools.partial(self._on_iteration, loop, stages)
+        progress = functools.partial(self._on_prep, loop)
+        self._last_prep = 0.0
+        work = (stages, camera, region, targets, callback, progress)
+        error = ""
         try:
             result, before, after = await loop.run_in_executor(
-                None, self._optimise_in_worker, stages, camera, region, targets, callback
+                None, self._optimise_in_worker, *work
             )
+        except DVRCancelled:  # cancelled before the first iteration: nothing to keep
+            result = None
         except Exception as exc:  # shown in the page; the server keeps running
             log.exception("optimisation failed")
             result, error = None, f"optimisation failed: {exc}"
@@ -790,7 +824,10 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
             self.state.error_history_svg = _history_chart(list(self._e_history))
             if result is None:
                 self.state.busy = False
-                self.fail(error)
+                if error:
+                    self.fail(error)
+                else:
+                    self.state.progress_text = "cancelled before the first iteration: unchanged"
                 self._show_spec()
                 return
             cancelled = self._cancel.is_set()

@@ -108,7 +108,9 @@ def test_optimise_all_is_as_fast_as_the_cli(cthead_page):
     page.click("#tab-optimise")
     page.wait_for_selector("#panel-optimise", state="visible")
     app_s, texts = _run_all(page)
-    # progress per stage and iteration with the time left
+    # progress before the first iteration (the library's progress= callback), then per stage
+    # and iteration with the time left
+    assert any(re.match(r"analysing the view before the first iteration: \d+ %", t) for t in texts)
     assert any(re.match(r"step \d of 3 \(\w+\): iteration \d+ of 3;.* s left$", t) for t in texts)
     camera = json.loads(page.get_attribute("#opt-camera", "data-camera"))
     (root / "camera.json").write_text(json.dumps(camera), encoding="utf-8")
