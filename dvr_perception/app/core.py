@@ -47,7 +47,7 @@ from dvr_perception.app.session import (
 from dvr_perception.app.study import png_data_url
 from dvr_perception.app.study_screens import RANKING_FILE, StudyHandlers
 from dvr_perception.app.tf_handlers import TFHandlers
-from dvr_perception.errors import DVRInputError
+from dvr_perception.errors import DVRCancelled, DVRInputError
 
 __all__ = ["MAX_ITER", "STAGE_SETS", "DVRApp", "lens_region"]
 
@@ -61,6 +61,8 @@ MAX_ITER = 10
 #: are pushed: a VTK rendering holds the GIL for its whole duration (2-3 s for cthead at
 #: 512\u00b2 in software GL), and one per second starved the optimiser's thread (issue 20).
 LIVE_INTERVAL_S = 0.25
+#: Share of the progress bar for the analysis before the optimiser's first iteration.
+PREP_SHARE = 0.1
 #: Seconds an info banner stays; an error banner stays until closed or for ERROR_S.
 INFO_S = 5.0
 ERROR_S = 30.0
@@ -180,6 +182,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         self._cancel = threading.Event()
         self._pending = None
         self._last_live = 0.0
+        self._last_prep = 0.0  # when the preparation's progress was last handed on
         self._task_running = False
         self._measuring = False
         self._measure_again = False
@@ -188,6 +191,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         self._view_no = 0  # counts camera changes
         self._tf_no = 0  # counts changes of the transfer function (spec) shown
         self._tf_label = "as loaded"
+        self._view_name = None  # the patient view chosen last (None: none, or another view)
         self._run = None  # the optimisation under way: start time, stages, camera, key
         self._banner_timer = None
         self._map_on = False
@@ -238,6 +242,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         s.lens_whole_text = ""
         s.lens_worse = False
         s.show_map = False
+        s.map_shown = ""  # the quality map in the pushed image ("": none)
         s.map_kind = "visibility"
         s.E_v = s.E_s = s.E_t = None
         s.measuring = False
@@ -333,15 +338,29 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         self.state.now_key = self._key()
 
     def _describe(self, camera) -> str:
-        """Return the view, size and settings numbers for a caption."""
-        d = [p - f for p, f in zip(camera.position, camera.focal_point, strict=True)]
-        r = math.sqrt(sum(c * c for c in d)) or 1.0
-        el = math.degrees(math.asin(max(-1.0, min(1.0, d[1] / r))))
-        az = math.degrees(math.atan2(d[0], d[2]))
+        """Return the view, size and settings numbers for a caption.
+
+        After a patient-side button the view is named and its angles are from that view
+        (``anterior, azimuth +30 deg, elevation -10 deg from it``: the CLI's ``--view
+        anterior,30,-10``); otherwise azimuth and elevation are VTK's, with y up.
+        """
+        if self._view_name is not None:
+            from dvr_perception.rays.camera import patient_angles
+
+            az, el = patient_angles(self.session.volume, camera, self._view_name)
+            where = (
+                f"{self._view_name}, azimuth {round(az) + 0:+d} deg, elevation "
+                f"{round(el) + 0:+d} deg from it"
+            )
+        else:
+            d = [p - f for p, f in zip(camera.position, camera.focal_point, strict=True)]
+            r = math.sqrt(sum(c * c for c in d)) or 1.0
+            el = math.degrees(math.asin(max(-1.0, min(1.0, d[1] / r))))
+            az = math.degrees(math.atan2(d[0], d[2]))
+            where = f"azimuth {az:.0f} deg, elevation {el:.0f} deg"
         return (
-            f"view {self._view_no} (azimuth {az:.0f} deg, elevation {el:.0f} deg, "
-            f"{camera.width}\u00d7{camera.height} px), settings {self._tf_no} "
-            f"({self._tf_label})"
+            f"view {self._view_no} ({where}, {camera.width}\u00d7{camera.height} px), "
+            f"settings {self._tf_no} ({self._tf_label})"
         )
 
     def _sync(self) -> None:
@@ -372,7 +391,9 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         """
         if self.view is None:
             return
+        t0 = time.monotonic()
         self.view.update()
+        log.info("view.settings %s: image rendered in %.2f s", self._key(), time.monotonic() - t0)
         try:
             loop = asyncio.get_running_loop()
         except RuntimeError:
@@ -391,6 +412,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
 
         volume, spec = self.session.load_volume(name)
         self._tf_before = None
+        self._view_name = None
         self.plotter.clear_actors()
         self.handle = add_structures(self.plotter, volume, spec)
         az, el, zoom = spec.view or (0.0, 0.0, 1.0)
@@ -462,11 +484,13 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
             self._measure_again = False
             key, cam = self._key(), self.current_camera()
             described = self._describe(cam)
+            t0 = time.monotonic()
             try:
                 measures = await loop.run_in_executor(None, self.session.measure, cam)
             except Exception as exc:  # shown in the page; the server keeps running
                 log.exception("measuring failed")
                 measures, error = None, f"measuring failed: {exc}"
+            log.info("view.settings %s: measured in %.2f s", key, time.monotonic() - t0)
             if not self._measure_again:
                 break
         self._measuring = False
@@ -511,6 +535,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
             self.plotter.remove_actor(name, render=False)
         fresh = self.state.measured_key == self.state.now_key
         self._map_on = bool(self.state.show_map and self.measures is not None and fresh)
+        self.state.map_shown = self.state.map_kind if self._map_on else ""
         if not (self._map_on or was_on):
             return  # nothing shown before or now: no new image to push
         if self._map_on:
@@ -603,10 +628,17 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
 
     @guard
     def export(self):
-        """Write the PNG, spec JSON, ParaView preset and Slicer file to the export folder."""
+        """Write the PNG (with the legend), spec JSON, ParaView preset and Slicer file."""
         self.state.error = ""
         self.plotter.render()
-        self.state.exports = [p.name for p in self.session.export(self.plotter)]
+        legend = None
+        if self.state.show_legend:  # as on screen: the legend and colour bar beside the view
+            legend = {
+                "rows": self.session.structure_rows(),
+                "bar": list(self.state.tf_bar or []),
+                "value_range": tuple(self.state.tf_value_range),
+            }
+        self.state.exports = [p.name for p in self.session.export(self.plotter, legend=legend)]
         self.state.info = f"exported {len(self.state.exports)} files to {self.session.export_dir}"
 
     @guard
@@ -686,6 +718,30 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         if first:
             loop.call_soon_threadsafe(self._schedule_show, loop)
 
+    def _on_prep(self, loop, fraction) -> None:
+        """Optimiser's preparation progress (worker thread; the library's ``progress=``)."""
+        if self._cancel.is_set():
+            raise StopIteration("cancelled in the page")
+        now = time.monotonic()
+        if fraction < 1.0 and now - self._last_prep < LIVE_INTERVAL_S:
+            return
+        self._last_prep = now
+        loop.call_soon_threadsafe(self._show_prep, float(fraction))
+
+    def _show_prep(self, fraction: float) -> None:
+        """Progress of the analysis before the first iteration (the bar's first PREP_SHARE)."""
+        if not self._task_running or self._cancel.is_set() or self._e_history:
+            return  # the iterations report from now on
+        elapsed = time.monotonic() - self._run["t0"]
+        left = elapsed / fraction * (1.0 - fraction) if fraction > 0 else 0.0
+        with self.state:
+            self.state.progress = round(100 * PREP_SHARE * fraction)
+            self.state.progress_text = (
+                f"analysing the view before the first iteration: {100 * fraction:.0f} %; "
+                f"{elapsed:.0f} s so far"
+                + (f", about {left:.0f} s left for this step" if fraction > 0 else "")
+            )
+
     def _schedule_show(self, loop) -> None:
         wait = self._last_live + LIVE_INTERVAL_S - loop.time()
         loop.call_later(max(0.0, wait), self._show_intermediate)
@@ -708,7 +764,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         with self.state:
             self.state.error_history_svg = _history_chart(list(self._e_history))
             self._set_shares(r.terms.get("visible_share", {}), "live_shares")
-            self.state.progress = round(100 * done / total)
+            self.state.progress = round(100 * (PREP_SHARE + (1 - PREP_SHARE) * done / total))
             self.state.progress_text = (
                 f"step {stages.index(r.stage) + 1} of {len(stages)} ({r.stage}): "
                 f"iteration {r.iteration} of {n}; total error {e:.3g} at the optimiser's "
@@ -716,7 +772,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
                 f"{left:.0f} s left"
             )
 
-    def _optimise_in_worker(self, stages, camera, region, targets, callback):
+    def _optimise_in_worker(self, stages, camera, region, targets, callback, progress=None):
         """Run the optimiser (worker thread); return the result and the whole view's measures.
 
         The measures before and after come from the optimiser's own analyses of ``camera``
@@ -738,6 +794,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
             seed=0,
             callback=callback,
             curvature=session.curvature(spec),
+            progress=progress,
         )
         first, last = result.analyses or (None, None)
         if first is None:
@@ -747,10 +804,16 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
     async def _optimise(self, stages, camera, region, targets, label) -> None:
         loop = asyncio.get_running_loop()
         callback = functools.partial(self._on_iteration, loop, stages)
+        progress = functools.partial(self._on_prep, loop)
+        self._last_prep = 0.0
+        work = (stages, camera, region, targets, callback, progress)
+        error = ""
         try:
             result, before, after = await loop.run_in_executor(
-                None, self._optimise_in_worker, stages, camera, region, targets, callback
+                None, self._optimise_in_worker, *work
             )
+        except DVRCancelled:  # cancelled before the first iteration: nothing to keep
+            result = None
         except Exception as exc:  # shown in the page; the server keeps running
             log.exception("optimisation failed")
             result, error = None, f"optimisation failed: {exc}"
@@ -761,7 +824,10 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
             self.state.error_history_svg = _history_chart(list(self._e_history))
             if result is None:
                 self.state.busy = False
-                self.fail(error)
+                if error:
+                    self.fail(error)
+                else:
+                    self.state.progress_text = "cancelled before the first iteration: unchanged"
                 self._show_spec()
                 return
             cancelled = self._cancel.is_set()

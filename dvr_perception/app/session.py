@@ -398,8 +398,13 @@ class Session:
         save_spec(self.spec, self.writable_dir(self.settings_dir) / name)
         return SAVED + name
 
-    def export(self, plotter=None) -> list[Path]:
-        """Write view PNG, spec JSON, ParaView preset and Slicer ``.vp.json`` to the export dir."""
+    def export(self, plotter=None, *, legend=None) -> list[Path]:
+        """Write view PNG, spec JSON, ParaView preset and Slicer ``.vp.json`` to the export dir.
+
+        With ``legend`` (the keywords of :func:`~dvr_perception.app.export_image.with_legend`
+        but the image) the PNG gets the legend and colour bar in a panel on its right.
+        """
+        from dvr_perception.app.export_image import save_png, with_legend
         from dvr_perception.export import save_paraview_preset, save_slicer_vp
         from dvr_perception.structures.io import save_spec
 
@@ -407,9 +412,10 @@ class Session:
         stem = self.export_dir / (self.volume.name or "volume")
         out = []
         if plotter is not None:
-            png = stem.with_name(stem.name + "_view.png")
-            plotter.screenshot(str(png))
-            out.append(png)
+            image = plotter.screenshot(None, return_img=True)
+            if legend is not None:
+                image = with_legend(image, **legend)
+            out.append(save_png(image[..., :3], stem.with_name(stem.name + "_view.png")))
         spec_path = stem.with_name(stem.name + "_spec.json")
         save_spec(self.spec, spec_path)
         out.append(spec_path)

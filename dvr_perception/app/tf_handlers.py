@@ -22,6 +22,8 @@ __all__ = ["TFHandlers"]
 
 #: Seconds after which the exact image has been pushed (see ``DVRApp._push_image``).
 REPUSH_S = 0.8
+#: Seconds between a change of the transfer function or camera and sending the preview's scene.
+PREVIEW_SEND_S = 0.1
 
 
 def _three(camera, key: str) -> tuple[float, float, float]:
@@ -47,6 +49,9 @@ class TFHandlers:
     preview = None  # the quick preview (dvr_perception.app.preview.Preview)
     local_view = None  # its view in the page
     _preview_dirty = False  # the preview changed since its scene was last sent
+    _preview_timer = None  # the pending _send_preview
+    _view_name = None  # the patient view chosen last (named in the captions)
+    _exact_timer = None  # the pending switch back to the exact image after a drag
 
     def _histogram(self) -> dict:
         volume = self.session.volume
@@ -91,23 +96,33 @@ class TFHandlers:
         self._show_spec(restructured="value_range" in edit)
 
     def _sync_preview(self) -> None:
-        """Give the browser's quick preview the current spec and camera (sent at the next drag).
+        """Give the browser's quick preview the current spec and camera, sent a moment later.
 
-        Sending the new scene as soon as the spec changed (``VtkLocalView.update`` or a scene
-        delta) made the page drop state set just before (a banner vanished at once), so the
-        scene goes out when a drag or zoom starts (:meth:`preview_start`); its first frames may
-        still show the previous transfer function.
+        Publishing the new scene in the same event-loop tick as the state of a change made the
+        page drop that state (a banner vanished at once); waiting for the next drag to send it
+        showed the previous transfer function in the drag's first frames.  So the scene goes
+        out :data:`PREVIEW_SEND_S` after the change, once the state is flushed
+        (:meth:`_send_preview`), and at a drag's start if it is still unsent.  Not after a
+        drag: the page's preview has that camera already, and a scene arriving in the next
+        drag kept the page busy rebuilding it (half the frames).
         """
         if self.preview is None:
             return
+        import asyncio
+
         self.preview.set_spec(self.session.spec)
         self.preview.set_camera(self.plotter.camera, self.plotter.window_size)
         self._preview_dirty = True
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            return  # no server yet: the page gets the scene with its first state
+        if self._preview_timer is None:
+            self._preview_timer = loop.call_later(PREVIEW_SEND_S, self._send_preview)
 
-    @guard
-    def preview_start(self):
-        """Mark the preview as shown at a drag's start; send its scene if it changed."""
-        self.state.view_mode = "preview"
+    def _send_preview(self) -> None:
+        """Publish the preview's scene to the page if it changed since it was last sent."""
+        self._preview_timer = None
         protocol = self.server.protocol
         if not self._preview_dirty or protocol is None or self.local_view is None:
             return
@@ -116,13 +131,23 @@ class TFHandlers:
         protocol.publish("trame.vtk.delta", delta)
 
     @guard
+    def preview_start(self):
+        """Mark the preview as shown at a drag's start; send its scene if still unsent."""
+        self.state.view_mode = "preview"
+        if self._exact_timer is not None:  # the last drag's "exact" must not end this one
+            self._exact_timer.cancel()
+            self._exact_timer = None
+        self._send_preview()
+
+    @guard
     def local_camera(self, camera):
         """Show the exact image for the camera the preview rests at after a drag or zoom."""
         self.plotter.camera.SetPosition(*_three(camera, "position"))
         self.plotter.camera.SetFocalPoint(*_three(camera, "focalPoint"))
         self.plotter.camera.SetViewUp(*_three(camera, "viewUp"))
         self.plotter.renderer.ResetCameraClippingRange()
-        self._sync_preview()
+        if self.preview is not None:  # the page's preview has this camera: nothing to send
+            self.preview.set_camera(self.plotter.camera, self.plotter.window_size)
         self._changed(view=True)
         if self.state.show_map:
             self._update_map()
@@ -141,10 +166,13 @@ class TFHandlers:
             return
 
         def done():
+            self._exact_timer = None
             with self.state:
                 self.state.view_mode = "exact"
 
-        loop.call_later(REPUSH_S, done)
+        if self._exact_timer is not None:
+            self._exact_timer.cancel()
+        self._exact_timer = loop.call_later(REPUSH_S, done)
 
     def _set_camera(self, camera) -> None:
         from dvr_perception.plotting import set_plotter_camera
@@ -161,6 +189,7 @@ class TFHandlers:
     def view_axis(self, axis):
         """Look at the volume along ``axis`` (``"+X"`` ... ``"-Z"``)."""
         w, h = (int(v) for v in self.plotter.window_size)
+        self._view_name = None
         self._set_camera(axis_camera(self.session.volume.bounds, axis, width=w, height=h))
 
     @guard
@@ -178,6 +207,7 @@ class TFHandlers:
                 f"view {str(name)[:40]!r}: expected one of {', '.join(PATIENT_VIEWS)}"
             )
         w, h = (int(v) for v in self.plotter.window_size)
+        self._view_name = name  # the captions name it; later rotations are relative to it
         self._set_camera(patient_view(self.session.volume, name, width=w, height=h))
 
     @guard
@@ -187,6 +217,7 @@ class TFHandlers:
 
         az, el, zoom = self.session.spec.view or (0.0, 0.0, 1.0)
         w, h = (int(v) for v in self.plotter.window_size)
+        self._view_name = None
         self._set_camera(
             Camera.from_view(
                 self.session.volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h

@@ -25,11 +25,11 @@ from __future__ import annotations
 
 from trame.ui.vuetify3 import SinglePageWithDrawerLayout
 from trame.widgets import client, html
-from trame.widgets import vtk as vtk_widgets
 from trame.widgets import vuetify3 as v3
 
 from dvr_perception.app._widgets import half_button, heading
 from dvr_perception.app.ui_lens import lens_pad, lens_panel
+from dvr_perception.app.ui_preview import view_area
 from dvr_perception.app.ui_study import (
     calibration_panel,
     calibration_screen,
@@ -459,48 +459,6 @@ def _export_panel(app) -> None:
     html.Div("{{ name }}", v_for="name in exports", classes="text-body-2 ml-2", id="export-list")
 
 
-def _views(app) -> None:
-    """Add the quick preview (vtk.js, takes the mouse) under the engine's exact image.
-
-    A drag or a wheel turn in the preview shows the preview alone (``view_mode``
-    ``"preview"``); when the camera rests the server renders the exact image for it, which
-    covers the preview again.
-    """
-    end = (app.local_camera, "[trame.refs.local.getCamera()]")
-    with html.Div(style="position: absolute; inset: 0; z-index: 0;", id="local-view"):
-        app.local_view = vtk_widgets.VtkLocalView(
-            app.preview.window,
-            ref="local",
-            interactor_events=(
-                "local_events",
-                ["StartAnimation", "EndAnimation", "StartMouseWheel", "EndMouseWheel"],
-            ),
-            StartAnimation=app.preview_start,
-            StartMouseWheel=app.preview_start,
-            EndAnimation=end,
-            EndMouseWheel=end,
-        )
-    with html.Div(
-        style=(
-            "{position: 'absolute', inset: 0, zIndex: 1, pointerEvents: 'none', "
-            "visibility: view_mode === 'exact' ? 'visible' : 'hidden'}",
-        ),
-        id="exact-view",
-    ):
-        app.view = vtk_widgets.VtkRemoteView(app.plotter.ren_win, ref="view", interactive_ratio=1)
-    app.ctrl.view_update = app.view.update
-    html.Div(
-        "{{ view_mode !== 'exact' ? 'quick preview (vtk.js, small copy)' : "
-        "structures.some(r => r.label !== null && r.label !== undefined) ? "
-        "'VTK label map (near the engine, one material)' : 'exact image (engine)' }}",
-        style="position: absolute; right: 8px; bottom: 8px; z-index: 4; pointer-events: none; "
-        "color: #fff; background: rgba(0,0,0,0.55); padding: 2px 8px; border-radius: 4px;",
-        classes="text-caption",
-        raw_attrs=[':data-mode="view_mode"'],
-        id="view-mode",
-    )
-
-
 def build_ui(app):
     """Build the page of ``app`` (a :class:`~dvr_perception.app.core.DVRApp`).
 
@@ -567,7 +525,7 @@ def build_ui(app):
                 fluid=True, classes="pa-0 fill-height", style="position: relative;", id="view"
             ),
         ):
-            _views(app)
+            view_area(app)
             lens_pad(app)
             view_overlay(app)
             with html.Div(

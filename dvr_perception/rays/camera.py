@@ -23,7 +23,14 @@ import numpy as np
 
 from dvr_perception.errors import DVRInputError
 
-__all__ = ["MAX_IMAGE", "PATIENT_VIEWS", "Camera", "parse_patient_view", "parse_view"]
+__all__ = [
+    "MAX_IMAGE",
+    "PATIENT_VIEWS",
+    "Camera",
+    "parse_patient_view",
+    "parse_view",
+    "patient_angles",
+]
 
 #: Named views in patient (LPS) terms: where the camera sits, seen from the volume centre,
 #: and the view-up.  Anterior/posterior/left/right views have the head (superior) up; the
@@ -307,6 +314,36 @@ def patient_view(
         width=width,
         height=height,
     )
+
+
+def patient_angles(volume, camera, name: str) -> tuple[float, float]:
+    """Return the azimuth and elevation of ``camera`` from the patient view ``name``.
+
+    The inverse of :func:`patient_view` for the camera's direction: a camera made by
+    ``patient_view(volume, name, azimuth=a, elevation=e)`` gives ``(a, e)`` (for
+    ``-90 < e < 90``), whatever ``volume``'s direction matrix.  Azimuth in ``(-180, 180]``.
+
+    Examples
+    --------
+    >>> from dvr_perception.volume import Volume
+    >>> v = Volume(np.zeros((4, 4, 4), np.uint8))
+    >>> cam = patient_view(v, "left", azimuth=30.0, elevation=-10.0, width=8, height=8)
+    >>> [round(a, 6) for a in patient_angles(v, cam, "left")]
+    [30.0, -10.0]
+    """
+    if name not in PATIENT_VIEWS:
+        raise DVRInputError(
+            f"view {str(name)[:40]!r}: unknown patient view; expected one of "
+            f"{', '.join(PATIENT_VIEWS)}"
+        )
+    d = np.asarray(camera.position, float) - np.asarray(camera.focal_point, float)
+    # the camera is in the volume's frame; its direction in world (patient LPS) terms
+    d = _unit(d @ np.asarray(volume.direction, float).T, "camera position - focal point")
+    back, up = (np.asarray(v, float) for v in PATIENT_VIEWS[name])
+    right = np.cross(up, back)
+    el = math.degrees(math.asin(max(-1.0, min(1.0, float(d @ up)))))
+    az = math.degrees(math.atan2(float(d @ right), float(d @ back)))
+    return az, el
 
 
 def parse_patient_view(text: str) -> tuple[str | None, float, float, float]:

@@ -151,12 +151,20 @@ def _view_image(page) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.float64) / 255.0
 
 
+def _middle(img: np.ndarray) -> np.ndarray:
+    """The rows of the view between the overlays (legend and label above, buttons below)."""
+    h = img.shape[0]
+    return img[h // 4 : h * 17 // 20]
+
+
 def _wait_image_change(
-    page, before: np.ndarray, *, tries: int = 80, min_change: float = 1e-4
+    page, before: np.ndarray, *, tries: int = 80, min_change: float = 1e-4, part=None
 ) -> np.ndarray:
+    """Wait until the view differs from ``before`` (in ``part(image)`` if given)."""
+    part = part or (lambda img: img)
     for _ in range(tries):  # the pushed image arrives asynchronously
         img = _view_image(page)
-        if img.shape == before.shape and np.abs(img - before).mean() > min_change:
+        if img.shape == before.shape and np.abs(part(img) - part(before)).mean() > min_change:
             return img
         page.wait_for_timeout(250)
     return img
@@ -273,12 +281,19 @@ def test_optimise_opacity_lowers_visibility_error_and_changes_image(page):
 
 def test_quality_map_overlay_and_strength(page):
     _tab(page, "quality")
+    _settled(page)
+    page.wait_for_selector('#view-mode[data-map=""]', state="attached")
     plain = _view_image(page)
     page.click("#show-map")
     page.wait_for_function("() => document.querySelector('#show-map').checked")
-    mapped = _wait_image_change(page, plain, min_change=1e-3)
+    # the server put the map into the image it pushes (and the label says so) ...
+    page.wait_for_selector('#view-mode[data-map="visibility"]', state="attached")
+    assert "+ visibility quality map" in page.inner_text("#view-mode")
+    # ... and that image arrived (the rendering itself changed, not only the label over it)
+    mapped = _wait_image_change(page, plain, min_change=1e-3, part=_middle)
     errors = page.locator("#error-message").all_inner_texts()
-    assert np.abs(mapped - plain).mean() > 1e-3, f"the map did not appear {errors}"
+    change = np.abs(_middle(mapped) - _middle(plain)).mean()
+    assert change > 1e-3, f"the map did not appear {errors}"
     _shot(page, "quality")
     # map strength: drag the slider to its right end (opacity 1.0)
     track = page.locator("#map-opacity .v-slider-track").bounding_box()
@@ -634,7 +649,7 @@ def test_slicer_segmentation_loads_as_label_structures(page, server):
     page.click("#undo")  # back to the phantom's own structures for the following tests
     page.wait_for_function("() => document.querySelectorAll('#structure-table tr').length === 7")
     page.wait_for_selector("#measuring", state="hidden")
-    assert "exact image (engine)" in page.inner_text("#view-mode")
+    assert "VTK fixed-point ray caster" in page.inner_text("#view-mode")
 
 
 def test_export_writes_valid_files(page, server):
@@ -651,6 +666,20 @@ def test_export_writes_valid_files(page, server):
         "phantom.vp.json",
     }
     assert files["phantom_view.png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the legend and colour bar as on screen, in a panel beside the rendering
+    from PIL import Image
+
+    png = np.asarray(Image.open(files["phantom_view.png"]).convert("RGB"))
+    view_w = round(page.locator("#view").bounding_box()["width"])
+    assert png.shape[1] > view_w  # the rendering plus the panel
+    panel = png[:, view_w:]
+    colours = page.eval_on_selector_all(
+        "#structure-table input[type=color]", "els => els.map(e => e.value)"
+    )
+    assert len(colours) == 6
+    for c in colours:  # each swatch's colour, a 14x14 square at least
+        rgb = [int(c[i : i + 2], 16) for i in (1, 3, 5)]
+        assert (panel == rgb).all(axis=2).sum() >= 14 * 14, c
     from dvr_perception.structures import load_spec
 
     assert len(load_spec(files["phantom_spec.json"]).structures) == 6
@@ -675,6 +704,14 @@ def _drag_handle(page, selector: str, dx: float, dy: float) -> tuple[float, floa
     mid = _handle_centre(page, selector)
     page.mouse.up()
     return mid
+
+
+#: True when the quick preview's (vtk.js) scalar opacity at value x is op (to the caption's
+#: two decimals).
+PREVIEW_OPACITY_IS = """([x, op]) => {
+  const vol = window.trame.refs.local?.$?.provides?.view?.renderer?.getVolumes()[0];
+  return !!vol && Math.abs(vol.getProperty().getScalarOpacity(0).getValue(x) - op) < 0.006;
+}"""
 
 
 def test_transfer_function_view_drag_changes_rendering_and_terms(page):
@@ -735,6 +772,12 @@ def test_transfer_function_view_drag_changes_rendering_and_terms(page):
         arg=[row.element_handle(), old_op],
     )
     page.wait_for_selector("#measuring", state="hidden")
+    # the browser's quick preview has the new transfer function before any drag (not only
+    # from a drag's first frames on): its opacity in the middle of the skin's range
+    m = re.search(r"([\d.]+)-([\d.]+), opacity ([\d.]+)", row.inner_text())
+    mid, new_op = (float(m.group(1)) + float(m.group(2))) / 2, float(m.group(3))
+    assert new_op < old_op
+    page.wait_for_function(PREVIEW_OPACITY_IS, arg=[mid, new_op], timeout=10_000)
     # view buttons: +X shows another side; Reset comes back
     key = _now_key(page)
     front = _view_image(page)
@@ -756,7 +799,9 @@ def test_transfer_function_view_drag_changes_rendering_and_terms(page):
         "(old) => document.querySelector('#now-key').dataset.now !== old", arg=key
     )
     page.wait_for_selector("#measuring", state="hidden")
-    assert "elevation -90 deg" in page.inner_text("#measured-for")  # camera on the -Y side
+    # the caption names the patient view, angles from it (VTK's y-up angles would say
+    # elevation -90 deg: the camera is on the -Y side)
+    assert "(anterior, azimuth +0 deg, elevation +0 deg from it" in page.inner_text("#measured-for")
     page.click("#view-reset")
     page.wait_for_function("() => /azimuth -?0 deg/.test(document.querySelector('#measured-for')"
                            ".innerText)")  # fmt: skip

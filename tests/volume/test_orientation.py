@@ -18,7 +18,7 @@ import pydicom
 import pytest
 
 from dvr_perception.errors import DVRInputError
-from dvr_perception.rays.camera import Camera, parse_patient_view, patient_view
+from dvr_perception.rays.camera import Camera, parse_patient_view, patient_angles, patient_view
 from dvr_perception.rays.engine import analyze
 from dvr_perception.rays.vtk_reference import compare_images
 from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
@@ -279,6 +279,20 @@ def test_oblique_view_equals_the_rotated_axis_aligned_volume():
         b = analyze(flat, SPEC, patient_view(flat, view, azimuth=az, elevation=el,
                                              width=40, height=40)).image  # fmt: skip
         assert compare_images(a, b)["ssim"] >= 0.99, view
+
+
+@pytest.mark.parametrize("view", ["anterior", "left", "inferior"])
+def test_patient_angles_invert_the_patient_view_also_when_oblique(view):
+    vol = _block()
+    for v in (vol, _oblique(25.0)):
+        for az, el in ((0.0, 0.0), (30.0, -10.0), (-120.0, 45.0)):
+            cam = patient_view(v, view, azimuth=az, elevation=el, width=8, height=8)
+            assert patient_angles(v, cam, view) == pytest.approx((az, el), abs=1e-6)
+    # the anterior camera, seen from the posterior view, is half a turn round
+    cam = patient_view(vol, "anterior", width=8, height=8)
+    assert abs(patient_angles(vol, cam, "posterior")[0]) == pytest.approx(180.0)
+    with pytest.raises(DVRInputError, match="unknown patient view"):
+        patient_angles(vol, cam, "front")
 
 
 def test_named_view_parsing_and_errors():
