@@ -236,6 +236,7 @@ def _view_camera(algorithm):
     import json
 
     from paraview import simple
+    from view_camera import camera_from_view
 
     own = [p for p in simple.GetSources().values() if p.GetClientSideObject() is algorithm]
     source = own[0].Input if own else None
@@ -251,16 +252,7 @@ def _view_camera(algorithm):
     if not views:
         return None
     active = simple.GetActiveView()
-    view = active if active in views else views[0]
-    cam = view.GetActiveCamera()
-    return json.dumps({
-        "position": [float(c) for c in cam.GetPosition()],
-        "focal_point": [float(c) for c in cam.GetFocalPoint()],
-        "view_up": [float(c) for c in cam.GetViewUp()],
-        "view_angle": float(cam.GetViewAngle()),
-        "parallel_projection": bool(cam.GetParallelProjection()),
-        "parallel_scale": float(cam.GetParallelScale()),
-    })  # fmt: skip
+    return json.dumps(camera_from_view(active if active in views else views[0]))
 
 
 def _requested_piece(out_info):
