@@ -5,7 +5,7 @@ of a DVR Perception filter's output in 2-D render views next to the 3-D view (ne
 and its per-structure field data in a spreadsheet view.
 """
 
-__all__ = ["QUALITY_MAPS", "QUALITY_PREFIX", "TABLE_VIEW", "show_quality"]
+__all__ = ["QUALITY_MAPS", "QUALITY_PREFIX", "TABLE_VIEW", "open_quality_views", "show_quality"]
 
 #: The measure images shown in the quality views: (point array, legend title).
 QUALITY_MAPS = (
@@ -43,8 +43,7 @@ def show_quality(proxy, view, data=None):
     the per-structure field data; later calls reuse those views.  Returns ``{title: view}``.
     """
     simple = _simple()
-    layout = simple.GetLayout(view)
-    views = _quality_views(layout, view)
+    views = open_quality_views(view)
     for qview in views:  # one filter's output at a time
         for rep in qview.Representations:
             shown = rep.GetProperty("Input") is not None and rep.Visibility
@@ -73,6 +72,16 @@ def show_quality(proxy, view, data=None):
     if data is not None:  # only the per-structure columns
         table.HiddenColumnLabels = _field_names(data)
     return {title: v for (_, title), v in zip(QUALITY_MAPS, views, strict=False)}
+
+
+def open_quality_views(view):
+    """The 2-D views and the spreadsheet beside ``view``: its layout cell is split on first use.
+
+    The actions call this before they copy the view's camera and aspect ratio into a filter:
+    the split halves the 3-D view's width (at once in the GUI), and the filter's image must
+    have the aspect the view has when the maps are beside it.
+    """
+    return _quality_views(_simple().GetLayout(view), view)
 
 
 def _frame_above_legend(view):

@@ -55,7 +55,13 @@ from dvr_perception._paraview_compat import setup as _setup  # noqa: E402
 
 _setup()  # .pvdeps on sys.path and the numpy/inspect shims (idempotent)
 
-from dvr_quality import QUALITY_MAPS, QUALITY_PREFIX, TABLE_VIEW, show_quality  # noqa: E402
+from dvr_quality import (  # noqa: E402
+    QUALITY_MAPS,
+    QUALITY_PREFIX,
+    TABLE_VIEW,
+    open_quality_views,
+    show_quality,
+)
 from view_light import apply_light, restore_lights, save_lights  # noqa: E402
 
 __all__ = [
@@ -279,6 +285,8 @@ def measure_this_view(source=None, view=None, *, spec_file=None, spec_json=None,
     view = _render_view(view)
     volume, proxy = _filter_for(source, MEASURES, spec_file=spec_file, spec_json=spec_json)
     _volume_display(volume, view)
+    if quality:  # the maps' views first: the split changes the view's aspect ratio
+        open_quality_views(view)
     camera = _use_view_camera(proxy, view, height)
     data = _fetch(proxy, "Perception Measures")
     if quality:
@@ -324,6 +332,8 @@ def optimise_this_view(source=None, view=None, *, spec_file=None, spec_json=None
     properties.setdefault("Region", "")  # the whole view unless a lens is given (refine)
     for key, value in properties.items():
         proxy.SetPropertyWithName(key, value)
+    if quality:  # the maps' views first: the split changes the view's aspect ratio
+        open_quality_views(view)
     camera = _use_view_camera(proxy, view, height)
     proxy.ParaViewSSIM = -1.0
     data = _fetch(proxy, "Optimize Transfer Function")

@@ -95,6 +95,10 @@ def _check(out: Path, text: str, spec_path: Path) -> dict:
     assert got["filter_camera"]["view_angle"] == pytest.approx(got["view_camera"]["view_angle"])
     assert got["use_spec_view"] == 0
     assert got["filter_size"][1] == 32
+    # the maps were opened before the camera was copied: the image has the aspect ratio the
+    # 3-D view has beside them (in the GUI the split halves the view's width at once)
+    vw, vh = got["view_size"]
+    assert got["filter_size"][0] == round(32 * vw / vh)
     # the view's volume representation carries the optimised spec's transfer functions
     spec = spec_from_dict(got["spec"], source="result")
     assert [s.render_opacity for s in spec.structures] != [
