@@ -238,6 +238,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         s.opt_key = ""  # the view and transfer function the optimisation results are for
         s.opt_for = ""
         s.opt_camera = None
+        s.opt_sampling = ""  # the optimiser's sampling resolution, named in the page
         s.live_shares = []
         s.lens_whole_text = ""
         s.lens_worse = False
@@ -679,6 +680,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         s.opt_key = self._key()
         s.opt_for = self._describe(camera)
         s.opt_camera = camera.to_dict()  # the optimiser's camera, for the CLI to redo it
+        s.opt_sampling = self._sampling_text(camera)
         s.before_url = self._snapshot()
         s.before_text = self._errors_text() if s.measured_key == s.now_key else ""
         s.after_url = s.after_text = ""
@@ -690,6 +692,17 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         s.error_history_svg = ""
         label = f"optimise {which}" + (" in lens" if in_lens else "")
         asynchronous.create_task(self._optimise(stages, camera, region, targets, label))
+
+    def _sampling_text(self, camera) -> str:
+        """Name the optimiser's sampling resolutions for ``camera`` (the reduced view)."""
+        from dvr_perception.optimize.core import DEFAULT_RESOLUTION
+
+        w, h = (int(v) for v in self.plotter.window_size)
+        return (
+            f"The optimiser samples this {w}\u00d7{h} px view at {camera.width}\u00d7"
+            f"{camera.height} px (its before and after errors) and iterates at "
+            f"{DEFAULT_RESOLUTION} px on the long side."
+        )
 
     def _errors_text(self, m=None) -> str:
         """Return the three errors of ``m`` (default: the summary's) as a caption."""

@@ -361,6 +361,13 @@ def _optimise_panel(app) -> None:
             id="optimise-all",
         )
     html.Div("'Optimise all' also adjusts lighting and colours.", classes="text-caption")
+    html.Div(
+        f"{{{{ busy || {OPT_FRESH} ? opt_sampling : '' }}}}",
+        v_show="opt_sampling",
+        classes="text-caption measured",
+        raw_attrs=[':data-key="busy ? now_key : opt_key"'],
+        id="opt-sampling",
+    )
     with html.Div(v_show="error_history_svg", classes="mt-2"):
         html.Div(
             "Errors at each iteration (the optimiser's sampling resolution)",

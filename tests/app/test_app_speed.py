@@ -3,12 +3,15 @@
 'Optimise all' in the browser against ``dvr-perception optimize``, both timed here;
 rotation at 512\u00b2 in the quick preview counted in painted frames per second.
 
-The app serves cthead; the page is sized so that the view is about :data:`VIEW_PX` pixels
-square (smaller than the issue's 512\u00b2 to fit the CI budget).  "Optimise all" is clicked and
-timed until the page says it is done; then ``dvr-perception optimize`` runs in a subprocess on
-the very camera the app's optimiser used (the page exposes it) and is timed the same way.  The
-app may take at most :data:`MAX_RATIO` times as long.  Both run :data:`ITERATIONS` iterations
-per stage (the CLI's and the app's default is 10; fewer keep the test short).
+The app serves cthead in one page whose view is :data:`VIEW_PX` pixels square, the issue's
+512\u00b2.  The app measures and optimises on that view reduced to its sampling resolution
+(:data:`~dvr_perception.app.session.MEASURE_SIZE`, 256\u00b2; the page names it).  "Optimise
+all" is clicked and timed until the page says it is done and the result's 512\u00b2 image is
+rendered; then ``dvr-perception optimize`` runs in a subprocess on the very camera the app's
+optimiser used (the page exposes it) and is timed the same way.  The app may take at most
+:data:`MAX_RATIO` times as long.  Both run :data:`ITERATIONS` iterations per stage (the CLI's
+and the app's default is 10; fewer keep the test short).  The rotation test drags in the same
+page (no second page to open and render).
 """
 
 from __future__ import annotations
@@ -25,16 +28,52 @@ from pathlib import Path
 
 import pytest
 
+from dvr_perception.app.session import MEASURE_SIZE
 from tests.conftest import _missing
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]
-VIEW_PX = 128
+VIEW_PX = 512
 ITERATIONS = 3
 MAX_RATIO = 1.5
-DRAWER_PX, TOOLBAR_PX = 470, 48
+DRAWER_PX, TOOLBAR_PX, FOOTER_PX = 470, 48, 20
 
 pytestmark = [pytest.mark.vtk_render, pytest.mark.slow]
+
+
+#: Counts, in the page, the frames in which the preview's WebGL canvas was drawn into with a
+#: camera other than in the previous counted frame (wraps the context's draw calls).
+FRAME_COUNTER = """
+(() => {
+  window.__draws = 0;
+  const orig = HTMLCanvasElement.prototype.getContext;
+  HTMLCanvasElement.prototype.getContext = function (type, attrs) {
+    const ctx = orig.call(this, type, attrs);
+    if (ctx && /webgl/.test(type) && !ctx.__counted) {
+      ctx.__counted = true;
+      for (const name of ['drawArrays', 'drawElements', 'drawArraysInstanced',
+                          'drawElementsInstanced', 'drawRangeElements']) {
+        const f = ctx[name];
+        if (typeof f !== 'function') continue;
+        ctx[name] = function (...a) { window.__draws += 1; return f.apply(this, a); };
+      }
+    }
+    return ctx;
+  };
+  window.__frames = {on: false, n: 0, t0: 0, t1: 0, last: ''};
+  const tick = () => {
+    const F = window.__frames;
+    if (F.on && window.__draws > 0) {
+      const cam = window.trame?.refs?.local?.getCamera();
+      const key = cam ? cam.position.map(v => v.toFixed(4)).join(',') : '';
+      if (key !== F.last) { F.n += 1; F.last = key; }
+    }
+    window.__draws = 0;
+    requestAnimationFrame(tick);
+  };
+  requestAnimationFrame(tick);
+})();
+"""
 
 
 @pytest.fixture(scope="module")
@@ -66,14 +105,13 @@ def cthead_page(tmp_path_factory, vtk_can_render, app_server, shared_data):
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
             try:
-                size = {"width": DRAWER_PX + VIEW_PX, "height": TOOLBAR_PX + VIEW_PX}
+                size = {"width": DRAWER_PX + VIEW_PX, "height": TOOLBAR_PX + VIEW_PX + FOOTER_PX}
                 pg = browser.new_page(viewport=size)
                 pg.set_default_timeout(120_000)
+                pg.add_init_script(FRAME_COUNTER)  # for the rotation test
                 pg.goto(srv["url"])
                 pg.wait_for_selector("#view img, #view canvas", state="attached")
                 pg.wait_for_selector("#measuring", state="hidden")
-                pg.browser_for_tests = browser
-                pg.server_url = srv["url"]
                 pg.server_log = srv["log"]
                 yield pg, root, data
             finally:
@@ -128,6 +166,11 @@ def test_optimise_all_is_as_fast_as_the_cli(cthead_page):
     assert any(re.match(r"analysing the view before the first iteration: \d+ %", t) for t in texts)
     assert any(re.match(r"step \d of 3 \(\w+\): iteration \d+ of 3;.* s left$", t) for t in texts)
     camera = json.loads(page.get_attribute("#opt-camera", "data-camera"))
+    # the app optimised the 512x512 view at its sampling resolution, and the page names it
+    assert (camera["width"], camera["height"]) == (MEASURE_SIZE, MEASURE_SIZE), camera
+    sampling = page.inner_text("#opt-sampling")
+    px = f"{VIEW_PX}\u00d7{VIEW_PX} px view at {MEASURE_SIZE}\u00d7{MEASURE_SIZE} px"
+    assert px in sampling, sampling
     (root / "camera.json").write_text(json.dumps(camera), encoding="utf-8")
     cmd = [*CLI, "optimize", str(data / "cthead.nhdr"), "--camera", str(root / "camera.json")]
     cmd += ["--max-iter", str(ITERATIONS), "--out", str(root / "cli"), "--json"]
@@ -137,44 +180,13 @@ def test_optimise_all_is_as_fast_as_the_cli(cthead_page):
     assert done.returncode == 0, done.stderr[-2000:]
     report = json.loads(done.stdout)
     assert report["size"] == [camera["width"], camera["height"]]
-    print(f"\nOptimise all at {camera['width']}x{camera['height']}: app {app_s:.1f} s, "
-          f"CLI {cli_s:.1f} s")  # fmt: skip
+    load = " ".join(f"{v:.2f}" for v in os.getloadavg())
+    print(f"\nOptimise all, {VIEW_PX}x{VIEW_PX} view sampled at {camera['width']}x"
+          f"{camera['height']}: app {app_s:.1f} s, CLI {cli_s:.1f} s (ratio "
+          f"{app_s / cli_s:.2f}); load average {load}; page: {sampling!r}")  # fmt: skip
     assert app_s <= MAX_RATIO * cli_s, (app_s, cli_s)
 
 
-#: Counts, in the page, the frames in which the preview's WebGL canvas was drawn into with a
-#: camera other than in the previous counted frame (wraps the context's draw calls).
-FRAME_COUNTER = """
-(() => {
-  window.__draws = 0;
-  const orig = HTMLCanvasElement.prototype.getContext;
-  HTMLCanvasElement.prototype.getContext = function (type, attrs) {
-    const ctx = orig.call(this, type, attrs);
-    if (ctx && /webgl/.test(type) && !ctx.__counted) {
-      ctx.__counted = true;
-      for (const name of ['drawArrays', 'drawElements', 'drawArraysInstanced',
-                          'drawElementsInstanced', 'drawRangeElements']) {
-        const f = ctx[name];
-        if (typeof f !== 'function') continue;
-        ctx[name] = function (...a) { window.__draws += 1; return f.apply(this, a); };
-      }
-    }
-    return ctx;
-  };
-  window.__frames = {on: false, n: 0, t0: 0, t1: 0, last: ''};
-  const tick = () => {
-    const F = window.__frames;
-    if (F.on && window.__draws > 0) {
-      const cam = window.trame?.refs?.local?.getCamera();
-      const key = cam ? cam.position.map(v => v.toFixed(4)).join(',') : '';
-      if (key !== F.last) { F.n += 1; F.last = key; }
-    }
-    window.__draws = 0;
-    requestAnimationFrame(tick);
-  };
-  requestAnimationFrame(tick);
-})();
-"""
 #: The drag, in the page: a pointer move every MOVE_MS ms (a mouse's rate) for DRAG_MS ms,
 #: to the right and up and down; the frame count runs meanwhile.  (Playwright's own moves wait
 #: for a round trip each, which under load paces them slower than the page paints.)
@@ -203,8 +215,6 @@ async ([x0, y0, ms, every]) => {
 }
 """
 DRAG_MS, MOVE_MS = 2000, 8
-VIEW_512 = 512
-FOOTER_PX = 20
 #: The issue's 10 frames/s at 512x512.  The preview's canvas is half the view's size (stretched
 #: to it) and vtk.js lowers the resolution further while moving: 31-35 frames/s at load 6 on the
 #: shared 2-core machine, where the full-size canvas gave 9.5 (see dvr_perception.app.ui_preview).
@@ -213,7 +223,10 @@ MIN_FPS = 10.0
 #: issue's 2 s held at load 3-4.5 (0.73-1.7 s), not at load 5-6.5 (3.6-7.1 s): the server's
 #: VTK rendering of the exact image at 512x512 took 5-6.3 s there (0.2-0.35 s idle), the
 #: measurement 0.66 s; the test prints both (from the server's --verbose log) and asserts only
-#: this bound.
+#: this bound.  Not tightened (2026-12-03): after 'Optimise all' (this test runs second) the
+#: optimised, more transparent spec takes the fixed-point ray caster 10x as long (2.0 s
+#: against 0.2 s at 512x512, load 3.4), so the figure was 1.5-4.4 s at load 3.0-4.8 (render
+#: 1.2-3.8 s, measure 0.1-0.5 s); the initial spec alone gave 0.9 s at load 4.1.
 MAX_REMEASURE_S = 10.0
 
 
@@ -232,6 +245,35 @@ def _steps(log: Path, key: str) -> str:
     return "; ".join(found) or "no timings in the server log"
 
 
+#: Untimed drags at most before the timed one (until the preview paints).
+WARM_DRAGS = 3
+
+
+def _warm_drag(pg, cx: float, cy: float) -> dict:
+    """An untimed drag of 0.6 s from ``(cx, cy)``; return its frame count once the view rests."""
+    from playwright.sync_api import TimeoutError as PageTimeout
+
+    key = pg.get_attribute("#now-key", "data-now")
+    pg.mouse.move(cx, cy)
+    pg.mouse.down()
+    warm = pg.evaluate(DRAG, [cx, cy, 600, MOVE_MS])
+    pg.mouse.move(warm["x"], warm["y"])
+    pg.mouse.up()
+    with contextlib.suppress(PageTimeout):  # no move got through: nothing to wait for
+        pg.wait_for_function(
+            "(old) => document.querySelector('#now-key').dataset.now !== old",
+            arg=key,
+            timeout=15_000,
+        )
+    pg.wait_for_function(
+        "() => document.querySelector('#value-E_v').dataset.key === "
+        "document.querySelector('#now-key').dataset.now && "
+        "document.querySelector('#view-mode').dataset.mode === 'exact'",
+        polling=50,
+    )
+    return warm
+
+
 def test_rotation_in_the_preview_counts_frames_at_512(cthead_page):
     """A scripted drag of 2 s over the 512\u00b2 view: count the new frames painted.
 
@@ -239,79 +281,53 @@ def test_rotation_in_the_preview_counts_frames_at_512(cthead_page):
     drew and the preview's camera differs from the last counted frame: frames the user sees
     change.  The exact image is hidden meanwhile (``#view-mode`` says which is shown).
     """
-    page = cthead_page[0]
-    browser = page.browser_for_tests
-    pg = browser.new_page(
-        viewport={"width": DRAWER_PX + VIEW_512, "height": TOOLBAR_PX + VIEW_512 + FOOTER_PX}
+    pg, _, _ = cthead_page  # the module's page: the frame counter is in it from the start
+    pg.wait_for_selector("#local-view canvas", state="attached")
+    pg.wait_for_selector("#measuring", state="hidden")
+    box = pg.locator("#view").bounding_box()
+    assert (round(box["width"]), round(box["height"])) == (VIEW_PX, VIEW_PX)
+    assert pg.get_attribute("#view-mode", "data-mode") == "exact"
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    # untimed drags first: the preview's scene goes to the page when a drag starts (building
+    # vtk.js's volume takes seconds on a loaded machine), then the view rests.  In a page just
+    # opened (this test alone) the first drag can end before the preview paints: drag again.
+    for _ in range(WARM_DRAGS):
+        warm = _warm_drag(pg, cx, cy)
+        if warm["n"] >= 3:  # the preview painted the moving camera
+            break
+    assert warm["n"] >= 3, warm
+    key = pg.get_attribute("#now-key", "data-now")
+    pg.mouse.move(cx, cy)
+    pg.mouse.down()
+    frames = pg.evaluate(DRAG, [cx, cy, DRAG_MS, MOVE_MS])
+    assert frames["mode"] == "preview", frames  # what was on screen during the drag
+    # ... at half resolution, and the label says so
+    assert frames["canvas"] == [VIEW_PX // 2, VIEW_PX // 2], frames
+    assert "half resolution" in frames["label"], frames
+    pg.mouse.move(frames["x"], frames["y"])
+    pg.mouse.up()
+    t_up = time.monotonic()
+    seconds = (frames["t1"] - frames["t0"]) / 1000.0
+    fps = frames["n"] / seconds
+    # the camera rests: the exact image and the numbers for the new view follow
+    pg.wait_for_function("(old) => document.querySelector('#now-key').dataset.now !== old", arg=key)
+    pg.wait_for_function(
+        "() => document.querySelector('#value-E_v').dataset.key === "
+        "document.querySelector('#now-key').dataset.now && "
+        "!isNaN(parseFloat(document.querySelector('#value-E_v').innerText))",
+        polling=50,
     )
-    try:
-        pg.set_default_timeout(120_000)
-        pg.add_init_script(FRAME_COUNTER)
-        pg.goto(page.server_url)
-        pg.wait_for_selector("#local-view canvas", state="attached")
-        pg.wait_for_selector("#measuring", state="hidden")
-        box = pg.locator("#view").bounding_box()
-        assert (round(box["width"]), round(box["height"])) == (VIEW_512, VIEW_512)
-        assert pg.get_attribute("#view-mode", "data-mode") == "exact"
-        cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
-        # an untimed first drag: the preview's scene goes to the page when a drag starts
-        # (building vtk.js's volume takes seconds on a loaded machine), then the view rests
-        key = pg.get_attribute("#now-key", "data-now")
-        pg.mouse.move(cx, cy)
-        pg.mouse.down()
-        warm = pg.evaluate(DRAG, [cx, cy, 600, MOVE_MS])
-        pg.mouse.move(warm["x"], warm["y"])
-        pg.mouse.up()
-        from playwright.sync_api import TimeoutError as PageTimeout
-
-        with contextlib.suppress(PageTimeout):  # no move got through: nothing to wait for
-            pg.wait_for_function(
-                "(old) => document.querySelector('#now-key').dataset.now !== old",
-                arg=key,
-                timeout=15_000,
-            )
-        pg.wait_for_function(
-            "() => document.querySelector('#value-E_v').dataset.key === "
-            "document.querySelector('#now-key').dataset.now && "
-            "document.querySelector('#view-mode').dataset.mode === 'exact'",
-            polling=50,
-        )
-        key = pg.get_attribute("#now-key", "data-now")
-        pg.mouse.move(cx, cy)
-        pg.mouse.down()
-        frames = pg.evaluate(DRAG, [cx, cy, DRAG_MS, MOVE_MS])
-        assert frames["mode"] == "preview", frames  # what was on screen during the drag
-        # ... at half resolution, and the label says so
-        assert frames["canvas"] == [VIEW_512 // 2, VIEW_512 // 2], frames
-        assert "half resolution" in frames["label"], frames
-        pg.mouse.move(frames["x"], frames["y"])
-        pg.mouse.up()
-        t_up = time.monotonic()
-        seconds = (frames["t1"] - frames["t0"]) / 1000.0
-        fps = frames["n"] / seconds
-        # the camera rests: the exact image and the numbers for the new view follow
-        pg.wait_for_function(
-            "(old) => document.querySelector('#now-key').dataset.now !== old", arg=key
-        )
-        pg.wait_for_function(
-            "() => document.querySelector('#value-E_v').dataset.key === "
-            "document.querySelector('#now-key').dataset.now && "
-            "!isNaN(parseFloat(document.querySelector('#value-E_v').innerText))",
-            polling=50,
-        )
-        remeasure_s = time.monotonic() - t_up
-        pg.wait_for_function("() => document.querySelector('#view-mode').dataset.mode === 'exact'")
-        load = os.getloadavg()
-        steps = _steps(page.server_log, pg.get_attribute("#now-key", "data-now"))
-        print(
-            f"\npreview rotation at {VIEW_512}x{VIEW_512}: {frames['moves']} pointer moves, "
-            f"{frames['n']} new frames in "
-            f"{seconds:.2f} s = {fps:.1f} frames/s; numbers for the new view after "
-            f"{remeasure_s:.2f} s ({steps}); load average {load[0]:.2f} {load[1]:.2f} "
-            f"{load[2]:.2f}"
-        )
-        assert seconds >= 1.0  # the drag lasted (the count is over a real interval)
-        assert fps >= MIN_FPS, (frames, seconds)
-        assert remeasure_s <= MAX_REMEASURE_S, remeasure_s
-    finally:
-        pg.close()
+    remeasure_s = time.monotonic() - t_up
+    pg.wait_for_function("() => document.querySelector('#view-mode').dataset.mode === 'exact'")
+    load = os.getloadavg()
+    steps = _steps(pg.server_log, pg.get_attribute("#now-key", "data-now"))
+    print(
+        f"\npreview rotation at {VIEW_PX}x{VIEW_PX}: {frames['moves']} pointer moves, "
+        f"{frames['n']} new frames in "
+        f"{seconds:.2f} s = {fps:.1f} frames/s; numbers for the new view after "
+        f"{remeasure_s:.2f} s ({steps}); load average {load[0]:.2f} {load[1]:.2f} "
+        f"{load[2]:.2f}"
+    )
+    assert seconds >= 1.0  # the drag lasted (the count is over a real interval)
+    assert fps >= MIN_FPS, (frames, seconds)
+    assert remeasure_s <= MAX_REMEASURE_S, remeasure_s
