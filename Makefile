@@ -128,7 +128,7 @@ $(PVDEPS_STAMP): $(PVDEPS_REQ) | $(STAMP) paraview-system
 	env -u VTK_DEFAULT_OPENGL_WINDOW PYTHONPATH="$(CURDIR)/plugin/pvsite" \
 	  DVR_PERCEPTION_PVDEPS="$(abspath $(PVDEPS))" pvpython -c \
 	  "import dvr_perception._paraview_compat as c; c.setup(); import dvr_perception.filters, \
-	  numpy, scipy, skimage, numba, pydicom, nibabel; print('paraview-setup: pvpython imports numpy', \
+	  numpy, scipy, skimage, numba, pydicom, nibabel, libjpeg, openjpeg; print('paraview-setup: pvpython imports numpy', \
 	  numpy.__version__, 'scipy', scipy.__version__, 'scikit-image', skimage.__version__, \
 	  'numba', numba.__version__)"; \
 	touch $(PVDEPS_STAMP)

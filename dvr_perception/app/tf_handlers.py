@@ -7,6 +7,8 @@ volume.
 
 from __future__ import annotations
 
+import warnings
+
 from trame.decorators import change
 
 from dvr_perception.app._guard import guard
@@ -24,6 +26,11 @@ __all__ = ["TFHandlers"]
 REPUSH_S = 0.8
 #: Seconds between a change of the transfer function or camera and sending the preview's scene.
 PREVIEW_SEND_S = 0.1
+#: How the page's note on a file without patient orientation says to fix it.
+_APP_FIX = (
+    "the app cannot re-orient it: give the file its orientation (e.g. an NRRD 'space' field) "
+    "or use the command line's --orientation, e.g. LPI when slice 0 is the top of the head"
+)
 
 
 def _three(camera, key: str) -> tuple[float, float, float]:
@@ -199,8 +206,9 @@ class TFHandlers:
         :func:`~dvr_perception.rays.camera.patient_view`: in the volume's patient (LPS) frame,
         e.g. ``"anterior"`` looks at the face from in front, head up.
         """
-        from dvr_perception.errors import DVRInputError
+        from dvr_perception.errors import DVRInputError, DVRWarning
         from dvr_perception.rays.camera import PATIENT_VIEWS, patient_view
+        from dvr_perception.volume.orient import orientation_note
 
         if name not in PATIENT_VIEWS:
             raise DVRInputError(
@@ -209,6 +217,9 @@ class TFHandlers:
         w, h = (int(v) for v in self.plotter.window_size)
         self._view_name = name  # the captions name it; later rotations are relative to it
         self._set_camera(patient_view(self.session.volume, name, width=w, height=h))
+        note = orientation_note(self.session.volume, _APP_FIX)
+        if note is not None:  # the guard shows it on the page's message line
+            warnings.warn(note, DVRWarning, stacklevel=2)
 
     @guard
     def reset_view(self):

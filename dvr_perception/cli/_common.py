@@ -15,6 +15,7 @@ import re
 import stat
 import sys
 import time
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -22,7 +23,7 @@ import numpy as np
 
 import dvr_perception
 from dvr_perception._files import json_ready, write_npz
-from dvr_perception.errors import DVRInputError
+from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.rays.camera import MAX_IMAGE, Camera, parse_patient_view, patient_view
 
 __all__ = [
@@ -365,6 +366,7 @@ def load_scene(args: argparse.Namespace) -> Scene:
         name, az, el, zoom = view if view is not None else (None, *(spec.view or (0, 0, 1)))
         w, h = size if size is not None else (DEFAULT_SIZE, DEFAULT_SIZE)
         if name is not None:
+            _warn_unoriented(volume)
             camera = patient_view(
                 volume, name, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
             )
@@ -373,6 +375,19 @@ def load_scene(args: argparse.Namespace) -> Scene:
                 volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
             )
     return Scene(volume, spec, camera, args.volume, spec_source, load_s)
+
+
+def _warn_unoriented(volume) -> None:
+    """Warn (one line) that a patient view of a file without orientation is a guess.
+
+    Silent for a file that records its orientation and after ``--orientation`` (which makes
+    the volume ``oriented``).
+    """
+    from dvr_perception.volume.orient import orientation_note
+
+    note = orientation_note(volume)
+    if note is not None:
+        warnings.warn(note, DVRWarning, stacklevel=3)
 
 
 def check_output_file(path) -> Path:

@@ -45,8 +45,11 @@ def _attribute(tag: str, name: str) -> str | None:
     return m.group(1) if m else None
 
 
-def check_vti(path: Path) -> None:
+def check_vti(path: Path) -> bool:
     """Check a ``.vti`` file's ``<ImageData>`` extent, spacing and scalar type.
+
+    Returns whether the element records a ``Direction`` (VTK >= 9.1 writes one); without it
+    the file records no patient orientation.
 
     Examples
     --------
@@ -98,6 +101,7 @@ def check_vti(path: Path) -> None:
         comps = parse_int(_attribute(array.group(0), "NumberOfComponents") or "1", path,
                           "NumberOfComponents")  # fmt: skip
     check_budget(path, (*dims, comps), np.dtype(f"u{size}"), "WholeExtent")
+    return _attribute(tag, "Direction") is not None
 
 
 def check_legacy_vtk(path: Path) -> None:

@@ -83,7 +83,7 @@ def to_vtk_image(
 
 
 def from_vtk_image(
-    image, *, array: str | None = None, name: str = "volume", source: str = ""
+    image, *, array: str | None = None, name: str = "volume", source: str = "", oriented=True
 ) -> Volume:
     """Return a :class:`Volume` holding a copy of one point array of a ``vtkImageData``.
 
@@ -98,6 +98,9 @@ def from_vtk_image(
         Name of the returned volume.
     source : str, optional
         Where the image came from (used in error messages and stored on the volume).
+    oriented : bool, optional
+        Stored as ``Volume.oriented``: ``False`` when the image's file records no patient
+        orientation (its direction is a default, not a statement).
 
     Returns
     -------
@@ -173,7 +176,10 @@ def from_vtk_image(
     from dvr_perception.volume.orient import from_axes
 
     try:
-        return from_axes(data, direction * spacing, origin, name=name, source=source, where=where)
+        return from_axes(
+            data, direction * spacing, origin, name=name, source=source, where=where,
+            oriented=oriented,
+        )  # fmt: skip
     except DVRInputError as exc:
         if str(exc).startswith(where):
             raise

@@ -30,6 +30,7 @@ import re
 import shutil
 import tempfile
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +75,7 @@ _NRRD_NAMES |= {"u4": "uint32", "i8": "int64", "u8": "uint64", "f4": "float", "f
 _NRRD_ENCODINGS = {"raw": "raw", "gzip": "gzip", "gz": "gzip", "bzip2": "bzip2", "bz2": "bzip2"}
 _FORMATS = (".nhdr", ".nrrd", ".mha", ".mhd", ".vti", ".vtk", ".nii", ".nii.gz", ".mgz", ".mgh")
 _FORMATS += (".dcm", ".raw")
+_META_DIRECTIONS = ("transformmatrix", "rotation", "orientation")
 _WRITABLE = (".vti", ".nhdr", ".nrrd", ".mha", ".mhd", ".nii", ".nii.gz", ".vtk")
 
 
@@ -151,10 +153,12 @@ def load_volume(path, *, name: str | None = None, series: str | None = None) -> 
         )
     if path.stat().st_size == 0:
         raise DVRInputError(f"{path}: the file is empty (0 bytes)")
+    oriented = True  # whether the file records the patient orientation
     if ext in (".nhdr", ".nrrd"):
-        data, axes, origin = _read_nrrd(path)
+        data, axes, origin, oriented = _read_nrrd(path)
     elif ext == ".raw":
         data, axes, origin = _read_raw(path), np.eye(3), (0.0, 0.0, 0.0)
+        oriented = False
     elif ext in (".mgz", ".mgh"):
         from dvr_perception.volume.medical import read_mgh
 
@@ -162,12 +166,14 @@ def load_volume(path, *, name: str | None = None, series: str | None = None) -> 
     else:
         if ext in (".mha", ".mhd"):
             fields = _check_meta(path)
+            oriented = any(k in fields for k in _META_DIRECTIONS)
         elif ext in (".nii", ".nii.gz"):
             _check_nifti(path, ext)
         elif ext == ".vti":
-            check_vti(path)
+            oriented = check_vti(path)
         elif ext == ".vtk":
             check_legacy_vtk(path)
+            oriented = False  # legacy structured points have no direction
         reader = {
             ".mha": _vtk.vtkMetaImageReader,
             ".mhd": _vtk.vtkMetaImageReader,
@@ -176,13 +182,14 @@ def load_volume(path, *, name: str | None = None, series: str | None = None) -> 
             ".nii": _vtk.vtkNIFTIImageReader,
             ".nii.gz": _vtk.vtkNIFTIImageReader,
         }[ext]()
-        vol = _read_vtk(reader, path, vname)
+        vol = _read_vtk(reader, path, vname, oriented=oriented)
         if ext in (".mha", ".mhd"):
             vol = _meta_geometry(fields, vol, path)
         return vol
     if data.size == 0:
         raise DVRInputError(f"{path}: the volume is empty (shape (z, y, x) = {data.shape})")
-    return from_axes(data, axes, origin, name=vname, source=str(path), where=str(path))
+    where = str(path)
+    return from_axes(data, axes, origin, name=vname, source=where, where=where, oriented=oriented)
 
 
 def header_axes(path) -> np.ndarray | None:
@@ -223,7 +230,7 @@ def header_axes(path) -> np.ndarray | None:
             if key in fields:
                 spacing = np.array([parse_float(v, path, key) for v in fields[key].split()[:3]])
                 break
-        for key in ("transformmatrix", "rotation", "orientation"):
+        for key in _META_DIRECTIONS:
             if key in fields:
                 vals = [parse_float(v, path, "TransformMatrix") for v in fields[key].split()]
                 if len(vals) == 9:
@@ -247,7 +254,7 @@ def _read_dicom(path: Path, name: str, series: str | None) -> Volume:
         stacklevel=3,
     )
     _check_dicom_folder_size(path)
-    return _read_vtk(_vtk.vtkDICOMImageReader(), path, name, dicom=True)
+    return _read_vtk(_vtk.vtkDICOMImageReader(), path, name, dicom=True, oriented=False)
 
 
 def _check_dicom_folder_size(path: Path) -> None:
@@ -273,7 +280,7 @@ def _check_dicom_folder_size(path: Path) -> None:
         )
 
 
-def _read_vtk(reader, path: Path, name: str, *, dicom: bool = False) -> Volume:
+def _read_vtk(reader, path: Path, name: str, *, dicom: bool = False, oriented=True) -> Volume:
     if dicom:
         if not any(p.is_file() for p in path.iterdir()):
             raise DVRInputError(f"{path}: the directory holds no files (expected a DICOM series)")
@@ -293,7 +300,7 @@ def _read_vtk(reader, path: Path, name: str, *, dicom: bool = False) -> Volume:
     own_geometry = (_vtk.vtkNIFTIImageReader, _vtk.vtkMetaImageReader)
     if isinstance(reader, own_geometry) and hasattr(out, "SetDirectionMatrix"):
         out.SetDirectionMatrix(1, 0, 0, 0, 1, 0, 0, 0, 1)  # the header is applied below
-    vol = from_vtk_image(out, name=name, source=str(path))
+    vol = from_vtk_image(out, name=name, source=str(path), oriented=oriented)
     if isinstance(reader, _vtk.vtkNIFTIImageReader):
         vol = _nifti_geometry(reader, vol)
     return vol
@@ -304,8 +311,8 @@ def _nifti_geometry(reader, vol: Volume) -> Volume:
     # order already reversed when qfac is -1) and the matrix from them to RAS.  The s-form
     # wins when its code is set (as nibabel's best affine), else the q-form.
     m = reader.GetSFormMatrix() or reader.GetQFormMatrix()
-    if m is None:
-        return vol
+    if m is None:  # neither form is set: the file records no orientation
+        return replace(vol, oriented=False)
     mat = np.array([[m.GetElement(i, j) for j in range(4)] for i in range(3)])
     rot, shift = mat[:, :3], mat[:, 3]
     axes = rot * np.asarray(vol.spacing)
@@ -317,7 +324,7 @@ def _nifti_geometry(reader, vol: Volume) -> Volume:
 
 def _meta_geometry(fields: dict[str, str], vol: Volume, path: Path) -> Volume:
     """Apply a MetaImage header's ``TransformMatrix`` (one axis direction per triple)."""
-    for key in ("transformmatrix", "rotation", "orientation"):
+    for key in _META_DIRECTIONS:
         if key in fields:
             vals = [parse_float(v, path, "TransformMatrix") for v in fields[key].split()]
             if len(vals) != 9:
@@ -334,7 +341,7 @@ def _meta_geometry(fields: dict[str, str], vol: Volume, path: Path) -> Volume:
             origin = np.array([parse_float(v, path, "Offset") for v in fields[key].split()[:3]])
             break
     axes = directions * np.asarray(vol.spacing)
-    where = f"{path}: MetaImage TransformMatrix"
+    where = f"{path}: MetaImage TransformMatrix"  # (vol.oriented: the matrix records it)
     return from_axes(vol.data, axes, origin, name=vol.name, source=vol.source, where=where)
 
 
@@ -481,7 +488,7 @@ def _read_nrrd(path: Path):
     data = data.reshape(dims[::-1])
     if not dt.isnative:
         data = data.astype(dt.newbyteorder("="))
-    return data, axes, origin
+    return data, axes, origin, _nrrd_oriented(fields)
 
 
 _NRRD_SPACES = {
@@ -494,6 +501,16 @@ _NRRD_SPACES = {
     "scanner-xyz": "lps",
     "3d-right-handed": "lps",
 }
+
+
+def _nrrd_oriented(fields: dict[str, str]) -> bool:
+    """Whether a NRRD header names a patient space (``space``, not a bare ``3D-right-handed``).
+
+    Without it (only ``spacings``, or ``space dimension`` with ``space directions``) the
+    axes are taken as L, P, S, which is a guess.
+    """
+    space = fields.get("space", "").strip().lower()
+    return space in _NRRD_SPACES and space != "3d-right-handed"
 
 
 def _nrrd_space(fields: dict[str, str], path: Path) -> str:

@@ -251,11 +251,34 @@ def _pixels(f: Path, where: str):
         ts = ""
         with contextlib.suppress(Exception):
             ts = f" (transfer syntax {ds.file_meta.TransferSyntaxUID.name})"
+        why = " ".join(str(exc).split())[:300]
         raise DVRInputError(
-            f"{where}: cannot decode the pixel data{ts}: {str(exc)[:200]}; compressed files "
-            f"need the JPEG plug-ins of {_EXTRA}"
+            f"{where}: cannot decode the pixel data{ts}: {why}; {_plugins_hint()}"
         ) from None
     return ds, np.asarray(arr)
+
+
+#: pydicom's JPEG plug-ins (the ``medical`` extra and ``plugin/pvdeps-requirements.txt``).
+JPEG_PLUGINS = ("pylibjpeg", "libjpeg", "openjpeg")
+
+
+def _plugins_hint() -> str:
+    """Which JPEG plug-ins are missing and how to install them here (pip or ParaView)."""
+    import sys
+
+    names = {"pylibjpeg": "pylibjpeg", "libjpeg": "pylibjpeg-libjpeg",
+             "openjpeg": "pylibjpeg-openjpeg"}  # fmt: skip
+    missing = [names[m] for m in JPEG_PLUGINS if not available(m)]
+    have = f"missing here: {', '.join(missing)}" if missing else "all installed here"
+    how = (
+        "in ParaView they come from .pvdeps: run make paraview-setup"
+        if "paraview" in sys.modules
+        else f"install them with {_EXTRA}"
+    )
+    return (
+        "compressed files need pydicom's plug-ins pylibjpeg with pylibjpeg-libjpeg (JPEG, "
+        f"JPEG-LS) and pylibjpeg-openjpeg (JPEG 2000) ({have}; {how})"
+    )
 
 
 def _rescale(ds, where: str) -> tuple[float, float]:

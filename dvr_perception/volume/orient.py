@@ -26,6 +26,7 @@ __all__ = [
     "canonical",
     "file_order",
     "from_axes",
+    "orientation_note",
     "parse_orientation",
     "ras_to_lps",
     "reorient",
@@ -54,7 +55,9 @@ def ras_to_lps(axes, origin) -> tuple[np.ndarray, np.ndarray]:
     return _FLIP_RAS[:, None] * np.asarray(axes, float), _FLIP_RAS * np.asarray(origin, float)
 
 
-def from_axes(data: np.ndarray, axes, origin, *, name: str, source: str, where: str = "") -> Volume:
+def from_axes(
+    data: np.ndarray, axes, origin, *, name: str, source: str, where: str = "", oriented=True
+) -> Volume:
     """Build a canonical :class:`Volume` from data ``[z, y, x]`` and a file's axis vectors.
 
     Parameters
@@ -69,6 +72,9 @@ def from_axes(data: np.ndarray, axes, origin, *, name: str, source: str, where: 
         Stored on the volume.
     where : str, optional
         Prefix of error messages (the file and field); default ``source``.
+    oriented : bool, optional
+        ``False`` when the file records no patient orientation (``axes`` are a guess):
+        stored as ``Volume.oriented``.
 
     Raises
     ------
@@ -97,13 +103,17 @@ def from_axes(data: np.ndarray, axes, origin, *, name: str, source: str, where: 
             f"{where}: the axis vectors {np.round(m.T, 6).tolist()} are not orthogonal; "
             "sheared grids are not supported (resample the volume first)"
         )
-    return canonical_arrays(data, spacing, origin, unit, name=name, source=source, where=where)
+    return canonical_arrays(
+        data, spacing, origin, unit, name=name, source=source, where=where, oriented=oriented
+    )
 
 
-def canonical_arrays(data, spacing, origin, direction, *, name, source, where, labels=None):
+def canonical_arrays(
+    data, spacing, origin, direction, *, name, source, where, labels=None, oriented=True
+):
     """Flip/permute ``data`` so the direction is as close to the identity as it can get.
 
-    Returns the :class:`Volume`; see :func:`canonical`.
+    Returns the :class:`Volume` (with ``oriented`` stored on it); see :func:`canonical`.
     """
     d = np.asarray(direction, float)
     spacing = np.asarray(spacing, float)
@@ -130,6 +140,7 @@ def canonical_arrays(data, spacing, origin, direction, *, name, source, where, l
             name=name,
             source=source,
             labels=out[1] if labels is not None else None,
+            oriented=oriented,
         )
     except DVRInputError as exc:
         raise DVRInputError(f"{where}: {exc}") from None
@@ -203,6 +214,7 @@ def canonical(volume: Volume) -> Volume:
         source=volume.source,
         where=volume.source or volume.name,
         labels=volume.labels,
+        oriented=volume.oriented,
     )
 
 
@@ -243,7 +255,7 @@ def reorient(volume: Volume, code, *, name: str = "--orientation") -> Volume:
 
     For a file that records no orientation (raw data, an NRRD without ``space``): the data are
     flipped/permuted as :func:`canonical` does for a file's own directions, labels with them.
-    The origin (the first voxel's position) is kept.
+    The origin (the first voxel's position) is kept; the result is ``oriented``.
 
     Raises
     ------
@@ -264,5 +276,33 @@ def reorient(volume: Volume, code, *, name: str = "--orientation") -> Volume:
         )
     return canonical_arrays(
         volume.data, volume.spacing, volume.origin, direction, name=volume.name,
-        source=volume.source, where=name, labels=volume.labels,
+        source=volume.source, where=name, labels=volume.labels, oriented=True,
     )  # fmt: skip
+
+
+#: How a command-line user declares the orientation of a file that records none.
+_CLI_FIX = "give --orientation CODE, e.g. --orientation LPI when slice 0 is the top of the head"
+
+
+def orientation_note(volume: Volume, fix: str | None = None) -> str | None:
+    """One-line note for a patient view of a volume whose file records no orientation.
+
+    ``None`` when ``volume.oriented``.  ``fix`` says how the user declares the orientation;
+    default the command line's ``--orientation`` (the web app has no such option).
+
+    Examples
+    --------
+    >>> v = Volume(np.zeros((2, 2, 2), np.uint8), source="head.nhdr", oriented=False)
+    >>> orientation_note(v).startswith("head.nhdr: the file records no patient orientation")
+    True
+    >>> orientation_note(reorient(v, "LPI")) is None
+    True
+    """
+    if volume.oriented:
+        return None
+    fix = fix or _CLI_FIX
+    return (
+        f"{volume.source or volume.name}: the file records no patient orientation, so its "
+        "index axes x, y, z were taken as L, P, S (towards the patient's left, posterior, "
+        f"superior) and a patient view may show it upside down or mirrored; {fix}"
+    )

@@ -96,4 +96,5 @@ def upsample(volume: Volume, factors) -> Volume:
         source=volume.source,
         labels=labels,
         direction=volume.direction,
+        oriented=volume.oriented,
     )

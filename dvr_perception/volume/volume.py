@@ -34,6 +34,12 @@ class Volume:
         Short name used in titles and output file names.
     source : str
         Where the volume came from (a path or ``"phantom"``).
+    oriented : bool
+        Whether the patient orientation is known: ``False`` when the file it was read from
+        records none (an NRRD without ``space``, headerless raw, legacy ``.vtk``, a ``.vti``
+        without ``Direction``...), whose axes were then taken as L, P, S.  Default ``True``
+        (an in-memory volume means what its direction says); re-ordering with
+        :func:`dvr_perception.volume.orient.reorient` sets it.
 
     Examples
     --------
@@ -56,6 +62,7 @@ class Volume:
         (0.0, 1.0, 0.0),
         (0.0, 0.0, 1.0),
     )
+    oriented: bool = True
 
     def __post_init__(self) -> None:
         data = np.asarray(self.data)
@@ -101,6 +108,7 @@ class Volume:
         object.__setattr__(self, "data", np.ascontiguousarray(data))
         object.__setattr__(self, "spacing", spacing)
         object.__setattr__(self, "origin", origin)
+        object.__setattr__(self, "oriented", bool(self.oriented))
 
     @property
     def dims(self) -> tuple[int, int, int]:

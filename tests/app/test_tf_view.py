@@ -137,3 +137,27 @@ def test_axis_camera_looks_along_the_axis_at_the_centre(axis):
 def test_axis_camera_refuses_an_unknown_axis():
     with pytest.raises(DVRInputError, match="view direction"):
         axis_camera((0, 1, 0, 1, 0, 1), "up", width=8, height=8)
+
+
+def test_patient_view_of_a_file_without_orientation_notes_it_on_the_page():
+    """The page's patient-side buttons show the same note as the CLI (on the info line)."""
+    from types import SimpleNamespace
+
+    from dvr_perception.app.tf_handlers import TFHandlers
+
+    cams = []
+    for oriented, expect in ((False, True), (True, False)):
+        vol = Volume(np.zeros((4, 4, 4), np.uint8), source="head.nhdr", oriented=oriented)
+        page = SimpleNamespace(
+            state=SimpleNamespace(info="", error=""),
+            plotter=SimpleNamespace(window_size=(32, 24)),
+            session=SimpleNamespace(volume=vol),
+            _set_camera=cams.append,
+            fail=lambda msg: pytest.fail(msg),
+        )
+        TFHandlers.view_patient(page, "anterior")
+        assert ("head.nhdr: the file records no patient orientation" in page.state.info) is expect
+        assert ("--orientation" in page.state.info) is expect
+        assert page._view_name == "anterior"
+    assert len(cams) == 2
+    assert (cams[0].width, cams[0].height) == (32, 24)

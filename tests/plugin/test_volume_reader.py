@@ -88,11 +88,18 @@ for name, path in job["files"].items():
     reader.UpdatePipeline()
     rec = {"bounds": list(reader.GetDataInformation().GetBounds()), "E": []}
     if not job["cameras"].get(name):  # read only: the values that reach ParaView
+        import hashlib
+        import numpy as np
+        from vtkmodules.util.numpy_support import vtk_to_numpy
         image = servermanager.Fetch(reader)
-        values = image.GetPointData().GetScalars()
+        if image.GetPointData().GetScalars() is None:  # the reader failed: say why
+            impl = getattr(reader.GetClientSideObject(), "_impl", None)
+            out[name] = {"error": getattr(impl, "error_message", "") or "no data"}
+            continue
+        values = vtk_to_numpy(image.GetPointData().GetScalars())
         rec.update(dims=list(image.GetDimensions()), origin=list(image.GetOrigin()),
-                   sum=sum(values.GetValue(i) for i in range(values.GetNumberOfValues())),
-                   first=values.GetValue(0))
+                   sum=int(values.astype(np.int64).sum()), first=values[0].item(),
+                   sha1=hashlib.sha1(values.astype("<f8").tobytes()).hexdigest())
         out[name] = rec
         continue
     display = Show(reader, view)
@@ -137,6 +144,25 @@ def _dicom_series(folder: Path) -> Path:
     return series
 
 
+def _jpeg_series(folder: Path, name: str, zs) -> Path:
+    """Copies of a JPEG-compressed pydicom test file as a series (slice k at ``zs[k]``), with a
+    CT rescale (slope 1, intercept -1024) so the values are HU; the pixel data stay as stored."""
+    import pydicom
+    from pydicom.data import get_testdata_file
+
+    folder.mkdir(parents=True)
+    for k, z in enumerate(zs):
+        ds = pydicom.dcmread(get_testdata_file(name))
+        assert ds.file_meta.TransferSyntaxUID.is_compressed
+        ds.SeriesInstanceUID = "1.2.3.21.7"
+        ds.SOPInstanceUID = pydicom.uid.generate_uid()
+        ds.ImagePositionPatient = [0.0, 0.0, float(z)]
+        ds.ImageOrientationPatient = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+        ds.RescaleSlope, ds.RescaleIntercept = 1, -1024
+        ds.save_as(folder / f"s{k}.dcm")
+    return folder
+
+
 def _rotated(camera: Camera, rot: np.ndarray, about) -> Camera:
     """``camera`` moved with the rotation ``rot`` about the point ``about`` (world)."""
     d = camera.to_dict()
@@ -170,6 +196,10 @@ def pv_run(paraview, display, tmp_path_factory):
     measure = ["canonical", "negz", "oblique", "paraview_own"]
     files["dicom"] = str(_dicom_series(tmp / "study") / "b.dcm")  # one file: its series
     cameras["dicom"] = []
+    # compressed series: 12-bit JPEG extended and JPEG-LS, which need pylibjpeg-libjpeg
+    for key, name in JPEG_FILES.items():
+        files[key] = str(_jpeg_series(tmp / key, name, [2.0, 0.0, 4.0]) / "s0.dcm")
+        cameras[key] = []
     job = {"spec": SPEC, "files": files, "cameras": cameras, "views": VIEWS, "size": SIZE,
            "spacing": list(SPACING), "measure": measure}  # fmt: skip
     (tmp / "job.json").write_text(json.dumps(job), encoding="utf-8")
@@ -184,6 +214,10 @@ def pv_run(paraview, display, tmp_path_factory):
     images = {n: [read_png(tmp / f"{n}_{k}.png")[..., :3] / 255.0 for k in range(len(VIEWS))]
               for n in files if cameras[n]}  # fmt: skip
     return got, images, tmp
+
+
+#: pydicom test files (greyscale, JPEG-compressed) read as series in ParaView.
+JPEG_FILES = {"jpeg_extended": "JPGExtended.dcm", "jpeg_ls": "MR_small_jpeg_ls_lossless.dcm"}
 
 
 def _ssim(a, b) -> float:
@@ -232,3 +266,29 @@ def test_dicom_file_opens_its_series_in_patient_order(pv_run):
     assert ref.origin[2] == 0.0
     assert rec["sum"] == int(ref.data.astype(np.int64).sum())
     assert rec["first"] == int(ref.data[0, 0, 0])
+
+
+@pytest.mark.parametrize("key", sorted(JPEG_FILES))
+def test_jpeg_compressed_dicom_series_decodes_in_paraview_as_pydicom_reports(pv_run, key):
+    """pvpython (numpy 1.24) decodes JPEG series with the pylibjpeg plug-ins of ``.pvdeps``:
+    every voxel is the HU value pydicom gives (its ``apply_rescale`` on the decoded pixels)."""
+    import hashlib
+
+    import pydicom
+    from pydicom.data import get_testdata_file
+    from pydicom.pixels import apply_rescale
+
+    got, _images, tmp = pv_run
+    ds = pydicom.dcmread(tmp / key / "s0.dcm")
+    assert "JPEG" in ds.file_meta.TransferSyntaxUID.name
+    hu = apply_rescale(ds.pixel_array, ds)
+    original = pydicom.dcmread(get_testdata_file(JPEG_FILES[key])).pixel_array
+    np.testing.assert_array_equal(hu, original.astype(np.float64) - 1024)  # HU, not raw
+    expected = np.stack([hu] * 3)  # the same image at z = 0, 2, 4
+    rec = got[key]
+    assert "error" not in rec, rec["error"]
+    assert rec["dims"] == [int(ds.Columns), int(ds.Rows), 3]
+    assert rec["origin"] == pytest.approx([0.0, 0.0, 0.0])
+    assert rec["first"] == expected[0, 0, 0]
+    assert rec["sum"] == int(expected.sum())
+    assert rec["sha1"] == hashlib.sha1(expected.astype("<f8").tobytes()).hexdigest()

@@ -244,6 +244,34 @@ def test_missing_extra_names_it(tmp_path, monkeypatch):
         load_volume(tmp_path / "x.mgz")
 
 
+def test_undecodable_compressed_pixels_name_the_plugins_and_how_to_get_them(tmp_path, monkeypatch):
+    """A JPEG-LS series whose decoder is missing: one error naming the missing plug-ins, with
+    the pip extra in the pip environment and ``make paraview-setup`` inside ParaView."""
+    import sys
+
+    import pydicom.pixels.decoders.base as decoders
+
+    _series(tmp_path / "ls", _shipped("MR_small_jpeg_ls_lossless.dcm"), [0.0, 1.0])
+    assert load_volume(tmp_path / "ls").dims == (64, 64, 2)  # decodes with the plug-ins
+
+    def no_plugin(*_a, **_k):
+        raise RuntimeError("all plugins are missing dependencies")
+
+    monkeypatch.setattr(decoders.Decoder, "as_array", no_plugin)
+    real = medical.available
+    monkeypatch.setattr(medical, "available", lambda m="pydicom": m != "libjpeg" and real(m))
+    with pytest.raises(DVRInputError) as err:
+        load_volume(tmp_path / "ls")
+    text = str(err.value)
+    assert text.startswith(str(tmp_path / "ls"))
+    assert "(transfer syntax JPEG-LS Lossless Image Compression)" in text
+    assert "missing here: pylibjpeg-libjpeg;" in text
+    assert text.endswith("install them with pip install 'dvr-perception[medical]')")
+    monkeypatch.setitem(sys.modules, "paraview", sys)  # as inside pvpython
+    with pytest.raises(DVRInputError, match=r"from \.pvdeps: run make paraview-setup\)$"):
+        load_volume(tmp_path / "ls")
+
+
 def test_series_option_through_the_cli(tmp_path):
     """``--series`` in the CLI: the list of series when missing, exit status 2, no traceback."""
     import contextlib

@@ -204,6 +204,7 @@ def test_every_storage_order_loads_to_the_same_patient_volume(stored, name):
     d, ref = stored
     vol = load_volume(d / name)
     assert not vol.oblique
+    assert vol.oriented  # every copy records its patient orientation
     np.testing.assert_allclose(vol.spacing, ref.spacing, rtol=1e-6)
     np.testing.assert_allclose(vol.origin, ref.origin, atol=1e-4)
     np.testing.assert_array_equal(vol.data, ref.data)  # HU: the intercept was applied
@@ -504,15 +505,83 @@ def test_orientation_code_declares_a_file_without_orientation(stored, tmp_path):
         "endian: little\nencoding: raw\ndata file: plain.raw\n"
     )
     save_spec(SPEC, tmp_path / "spec.json")
-    shots = {}
+    shots, errs = {}, {}
     for name, src, extra in (("lps", d / "canonical.nrrd", []),
                              ("plain", tmp_path / "plain.nhdr", ["--orientation", "LPI"]),
                              ("raw", tmp_path / "plain.nhdr", [])):  # fmt: skip
         out = tmp_path / f"{name}.png"
         argv = ["render", str(src), "--structures", str(tmp_path / "spec.json"), "--view",
                 "anterior", "--size", "32", "--out", str(out), *extra]  # fmt: skip
-        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        err = io.StringIO()
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
             assert main(argv) == 0
-        shots[name] = read_png(out)[..., :3] / 255.0
+        shots[name], errs[name] = read_png(out)[..., :3] / 255.0, err.getvalue()
     assert compare_images(shots["plain"], shots["lps"])["ssim"] >= 0.99
     assert compare_images(shots["raw"], shots["lps"])["ssim"] < 0.95  # upside down without it
+    # a patient view of the file without orientation says so, once, naming file and fix
+    warned = [ln for ln in errs["raw"].splitlines() if "records no patient orientation" in ln]
+    assert len(warned) == 1, errs["raw"]
+    assert warned[0].startswith(f"dvr-perception: warning: {tmp_path / 'plain.nhdr'}: ")
+    assert "taken as L, P, S" in warned[0]
+    assert "--orientation LPI" in warned[0]
+    assert "orientation" not in errs["lps"]  # the file has a 'space': no note
+    assert "orientation" not in errs["plain"]  # --orientation given: no note
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        assert main([*argv[:4], "--view=20,10", *argv[6:]]) == 0  # not a patient view
+    assert "orientation" not in err.getvalue()
+
+
+def test_files_without_orientation_are_flagged(tmp_path):
+    """``Volume.oriented`` is False exactly for files that record no patient orientation, and
+    survives the re-orderings and copies (canonical, upsample, labels) until ``reorient``."""
+    import re
+    from dataclasses import replace
+
+    from dvr_perception.volume.orient import orientation_note, reorient
+    from dvr_perception.volume.resample import upsample
+
+    vol = _block()
+    raw = vol.data.astype("<i2").tobytes()
+    nrrd = "NRRD0004\ntype: short\ndimension: 3\nsizes: 22 20 16\nencoding: raw\n"
+    files = {
+        "spacings.nrrd": "spacings: 0.8 0.9 1.5\n",
+        "space_dimension.nrrd": "space dimension: 3\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n",
+        "right_handed.nrrd": "space: 3D-right-handed\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n",
+        "lps.nrrd": "space: LPS\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n",
+        "ras.nrrd": "space: RAS\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n",
+    }
+    for name, fields in files.items():
+        (tmp_path / name).write_bytes((nrrd + fields + "\n").encode() + raw)
+    (tmp_path / "block_22x20x16_int16.raw").write_bytes(raw)
+    save_volume(vol, tmp_path / "legacy.vtk")
+    save_volume(vol, tmp_path / "direction.vti")
+    text = (tmp_path / "direction.vti").read_bytes()
+    no_dir = re.sub(rb' Direction="[^"]*"', b"", text, count=1)
+    assert no_dir != text
+    (tmp_path / "plain.vti").write_bytes(no_dir)
+    img = nibabel.Nifti1Image(np.asarray(vol.data).T.copy(), np.eye(4))
+    img.set_qform(None, code=0)
+    img.set_sform(None, code=0)
+    nibabel.save(img, str(tmp_path / "no_form.nii"))
+    save_volume(vol, tmp_path / "itk.mha")  # writes a TransformMatrix
+    mha = (tmp_path / "itk.mha").read_bytes()
+    (tmp_path / "plain.mha").write_bytes(re.sub(rb"TransformMatrix = [^\n]*\n", b"", mha))
+    expect = {"spacings.nrrd": False, "space_dimension.nrrd": False, "right_handed.nrrd": False,
+              "lps.nrrd": True, "ras.nrrd": True, "block_22x20x16_int16.raw": False,
+              "legacy.vtk": False, "direction.vti": True, "plain.vti": False,
+              "no_form.nii": False, "itk.mha": True, "plain.mha": False}  # fmt: skip
+    got = {name: load_volume(tmp_path / name).oriented for name in expect}
+    assert got == expect
+    plain = load_volume(tmp_path / "spacings.nrrd")
+    np.testing.assert_array_equal(plain.data, vol.data)  # taken as L, P, S: as stored
+    labelled = replace(plain, labels=(plain.data > 1000).astype(np.uint8))  # as attach_labels
+    for copy in (canonical(plain), upsample(plain, (2, 1, 1)), labelled):
+        assert copy.oriented is False
+    assert "records no patient orientation" in orientation_note(plain)
+    assert str(tmp_path / "spacings.nrrd") in orientation_note(plain)
+    fixed = reorient(plain, "LPI")
+    assert fixed.oriented
+    assert orientation_note(fixed) is None
+    assert reorient(labelled, "LPI").oriented
+    assert Volume(vol.data).oriented  # in memory: what its direction says
