@@ -120,7 +120,6 @@ def add_paths(root: Path | None = None) -> list[str]:
     why = check_pvdeps(deps)
     if why:
         raise RuntimeError(f"dvr_perception in ParaView: {why}")
-    os.environ.setdefault("NUMBA_CACHE_DIR", str(deps / "numba-cache"))
     entries = [str(root), str(deps)]
     for entry in reversed(entries):
         while entry in sys.path:

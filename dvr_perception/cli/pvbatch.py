@@ -161,7 +161,6 @@ def paraview_env(display: str | None = None, base: dict | None = None) -> dict:
     env = {k: v for k, v in (os.environ if base is None else base).items() if k not in _DROP}
     env["PYTHONPATH"] = os.pathsep.join(str(p) for p in (site, root, deps))
     env[_paraview_compat.PVDEPS_ENV] = str(deps)
-    env["NUMBA_CACHE_DIR"] = str(deps / "numba-cache")
     if display is not None:
         env["DISPLAY"] = display
     return env

@@ -10,7 +10,7 @@ agree to ``CROSS_ENV_ABS``.
 Both sides use the same back end: numba by default, numpy with ``DVR_PERCEPTION_NO_NUMBA=1``
 (the numpy path moved encoded normals and E_s by 1.3e-4 on fuel between numpy 1.24 and 2.4
 before ``rays._grid.normal_codes`` decided angles on rounding boundaries with the C library).
-The file is named to run after the other ParaView tests, whose runs fill pvpython's numba cache.
+The file is named to run after the other ParaView tests (numba's cache is warm by then).
 """
 
 from __future__ import annotations
