@@ -16,6 +16,7 @@ per user (``dvr-perception app --port N``).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import logging
 import math
@@ -70,6 +71,8 @@ ERROR_S = 30.0
 LENS_WORSE = 0.10
 #: Seconds after which a pushed image is pushed once more (see ``DVRApp._push_image``).
 REPUSH_S = 0.8
+#: Most seconds the exact image of a rested camera waits for its numbers' send to complete.
+SEND_WAIT_S = 0.5
 #: Colour range of the quality maps (deviations above 1 saturate).
 MAP_CLIM = (0.0, 1.0)
 #: Width of the before/after thumbnails.
@@ -388,9 +391,10 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
 
         trame-vtk drops a push whose image is still being encoded when its retries run out
         (under load), which left the browser showing an older frame; the repeat makes sure
-        the last state arrives (an unchanged frame is not sent again).
+        the last state arrives (an unchanged frame is not sent again).  While the exact image
+        of a rested camera waits for its numbers, pushes wait with it (``_show_exact``).
         """
-        if self.view is None:
+        if self.view is None or self._image_due:
             return
         t0 = time.monotonic()
         self.view.update()
@@ -501,6 +505,11 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
                 self.fail(error)
             else:
                 self._set_measures(measures, key, described)
+        if self._image_due:  # now the image, once the numbers have gone out on the socket
+            # (the block above only scheduled their send; a rendering would hold it back)
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(self.server.network_completion, SEND_WAIT_S)
+            self._show_exact()
 
     def _set_measures(self, measures, key: str, described: str) -> None:
         self.measures = measures
@@ -528,7 +537,8 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
             )
         self.state[name] = rows
 
-    def _update_map(self) -> None:
+    def _update_map(self, *, push: bool = True) -> None:
+        """Show the quality map if it is on and the numbers are fresh; push the image (``push``)."""
         from dvr_perception.plotting import add_quality_map
 
         was_on = self._map_on
@@ -549,7 +559,8 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
                 opacity=min(max(float(self.state.map_opacity), 0.0), 1.0),
             )
             _style_bar(overlay.scalar_bar)
-        self._push_image()
+        if push:
+            self._push_image()
 
     @change("show_map", "map_kind", "map_opacity")
     @guard

@@ -69,8 +69,8 @@ def view_area(app) -> None:
     """Add the quick preview (vtk.js, takes the mouse) under VTK's image of the server.
 
     A drag or a wheel turn in the preview shows the preview alone (``view_mode``
-    ``"preview"``); when the camera rests the server renders its image for that camera,
-    which covers the preview again.
+    ``"preview"``); when the camera rests the server measures that camera's view and, once
+    the numbers are out, renders its image, which covers the preview again.
     """
     end = (app.local_camera, "[trame.refs.local.getCamera()]")
     app.state.preview_scale = 1  # each page says what it draws at (not synced back)
