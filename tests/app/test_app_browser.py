@@ -6,7 +6,7 @@ token), loaded once, and the tests run in file order on it.  Without Chromium or
 tests skip, except under ``CI=true`` where they fail.
 
 With ``DVR_APP_SCREENSHOTS=DIR`` the tests also save a screenshot of every screen into DIR
-(``DVR_APP_SCREENSHOTS=docs/images DVR_APP_PHANTOM_SIZE=64`` regenerates the README's); on the
+(``DVR_APP_SCREENSHOTS=docs/images DVR_APP_PHANTOM_SIZE=64`` regenerates the README's; on the
 64-voxel phantom a lens without targets costs the whole view only 1 %, so the keep/undo
 prompt test needs the default 40-voxel phantom and fails in that mode).
 """
