@@ -97,7 +97,7 @@ def _check(out: Path, text: str, spec_path: Path) -> dict:
     assert got["filter_size"][1] == 32
     # the maps were opened before the camera was copied: the image has the aspect ratio the
     # 3-D view has beside them (in the GUI the split halves the view's width at once)
-    vw, vh = got["view_size"]
+    vw, vh = got["optimise_view_size"]
     assert got["filter_size"][0] == round(32 * vw / vh)
     # the view's volume representation carries the optimised spec's transfer functions
     spec = spec_from_dict(got["spec"], source="result")

@@ -103,6 +103,7 @@ else:  # the GUI: the toolbar's macros, installed and run as ParaView runs a mac
     runpy.run_path(MACROS["DVR_Optimise_View"], run_name="__main__")
     report = dvr_view.last_report["optimise"]
 opt = report["filter"]
+optimise_view_size = [int(v) for v in view.ViewSize]  # (a layout screenshot resizes it)
 print("@@T optimised", time.time() - T0, flush=True)
 fetched = servermanager.Fetch(opt)
 
@@ -161,6 +162,7 @@ result = {
     "view_camera": view_camera,
     "filter_camera": json.loads(opt.CameraJSON),
     "filter_size": [int(opt.Width), int(opt.Height)],
+    "optimise_view_size": optimise_view_size,
     "use_spec_view": int(opt.UseSpecView),
     "spec": report["spec"],
     "E": report["E"],
