@@ -65,7 +65,7 @@ def _nifti_codes_off(path: Path, ext: str) -> None:
             f.write(b"\0\0\0\0")
         return
     tmp = path.with_name(path.name + ".part")
-    with gzip.open(path, "rb") as src, gzip.open(tmp, "wb") as dst:
+    with gzip.open(path, "rb") as src, gzip.open(tmp, "wb", compresslevel=6) as dst:
         head = bytearray(src.read(348))
         head[_NIFTI_FORM_CODES] = b"\0\0\0\0"
         dst.write(bytes(head))
