@@ -43,6 +43,7 @@ from dvr_perception.app.session import (
     UPLOADED,
     Session,
     measure_camera,
+    orientation_choices,
     rgb_to_hex,
 )
 from dvr_perception.app.study import png_data_url
@@ -127,6 +128,8 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         app's own files only.
     volume : str, optional
         Volume shown first: ``"phantom"`` (default) or a file name in ``data_dir``.
+    orientation : str, optional
+        Orientation code of that first volume (``dvr-perception app --orientation CODE``).
     export_dir : str or Path, optional
         Folder the exports, calibration curves and ranking answers are written to (default
         ``exports`` in the state folder).
@@ -151,6 +154,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         *,
         data_dir=None,
         volume=None,
+        orientation=None,
         export_dir=None,
         state_dir=None,
         phantom_size=96,
@@ -199,7 +203,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         self._banner_timer = None
         self._map_on = False
         self._init_state()
-        self._show_volume(volume or PHANTOM)
+        self._show_volume(volume or PHANTOM, orientation=orientation)
         from dvr_perception.app.preview import Preview
 
         self.preview = Preview(self.session.volume, self.session.spec)
@@ -220,6 +224,10 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         s = self.state
         s.volume_choices = self.session.volume_choices()
         s.volume_name = ""
+        # the Data screen's Orientation field, shown for a file that records no orientation
+        s.orientation_choices = orientation_choices()
+        s.orientation_open = False
+        s.orientation_code = ""
         # the folders are shown, never read back: the server alone chooses paths
         s.data_dir_label = str(self.session.data_dir or "")
         s.export_dir_label = str(self.session.export_dir)
@@ -411,27 +419,42 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         if self.view is not None:
             self.view.update()
 
-    def _show_volume(self, name: str) -> None:
+    def _show_volume(self, name: str, *, orientation=None) -> None:
+        self.session.load_volume(name, orientation=orientation)
+        self.state.volume_name = name
+        self._show_loaded(f"loaded {name}", wait=True)
+
+    def _show_loaded(self, label: str, *, view_name=None, wait: bool = False) -> None:
+        """Show the session's newly loaded (or re-oriented) volume and spec, then re-measure.
+
+        The camera is the spec's view, or the patient view ``view_name``.
+        """
         from dvr_perception.plotting import add_structures, set_plotter_camera
         from dvr_perception.rays import Camera
+        from dvr_perception.rays.camera import patient_view
 
-        volume, spec = self.session.load_volume(name)
+        volume, spec = self.session.volume, self.session.spec
         self._tf_before = None
-        self._view_name = None
+        self._view_name = view_name
         self.plotter.clear_actors()
         self.handle = add_structures(self.plotter, volume, spec)
         az, el, zoom = spec.view or (0.0, 0.0, 1.0)
         w, h = (int(v) for v in self.plotter.window_size)
-        cam = Camera.from_view(
-            volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
-        )
+        if view_name is not None:
+            cam = patient_view(volume, view_name, width=w, height=h)
+        else:
+            cam = Camera.from_view(
+                volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
+            )
         set_plotter_camera(self.plotter, cam, window_size=False)
         if self.preview is not None:
             self.preview.set_volume(volume, spec)
         self._changed(view=True)
-        self._changed(label=f"loaded {name}")
+        self._changed(label=label)
         self.state.opt_key = ""
-        self.state.volume_name = name
+        read = self.session.read_volume
+        self.state.orientation_open = read is not None and not read.oriented
+        self.state.orientation_code = self.session.orientation or ""
         self.state.lens = None
         self.state.lens_rows = []
         self.state.lens_text = ""
@@ -439,7 +462,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         self.state.rank_order = []
         self.state.before_url = self.state.after_url = ""
         self._sync()
-        self.remeasure(wait=True)
+        self.remeasure(wait=wait)
 
     def _show_spec(
         self, *, restructured: bool = False, label: str = "", measure: bool = True

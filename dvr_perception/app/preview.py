@@ -23,6 +23,9 @@ PREVIEW_DIM = 64
 def preview_volume(volume, *, max_dim: int = PREVIEW_DIM):
     """Return every n-th voxel of ``volume`` (n the smallest with at most ``max_dim`` a side).
 
+    The copy keeps the volume's origin (its first voxel), direction and ``oriented`` flag;
+    labels are left out (the preview shows range structures only).
+
     Examples
     --------
     >>> from dvr_perception.volume import Volume
@@ -37,7 +40,10 @@ def preview_volume(volume, *, max_dim: int = PREVIEW_DIM):
         return volume
     data = np.ascontiguousarray(volume.data[::step, ::step, ::step])
     spacing = tuple(float(s) * step for s in volume.spacing)
-    return Volume(data, spacing=spacing, origin=volume.origin, name=volume.name)
+    # the same grid, strided: the first voxel (origin), the axes and the orientation stay
+    return Volume(data, spacing=spacing, origin=volume.origin, name=volume.name,
+                  source=volume.source, direction=volume.direction,
+                  oriented=volume.oriented)  # fmt: skip
 
 
 class Preview:

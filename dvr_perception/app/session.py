@@ -29,6 +29,7 @@ from dvr_perception.errors import DVRInputError
 __all__ = [
     "MAX_UPLOAD_BYTES",
     "MEASURE_SIZE",
+    "ORIENTATION_CODES",
     "PHANTOM",
     "SPEC_SUFFIXES",
     "VOLUME_SUFFIXES",
@@ -37,6 +38,7 @@ __all__ = [
     "default_state_dir",
     "hex_to_rgb",
     "measure_camera",
+    "orientation_choices",
     "plain_name",
     "rgb_to_hex",
 ]
@@ -56,6 +58,13 @@ UNDO_DEPTH = 50
 MAX_UPLOAD_BYTES = 64 * 1024 * 1024
 #: Largest voxel data (decompressed) an uploaded volume may hold.
 MAX_VOLUME_BYTES = 512_000_000
+#: Orientation codes the Data screen offers for a file that records none ("" is as stored).
+ORIENTATION_CODES = ("LPS", "LPI", "RAS", "RAI", "LAS", "LAI", "RPS", "RPI")
+#: How the app's note on a patient view of a file without orientation says to fix it.
+ORIENTATION_FIX = (
+    "choose its orientation in the Data screen's Orientation field, e.g. LPI when slice 0 is "
+    "the top of the head"
+)
 #: Prefix of the uploaded volumes in the volume list.
 UPLOADED = "uploaded/"
 #: Prefix of the settings saved by the app in the settings list.
@@ -212,7 +221,9 @@ class Session:
         self.max_volume_bytes = int(max_volume_bytes)
         self.volume = None
         self.volume_name = ""
-        self.base_volume = None  # the volume as loaded, before a spec's label file
+        self.read_volume = None  # the volume as read from its file (no orientation, labels)
+        self.orientation = None  # the orientation code given to it (None: as the file says)
+        self.base_volume = None  # the volume as loaded and oriented, before a spec's label file
         self.labels_file = None  # the label file whose labels ``volume`` carries
         self.spec = None
         self.spec_source = ""
@@ -297,8 +308,12 @@ class Session:
         folder.mkdir(parents=True, exist_ok=True, mode=mode)
         return folder
 
-    def load_volume(self, name: str):
-        """Load the phantom or an offered volume with its paired spec (else a proposal)."""
+    def load_volume(self, name: str, *, orientation=None):
+        """Load the phantom or an offered volume with its paired spec (else a proposal).
+
+        ``orientation`` (``dvr-perception app --orientation CODE``) declares where the file's
+        index axes point, as the other commands' ``--orientation`` does.
+        """
         from dvr_perception.structures import check_spec_for_volume, load_spec
         from dvr_perception.structures import propose_structures as propose
         from dvr_perception.volume import load_volume, make_phantom
@@ -319,13 +334,17 @@ class Session:
                 spec, source = load_spec(paired), f"preset {paired.name}"
             else:
                 spec, source = propose(volume), "automatic proposal"
-        base, labels_file = volume, None
+        read, orientation = volume, _code(orientation)
+        base = volume = _oriented(read, orientation)
+        labels_file = None
         if spec.labels_file is not None:  # a preset of the server's own with a label volume
             from dvr_perception.structures.io import attach_labels
 
-            volume = attach_labels(volume, spec)
+            # labels in the file's order, re-ordered with the data (as the command line does)
+            volume = _oriented(attach_labels(read, spec), orientation)
             labels_file = str(Path(spec.labels_file).resolve())
         check_spec_for_volume(spec, volume)
+        self.read_volume, self.orientation = read, orientation
         self.base_volume, self.labels_file = base, labels_file
         self.volume, self.volume_name = volume, name
         self.spec, self.spec_source = spec, source
@@ -388,7 +407,49 @@ class Session:
             )
         if self.labels_file == str(path):
             return self.volume, self.labels_file
-        return attach_labels(self.base_volume, replace(spec, labels_file=str(path))), str(path)
+        volume = attach_labels(self.read_volume, replace(spec, labels_file=str(path)))
+        return _oriented(volume, self.orientation), str(path)
+
+    def set_orientation(self, code):
+        """Declare where the index axes of a file that records no orientation point.
+
+        ``code``: three letters as ``--orientation`` takes them (e.g. ``"LPI"``, slice 0 at
+        the top of the head); ``""`` or ``None`` goes back to the axes as stored (taken as L,
+        P, S).  The volume and the spec's label volume are re-ordered into patient LPS
+        (:func:`~dvr_perception.volume.orient.reorient`); everything is checked before the
+        session changes.  The volume changes as when one is loaded, so, as a load does, this
+        clears the undo stack (choose the previous code to go back).  Returns the volume.
+        """
+        from dvr_perception.structures import check_spec_for_volume
+
+        if self.volume is None:
+            raise DVRInputError("Orientation: load a volume first")
+        orientation = _code(code)
+        if self.read_volume.oriented:
+            raise DVRInputError(
+                f"Orientation {orientation or 'as stored'}: {self.volume_name} records its "
+                "patient orientation; a code is only for files that record none"
+            )
+        base = volume = _oriented(self.read_volume, orientation)
+        if self.labels_file is not None:  # labels in the file's order: re-ordered with the data
+            from dvr_perception.structures.io import attach_labels
+
+            labelled = replace(self.spec, labels_file=self.labels_file)
+            volume = _oriented(attach_labels(self.read_volume, labelled), orientation)
+        check_spec_for_volume(self.spec, volume)
+        self.orientation, self.base_volume, self.volume = orientation, base, volume
+        self.undo_stack.clear()
+        self.undo_labels.clear()
+        return volume
+
+    def patient_view_note(self) -> str | None:
+        """Return the note on a patient view of a volume whose file records no orientation.
+
+        ``None`` once the volume is oriented (by its file or an orientation code).
+        """
+        from dvr_perception.volume.orient import orientation_note
+
+        return None if self.volume is None else orientation_note(self.volume, ORIENTATION_FIX)
 
     def save_spec_file(self, text: str) -> str:
         """Write the current spec as JSON into the settings folder; return its offered name."""
@@ -652,3 +713,39 @@ class Session:
             raise DVRInputError(f"upload {base}: not a readable volume ({why})") from None
         tmp.replace(path)
         return UPLOADED + path.name
+
+
+def orientation_choices() -> list[dict]:
+    """Return the Data screen's Orientation items (``{"title", "value"}``), as stored first.
+
+    Examples
+    --------
+    >>> orientation_choices()[2]
+    {'title': 'LPI: x left, y posterior, z inferior (slice 0 at the top)', 'value': 'LPI'}
+    """
+    words = dict(zip("LRPASI", ("left", "right", "posterior", "anterior", "superior",
+                                "inferior"), strict=True))  # fmt: skip
+    items = [{"title": "as stored (taken as L, P, S)", "value": ""}]
+    for code in ORIENTATION_CODES:
+        x, y, z = (words[c] for c in code)
+        top = " (slice 0 at the top)" if code[2] == "I" else ""
+        items.append({"title": f"{code}: x {x}, y {y}, z {z}{top}", "value": code})
+    return items
+
+
+def _code(code) -> str | None:
+    """Return an orientation code, checked and upper-case (``None`` for none given)."""
+    from dvr_perception.volume.orient import parse_orientation
+
+    text = str(code or "").strip().upper()
+    if not text:
+        return None
+    parse_orientation(text, name="Orientation")
+    return text
+
+
+def _oriented(volume, code):
+    """``volume`` re-ordered by orientation ``code`` (unchanged for ``None``)."""
+    from dvr_perception.volume.orient import reorient
+
+    return volume if code is None else reorient(volume, code, name=f"Orientation {code}")

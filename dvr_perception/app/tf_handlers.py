@@ -29,11 +29,6 @@ PREVIEW_SEND_S = 0.1
 #: Most seconds the exact image waits for the numbers after the camera rests (see
 #: ``TFHandlers._image_after_numbers``).
 EXACT_WAIT_S = 1.5
-#: How the page's note on a file without patient orientation says to fix it.
-_APP_FIX = (
-    "the app cannot re-orient it: give the file its orientation (e.g. an NRRD 'space' field) "
-    "or use the command line's --orientation, e.g. LPI when slice 0 is the top of the head"
-)
 
 
 def _three(camera, key: str) -> tuple[float, float, float]:
@@ -249,7 +244,6 @@ class TFHandlers:
         """
         from dvr_perception.errors import DVRInputError, DVRWarning
         from dvr_perception.rays.camera import PATIENT_VIEWS, patient_view
-        from dvr_perception.volume.orient import orientation_note
 
         if name not in PATIENT_VIEWS:
             raise DVRInputError(
@@ -258,9 +252,32 @@ class TFHandlers:
         w, h = (int(v) for v in self.plotter.window_size)
         self._view_name = name  # the captions name it; later rotations are relative to it
         self._set_camera(patient_view(self.session.volume, name, width=w, height=h))
-        note = orientation_note(self.session.volume, _APP_FIX)
+        note = self.session.patient_view_note()  # names the Data screen's Orientation field
         if note is not None:  # the guard shows it on the page's message line
             warnings.warn(note, DVRWarning, stacklevel=2)
+
+    @change("orientation_code")
+    @guard
+    def on_orientation_change(self, orientation_code, **_):
+        """Orientation chosen on the Data screen (a file without one): re-order and show it.
+
+        Only the session re-orders (:meth:`~dvr_perception.app.session.Session.set_orientation`);
+        a patient view shown stays that patient side, now the right way round.
+        """
+        code = orientation_code or None
+        read = self.session.read_volume
+        if read is None or read.oriented or code == self.session.orientation:
+            return
+        if self._task_running:
+            self.state.orientation_code = self.session.orientation or ""
+            return
+        self.state.error = ""
+        try:
+            self.session.set_orientation(code)
+        except Exception:
+            self.state.orientation_code = self.session.orientation or ""  # as still shown
+            raise
+        self._show_loaded(f"orientation {code or 'as stored'}", view_name=self._view_name)
 
     @guard
     def reset_view(self):

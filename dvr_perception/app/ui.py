@@ -159,6 +159,20 @@ def _data_panel(app) -> None:
         classes="mt-2",
         id="upload",
     )
+    # only for a file that records no patient orientation (its axes were taken as L, P, S)
+    v3.VSelect(
+        label="Orientation (the file records none)",
+        v_model=("orientation_code",),
+        items=("orientation_choices",),
+        v_if="orientation_open",
+        title="where the file's index axes x, y, z point; the patient views (Anterior ...) "
+        "follow it",
+        density="compact",
+        hide_details=True,
+        disabled=("busy",),
+        classes="mt-2",
+        id="orientation-select",
+    )
     html.Div("Structures from: {{ spec_source }}", classes="text-caption mt-2")
     with html.Table(classes="w-100 text-body-2", id="structure-table"):
         with html.Tr():

@@ -85,6 +85,14 @@ def common_parent() -> argparse.ArgumentParser:
     return parent
 
 
+#: Help of ``--orientation`` (every command that reads a volume, and ``app``).
+ORIENTATION_HELP = (
+    "where the volume's index axes x, y, z point, for a file that records no orientation: "
+    "three letters from L/R, P/A, S/I (e.g. LPI: slice 0 is the top of the head); the data "
+    "are re-ordered into patient LPS (default: as the file says, else LPS)"
+)
+
+
 def add_scene_args(
     parser: argparse.ArgumentParser, *, volume_optional: bool = False, save_spec: bool = True
 ) -> None:
@@ -122,13 +130,7 @@ def add_scene_args(
         "angles",
     )
     cam.add_argument("--camera", metavar="CAM.json", help="camera JSON (Camera.to_dict format)")
-    parser.add_argument(
-        "--orientation",
-        metavar="CODE",
-        help="where the volume's index axes x, y, z point, for a file that records no "
-        "orientation: three letters from L/R, P/A, S/I (e.g. LPI: slice 0 is the top of the "
-        "head); the data are re-ordered into patient LPS (default: as the file says, else LPS)",
-    )
+    parser.add_argument("--orientation", metavar="CODE", help=ORIENTATION_HELP)
     parser.add_argument(
         "--series",
         metavar="UID",

@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from dvr_perception.cli._common import log
+from dvr_perception.cli._common import ORIENTATION_HELP, log
 from dvr_perception.errors import DVRInputError
 
 __all__ = ["add_parser", "default_data_dir", "run"]
@@ -43,6 +43,9 @@ def add_parser(subparsers, parents) -> None:
         metavar="VOLUME",
         help="'phantom' (default), a file name in --data-dir, or (without --data-dir) a "
         "volume file whose folder becomes the data folder",
+    )
+    p.add_argument(
+        "--orientation", metavar="CODE", help=ORIENTATION_HELP + "; for the volume shown first"
     )
     p.add_argument("--port", type=int, default=8080, help="port to listen on (default 8080)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (127.0.0.1)")
@@ -125,6 +128,10 @@ def run(args) -> int:
         raise DVRInputError(f"--max-volume-mb: expected 0 to 65536, got {args.max_volume_mb}")
     if not 1 <= args.iterations <= 200:
         raise DVRInputError(f"--iterations: expected 1 to 200, got {args.iterations}")
+    if args.orientation is not None:
+        from dvr_perception.volume.orient import parse_orientation
+
+        parse_orientation(args.orientation)  # the other commands' check and error
     data_dir, volume = _resolve(args)
     try:
         from dvr_perception.app import serve
@@ -137,6 +144,7 @@ def run(args) -> int:
     app = DVRApp(
         data_dir=data_dir,
         volume=volume,
+        orientation=args.orientation,
         export_dir=args.export_dir,
         state_dir=args.state_dir,
         phantom_size=args.phantom_size,

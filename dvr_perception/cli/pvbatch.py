@@ -15,7 +15,9 @@ dependency folder ``.pvdeps`` of ``make paraview-setup`` and the start-up shims 
 
 ``--ranks N`` runs ``mpiexec -n N pvbatch`` (the MPI that ParaView is built with; Debian's is
 Open MPI, for which ``--oversubscribe`` and, as root, ``OMPI_ALLOW_RUN_AS_ROOT`` are set): each
-rank reads and analyses its piece of the volume and ``result.json`` adds ``ranks``.
+rank reads and analyses its piece of the volume and ``result.json`` adds ``ranks``.  The ranks
+read NRRD, MetaImage and VTK image files in file order (:data:`RANK_FORMATS`); a file stored
+flipped, permuted or rotated, and NIfTI, DICOM, MGZ or raw files, are refused up front.
 ``--optimize`` runs ``plugin/batch_optimize.py`` instead (*Optimize Transfer Function*; with
 ``--ranks N`` over the ranks, each keeping its piece's cache entries): ``before.png``,
 ``after.png``, ``optimized_spec.json``, the preset and ``result.json``.  ``--timeout`` stops the
@@ -409,16 +411,33 @@ def _launch(args: argparse.Namespace, pvbatch: Path) -> subprocess.CompletedProc
     return proc
 
 
+#: What the MPI ranks can read: ParaView's readers of these formats, in file order; NRRD,
+#: MetaImage and ``.vti`` axes are checked from the header, legacy ``.vtk`` records none.
+RANK_FORMATS = (".nhdr", ".nrrd", ".mha", ".mhd", ".vti", ".vtk")
+
+
 def _check_file_order(volume: str) -> None:
     """Refuse ``--ranks N`` for a file whose axes are not the patient axes in LPS order.
 
     The ranks read their pieces with ParaView's readers, in file order; a flipped, permuted or
     rotated file would be measured mirrored or turned (``--ranks 1`` reads it in patient LPS).
+    Formats whose orientation only our readers apply -- NIfTI's s-form/q-form, DICOM's
+    position and orientation, the ``.mgz`` affine -- and headerless raw are refused.
     """
-    from dvr_perception.volume.io import header_axes
+    from dvr_perception.volume.io import _ext, header_axes
 
-    if not os.path.isfile(volume):
+    path = Path(volume)
+    if not path.exists():
         return  # the run reports a missing file itself
+    ext = "" if path.is_dir() else _ext(path)
+    if ext not in RANK_FORMATS:
+        kind = "a DICOM folder" if path.is_dir() else f"a {ext or 'extensionless'} file"
+        raise DVRInputError(
+            f"--ranks: {volume} is {kind}; the MPI ranks read only NRRD, MetaImage and VTK "
+            "image files (with ParaView's readers, in file order, which would drop the "
+            "orientation of NIfTI, DICOM and MGZ files): run with --ranks 1 (read in patient "
+            "LPS), or re-save it as .nrrd first"
+        )
     axes = header_axes(volume)
     if axes is None:
         return

@@ -17,6 +17,7 @@ import re
 import subprocess
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 from dvr_perception.errors import DVRInputError
@@ -143,7 +144,7 @@ def _read_scene(folder: Path) -> tuple[Volume, StructureSpec, Camera]:
     volume = load_volume(folder / "volume.nhdr")
     if (folder / "labels.nhdr").is_file():
         labels = load_volume(folder / "labels.nhdr").data
-        volume = Volume(volume.data, volume.spacing, volume.origin, labels=labels)
+        volume = replace(volume, labels=labels)  # keeps direction and orientation
     spec = load_spec(folder / "spec.json")
     return volume, spec, Camera.from_dict(json.loads((folder / "camera.json").read_text()))
 

@@ -104,6 +104,27 @@ def check_vti(path: Path) -> bool:
     return _attribute(tag, "Direction") is not None
 
 
+def vti_axes(path: Path) -> np.ndarray:
+    """Return a ``.vti`` file's axis vectors (columns: ``Direction`` times ``Spacing``).
+
+    From the ``<ImageData>`` element only (no data read); identity directions when the file
+    records no ``Direction``.
+    """
+    m = re.search(r"<ImageData\b[^>]*>", _head(path))
+    if m is None:
+        raise DVRInputError(f"{path}: no <ImageData ...> element; expected a VTK XML image file")
+    fields = {}
+    for name, n in (("Spacing", 3), ("Direction", 9)):
+        text = _attribute(m.group(0), name)
+        vals = text.split() if text is not None else []
+        if text is not None and len(vals) != n:
+            raise DVRInputError(f"{path}: field {name!r}: expected {n} numbers, got {shown(vals)}")
+        fields[name] = [parse_float(v, path, name) for v in vals]
+    spacing = np.array(fields["Spacing"] or [1.0, 1.0, 1.0])
+    direction = np.array(fields["Direction"] or np.eye(3).ravel()).reshape(3, 3)
+    return direction * spacing  # VTK's matrix is row-major, its columns are the index axes
+
+
 def check_legacy_vtk(path: Path) -> None:
     r"""Check a legacy ``.vtk`` file: structured points, its sizes, spacing and scalar type.
 

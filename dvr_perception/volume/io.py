@@ -193,7 +193,7 @@ def load_volume(path, *, name: str | None = None, series: str | None = None) -> 
 
 
 def header_axes(path) -> np.ndarray | None:
-    """Return a NRRD or MetaImage file's axis vectors (LPS columns) from its header only.
+    """Return a NRRD, MetaImage or ``.vti`` file's axis vectors (LPS columns) from its header.
 
     ``None`` for other formats.  For callers that must not read the data, e.g. the MPI path
     of ``dvr-perception pvbatch``, whose ranks read their pieces with ParaView's readers in
@@ -236,6 +236,10 @@ def header_axes(path) -> np.ndarray | None:
                 if len(vals) == 9:
                     return np.array(vals).reshape(3, 3).T * spacing
         return np.diag(spacing)
+    if ext == ".vti":
+        from dvr_perception.volume._vtk_headers import vti_axes
+
+        return vti_axes(path)
     return None
 
 
@@ -680,7 +684,11 @@ def save_volume(volume: Volume, path) -> None:
     Parameters
     ----------
     volume : Volume
-        The volume to write (data, spacing and origin are stored).
+        The volume to write (data, spacing, origin and direction are stored).  A volume that
+        is not ``oriented`` is written without a patient orientation, so it reads back as
+        not oriented: NRRD gets ``space dimension: 3`` instead of ``space``, ``.vti`` no
+        ``Direction``, MetaImage no ``TransformMatrix``, NIfTI both form codes 0 (NIfTI
+        keeps no origin without a form: it reads back as 0).
     path : str or os.PathLike
         Target file: ``.vti``, ``.nhdr`` (plus ``STEM_XxYxZ_DTYPE.raw`` beside it, itself
         readable as headerless raw), ``.nrrd``, ``.mha``, ``.mhd`` (plus ``STEM.raw``),
@@ -753,6 +761,10 @@ def _write(volume: Volume, target: Path, ext: str) -> list[Path]:
     writer.SetFileName(str(target))
     with vtk_errors(writer, str(target.name)):
         writer.Write()
+    if not volume.oriented and not volume.oblique and ext != ".vtk":
+        from dvr_perception.volume._unoriented import drop_orientation
+
+        drop_orientation(target, ext)  # VTK's writers always record one
     return out
 
 
@@ -785,7 +797,8 @@ def _write_nrrd(volume: Volume, target: Path, *, detached: bool) -> list[Path]:
         "dimension: 3",
         f"sizes: {x} {y} {z}",
         "kinds: domain domain domain",
-        "space: left-posterior-superior",
+        # no patient space for a volume whose file recorded none (read back as not oriented)
+        "space: left-posterior-superior" if volume.oriented else "space dimension: 3",
         "space directions: "
         + " ".join(
             "(" + ",".join(repr(float(v)) for v in np.asarray(volume.direction)[:, i] * s) + ")"

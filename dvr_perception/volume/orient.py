@@ -288,7 +288,7 @@ def orientation_note(volume: Volume, fix: str | None = None) -> str | None:
     """One-line note for a patient view of a volume whose file records no orientation.
 
     ``None`` when ``volume.oriented``.  ``fix`` says how the user declares the orientation;
-    default the command line's ``--orientation`` (the web app has no such option).
+    default the command line's ``--orientation`` (the web app names its Orientation field).
 
     Examples
     --------

@@ -76,9 +76,13 @@ def server(tmp_path_factory, vtk_can_render, app_server):
     write_segmentation(data / "organs.seg.nrrd", seg, segments)
     uploads = root / "uploads"
     uploads.mkdir()
+    from dataclasses import replace
+
     from dvr_perception.volume.io import save_volume
 
-    save_volume(make_phantom(size=20)[0], uploads / "small.nrrd")
+    # as a file that records no patient orientation (no 'space' field): the Data screen
+    # offers its Orientation field
+    save_volume(replace(make_phantom(size=20)[0], oriented=False), uploads / "small.nrrd")
     save_volume(make_phantom(size=48)[0], uploads / "large.nrrd")
     assert (uploads / "large.nrrd").stat().st_size > MAX_UPLOAD_MB * 1e6
     (uploads / "notes.nrrd").write_text("this is not a volume", encoding="utf-8")
@@ -220,6 +224,7 @@ def test_page_shows_rendered_volume_and_measures(page):
     assert img.std() > 0.02, "the view is blank"
     assert (img.max(axis=2) > 0.1).mean() > 0.05, "almost nothing rendered"
     assert page.locator("#structure-table tr").count() == 1 + 6
+    assert page.locator("#orientation-select").count() == 0  # the phantom is oriented
     _shot(page, "data")
 
 
@@ -885,6 +890,14 @@ def test_upload_of_a_volume_shows_it(page, server):
     page.wait_for_selector("#measuring", state="hidden")
     assert _wait_value(page, "E_v") >= 0.0
     assert "small.nrrd" in page.inner_text("header")
+    # a file without orientation: the Data screen's Orientation field re-orders it
+    page.locator(".v-select:has(#orientation-select)").click()
+    page.get_by_role("option", name=re.compile(r"^LPI:")).click()
+    page.wait_for_function(  # re-ordered by the server and measured again
+        "() => document.querySelector('#measured-for')?.innerText.includes('orientation LPI')"
+    )
+    assert _wait_value(page, "E_v") >= 0.0
+    assert page.locator("#error-message").count() == 0
     assert server["proc"].poll() is None
 
 

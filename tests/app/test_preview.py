@@ -21,6 +21,26 @@ def test_copy_keeps_every_nth_voxel_and_the_extent():
     assert preview_volume(vol, max_dim=200) is vol
 
 
+@pytest.mark.parametrize("oriented", [True, False])
+def test_copy_keeps_the_direction_and_the_orientation_flag(oriented):
+    """A strided copy lies on the same rotated grid: first voxel, axes and ``oriented`` kept,
+    so every corner voxel of the copy is at the world position of the same full voxel."""
+    c, s = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+    rot = ((-c, -s, 0.0), (-s, c, 0.0), (0.0, 0.0, -1.0))  # x and z flipped, turned about z
+    data = np.zeros((70, 9, 8), np.uint8)
+    vol = Volume(data, spacing=(1.0, 2.0, 0.5), origin=(5.0, -2.0, 7.0), direction=rot,
+                 oriented=oriented)  # fmt: skip
+    small = preview_volume(vol, max_dim=32)  # every 3rd voxel
+    np.testing.assert_allclose(small.direction, vol.direction, atol=1e-12)
+    assert small.oriented is oriented
+    assert small.origin == vol.origin
+    last = np.array(small.dims) - 1
+    np.testing.assert_allclose(
+        small.to_world(np.array(small.origin) + last * small.spacing),
+        vol.to_world(np.array(vol.origin) + 3 * last * vol.spacing),
+    )
+
+
 def test_preview_scene_follows_the_spec():
     vol = Volume(np.linspace(0, 100, 100**3).reshape(100, 100, 100).astype(np.float32))
     spec = StructureSpec(

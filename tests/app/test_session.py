@@ -125,3 +125,51 @@ def test_measure_gives_errors_and_maps_without_background(session):
 
 def test_colour_round_trip():
     assert rgb_to_hex(hex_to_rgb("#12ab3f")) == "#12ab3f"
+
+
+def test_orientation_of_a_file_that_records_none(tmp_path):
+    """The Data screen's Orientation field: LPI re-orders the volume and its labels along z,
+    marks it oriented and ends the patient-view note; a bad code is one error naming the field
+    and changes nothing; "" goes back to the axes as stored; a file with one is refused."""
+    from dvr_perception.volume.io import save_volume
+    from dvr_perception.volume.volume import Volume
+
+    data = tmp_path / "data"
+    data.mkdir()
+    z, y, x = np.mgrid[:12, :10, :8]
+    values = (20 * z + x + 300 * (np.hypot(y - 5, x - 4) < 3)).astype(np.int16)
+    labels = (values > 200).astype(np.uint8) * 3
+    save_volume(Volume(values, oriented=False), data / "plain.nrrd")  # no 'space' field
+    save_volume(Volume(labels, oriented=False), data / "lab.nhdr")
+    spec = {"version": 1, "labels": "lab.nhdr", "structures": [
+        {"name": "core", "label": 3, "importance": 1.0, "color": [1, 0, 0]}]}  # fmt: skip
+    (data / "core.json").write_text(json.dumps(spec))
+    s = Session(data, tmp_path / "exports", state_dir=tmp_path / "state", phantom_size=40)
+    s.load_volume("plain.nrrd")
+    s.load_spec_file("core.json")
+    assert s.volume.oriented is False
+    assert "Data screen's Orientation field" in s.patient_view_note()
+    assert s.undo_stack  # the spec load can be undone
+    s.set_orientation("lpi")
+    assert s.volume.oriented is True
+    assert s.orientation == "LPI"
+    np.testing.assert_array_equal(s.volume.data, values[::-1])  # slice 0 was the top
+    np.testing.assert_array_equal(s.volume.labels, labels[::-1])  # labels with the data
+    assert s.patient_view_note() is None
+    assert not s.undo_stack  # a new volume, as after a load
+    shown = s.volume
+    with pytest.raises(DVRInputError, match=r"^Orientation: expected three letters.*'LPQ'"):
+        s.set_orientation("LPQ")
+    assert s.volume is shown
+    assert s.orientation == "LPI"
+    assert s.with_labels(s.spec)[0] is shown  # undo/redo keep the re-ordered labels
+    s.set_orientation("")
+    assert s.volume.oriented is False
+    np.testing.assert_array_equal(s.volume.data, values)
+    np.testing.assert_array_equal(s.volume.labels, labels)
+    s.load_volume(PHANTOM)  # records its orientation: no code accepted
+    with pytest.raises(DVRInputError, match="phantom records its patient orientation"):
+        s.set_orientation("LPI")
+    s.load_volume("plain.nrrd", orientation="RAI")  # as `dvr-perception app --orientation`
+    assert s.volume.oriented is True
+    np.testing.assert_array_equal(s.volume.data, values[::-1, ::-1, ::-1])

@@ -141,23 +141,29 @@ def test_axis_camera_refuses_an_unknown_axis():
 
 def test_patient_view_of_a_file_without_orientation_notes_it_on_the_page():
     """The page's patient-side buttons show the same note as the CLI (on the info line)."""
+    from functools import partial
     from types import SimpleNamespace
 
+    from dvr_perception.app.session import Session
     from dvr_perception.app.tf_handlers import TFHandlers
 
     cams = []
     for oriented, expect in ((False, True), (True, False)):
         vol = Volume(np.zeros((4, 4, 4), np.uint8), source="head.nhdr", oriented=oriented)
+        session = SimpleNamespace(volume=vol)
+        session.patient_view_note = partial(Session.patient_view_note, session)
         page = SimpleNamespace(
             state=SimpleNamespace(info="", error=""),
             plotter=SimpleNamespace(window_size=(32, 24)),
-            session=SimpleNamespace(volume=vol),
+            session=session,
             _set_camera=cams.append,
             fail=lambda msg: pytest.fail(msg),
         )
         TFHandlers.view_patient(page, "anterior")
         assert ("head.nhdr: the file records no patient orientation" in page.state.info) is expect
-        assert ("--orientation" in page.state.info) is expect
+        # the fix named is the Data screen's control (the app can re-orient the file now)
+        assert ("Data screen's Orientation field, e.g. LPI" in page.state.info) is expect
+        assert "cannot re-orient" not in page.state.info
         assert page._view_name == "anterior"
     assert len(cams) == 2
     assert (cams[0].width, cams[0].height) == (32, 24)

@@ -91,6 +91,15 @@ def test_view_and_camera_are_exclusive(capsys, tmp_path):
     _assert_one_error(err, "--camera", "--view")
 
 
+@pytest.mark.parametrize("command", ["render", "app"])
+def test_bad_orientation_code_is_the_same_error_for_the_app(capsys, command):
+    """``app --orientation`` is checked as the other commands' (before any server starts)."""
+    argv = [command, "phantom", "--orientation", "LPQ"]
+    code, _, err = _run(capsys, [*argv, "--out", "x.png"] if command == "render" else argv)
+    assert code == 2
+    _assert_one_error(err, "--orientation: expected three letters from L/R, P/A, S/I", "'LPQ'")
+
+
 def test_missing_output_directory_fails_before_rendering(capsys, tmp_path):
     code, _, err = _run(capsys, ["render", "phantom", "--out", str(tmp_path / "no" / "x.png")])
     assert code == 2

@@ -11,6 +11,7 @@ on the side of the image its patient coordinates say.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import nibabel
 import numpy as np
@@ -470,6 +471,40 @@ def test_pvbatch_ranks_refuse_a_file_stored_flipped(stored, tmp_path, monkeypatc
     pvbatch._check_file_order(str(d / "canonical.nrrd"))  # axis-aligned, positive: no error
 
 
+def test_pvbatch_ranks_read_only_files_whose_axes_the_header_shows(tmp_path, monkeypatch):
+    """``--ranks N``: NIfTI, DICOM, MGZ and raw files (orientation only our readers apply) are
+    one error naming the file and ``--ranks 1``; a ``.vti`` is checked from its Direction."""
+    import contextlib
+    import io
+
+    from dvr_perception.cli import main, pvbatch
+
+    monkeypatch.setattr(pvbatch, "find_paraview", lambda *a: pytest.fail("ParaView started"))
+    vol = Volume(np.zeros((3, 4, 5), np.uint8), spacing=(1.0, 1.0, 2.0))
+    save_volume(vol, tmp_path / "lps.nii.gz")
+    (tmp_path / "series").mkdir()
+    (tmp_path / "series" / "1.dcm").write_bytes(b"\0" * 132 + b"DICM")
+    for name in ("one.dcm", "brain.mgz", "v_5x4x3_uint8.raw"):
+        (tmp_path / name).write_bytes(b"\0" * 64)
+    for name in ("lps.nii.gz", "series", "one.dcm", "brain.mgz", "v_5x4x3_uint8.raw"):
+        err = io.StringIO()
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+            code = main(["pvbatch", str(tmp_path / name), "--ranks", "2", "--out",
+                         str(tmp_path / "o")])  # fmt: skip
+        assert code == 2, name
+        lines = err.getvalue().strip().splitlines()
+        assert len(lines) == 1, lines
+        assert f"--ranks: {tmp_path / name} is a" in lines[0]
+        assert "run with --ranks 1" in lines[0]
+    turned = Volume(vol.data, direction=((0, -1, 0), (1, 0, 0), (0, 0, 1)))
+    save_volume(turned, tmp_path / "turned.vti")
+    with pytest.raises(DVRInputError, match=r"turned.vti stores its axes flipped, permuted"):
+        pvbatch._check_file_order(str(tmp_path / "turned.vti"))
+    for name in ("lps.vti", "plain.vti", "plain.vtk"):
+        save_volume(replace(vol, oriented=name == "lps.vti"), tmp_path / name)
+        pvbatch._check_file_order(str(tmp_path / name))  # file order is LPS: no error
+
+
 def test_orientation_code_declares_a_file_without_orientation(stored, tmp_path):
     """``--orientation LPI``: a plain file whose slice 0 is the top renders as its LPS copy."""
     import contextlib
@@ -585,3 +620,30 @@ def test_files_without_orientation_are_flagged(tmp_path):
     assert orientation_note(fixed) is None
     assert reorient(labelled, "LPI").oriented
     assert Volume(vol.data).oriented  # in memory: what its direction says
+
+
+@pytest.mark.parametrize("ext", [".nrrd", ".nhdr", ".vti", ".mha", ".mhd", ".nii", ".nii.gz"])
+def test_saving_keeps_whether_a_volume_is_oriented(tmp_path, ext):
+    """A re-saved file claims an orientation only if the volume had one: an unoriented volume
+    reads back unoriented, an oriented one oriented, with the same voxels and geometry (NIfTI
+    keeps no origin without a form: 0 then)."""
+    from dvr_perception.volume.orient import reorient
+
+    data = np.arange(60, dtype=np.int16).reshape(3, 4, 5)
+    plain = Volume(data, spacing=(0.5, 0.75, 2.0), origin=(3.0, -4.0, 9.0), oriented=False)
+    fixed = reorient(plain, "LPI")  # declared: slice 0 at the top, now oriented
+    for vol, tag in ((plain, "plain"), (fixed, "fixed")):
+        save_volume(vol, tmp_path / f"{tag}{ext}")
+        back = load_volume(tmp_path / f"{tag}{ext}")
+        assert back.oriented is vol.oriented, tag
+        np.testing.assert_array_equal(back.data, vol.data)
+        np.testing.assert_allclose(back.spacing, vol.spacing)
+        keeps_origin = vol.oriented or ext not in (".nii", ".nii.gz")
+        np.testing.assert_allclose(back.origin, vol.origin if keeps_origin else (0, 0, 0))
+        assert not back.oblique
+    head = (tmp_path / f"plain{ext}").read_bytes()[:600]
+    for field in (b"space:", b"TransformMatrix", b"Direction"):
+        assert field not in head
+    if ext in (".nrrd", ".nhdr"):
+        assert b"space dimension: 3" in head
+        assert b"space: left-posterior-superior" in (tmp_path / f"fixed{ext}").read_bytes()
