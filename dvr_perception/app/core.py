@@ -462,6 +462,7 @@ class DVRApp(TFHandlers, LensHandlers, StudyHandlers, TrameApp):
         self.state.rank_order = []
         self.state.before_url = self.state.after_url = ""
         self._sync()
+        self._push_image()  # the new data (the map, if on, waits for fresh numbers)
         self.remeasure(wait=wait)
 
     def _show_spec(

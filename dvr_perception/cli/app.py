@@ -111,6 +111,15 @@ def _resolve(args) -> tuple[Path | None, str]:
         if not path.is_file():
             raise DVRInputError(f"{volume}: no such volume file")
         return path.parent, path.name
+    if path.is_file() and (path.is_absolute() or not (data_dir / volume).is_file()):
+        # a path to the file (absolute, or from here): it must lie in the data folder
+        try:
+            return data_dir, path.resolve().relative_to(data_dir.resolve()).as_posix()
+        except ValueError:
+            raise DVRInputError(
+                f"{volume}: not inside --data-dir {data_dir} (the app opens only the files "
+                "of its data folder; give the file's name there, or omit --data-dir)"
+            ) from None
     if not (data_dir / volume).is_file():
         raise DVRInputError(f"{volume}: no such file in --data-dir {data_dir}")
     return data_dir, volume

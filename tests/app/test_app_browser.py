@@ -890,12 +890,22 @@ def test_upload_of_a_volume_shows_it(page, server):
     page.wait_for_selector("#measuring", state="hidden")
     assert _wait_value(page, "E_v") >= 0.0
     assert "small.nrrd" in page.inner_text("header")
-    # a file without orientation: the Data screen's Orientation field re-orders it
+    # a file without orientation: the Data screen's Orientation field re-orders it, and the
+    # anterior view on screen turns the right way round (the volume is not symmetric in z)
+    page.click("#view-anterior")
+    page.wait_for_function(
+        "() => document.querySelector('#measured-for')?.innerText.includes('(anterior')"
+    )
+    page.wait_for_selector("#measuring", state="hidden")
+    page.wait_for_timeout(1000)  # the image at rest (and its repeated push)
+    before = _view_image(page)
     page.locator(".v-select:has(#orientation-select)").click()
     page.get_by_role("option", name=re.compile(r"^LPI:")).click()
     page.wait_for_function(  # re-ordered by the server and measured again
         "() => document.querySelector('#measured-for')?.innerText.includes('orientation LPI')"
     )
+    after = _wait_image_change(page, before, part=_middle, min_change=0.005)
+    assert np.abs(_middle(after) - _middle(before)).mean() > 0.005
     assert _wait_value(page, "E_v") >= 0.0
     assert page.locator("#error-message").count() == 0
     assert server["proc"].poll() is None
