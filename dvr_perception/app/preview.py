@@ -33,17 +33,13 @@ def preview_volume(volume, *, max_dim: int = PREVIEW_DIM):
     >>> small.data.shape, small.spacing
     ((44, 7, 22), (3.0, 3.0, 3.0))
     """
-    from dvr_perception.volume import Volume
-
     step = max(1, -(-max(volume.data.shape) // int(max_dim)))
     if step == 1:
         return volume
     data = np.ascontiguousarray(volume.data[::step, ::step, ::step])
     spacing = tuple(float(s) * step for s in volume.spacing)
-    # the same grid, strided: the first voxel (origin), the axes and the orientation stay
-    return Volume(data, spacing=spacing, origin=volume.origin, name=volume.name,
-                  source=volume.source, direction=volume.direction,
-                  oriented=volume.oriented)  # fmt: skip
+    # the same grid, strided: every other field (origin, axes, orientation) stays
+    return replace(volume, data=data, spacing=spacing, labels=None)
 
 
 class Preview:
