@@ -40,8 +40,9 @@ cleanup() {
 }
 trap cleanup EXIT
 
-# a private X server; -displayfd picks a free display number
-Xvfb -displayfd 3 -screen 0 "${SCREEN}x24" -nolisten tcp 3>"$work/display" 2>"$work/xvfb.log" &
+# a private X server; -displayfd picks a free display number; -noreset: a server that resets
+# when its last client leaves refuses the clients connecting meanwhile
+Xvfb -displayfd 3 -screen 0 "${SCREEN}x24" -nolisten tcp -noreset 3>"$work/display" 2>"$work/xvfb.log" &
 xvfb_pid=$!
 for _ in $(seq 100); do [ -s "$work/display" ] && break; sleep 0.1; done
 export DISPLAY=":$(head -n1 "$work/display")"

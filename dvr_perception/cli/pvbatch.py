@@ -33,7 +33,6 @@ import re
 import shutil
 import subprocess
 import sys
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +40,7 @@ import numpy as np
 from dvr_perception import _paraview_compat
 from dvr_perception._files import output_folder
 from dvr_perception.cli._common import PROG, add_scene_args, emit_json, log, parse_size
+from dvr_perception.cli.xdisplay import display_answers, virtual_display
 from dvr_perception.errors import DVRInputError
 from dvr_perception.rays.camera import parse_patient_view
 
@@ -166,43 +166,6 @@ def paraview_env(display: str | None = None, base: dict | None = None) -> dict:
     if display is not None:
         env["DISPLAY"] = display
     return env
-
-
-@contextmanager
-def virtual_display():
-    """Yield an X display for ParaView: ``$DISPLAY``, else a private Xvfb server for the block.
-
-    Xvfb picks a free display number itself (``-displayfd``), so concurrent runs never race
-    for one (``xvfb-run -a`` can).
-    """
-    if os.environ.get("DISPLAY"):
-        yield os.environ["DISPLAY"]
-        return
-    xvfb = shutil.which("Xvfb")
-    if xvfb is None:
-        raise DVRInputError("no DISPLAY and Xvfb is not installed (apt-get install xvfb)")
-    read_fd, write_fd = os.pipe()
-    cmd = [xvfb, "-displayfd", str(write_fd), "-screen", "0", "1280x1024x24", "-nolisten", "tcp"]
-    proc = subprocess.Popen(
-        cmd, pass_fds=(write_fd,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
-    os.close(write_fd)
-    try:
-        number = b""
-        while not number.endswith(b"\n"):
-            chunk = os.read(read_fd, 16)
-            if not chunk:
-                raise DVRInputError(f"Xvfb exited before opening a display ({' '.join(cmd)})")
-            number += chunk
-        yield f":{number.decode().strip()}"
-    finally:
-        os.close(read_fd)
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 def mpi_command(ranks: int, pvbatch: Path, env: dict) -> list[str]:
@@ -396,14 +359,19 @@ def _launch(args: argparse.Namespace, pvbatch: Path) -> subprocess.CompletedProc
                 args.timeout,
                 what,
             )
+            x_abort = "bad X server connection" in (proc.stderr or "")
+            if x_abort:  # which of the two failed: the server, or ParaView's client
+                answers = display_answers(display)
+                log.warning("ParaView could not open display %s; the display %s a new client",
+                            display, "answers" if answers else "does not answer")  # fmt: skip
         # a signal (negative code; under mpiexec 128 + signal and ParaView's X message) is
-        # ParaView crashing, not our script's error: Debian's pvbatch has been seen to abort
-        # now and then at start-up ("bad X server connection", up to 1 launch in 5 on a busy
-        # machine); two fresh retries, then report it
-        crashed = proc.returncode < 0 or "bad X server connection" in (proc.stderr or "")
+        # ParaView crashing, not our script's error.  "bad X server connection" was mostly Xvfb
+        # resetting after a client left (now -noreset, see xdisplay); two retries on a fresh
+        # display remain as a safety net, then the crash is reported
+        crashed = proc.returncode < 0 or x_abort
         if not crashed or attempt == 3:
             break
-        log.warning("pvbatch crashed (exit %d); retrying", proc.returncode)
+        log.warning("pvbatch crashed (exit %d); retrying on a new display", proc.returncode)
     if args.verbose and proc.stderr:
         sys.stderr.write(proc.stderr)
     if proc.returncode != 0:

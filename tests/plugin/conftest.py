@@ -72,9 +72,10 @@ class ParaView:
     def call(cmd, **kwargs):
         """``subprocess.run(cmd, **kwargs)`` for pvpython/pvbatch, once more after an X crash.
 
-        Debian's ParaView 5.11 now and then aborts at start-up with "bad X server connection"
-        although the (private, running) Xvfb accepts other clients (about 1 launch in 20 here);
-        that abort is retried once, any other failure is returned as it is.
+        Debian's ParaView 5.11 aborts at start-up with "bad X server connection" when the X
+        server refuses it; a private Xvfb no longer resets between clients (``-noreset``, the
+        cause of about 1 abort in 20 launches), so this retry is only a safety net for a
+        ``$DISPLAY`` given from outside.  Any other failure is returned as it is.
         """
         proc = subprocess.run(cmd, **kwargs)
         text = f"{proc.stdout or ''}{proc.stderr or ''}"
