@@ -70,12 +70,12 @@ _OTHER_VOLUME = (
 
 
 def _header(path: Path) -> tuple[dict[str, str], dict[str, str]]:
-    from dvr_perception.volume.io import _nrrd_header
+    from dvr_perception.volume._nrrd import nrrd_header
 
     if not path.is_file():
         raise DVRInputError(f"{path}: segmentation file not found")
     keyvalues: dict[str, str] = {}
-    fields, _ = _nrrd_header(path, keyvalues)
+    fields, _ = nrrd_header(path, keyvalues)
     return fields, keyvalues
 
 
@@ -162,9 +162,9 @@ def read_segments(path) -> list[dict]:
         )
     if dim != "3":
         _fail(path, "dimension", f"expected 3, got {dim[:20]!r}")
-    from dvr_perception.volume.io import _NRRD_TYPES
+    from dvr_perception.volume._nrrd import NRRD_TYPES
 
-    code = _NRRD_TYPES.get(" ".join(fields.get("type", "").lower().split()), "")
+    code = NRRD_TYPES.get(" ".join(fields.get("type", "").lower().split()), "")
     if not code or code[0] not in "iu":
         _fail(
             path,
@@ -329,7 +329,7 @@ def spec_from_segmentation(path, volume=None, *, importance=None) -> StructureSp
 
 
 def _directions(fields: dict[str, str], path: Path) -> np.ndarray:
-    from dvr_perception.volume.io import _vector
+    from dvr_perception.volume._nrrd import nrrd_vector
 
     text = fields.get("space directions")
     if text is None:
@@ -339,7 +339,7 @@ def _directions(fields: dict[str, str], path: Path) -> np.ndarray:
         except ValueError:
             _fail(path, "spacings", "expected 3 numbers")
     vecs = re.findall(r"\(([^)]*)\)", text[:2000])
-    rows = [_vector(v, path, "space directions") for v in vecs]
+    rows = [nrrd_vector(v, path, "space directions") for v in vecs]
     if len(rows) != 3 or any(len(r) != 3 for r in rows):
         _fail(path, "space directions", "expected 3 vectors")
     return np.array(rows, float)
@@ -441,11 +441,11 @@ def write_segmentation(path, labels, segments, *, spacing=(1.0, 1.0, 1.0), origi
     """
     import gzip
 
-    from dvr_perception.volume.io import _NRRD_NAMES
+    from dvr_perception.volume._nrrd import NRRD_NAMES
 
     labels = np.ascontiguousarray(labels)
     code = labels.dtype.str[1:]
-    if code not in _NRRD_NAMES:
+    if code not in NRRD_NAMES:
         raise DVRInputError(f"{path}: cannot store dtype {labels.dtype}")
     z, y, x = labels.shape
     directions = " ".join(
@@ -454,7 +454,7 @@ def write_segmentation(path, labels, segments, *, spacing=(1.0, 1.0, 1.0), origi
     )
     lines = [
         "NRRD0004",
-        f"type: {_NRRD_NAMES[code]}",
+        f"type: {NRRD_NAMES[code]}",
         "dimension: 3",
         "space: left-posterior-superior",
         f"sizes: {x} {y} {z}",

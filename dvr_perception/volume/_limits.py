@@ -31,11 +31,13 @@ from dvr_perception.errors import DVRInputError
 
 __all__ = [
     "DATA_ROOTS_ENV",
+    "HEADER_MAX",
     "MAX_AXIS",
     "MAX_GZIP_RATIO",
     "MAX_SPACING",
     "MAX_TOKEN",
     "check_budget",
+    "check_size",
     "check_spacing",
     "data_roots",
     "parse_float",
@@ -57,6 +59,8 @@ MAX_SPACING = 1e6
 #: deflate cannot expand more than about 1032 : 1, so more from a gzip stream is impossible.
 MAX_GZIP_RATIO = 1100
 _CHUNK = 1 << 20
+#: Most bytes of a NRRD or MetaImage header read.
+HEADER_MAX = 65536
 
 
 def shown(text, limit: int = 60) -> str:
@@ -253,3 +257,16 @@ def read_compressed(src: Path, offset: int, expected: int, encoding: str, where)
             "header's sizes need (refused without decompressing further)"
         )
     return out
+
+
+def check_size(where, found: int, expected: int, dims) -> None:
+    """Refuse data of ``found`` bytes where the header's ``dims`` need ``expected``."""
+    if found < expected:
+        raise DVRInputError(
+            f"{where}: truncated: expected {expected} bytes, found {found} (dims {tuple(dims)})"
+        )
+    if found > expected:
+        raise DVRInputError(
+            f"{where}: size mismatch: dims {tuple(dims)} need {expected} bytes, found {found} "
+            "(wrong dims or dtype?)"
+        )

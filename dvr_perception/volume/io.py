@@ -4,8 +4,8 @@
 series) and :func:`save_volume` the writer.  Every failure is one
 :class:`~dvr_perception.errors.DVRInputError` that names the file.
 
-NRRD is parsed here (not with ``vtkNrrdReader``): VTK 9.x reads a first axis shorter than 10
-samples as vector components, whatever ``kinds`` says, which silently corrupts small volumes.
+NRRD is parsed and written by :mod:`dvr_perception.volume._nrrd` (not with ``vtkNrrdReader``,
+which reads a short first axis as vector components).
 Headerless raw files follow the shared-data naming ``NAME_XxYxZ_DTYPE.raw`` (little-endian,
 x fastest).  DICOM and MGZ go through pydicom and nibabel (:mod:`dvr_perception.volume.medical`,
 the ``medical`` extra), the other formats through VTK's readers and writers.
@@ -22,9 +22,7 @@ any data is read; compressed data is decompressed with a bound.
 
 from __future__ import annotations
 
-import contextlib
 import gzip
-import math
 import os
 import re
 import shutil
@@ -38,16 +36,17 @@ import numpy as np
 from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.volume._limits import (
-    MAX_TOKEN,
+    HEADER_MAX,
     check_budget,
     check_ratio,
+    check_size,
     check_spacing,
     parse_float,
     parse_int,
-    read_compressed,
     resolve_data_file,
     shown,
 )
+from dvr_perception.volume._nrrd import nrrd_axes, nrrd_header, nrrd_space, read_nrrd, write_nrrd
 from dvr_perception.volume._vtk_headers import check_legacy_vtk, check_vti
 from dvr_perception.volume.convert import from_vtk_image, to_vtk_image, vtk_errors
 from dvr_perception.volume.orient import from_axes, ras_to_lps
@@ -57,22 +56,6 @@ __all__ = ["header_axes", "load_volume", "save_volume"]
 
 RAW_DTYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
 _RAW_NAME = re.compile(r"^(?P<name>.+)_(?P<x>\d+)x(?P<y>\d+)x(?P<z>\d+)_(?P<dtype>\w+)\.raw$")
-_NRRD_ALIASES = {
-    "i1": ("signed char", "int8", "int8_t"),
-    "u1": ("uchar", "unsigned char", "uint8", "uint8_t"),
-    "i2": ("short", "short int", "signed short", "signed short int", "int16", "int16_t"),
-    "u2": ("ushort", "unsigned short", "unsigned short int", "uint16", "uint16_t"),
-    "i4": ("int", "signed int", "int32", "int32_t"),
-    "u4": ("uint", "unsigned int", "uint32", "uint32_t"),
-    "i8": ("longlong", "long long", "long long int", "signed long long", "int64", "int64_t"),
-    "u8": ("ulonglong", "unsigned long long", "unsigned long long int", "uint64", "uint64_t"),
-    "f4": ("float",),
-    "f8": ("double",),
-}
-_NRRD_TYPES = {alias: code for code, names in _NRRD_ALIASES.items() for alias in names}
-_NRRD_NAMES = {"i1": "int8", "u1": "uint8", "i2": "int16", "u2": "uint16", "i4": "int32"}
-_NRRD_NAMES |= {"u4": "uint32", "i8": "int64", "u8": "uint64", "f4": "float", "f8": "double"}
-_NRRD_ENCODINGS = {"raw": "raw", "gzip": "gzip", "gz": "gzip", "bzip2": "bzip2", "bz2": "bzip2"}
 _FORMATS = (".nhdr", ".nrrd", ".mha", ".mhd", ".vti", ".vtk", ".nii", ".nii.gz", ".mgz", ".mgh")
 _FORMATS += (".dcm", ".raw")
 _META_DIRECTIONS = ("transformmatrix", "rotation", "orientation")
@@ -155,7 +138,7 @@ def load_volume(path, *, name: str | None = None, series: str | None = None) -> 
         raise DVRInputError(f"{path}: the file is empty (0 bytes)")
     oriented = True  # whether the file records the patient orientation
     if ext in (".nhdr", ".nrrd"):
-        data, axes, origin, oriented = _read_nrrd(path)
+        data, axes, origin, oriented = read_nrrd(path)
     elif ext == ".raw":
         data, axes, origin = _read_raw(path), np.eye(3), (0.0, 0.0, 0.0)
         oriented = False
@@ -215,9 +198,9 @@ def header_axes(path) -> np.ndarray | None:
     path = Path(os.fspath(path))
     ext = "" if path.is_dir() else _ext(path)
     if ext in (".nhdr", ".nrrd"):
-        fields, _ = _nrrd_header(path)
-        axes = _nrrd_axes(fields, path)
-        space = _nrrd_space(fields, path)
+        fields, _ = nrrd_header(path)
+        axes = nrrd_axes(fields, path)
+        space = nrrd_space(fields, path)
         if space == "ras":
             axes, _ = ras_to_lps(axes, np.zeros(3))
         elif space == "las":
@@ -366,211 +349,8 @@ def _read_raw(path: Path) -> np.ndarray:
     if 0 in dims:
         raise DVRInputError(f"{path}: the volume is empty (dims {dims} in the file name)")
     dt = np.dtype(dtype).newbyteorder("<")
-    _check_size(path, path.stat().st_size, check_budget(path, dims, dt, "file name"), dims)
+    check_size(path, path.stat().st_size, check_budget(path, dims, dt, "file name"), dims)
     return np.fromfile(path, dtype=dt).reshape(dims[::-1]).astype(dt.newbyteorder("="))
-
-
-def _check_size(path, found: int, expected: int, dims) -> None:
-    if found < expected:
-        raise DVRInputError(
-            f"{path}: truncated: expected {expected} bytes, found {found} (dims {tuple(dims)})"
-        )
-    if found > expected:
-        raise DVRInputError(
-            f"{path}: size mismatch: dims {tuple(dims)} need {expected} bytes, found {found} "
-            "(wrong dims or dtype?)"
-        )
-
-
-_HEADER_MAX = 65536
-
-
-def _nrrd_header(path: Path, keyvalues: dict[str, str] | None = None) -> tuple[dict[str, str], int]:
-    """Return the NRRD header's fields (keys lower case) and the data offset.
-
-    ``key:=value`` lines are skipped, or collected into ``keyvalues`` (keys as written, values
-    decoded as UTF-8 where they are valid UTF-8) when a dict is given.
-    """
-    with open(path, "rb") as f:
-        head = f.read(_HEADER_MAX)
-    if not head.startswith(b"NRRD000"):
-        raise DVRInputError(f"{path}: not a NRRD file (missing the 'NRRD000X' magic line)")
-    fields: dict[str, str] = {}
-    offset = head.index(b"\n") + 1 if b"\n" in head else len(head)
-    ended = False
-    for raw in head[offset:].split(b"\n"):
-        if offset + len(raw) >= len(head) and len(head) == _HEADER_MAX:
-            break  # the last, possibly cut, line of a full buffer
-        offset += len(raw) + 1
-        line = raw.decode("latin-1").rstrip("\r")
-        if not line.strip():
-            ended = True
-            break  # blank line: end of an attached header
-        if line.startswith("#"):
-            continue
-        if ":=" in line:
-            if keyvalues is not None:
-                key, _, value = line.partition(":=")
-                with contextlib.suppress(UnicodeDecodeError):
-                    value = value.encode("latin-1").decode("utf-8")
-                keyvalues[key] = value
-            continue
-        key, sep, value = line.partition(": ")
-        if not sep:
-            raise DVRInputError(f"{path}: malformed NRRD header line {shown(line)}")
-        fields[key.strip().lower()] = value.strip()
-    if not ended and len(head) == _HEADER_MAX:
-        raise DVRInputError(
-            f"{path}: the NRRD header is longer than {_HEADER_MAX} bytes (no blank line ends it)"
-        )
-    return fields, min(offset, len(head))
-
-
-def _vector(text: str, path: Path, field: str) -> tuple[float, ...]:
-    return tuple(parse_float(v, path, field) for v in text.strip().strip("()").split(","))
-
-
-def _read_nrrd(path: Path):
-    fields, offset = _nrrd_header(path)
-
-    def need(key: str) -> str:
-        if key not in fields:
-            raise DVRInputError(f"{path}: NRRD header has no {key!r} field")
-        return fields[key]
-
-    dtype = _NRRD_TYPES.get(" ".join(need("type").lower().split()))
-    if dtype is None:
-        raise DVRInputError(
-            f"{path}: NRRD field 'type': unsupported type {shown(fields['type'])}; expected an "
-            "integer or float scalar type"
-        )
-    if need("dimension") != "3":
-        raise DVRInputError(
-            f"{path}: NRRD field 'dimension': expected 3, got {shown(fields['dimension'])}"
-        )
-    tokens = need("sizes").split()
-    if len(tokens) != 3 or not all(t.isdigit() or len(t) > MAX_TOKEN for t in tokens):
-        raise DVRInputError(
-            f"{path}: NRRD field 'sizes': expected 3 integers, got {shown(fields['sizes'])}"
-        )
-    dims = tuple(parse_int(s, path, "sizes", lo=0) for s in tokens)
-    if 0 in dims:
-        raise DVRInputError(f"{path}: the volume is empty (NRRD sizes {dims})")
-    encoding = _NRRD_ENCODINGS.get(need("encoding").lower())
-    if encoding is None:
-        raise DVRInputError(
-            f"{path}: NRRD encoding {shown(fields['encoding'])} is not supported; expected raw, "
-            "gzip or bzip2"
-        )
-    for key in ("line skip", "byte skip"):
-        if fields.get(key, "0").strip() != "0":
-            raise DVRInputError(f"{path}: NRRD field {key!r} is not supported (must be 0)")
-    endian = "<" if fields.get("endian", "little").lower() == "little" else ">"
-    dt = np.dtype(endian + dtype)
-    axes, origin = _nrrd_axes(fields, path), _nrrd_origin(fields, path)
-    if _nrrd_space(fields, path) == "ras":
-        axes, origin = ras_to_lps(axes, origin)
-    elif _nrrd_space(fields, path) == "las":
-        axes, origin = axes * [[-1.0], [1.0], [1.0]], np.multiply(origin, [-1.0, 1.0, 1.0])
-    expected = check_budget(path, dims, dt)
-    data_file = fields.get("data file", fields.get("datafile"))
-    if data_file is not None:
-        if data_file.split()[:1] == ["LIST"] or "%" in data_file:
-            raise DVRInputError(f"{path}: NRRD multi-file 'data file' lists are not supported")
-        src = resolve_data_file(path, data_file, "data file")
-        where, offset = f"{path} (data file {src.name})", 0
-    else:
-        src, where = path, str(path)
-    if encoding == "raw":
-        _check_size(where, src.stat().st_size - offset, expected, dims)
-        with open(src, "rb") as f:
-            f.seek(offset)
-            data = np.fromfile(f, dtype=dt, count=math.prod(dims))
-        _check_size(where, data.nbytes, expected, dims)  # the file shrank while being read
-    else:
-        data = read_compressed(src, offset, expected, encoding, where).view(dt)
-    data = data.reshape(dims[::-1])
-    if not dt.isnative:
-        data = data.astype(dt.newbyteorder("="))
-    return data, axes, origin, _nrrd_oriented(fields)
-
-
-_NRRD_SPACES = {
-    "left-posterior-superior": "lps",
-    "lps": "lps",
-    "right-anterior-superior": "ras",
-    "ras": "ras",
-    "left-anterior-superior": "las",
-    "las": "las",
-    "scanner-xyz": "lps",
-    "3d-right-handed": "lps",
-}
-
-
-def _nrrd_oriented(fields: dict[str, str]) -> bool:
-    """Whether a NRRD header names a patient space (``space``, not a bare ``3D-right-handed``).
-
-    Without it (only ``spacings``, or ``space dimension`` with ``space directions``) the
-    axes are taken as L, P, S, which is a guess.
-    """
-    space = fields.get("space", "").strip().lower()
-    return space in _NRRD_SPACES and space != "3d-right-handed"
-
-
-def _nrrd_space(fields: dict[str, str], path: Path) -> str:
-    """Return the NRRD ``space`` as ``"lps"``, ``"ras"`` or ``"las"`` (LPS when absent)."""
-    if "space" not in fields:
-        return "lps"
-    got = _NRRD_SPACES.get(fields["space"].strip().lower())
-    if got is None:
-        raise DVRInputError(
-            f"{path}: NRRD field 'space': {shown(fields['space'])} is not supported; expected "
-            "one of left-posterior-superior, right-anterior-superior, left-anterior-superior, "
-            "scanner-xyz, 3D-right-handed"
-        )
-    return got
-
-
-def _nrrd_axes(fields: dict[str, str], path: Path) -> np.ndarray:
-    """Columns: the world vector of one step along index x, y, z (``space directions``)."""
-    if "space directions" in fields:
-        text = fields["space directions"]
-        if len(text) > 8 * MAX_TOKEN:
-            raise DVRInputError(f"{path}: NRRD field 'space directions' is too long")
-        vecs = re.findall(r"\(([^)]*)\)|none", text)
-        rows = [_vector(v, path, "space directions") for v in vecs if v]
-        if len(rows) != 3 or any(len(r) != 3 for r in rows):
-            raise DVRInputError(f"{path}: NRRD field 'space directions': expected 3 vectors")
-        mat = np.array(rows)
-        with np.errstate(over="ignore"):
-            lengths = np.linalg.norm(mat, axis=1)
-        check_spacing(lengths, path, "space directions")
-        return mat.T
-    return np.diag(_nrrd_spacing(fields, path))
-
-
-def _nrrd_spacing(fields: dict[str, str], path: Path) -> tuple[float, float, float]:
-    if "spacings" in fields:
-        vals = fields["spacings"].split()
-        if len(vals) != 3:
-            raise DVRInputError(
-                f"{path}: NRRD field 'spacings': expected 3 values, got {shown(fields['spacings'])}"
-            )
-        out = [parse_float(v, path, "spacings") if v.lower() != "nan" else 1.0 for v in vals]
-        return check_spacing(out, path, "spacings")
-    return (1.0, 1.0, 1.0)
-
-
-def _nrrd_origin(fields: dict[str, str], path: Path) -> tuple[float, float, float]:
-    if "space origin" not in fields:
-        return (0.0, 0.0, 0.0)
-    text = fields["space origin"]
-    if len(text) > 4 * MAX_TOKEN:
-        raise DVRInputError(f"{path}: NRRD field 'space origin' is too long")
-    org = _vector(text, path, "space origin")
-    if len(org) != 3:
-        raise DVRInputError(f"{path}: NRRD field 'space origin': expected 3 numbers, got {org}")
-    return org  # type: ignore[return-value]
 
 
 _META_TYPES = {
@@ -583,12 +363,12 @@ _META_TYPES = {
 def _meta_header(path: Path) -> tuple[dict[str, str], int]:
     """Return the MetaImage header's fields (keys lower case) and the data offset."""
     with open(path, "rb") as f:
-        head = f.read(_HEADER_MAX)
+        head = f.read(HEADER_MAX)
     fields: dict[str, str] = {}
     offset = 0
     for raw in head.split(b"\n"):
-        if offset + len(raw) >= len(head) and len(head) == _HEADER_MAX:
-            raise DVRInputError(f"{path}: the MetaImage header is longer than {_HEADER_MAX} bytes")
+        if offset + len(raw) >= len(head) and len(head) == HEADER_MAX:
+            raise DVRInputError(f"{path}: the MetaImage header is longer than {HEADER_MAX} bytes")
         offset += len(raw) + 1
         line = raw.decode("latin-1").strip()
         if not line:
@@ -734,7 +514,7 @@ def save_volume(volume: Volume, path) -> None:
 
 def _write(volume: Volume, target: Path, ext: str) -> list[Path]:
     if ext in (".nhdr", ".nrrd"):
-        return _write_nrrd(volume, target, detached=ext == ".nhdr")
+        return write_nrrd(volume, target, detached=ext == ".nhdr")
     if volume.oblique and ext in (".mha", ".mhd", ".vtk"):
         raise DVRInputError(
             f"{target.name}: this format would lose the volume's oblique direction; write "
@@ -782,38 +562,3 @@ def _nifti_matrix(writer, volume: Volume) -> None:
         m.SetElement(i, 3, shift[i])
     writer.SetQFormMatrix(m)
     writer.SetSFormMatrix(m)
-
-
-def _write_nrrd(volume: Volume, target: Path, *, detached: bool) -> list[Path]:
-    data = volume.data
-    code = data.dtype.str[1:]
-    if code not in _NRRD_NAMES:
-        raise DVRInputError(f"{target.name}: NRRD cannot store dtype {data.dtype}")
-    x, y, z = volume.dims
-    lines = [
-        "NRRD0004",
-        "# written by dvr_perception",
-        f"type: {_NRRD_NAMES[code]}",
-        "dimension: 3",
-        f"sizes: {x} {y} {z}",
-        "kinds: domain domain domain",
-        # no patient space for a volume whose file recorded none (read back as not oriented)
-        "space: left-posterior-superior" if volume.oriented else "space dimension: 3",
-        "space directions: "
-        + " ".join(
-            "(" + ",".join(repr(float(v)) for v in np.asarray(volume.direction)[:, i] * s) + ")"
-            for i, s in enumerate(volume.spacing)
-        ),
-        "space origin: (" + ",".join(repr(o) for o in volume.origin) + ")",
-        "endian: little",
-        "encoding: raw",
-    ]
-    payload = np.ascontiguousarray(data, dtype=data.dtype.newbyteorder("<")).tobytes()
-    if not detached:
-        target.write_bytes(("\n".join(lines) + "\n\n").encode("ascii") + payload)
-        return [target]
-    stem = target.name[: -len(".nhdr")]
-    raw = target.with_name(f"{stem}_{x}x{y}x{z}_{data.dtype.name}.raw")
-    raw.write_bytes(payload)
-    target.write_text("\n".join([*lines, f"data file: {raw.name}"]) + "\n", encoding="ascii")
-    return [raw, target]
