@@ -31,7 +31,7 @@ __all__ = ["display_answers", "virtual_display"]
 DISPLAY_RANGE = (200, 30000)
 #: Servers started before giving up (a number in use makes Xvfb exit at once).
 START_ATTEMPTS = 8
-#: Seconds Xvfb may take to report its display.
+#: Seconds a new Xvfb may take to answer a connection set-up.
 START_TIMEOUT = 30.0
 #: ``-noreset``: by default an X server resets when its last client disconnects and refuses
 #: the clients that connect meanwhile (measured here: 1-2 in 100 connections made right after
