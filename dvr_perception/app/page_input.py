@@ -571,7 +571,6 @@ TRIGGERS: dict[str, Args] = {
     ),
     "cancel": Args(),
     "export": Args(),
-    "measure_view": Args(),
     "lens_keep": Args(),
     "lens_undo": Args(),
     "clear_lens": Args(),
