@@ -48,6 +48,9 @@ NAME_CHARS = 255
 BANNER_CHARS = 1000
 #: Farthest a camera may be from the volume's centre, in volume diagonals.
 CAMERA_DIAGONALS = 1000.0
+#: Largest fraction of the view (or chart) a lens or a dropped handle may reach: the pointer
+#: may leave the view while it draws (the handlers clamp what lies outside).
+FRACTION_SPAN = 10.0
 #: Most items in a list the page sends (the ranking order).
 LIST_ITEMS = 16
 #: Most keys in a dict the page sends (a lens, a camera, a dropped handle, an upload).
@@ -329,7 +332,8 @@ class Lens(Rule):
 
     expected = (
         "nothing, {shape: 'rect', x0, y0, x1, y1} or {shape: 'circle', x0, y0, r} (fractions "
-        "of the view from -1 to 2; r from 0 to 3), with the view's w and h in pixels"
+        f"of the view from {-FRACTION_SPAN:g} to {FRACTION_SPAN:g}; r from 0 to "
+        f"{FRACTION_SPAN:g}), with the view's w and h in pixels"
     )
 
     def check(self, value, ctx):
@@ -337,10 +341,10 @@ class Lens(Rule):
             return None
         if not isinstance(value, dict):
             self.refuse(value)
-        frac = Number(-1.0, 2.0)
+        frac = Number(-FRACTION_SPAN, FRACTION_SPAN)
         fields = {"shape": Choice(("rect", "circle")), "x0": frac, "y0": frac}
         if value.get("shape") == "circle":
-            fields["r"] = Number(0.0, 3.0)
+            fields["r"] = Number(0.0, FRACTION_SPAN)
         else:
             fields["x1"] = frac
             fields["y1"] = frac
@@ -469,7 +473,7 @@ class Args:
                 f"argument{'' if hi == 1 else 's'}, got {len(args) + len(kwargs)}"
             )
         if self.whole is not None:
-            self.whole.label = name
+            self.whole.label = self.whole.label or name
             return self.whole.check(list(args), ctx)
         out = []
         for k, (rule, value) in enumerate(zip(self.rules, args, strict=False)):
@@ -546,8 +550,8 @@ STATE: dict[str, Rule] = {
                     {
                         "index": StructureIndex(),
                         "kind": Choice(("lo", "hi", "opacity")),
-                        "fx": Number(-1.0, 2.0),
-                        "fy": Number(-1.0, 2.0),
+                        "fx": Number(-FRACTION_SPAN, FRACTION_SPAN),
+                        "fy": Number(-FRACTION_SPAN, FRACTION_SPAN),
                     }
                 )
             ),
@@ -651,16 +655,18 @@ class PageInputGuard:
         return kept, reasons, names
 
     def check_trigger(self, fn, args, kwargs):
-        """Return the checked arguments for the page handler ``fn``, or refuse them."""
+        """Return the checked ``(args, kwargs)`` for the page handler ``fn``, or refuse them."""
+        args = [] if args is None else args
+        kwargs = {} if kwargs is None else kwargs
         if not isinstance(args, list) or not isinstance(kwargs, dict):
             raise Refused("page action: malformed arguments")
         if getattr(fn, "__self__", None) is not self.app:
-            return args  # not one of the app's handlers (a widget's own)
+            return args, kwargs  # not one of the app's handlers (a widget's own)
         name = getattr(fn, "__name__", "")
         spec = TRIGGERS.get(name)
         if spec is None:
             raise Refused(f"page action {name}: not an action of the page")
-        return spec.check(name, args, kwargs, self.app)
+        return spec.check(name, args, kwargs, self.app), {}
 
     def refused(self, reasons: list[str], names=()) -> None:
         """Show ``reasons`` as one message, log one line, give every tab the server's values."""
@@ -701,11 +707,11 @@ class PageInputGuard:
                 guard.refused([f"page action {_shown(name)}: no such action"])
                 return None
             try:
-                args = guard.check_trigger(fn, args, kwargs)
+                args, kwargs = guard.check_trigger(fn, args, kwargs)
             except Refused as exc:
                 guard.refused([str(exc)])
                 return None
-            return await trigger(obj, name, args, {})
+            return await trigger(obj, name, args, kwargs)
 
         def checked_lifecycle(obj, name):
             if name not in LIFECYCLE:
