@@ -245,6 +245,21 @@ class Text(Rule):
         return value
 
 
+class RankingImage(Rule):
+    """The id of one of the ranking task's images (``img1`` ...; those shown, once shown)."""
+
+    expected = "the id of a ranking image (img1, img2, ...)"
+    _ID = re.compile(r"img[0-9]{1,2}")
+
+    def check(self, value, ctx):
+        if not isinstance(value, str) or not self._ID.fullmatch(value):
+            self.refuse(value)
+        ranking = getattr(ctx, "ranking", None)
+        if ranking is not None and value not in ranking.ids:
+            self.refuse(value, "the id of an image shown: " + ", ".join(ranking.ids))
+        return value
+
+
 class Colour(Rule):
     """A colour ``#rrggbb`` (what the page's colour field sends)."""
 
@@ -541,7 +556,7 @@ STATE: dict[str, Rule] = {
         ("use_calibration", "use calibration", Flag()),
         ("cal_rating", "rating", Number(0.0, 1.0)),
         ("rank_structure", "ranking structure", StructureIndex()),
-        ("rank_order", "ranking order", ListOf(Number(0, 99, integer=True))),
+        ("rank_order", "ranking order", ListOf(RankingImage())),
         (
             "tf_edit",
             "transfer-function edit",
@@ -583,9 +598,7 @@ TRIGGERS: dict[str, Args] = {
     "rate_stimulus": Args(Maybe(Number(0.0, 1.0, label="rating")), optional=1),
     "load_calibration_file": Args(),
     "new_ranking": Args(),
-    "save_ranking": Args(
-        Maybe(ListOf(Number(0, 99, integer=True), label="ranking order")), optional=1
-    ),
+    "save_ranking": Args(Maybe(ListOf(RankingImage(), label="ranking order")), optional=1),
     "preview_start": Args(),
     "local_camera": Args(Camera("camera")),
     "view_axis": Args(Choice(_axes(), "view direction")),

@@ -18,13 +18,16 @@ that server before it starts (trame's ``on_server_bind``):
 * a whole message must be a well-formed wslink call (a map with a text ``id``, a text
   ``method``, a list ``args`` and a map ``kwargs`` that fit the method's parameters); any other
   is refused quietly (:func:`message_problem`): one log line and an error reply, the client
-  stays connected.  What the page's calls carry is checked by
+  stays connected.  wslink's ``application.exit`` calls (no page makes them) are refused the
+  same way, and a call that fails in the server is one log line, never a traceback (nor a
+  trace sent to the client).  What the page's calls carry is checked by
   :mod:`dvr_perception.app.page_input`.
 """
 
 from __future__ import annotations
 
 import asyncio
+import functools
 import hmac
 import inspect
 import logging
@@ -58,6 +61,10 @@ _HEADER = struct.Struct("<III")
 #: Hosts the loopback server answers to (anything else is a DNS-rebinding attempt).
 #: wslink's (JSON-RPC's) error code of a malformed call.
 INVALID_REQUEST = -32600
+#: wslink calls no page makes that would stop the server for every user.
+REFUSED_METHODS = frozenset({"application.exit", "application.exit.later"})
+#: Longest text of a page's script error written to the log.
+CLIENT_ERROR_CHARS = 300
 _LOOPBACK = frozenset({"127.0.0.1", "localhost", "::1"})
 _ANY_HOST = frozenset({"", "0.0.0.0", "::"})
 
@@ -219,6 +226,8 @@ def message_problem(rpc, functions=None) -> str | None:
         return f"{method}: arguments that are no list"
     if not isinstance(kwargs, dict) or not all(isinstance(k, str) for k in kwargs):
         return f"{method}: keyword arguments that are no map of names"
+    if method in REFUSED_METHODS:
+        return f"{method}: not a call of the page"
     entry = (functions or {}).get(method)
     if entry is not None:
         try:
@@ -245,6 +254,55 @@ def _checked_messages(handler):
         return None
 
     return on_complete
+
+
+def _quiet_call(method: str, func):
+    """Wrap one of wslink's call functions: an exception is one log line, the answer ``None``.
+
+    wslink would log the exception as a traceback and send that trace to the client; a call
+    whose arguments make the server fail is the client's fault (the page's own calls are
+    checked by :mod:`dvr_perception.app.page_input`), so it costs one warning line (the
+    traceback only at debug level).
+    """
+
+    def failed(exc: Exception) -> None:
+        text = " ".join(str(exc).split())[:200]
+        log.warning("websocket call %s refused: %s: %s", method, type(exc).__name__, text)
+        log.debug("websocket call %s failed", method, exc_info=exc)
+
+    if inspect.iscoroutinefunction(func):
+
+        @functools.wraps(func)
+        async def call_async(obj, *args, **kwargs):
+            try:
+                return await func(obj, *args, **kwargs)
+            except Exception as exc:
+                failed(exc)
+                return None
+
+        return call_async
+
+    @functools.wraps(func)
+    def call(obj, *args, **kwargs):
+        try:
+            return func(obj, *args, **kwargs)
+        except Exception as exc:
+            failed(exc)
+            return None
+
+    return call
+
+
+def _one_line_client_error(func):
+    """Wrap ``trame.error.client``: the page's script error is logged as one short line."""
+
+    @functools.wraps(func)
+    def client_error(obj, message):
+        text = " ".join(str(message).split())
+        text = "".join(c if c.isprintable() else "?" for c in text)[:CLIENT_ERROR_CHARS]
+        return func(obj, text)
+
+    return client_error
 
 
 class ConnectionGuard:
@@ -355,6 +413,12 @@ class ConnectionGuard:
                 msg = "wslink handler without 'onCompleteMessage': cannot check messages"
                 raise RuntimeError(msg)
             handler.onCompleteMessage = _checked_messages(handler)
+            calls = handler.functionMap
+            if "trame.error.client" in calls:
+                obj, func = calls["trame.error.client"]
+                calls["trame.error.client"] = (obj, _one_line_client_error(func))
+            for method, (obj, func) in list(calls.items()):
+                calls[method] = (obj, _quiet_call(method, func))
         protocol.updateSecret(self.token)
 
 

@@ -50,7 +50,7 @@ STATE_CASES = {
     "use_calibration": ("true", 5, True),
     "cal_rating": ("0.5", NAN, 0.3),
     "rank_structure": ("0", 10**6, 1),
-    "rank_order": ("0 1", list(range(1000)), [0, 1]),
+    "rank_order": ("img1 img2", [f"img{k}" for k in range(1000)], ["img1", "img2"]),
     "tf_edit": (
         "drag",
         {"index": 0, "kind": "lo", "fx": HUGE, "fy": 0.5},
@@ -72,7 +72,7 @@ TRIGGER_CASES = {
     "optimise": ([["opacity"]], ["../../etc"]),
     "set_lens_target": ([0, "vis", "x"], [0, "vis", HUGE]),
     "rate_stimulus": (["a"], [float("inf")]),
-    "save_ranking": (["0 1 2"], [list(range(100))]),
+    "save_ranking": ([[1, 2, 3]], [["../../etc"]]),
     "local_camera": (
         ["camera"],
         [{"position": [HUGE, 0, 0], "focalPoint": [0, 0, 0], "viewUp": [0, 1, 0]}],
@@ -310,6 +310,14 @@ def test_the_wrong_types_the_issue_names(server, what, name, args, says):
         ({"id": "rpc:c0:908", "method": "trame.trigger", "args": ["nope", [], {}]}, False),
         ([1, 2, 3], False),
         (7, False),
+        ({"id": "rpc:c0:909", "method": "application.exit", "args": []}, True),  # stops the server
+        ({"id": "rpc:c0:910", "method": "application.exit.later", "args": [0]}, True),
+        ({"id": "rpc:c0:911", "method": "viewport.image.push", "args": ["bad"]}, False),
+        ({"id": "rpc:c0:912", "method": "trame.force.push", "args": [[1]]}, False),
+        (
+            {"id": "rpc:c0:913", "method": "trame.error.client", "args": ["a\nline two\x1b[31m"]},
+            False,
+        ),
     ],
 )
 def test_a_malformed_message_is_refused_quietly_and_the_client_stays(
@@ -353,8 +361,10 @@ def test_the_log_has_no_traceback_and_the_app_still_works(server):
     assert st["measured_key"] == st["now_key"]
     assert server["proc"].poll() is None
     log = server["log"].read_text()
-    for bad in ("Traceback", "Exception raised", "unexpected ", "measuring failed"):
+    for bad in ("Traceback", "Exception raised", "unexpected ", "measuring failed", "\x1b"):
         assert bad not in log, log[-3000:]
+    assert "SIGTERM" not in log  # application.exit did not stop it
+    assert "websocket call viewport.image.push refused: TypeError" in log
     refusals = [line for line in log.splitlines() if "refused" in line]
     assert len(refusals) >= 2 * len(STATE) + 2 * len(TRIGGER_CASES)
     assert all(line.startswith("dvr-perception: ") for line in refusals)
