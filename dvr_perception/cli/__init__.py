@@ -17,6 +17,7 @@ import sys
 import traceback
 import warnings
 
+from dvr_perception._files import Terminated, terminate_as_interrupt
 from dvr_perception.cli import (
     app,
     bench,
@@ -86,6 +87,7 @@ def _session(verbose: bool):
 def _ignore_sigint() -> None:
     with contextlib.suppress(ValueError):  # not the main thread
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def _error(message: str) -> None:
@@ -100,6 +102,10 @@ def _os_error_message(exc: OSError) -> str:
 
 def main(argv=None) -> int:
     """Run the command line; return the exit status (0 ok, 1 unexpected error, 2 bad input).
+
+    Ctrl-C returns 130 and SIGTERM 143 (128 + the signal number, as shells report a process
+    the signal ended), after the same clean-up: staged outputs, staging folders and locks are
+    removed, so nothing partial is left.
 
     Parameters
     ----------
@@ -120,7 +126,7 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
     verbose = "-v" in argv or "--verbose" in argv
-    with _session(verbose):
+    with _session(verbose), terminate_as_interrupt():
         try:
             args = build_parser().parse_args(argv)
             return int(args.run(args) or 0)
@@ -132,9 +138,12 @@ def main(argv=None) -> int:
         except OSError as exc:
             _error(_os_error_message(exc))
             return 2
-        except KeyboardInterrupt:
-            if not argv_given:  # the process's own entry: a further Ctrl-C cannot cut the exit
+        except KeyboardInterrupt as exc:
+            if not argv_given:  # the process's own entry: a further signal cannot cut the exit
                 _ignore_sigint()
+            if isinstance(exc, Terminated):  # SIGTERM: cleaned up as for Ctrl-C
+                _error("terminated")
+                return 128 + signal.SIGTERM
             _error("interrupted")
             return 130
         except Exception as exc:

@@ -113,13 +113,23 @@ def _relations(trans) -> list[dict]:
     ]
 
 
-def _notes(curvature: np.ndarray, vis, shp, trans) -> list[str]:
-    """Return the measures' notes, each prefixed with the measure it comes from."""
+def _notes(curvature, ray_curvature, vis, shp, trans) -> list[str]:
+    """Return the measures' notes, each prefixed with the measure it comes from.
+
+    ``curvature`` is what the analysis was given: the whole ``|H|`` volume, or a
+    :class:`~dvr_perception.rays.curvature_field.CurvatureField` (a bricked analysis, whose
+    whole volume is never held); ``ray_curvature`` the analysis' per-ray curvature image.
+    """
     notes = []
-    if not np.any(curvature > 0):
+    if isinstance(curvature, np.ndarray) and not np.any(curvature > 0):
         notes.append(
             "shape: the curvature volume is 0 everywhere (no curved structure boundary), so "
             "v_s = 0 and E_s measures only the image variation (silhouettes, shading)"
+        )
+    elif not np.any(np.asarray(ray_curvature) > 0):
+        notes.append(
+            "shape: no ray meets a curved structure boundary (the curvature is 0 on every "
+            "ray), so v_s = 0 and E_s measures only the image variation (silhouettes, shading)"
         )
     for measure, result in (("visibility", vis), ("shape", shp), ("transparency", trans)):
         notes.extend(f"{measure}: {note}" for note in result.notes)
@@ -241,7 +251,7 @@ def _run(args, scene, t_start: float, staged) -> int:
         "relations": _relations(trans),
         "regions": len(trans.regions),
         "undetermined": list(trans.undetermined),
-        "notes": _notes(curvature, vis, shp, trans),
+        "notes": _notes(curvature, result.curvature, vis, shp, trans),
         "seconds": None,
         "seconds_load": scene.load_s,
         "seconds_curvature": t_curv,
