@@ -31,6 +31,7 @@ from dvr_perception.cli import (
 )
 from dvr_perception.cli._common import PROG, CLIParser, common_parent
 from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.structures.spec import printable
 
 __all__ = ["build_parser", "main"]
 
@@ -51,10 +52,22 @@ def build_parser() -> CLIParser:
 
 
 def _one_line(text: str, longest: int = 160) -> str:
-    """Join ``text`` into one line and cut any word longer than ``longest`` characters."""
+    r"""Join ``text`` into one line, escape control characters, cut words over ``longest``.
+
+    Whatever a message quotes (a path, a header value, a name), nothing but printable text
+    reaches the terminal: ESC and the other non-printable characters are escaped.
+
+    Examples
+    --------
+    >>> print(_one_line("bad\nname 'a\x1b[2J'"))
+    bad name 'a\x1b[2J'
+    """
     words = str(text).split()
     return " ".join(
-        w if len(w) <= longest else f"{w[: longest - 20]}...({len(w)} characters)" for w in words
+        printable(w)
+        if len(w) <= longest
+        else f"{printable(w[: longest - 20], longest - 20)}...({len(w)} characters)"
+        for w in words
     )
 
 
