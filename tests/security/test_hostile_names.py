@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from dvr_perception.cli import _plots
 from dvr_perception.errors import DVRInputError, DVRWarning
@@ -83,6 +85,29 @@ def test_printable_escapes_and_cuts():
     assert printable("x" * 100, 10) == "x" * 9 + "…"
     assert printable("\x00" * 10**6, 12) == "\\x00\\x00\\x0…"
     assert printable("x" * 10**7, 40) == "x" * 39 + "…"
+
+
+@settings(max_examples=300, deadline=None, derandomize=True, database=None)
+@given(name=st.text(max_size=200), limit=st.integers(1, 80))
+def test_any_name_is_refused_or_printable_and_printable_always_prints(name, limit):
+    try:
+        spec = spec_from_dict(_spec(name), source="s.json")
+    except DVRInputError as exc:
+        message = str(exc)
+        spec = None
+    if spec is None:
+        assert message.startswith("s.json: structures[1].name"), message
+        assert _raw_control(message) == []
+    else:
+        got = spec.structures[1].name
+        assert got == name
+        assert got.isprintable()
+        assert len(got) <= MAX_NAME_LENGTH
+    shown = printable(name, limit)
+    assert shown.isprintable()
+    assert len(shown) <= limit
+    if name.isprintable() and len(name) <= limit:
+        assert shown == name
 
 
 # -- Slicer segmentations: sanitised -----------------------------------------------------------
