@@ -358,6 +358,8 @@ def run_job(cmd: list[str], env: dict, timeout: float, what: str) -> subprocess.
     except BaseException:  # Ctrl-C or SIGTERM: the job's own session would outlive us
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
+        for pipe in (proc.stdout, proc.stderr):
+            pipe.close()
         proc.wait()
         raise
     return subprocess.CompletedProcess(cmd, proc.returncode, out, err)

@@ -154,3 +154,31 @@ def test_sigterm_while_figures_are_written_leaves_all_files_or_none(cli, tmp_pat
         assert result.code == TERMINATED, (result.code, result.stderr)
     else:  # it finished before the signal came, or the signal came during the commit
         assert result.code in (0, TERMINATED, -signal.SIGTERM), (result.code, result.stderr)
+
+
+def _run_job_until_terminated(pidfile: Path) -> None:
+    import threading
+
+    from dvr_perception.cli.pvbatch import run_job
+
+    def terminate_when_started():
+        deadline = time.monotonic() + 30
+        while not pidfile.exists() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=terminate_when_started, daemon=True).start()
+    cmd = ["sh", "-c", f"echo $$ > {pidfile}.tmp && mv {pidfile}.tmp {pidfile} && sleep 60"]
+    run_job(cmd, dict(os.environ), 120, "job")
+
+
+def test_sigterm_kills_the_pvbatch_job_group(tmp_path):
+    """The job runs in a session of its own: SIGTERM to the command must not orphan it."""
+    pidfile = tmp_path / "pid"
+    t0 = time.monotonic()
+    with terminate_as_interrupt(), pytest.raises(Terminated):
+        _run_job_until_terminated(pidfile)
+    assert time.monotonic() - t0 < 30
+    pid = int(pidfile.read_text())
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)  # killed and reaped
