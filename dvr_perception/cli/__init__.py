@@ -78,11 +78,18 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
     print(f"{PROG}: warning: {text}", file=sys.stderr)
 
 
+class _PrintableFormatter(logging.Formatter):
+    """Log lines with non-printable characters escaped (a logged path cannot drive a terminal)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return "\n".join(printable(line) for line in super().format(record).splitlines())
+
+
 @contextlib.contextmanager
 def _session(verbose: bool):
     """Route logging to stderr and warnings to one-line messages for one CLI call."""
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter(f"{PROG}: %(message)s"))
+    handler.setFormatter(_PrintableFormatter(f"{PROG}: %(message)s"))
     logger = logging.getLogger("dvr_perception")
     old_level = logger.level
     logger.addHandler(handler)

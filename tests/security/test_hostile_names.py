@@ -206,6 +206,7 @@ def _cli_cases(root: Path) -> dict:
     run = root / "path"
     run.mkdir()
     cases["path"] = {"argv": ["measure", "vol\x1b[2J\x07.nhdr", "--size", "16"], "cwd": str(run)}
+    cases["path-verbose"] = {"argv": [*cases["path"]["argv"], "-v"], "cwd": str(run)}
     run = root / "slicer"
     run.mkdir()
     labels = np.zeros((12, 12, 12), np.uint8)
@@ -249,6 +250,13 @@ def test_control_characters_in_a_name_never_reach_the_terminal(cli_runs):
 def test_control_characters_in_a_path_are_escaped_in_errors(cli_runs):
     _, result = cli_runs["path"]
     result.one_error("vol\\x1b[2J\\x07.nhdr")
+    assert _raw_control(result.stderr + result.stdout) == []
+
+
+def test_control_characters_in_a_path_are_escaped_in_the_log(cli_runs):
+    _, result = cli_runs["path-verbose"]
+    assert result.code == 2
+    assert "dvr-perception: loading volume vol\\x1b[2J\\x07.nhdr" in result.stderr
     assert _raw_control(result.stderr + result.stdout) == []
 
 
