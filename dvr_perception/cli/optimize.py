@@ -523,6 +523,12 @@ def print_summary(report: dict, *, indent: str = "  ", verbose: bool = False) ->
         )
         print(f"{indent}mismatch with the intended picture (lower is better): {parts}; overall "
               f"{a['E']:.2f} -> {b['E']:.2f}")  # fmt: skip
+        if report.get("objective"):
+            judged = {
+                "mean": "the picture's mean mismatch",
+                "least_squares": "each pixel's mismatch, squared (least squares)",
+            }
+            print(f"{indent}judged by {judged.get(report['objective'], report['objective'])}")
         for s in report["stages"]:
             print(f"{indent}{_plain_stage(s)}")
     structures = report.get("structures", {})

@@ -159,7 +159,10 @@ def _opacity_reason(i, names, ops, before, after, target, links, covers, over) -
         else:
             text = f"lowered: {why}"
     if b < t - _NEAR and a > b + _NEAR:
-        text += f"; its share still rose to {_pct(a)} as what lies in front of it faded"
+        drop = ops[0] - ops[1]
+        front = any(covers[j, i] * drop[j] >= MIN_GAIN for j in range(len(names)) if j != i)
+        why = "what lies in front of it faded" if front else "the other changes left it more"
+        text += f"; its share still rose to {_pct(a)} as {why}"
     elif b < t - _NEAR and a < b - _NEAR:
         text += f"; its share fell to {_pct(a)}"
     return text

@@ -233,6 +233,11 @@ def test_least_squares_objective_reports_S_and_never_raises_it(capsys, tmp_path)
     out_dir = tmp_path / "ls"
     code, out, err = _run(capsys, [*argv, "--objective", "least_squares", "--out", str(out_dir)])
     assert code == 0, err
+    assert "judged by each pixel's mismatch, squared (least squares)" in out
+    assert not JARGON.search(out), out
+    code, out, err = _run(capsys, [*argv, "-v", "--objective", "least_squares", "--out",
+                                   str(tmp_path / "ls_v")])  # fmt: skip
+    assert code == 0, err
     assert "S (Eq. 13)" in out
     rep = json.loads((out_dir / "result.json").read_text())
     assert rep["objective"] == "least_squares"
