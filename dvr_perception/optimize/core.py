@@ -402,14 +402,16 @@ def _why(problem, full_problem, start, params, initial, final, kept_stages) -> d
         model = OpacityModel(problem, start)
         (c0, own), (c1, _) = model.covering(start.opacities), model.covering(params.opacities)
         covers = 0.5 * (c0 + c1)
-    bad = {}
+    bad = {}  # (stage lead, measure) -> per-structure mismatch before the first such stage, after
     for stage, _, _, t_before, chosen, t_after in kept_stages:
         if chosen is None or stage.lead not in ("E_s", "E_t"):
             continue
-        first = bad.get(stage.lead, (t_before["badness"][stage.lead], None))[0]
-        bad[stage.lead] = (first, t_after["badness"][stage.lead])
-    shape = bad.get("E_s", (None, None))
-    trans = bad.get("E_t", (None, None))
+        for term in ("E_s", "E_t"):
+            first = bad.get((stage.lead, term), (t_before["badness"][term], None))[0]
+            bad[(stage.lead, term)] = (first, t_after["badness"][term])
+    shape = bad.get(("E_s", "E_s"), (None, None))
+    trans = bad.get(("E_t", "E_t"), (None, None))
+    shape_c = bad.get(("E_t", "E_s"), (None, None))
     lighting = {
         "materials_before": start.lighting, "materials_after": params.lighting,
         "light_before": start.light, "light_after": params.light,
@@ -418,6 +420,7 @@ def _why(problem, full_problem, start, params, initial, final, kept_stages) -> d
     colour = {
         "colors_before": start.colors, "colors_after": params.colors,
         "transparency_before": trans[0], "transparency_after": trans[1],
+        "shape_before": shape_c[0], "shape_after": shape_c[1],
     }  # fmt: skip
     return explain(problem.names, start.opacities, params.opacities, initial["visible_share"],
                    final["visible_share"], initial["target_share"], covers, lighting=lighting,

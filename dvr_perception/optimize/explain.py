@@ -48,8 +48,10 @@ MIN_OVERLAP = 0.02
 _AMBIENT, _SPECULAR, _POWER = 0.02, 0.05, 1.25
 #: A light that moves less than this (degrees) has not moved.
 _LIGHT_DEG = 3.0
-#: Colour changes that count: HSV saturation and value, hue (turns), CIELAB distance.
-_SAT, _VAL, _HUE, _LAB = 0.03, 0.03, 0.02, 2.0
+#: Colour changes that count: HSV saturation and value, hue (turns), CIELAB distance (a
+#: just noticeable difference is about 2.3); a colour that moved less than ``_LAB_SEEN`` has
+#: not changed, one that moved less than ``_LAB`` is "barely visibly" changed.
+_SAT, _VAL, _HUE, _LAB, _LAB_SEEN = 0.03, 0.03, 0.02, 2.0, 0.5
 
 
 def _pct(x: float) -> str:
@@ -296,7 +298,8 @@ def _dist(c0, c1) -> float:
 
 def _colour(i, names, cl, overlap, verbose) -> str | None:
     c0, c1 = np.asarray(cl["colors_before"], float), np.asarray(cl["colors_after"], float)
-    if _dist(c0[i], c1[i]) < _LAB:
+    size = _dist(c0[i], c1[i])
+    if size < _LAB_SEEN:
         return None
     h0, s0, v0 = colorsys.rgb_to_hsv(*np.clip(c0[i], 0, 1))
     h1, s1, v1 = colorsys.rgb_to_hsv(*np.clip(c1[i], 0, 1))
@@ -312,7 +315,9 @@ def _colour(i, names, cl, overlap, verbose) -> str | None:
     elif v1 <= v0 - _VAL:
         how.append("darker")
     if not how:
-        how.append("a slightly different shade")
+        how.append("a barely visible change" if size < _LAB else "a slightly different shade")
+    elif size < _LAB:
+        how = ["barely visibly " + _join(how)]
     # the overlapping structure this colour moved away from most (its own move, against the
     # other's final colour)
     apart, best = None, _LAB
@@ -336,14 +341,21 @@ def _colour(i, names, cl, overlap, verbose) -> str | None:
             "how see-through it looks is a little further from what is intended"
             + (f", traded for {other}, which comes closer" if other else "")
         )
-    elif not why and other is not None:
+    shaped = _better(cl.get("shape_before"), cl.get("shape_after"), i, 0.005)
+    if shaped < 0:
+        why.append("its shape reads better in its new shade")
+    if not why and other is not None:
         why.append(
             f"part of the change that brought how see-through {other} looks closer to what "
             "is intended"
         )
     text = _join(how) + (": " + "; ".join(why) if why else "")
     if verbose and t0 is not None and t1 is not None:
-        text += f" [E_t of its layers {float(t0[i]):.4f} -> {float(t1[i]):.4f}]"
+        extra = ""
+        if cl.get("shape_before") is not None and cl.get("shape_after") is not None:
+            u, v = float(cl["shape_before"][i]), float(cl["shape_after"][i])
+            extra = f"; E_s on its pixels {u:.3f} -> {v:.3f}"
+        text += f" [E_t of its layers {float(t0[i]):.4f} -> {float(t1[i]):.4f}{extra}]"
     return text
 
 
@@ -373,7 +385,8 @@ def explain(names, opacities_before, opacities_after, shares_before, shares_afte
     colour : dict, optional
         ``colors_before``, ``colors_after`` ((K, 3) RGB in [0, 1]) and optionally
         ``transparency_before``, ``transparency_after`` ((K,): each structure's mismatch of
-        perceived transparency, lower is better, across the colour stage).
+        perceived transparency, lower is better, across the colour stage) and
+        ``shape_before``, ``shape_after`` (its shape mismatch across the colour stage).
     overlap : array_like, shape (K, K), optional
         Fraction of the rays on which both structures lie (which colours are compared);
         default: ``covers + covers.T`` where given, else all 1.

@@ -345,3 +345,25 @@ def test_phantom_shading_and_colour_lines_match_the_changes(phantom_run):
     assert colour >= 1
     links = {n: e["traded_for"] for n, e in res.structures.items() if e["traded_for"]}
     assert not _has_circle(links)
+
+
+def test_a_barely_visible_colour_change_is_still_said_with_its_reason():
+    """The tooth's dentin moved by about 1 CIELAB unit (below a just noticeable difference,
+    about 2.3): the colour line says so, and why (its shape read better in the new shade)."""
+    names = ["dentin", "enamel"]
+    shares = dict.fromkeys(names, 0.5)
+    before = np.array([[0.95, 0.88, 0.70], [0.85, 0.92, 1.0]])
+    after = np.array([[0.9387, 0.8677, 0.6853], [0.85, 0.92, 1.0]])
+    colour = {
+        "colors_before": before, "colors_after": after,
+        "transparency_before": np.zeros(2), "transparency_after": np.zeros(2),
+        "shape_before": np.array([0.40, 0.30]), "shape_after": np.array([0.35, 0.30]),
+    }  # fmt: skip
+    out = explain(names, [0.4, 0.9], [0.4, 0.9], shares, shares, shares, colour=colour)
+    assert out["dentin"]["colour"] == (
+        "a barely visible change: its shape reads better in its new shade"
+    )
+    assert out["enamel"]["colour"] is None
+    assert out["dentin"]["colour_verbose"].endswith(
+        "[E_t of its layers 0.0000 -> 0.0000; E_s on its pixels 0.400 -> 0.350]"
+    )
