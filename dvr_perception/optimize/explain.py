@@ -16,8 +16,8 @@ each other one, so a structure in front covers the one behind and not the revers
 "covered" links never form a circle (not A for B and B for A, nor longer): links are taken
 strongest first and one that would close a circle is dropped, and the structure then gets
 its next link or the plain reason.  A structure below its target share that still loses
-opacity says so ("although it had less of the picture than its target") and names the
-trade; one that rose says it had less than its target.
+opacity says so ("lowered: although it had less of the picture than its target") and names
+the trade; one that rose says it had less than its target.
 
 **Shading** (the lighting stage): more directional or flatter shading (the ambient part of
 the light), stronger or weaker, broader or tighter highlights, and where the light now comes
@@ -106,7 +106,7 @@ def _opacity_reason(i, names, ops, before, after, target, links, covers, over) -
     if not _changed(o0, o1):
         if abs(a - b) >= _NEAR:
             return (
-                f"kept: the other changes moved its share of the picture from {_pct(b)} to "
+                f"kept: the other changes moved its share from {_pct(b)} to "
                 f"{_pct(a)} (target {_pct(t)})"
             )
         if b < t - _NEAR and o0 >= 0.995:
@@ -134,8 +134,8 @@ def _opacity_reason(i, names, ops, before, after, target, links, covers, over) -
         )
         if b < t - _NEAR:
             text = (
-                f"lowered although it had less of the picture than its target ({_pct(b)} "
-                f"against {_pct(t)}): traded for {lack} and lies behind it"
+                f"lowered: although it had less of the picture than its target ({_pct(b)} "
+                f"against {_pct(t)}), it was traded for {lack} and lies behind it"
             )
         elif b > t + _NEAR:
             text = (
@@ -148,15 +148,15 @@ def _opacity_reason(i, names, ops, before, after, target, links, covers, over) -
         return f"lowered: it had more of the picture than its target ({_pct(b)} against {_pct(t)})"
     else:
         if over is None or over[i] > 0:
-            why = "where it shows, it took more of the picture than its importance asks for"
+            why = "where it shows it took more of the picture than its importance asks for"
         elif covers[i].max() * (o0 - o1) >= MIN_GAIN:
-            why = "traded for what lies behind it"
+            why = "it was traded for what lies behind it"
         else:
             why = "the picture as a whole came closer to the intended shares with it fainter"
         if b < t - _NEAR:
             text = (
-                f"lowered although it had less of the picture than its target ({_pct(b)} "
-                f"against {_pct(t)}): {why}"
+                f"lowered: although it had less of the picture than its target ({_pct(b)} "
+                f"against {_pct(t)}), {why}"
             )
         else:
             text = f"lowered: {why}"
@@ -411,7 +411,7 @@ def explain(names, opacities_before, opacities_after, shares_before, shares_afte
     >>> out["skin"]["reason"]
     'lowered: it covered bone, which had less of the picture than its target (10 % against 50 %); it had more than its own target (90 % against 50 %)'
     >>> out["bone"]["reason"]
-    'kept: the other changes moved its share of the picture from 10 % to 40 % (target 50 %)'
+    'kept: the other changes moved its share from 10 % to 40 % (target 50 %)'
     """  # noqa: E501
     names = list(names)
     k = len(names)

@@ -68,7 +68,7 @@ def test_two_structures_covering_each_other_make_no_circular_pair():
     assert out["heart"]["traded_for"] is None
     # the heart still says why, in its own terms: it was below its target too
     assert out["heart"]["reason"].startswith(
-        "lowered although it had less of the picture than its target (10 % against 28 %)"
+        "lowered: although it had less of the picture than its target (10 % against 28 %)"
     )
 
 
@@ -113,8 +113,9 @@ def test_below_target_losing_opacity_names_the_trade():
     out = explain(names, [0.25, 0.6, 0.85], [0.08, 0.6, 0.55], before, after, target, covers)
     reason = out["bone"]["reason"]
     assert reason.startswith(
-        "lowered although it had less of the picture than its target (2 % against 12 %): "
-        "traded for heart, which had less of the picture than its target (20 % against 28 %)"
+        "lowered: although it had less of the picture than its target (2 % against 12 %), "
+        "it was traded for heart, which had less of the picture than its target (20 % against "
+        "28 %) and lies behind it"
     )
     assert reason.endswith("its share still rose to 8 % as what lies in front of it faded")
     assert out["bone"]["traded_for"] == "heart"
@@ -135,8 +136,8 @@ def test_below_target_losing_opacity_without_anyone_behind_says_what_it_traded()
     covers = np.zeros((2, 2))
     out = explain(names, [0.3, 0.9], [0.3, 0.7], before, after, target, covers, over=[0.0, 0.2])
     assert out["bone"]["reason"] == (
-        "lowered although it had less of the picture than its target (30 % against 40 %): "
-        "where it shows, it took more of the picture than its importance asks for; its share "
+        "lowered: although it had less of the picture than its target (30 % against 40 %), "
+        "where it shows it took more of the picture than its importance asks for; its share "
         "fell to 28 %"
     )
     out = explain(names, [0.3, 0.9], [0.3, 0.7], before, after, target, covers, over=[0.0, -0.1])
@@ -178,7 +179,7 @@ def test_raised_and_above_target_reasons():
         "lowered: it had more of the picture than its target (80 % against 40 %)"
     )
     assert out["bone"]["reason"] == (
-        "kept: the other changes moved its share of the picture from 5 % to 25 % (target 30 %)"
+        "kept: the other changes moved its share from 5 % to 25 % (target 30 %)"
     )
     line = explanation_line("skin", out["skin"])
     assert line == (
