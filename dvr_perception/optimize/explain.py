@@ -266,16 +266,16 @@ def _shading(i, names, lt, verbose) -> str | None:
     s0, s1 = lt.get("shape_before"), lt.get("shape_after")
     verdict = _better(s0, s1, i, 0.005)
     if verdict < 0:
-        text = f"its shape reads better with {_join(how)}"
+        text = f"{_join(how)}; its shape reads better than under the old lighting"
     elif verdict > 0:
-        text = f"its shape reads a little less clearly with {_join(how)}"
+        text = f"{_join(how)}; its shape reads a little less clearly than under the old lighting"
         other = _best_gainer(s0, s1, names, i, 0.005)
         if other is not None:
             text += f", traded for the shape of {other}, which reads better"
     elif s0 is None or s1 is None:
         text = _join(how)
     else:
-        text = f"{_join(how)}; its shape reads about as well as before"
+        text = f"{_join(how)}; its shape reads about as well as under the old lighting"
     if verbose and s0 is not None and s1 is not None:
         text += f" [E_s on its pixels {float(s0[i]):.3f} -> {float(s1[i]):.3f}]"
     return text
@@ -343,13 +343,13 @@ def _colour(i, names, cl, overlap, verbose) -> str | None:
         )
     shaped = _better(cl.get("shape_before"), cl.get("shape_after"), i, 0.005)
     if shaped < 0:
-        why.append("its shape reads better in its new shade")
+        why.append("its shape reads better than in its old shade")
     if not why and other is not None:
         why.append(
             f"part of the change that brought how see-through {other} looks closer to what "
             "is intended"
         )
-    text = _join(how) + (": " + "; ".join(why) if why else "")
+    text = "; ".join([_join(how), *why])
     if verbose and t0 is not None and t1 is not None:
         extra = ""
         if cl.get("shape_before") is not None and cl.get("shape_after") is not None:
@@ -457,11 +457,11 @@ def explanation_lines(name: str, entry: dict, *, verbose: bool = False) -> list[
     --------
     >>> e = {"opacity_before": 0.5, "opacity_after": 0.2, "share_before": 0.8,
     ...      "share_after": 0.5, "target_share": 0.4, "reason": "lowered: ...",
-    ...      "shading": "its shape reads better with broader highlights", "colour": None}
+    ...      "shading": "broader highlights; its shape reads better", "colour": None}
     >>> for line in explanation_lines("skin", e):
     ...     print(line)
     skin: opacity 0.50 -> 0.20; share of the picture 80 % -> 50 % (target 40 %); lowered: ...
-    shading: its shape reads better with broader highlights
+    shading: broader highlights; its shape reads better
     """
     lines = [
         f"{name}: opacity {entry['opacity_before']:.2f} -> {entry['opacity_after']:.2f}; "

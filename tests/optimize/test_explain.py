@@ -227,29 +227,31 @@ def _explain_stages(light_after=(0.0, 0.0, 1.0)):
 
 def test_lighting_lines_say_what_changed_and_why():
     out = _explain_stages()
-    assert out["bone"]["shading"] == "its shape reads better with more directional shading"
+    assert out["bone"]["shading"] == (
+        "more directional shading; its shape reads better than under the old lighting"
+    )
     assert out["heart"]["shading"] == (
-        "its shape reads a little less clearly with stronger highlights, traded for the shape "
-        "of bone, which reads better"
+        "stronger highlights; its shape reads a little less clearly than under the old "
+        "lighting, traded for the shape of bone, which reads better"
     )
     assert out["muscle"]["shading"] is None  # nothing changed for it
     # the light moved up and to the left: said for every structure, with its shape's verdict
     d = np.array([-0.3, 0.3, 0.9])
     out = _explain_stages(tuple(d / np.linalg.norm(d)))
     assert out["bone"]["shading"].startswith(
-        "its shape reads better with more directional shading and the light moved 25 degrees "
-        "toward the upper left (now from the upper left)"
+        "more directional shading and the light moved 25 degrees toward the upper left (now "
+        "from the upper left); its shape reads better than under the old lighting"
     )
     assert out["muscle"]["shading"] == (
         "the light moved 25 degrees toward the upper left (now from the upper left); its "
-        "shape reads about as well as before"
+        "shape reads about as well as under the old lighting"
     )
 
 
 def test_colour_lines_say_what_changed_and_why():
     out = _explain_stages()
     assert out["heart"]["colour"] == (
-        "more saturated: it moved away from the colour of muscle, so the two are told apart "
+        "more saturated; it moved away from the colour of muscle, so the two are told apart "
         "where they overlap; how see-through it looks is closer to what is intended"
     )
     assert out["bone"]["colour"] is None
@@ -362,7 +364,7 @@ def test_a_barely_visible_colour_change_is_still_said_with_its_reason():
     }  # fmt: skip
     out = explain(names, [0.4, 0.9], [0.4, 0.9], shares, shares, shares, colour=colour)
     assert out["dentin"]["colour"] == (
-        "a barely visible change: its shape reads better in its new shade"
+        "a barely visible change; its shape reads better than in its old shade"
     )
     assert out["enamel"]["colour"] is None
     assert out["dentin"]["colour_verbose"].endswith(
