@@ -349,6 +349,8 @@ def _colour(i, names, cl, overlap, verbose) -> str | None:
             f"part of the change that brought how see-through {other} looks closer to what "
             "is intended"
         )
+    if not why:
+        why.append("it reads about as before")
     text = "; ".join([_join(how), *why])
     if verbose and t0 is not None and t1 is not None:
         extra = ""
