@@ -792,8 +792,10 @@ def vti_layout(path: Path, *, limit: int | None = None, hint: str | None = None)
         )
     expected = points * chosen.dtype.itemsize
     source = _VtiSource(path, header, bool(compressor), data_start, encoding)
+    ends = [0]
     for arr in every:  # sizes and bounds of every array, before anything is decoded
-        source.check(arr, arr.tuples * arr.comps * arr.dtype.itemsize)
+        ends.append(source.check(arr, arr.tuples * arr.comps * arr.dtype.itemsize))
+    source.check_end(max(ends))
 
     def reader() -> np.ndarray:
         blob = source.read(chosen, expected)
@@ -834,10 +836,26 @@ class _VtiSource:
         self.start = start
         self.encoding = encoding
         self.size = path.stat().st_size
+        if start is not None:  # the appended data ends where </AppendedData> starts
+            first = max(start, self.size - HEADER_MAX)
+            with open(path, "rb") as f:
+                f.seek(first)
+                at = f.read().rfind(b"</AppendedData>")
+            if at < 0:
+                raise DVRInputError(
+                    f"{path}: truncated: no closing </AppendedData> at the end of the file"
+                )
+            self.size = first + at
 
     # the appended section: raw bytes or base64 text, from `start + offset`
     def _appended(self, offset: int, count: int, what: str) -> bytes:
-        return _read_exact(self.path, self.start + offset, count, f"{self.path}: {what}")
+        at = self.start + offset
+        if self.size - at < count:
+            raise DVRInputError(
+                f"{self.path}: {what}: truncated: expected {count} bytes from appended offset "
+                f"{offset}, found {max(self.size - at, 0)}"
+            )
+        return _read_exact(self.path, at, count, f"{self.path}: {what}")
 
     def _words(self, blob: bytes, n: int) -> list[int]:
         return [int(v) for v in np.frombuffer(blob[: n * self.hs], self.header)]
@@ -865,16 +883,36 @@ class _VtiSource:
             )
         return sizes
 
-    def check(self, arr: _Array, expected: int) -> None:
-        """Refuse an array whose stored size cannot be what the header claims."""
+    def check_end(self, end: int) -> None:
+        """Refuse appended data that does not end where ``</AppendedData>`` follows.
+
+        After the last array only a line break (and indentation) may come, as VTK writes it: a
+        file cut short would otherwise have its closing tag read as data.
+        """
+        if self.start is None:
+            return
+        with open(self.path, "rb") as f:
+            f.seek(self.start + end)
+            gap = f.read(max(self.size - self.start - end, 0))
+        if gap and (gap[:1] not in (b"\n", b"\r") or gap.strip()):
+            raise DVRInputError(
+                f"{self.path}: truncated or malformed appended data: the arrays end "
+                f"{len(gap)} bytes before </AppendedData>, at {gap[:12]!r}"
+            )
+
+    def check(self, arr: _Array, expected: int) -> int:
+        """Refuse an array whose stored size cannot be what the header claims.
+
+        Returns where the array's appended data ends (0 for inline arrays).
+        """
         what = f"array {arr.name!r}"
         if arr.fmt == "ascii":
-            return
+            return 0
         if arr.fmt == "binary":
             text = (arr.element.text or "").encode("latin-1")
             if len(text) > 2 * expected + 4096 and not self.compressed:
                 raise DVRInputError(f"{self.path}: {what}: more data than its extent holds")
-            return
+            return 0
         if self.start + arr.offset > self.size:
             raise DVRInputError(f"{self.path}: {what}: truncated: its offset lies past the end")
         raw = self.encoding == "raw" and not self.compressed
@@ -883,6 +921,22 @@ class _VtiSource:
                 f"{self.path}: {what}: truncated: expected {expected} bytes of data, found "
                 f"{max(self.size - self.start - arr.offset - self.hs, 0)}"
             )
+        b64 = self.encoding == "base64"
+        if not self.compressed:
+            n = self.hs + expected
+            return arr.offset + (4 * (-(-n // 3)) if b64 else n)
+        if b64:
+            first = self._b64(self._appended(arr.offset, 4 * self.hs, what), what)
+            nblocks = self._nblocks(self._words(first, 3)[0], expected, what)
+            hlen = 4 * (-(-((3 + nblocks) * self.hs) // 3))
+            words = self._words(self._b64(self._appended(arr.offset, hlen, what), what),
+                                3 + nblocks)  # fmt: skip
+            return arr.offset + hlen + 4 * (-(-sum(words[3:]) // 3))
+        words = self._words(self._appended(arr.offset, 3 * self.hs, what), 3)
+        nblocks = self._nblocks(words[0], expected, what)
+        hlen = (3 + nblocks) * self.hs
+        words = self._words(self._appended(arr.offset, hlen, what), 3 + nblocks)
+        return arr.offset + hlen + sum(words[3:])
 
     def read(self, arr: _Array, expected: int):
         """Return the decoded (decompressed) bytes of ``arr``: exactly ``expected``."""
@@ -896,9 +950,10 @@ class _VtiSource:
         if self.encoding == "base64":
 
             def chars(at: int, n: int) -> bytes:
+                first = self.start + arr.offset + at
                 with open(self.path, "rb") as f:
-                    f.seek(self.start + arr.offset + at)
-                    return f.read(n)
+                    f.seek(first)
+                    return f.read(max(min(n, self.size - first), 0))
 
             return self._decode64(chars, expected, what)
         # raw appended
