@@ -157,9 +157,12 @@ def load_volume(path, *, name: str | None = None, series: str | None = None) -> 
 
 
 def header_axes(path) -> np.ndarray | None:
-    """Return a NRRD, MetaImage or ``.vti`` file's axis vectors (LPS columns) from its header.
+    """Return a NRRD, MetaImage, ``.vti`` or legacy ``.vtk`` file's axis vectors (LPS columns).
 
-    ``None`` for other formats.  For callers that must not read the data, e.g. the MPI path
+    From the header alone, parsed and checked exactly as :func:`load_volume` parses it (sizes
+    against the memory limit, the data file inside the allowed folders, attached raw data
+    complete), so a file passed here is one VTK's readers read the same way.  ``None`` for
+    other formats.  For callers that must not read the data, e.g. the MPI path
     of ``dvr-perception pvbatch``, whose ranks read their pieces with ParaView's readers in
     file order: they need to know whether the file's axes are flipped, permuted or rotated.
 
@@ -179,6 +182,7 @@ def header_axes(path) -> np.ndarray | None:
     path = Path(os.fspath(path))
     ext = "" if path.is_dir() else _ext(path)
     if ext in (".nhdr", ".nrrd"):
+        read_nrrd(path, check_only=True)  # sizes, budget, data file: as load_volume
         fields, _ = nrrd_header(path)
         axes = nrrd_axes(fields, path)
         space = nrrd_space(fields, path)
