@@ -191,7 +191,9 @@ def _ints(value: str, n: int, where, name: str, lo: int = 1) -> list[int]:
 
 # -- MetaImage -------------------------------------------------------------------------------
 
-#: MetaIO's element types: numpy type (byte order added from the header).
+#: MetaIO's element types: numpy type (byte order added from the header).  ``MET_LONG`` is 4
+#: bytes in MetaIO's size table (VTK's reader allocates a C ``long`` for it, 8 bytes, and
+#: leaves half of them unread; we read what MetaIO writes).
 META_TYPES = {
     "MET_CHAR": "i1", "MET_UCHAR": "u1", "MET_SHORT": "i2", "MET_USHORT": "u2",
     "MET_INT": "i4", "MET_UINT": "u4", "MET_LONG": "i4", "MET_ULONG": "u4",
@@ -383,7 +385,8 @@ def meta_layout(path: Path, *, limit: int | None = None, hint: str | None = None
 
 #: The legacy format's scalar types (its binary data is big-endian).
 LEGACY_TYPES = {
-    "char": "i1", "unsigned_char": "u1", "short": "i2", "unsigned_short": "u2", "int": "i4",
+    "char": "i1", "signed_char": "i1", "unsigned_char": "u1", "short": "i2",
+    "unsigned_short": "u2", "int": "i4",
     "unsigned_int": "u4", "long": "i8", "unsigned_long": "u8", "vtktypeint64": "i8",
     "vtktypeuint64": "u8", "float": "f4", "double": "f8",
 }  # fmt: skip
@@ -549,8 +552,13 @@ def legacy_layout(path: Path, *, limit: int | None = None, hint: str | None = No
             return out
 
     else:
-        if size > 64 * nbytes + 4096:
-            raise DVRInputError(f"{path}: the ASCII data is far longer than {count} numbers")
+        from dvr_perception.rays import memory
+
+        cap = memory.limit() if limit is None else int(limit)
+        if size - start > min(26 * count, 2 * cap) + 4096:  # 26: a float64 in full, a space
+            raise DVRInputError(
+                f"{path}: the ASCII data ({size - start} bytes) is far longer than {count} numbers"
+            )
 
         def reader() -> np.ndarray:
             with open(path, "rb") as f:
@@ -782,8 +790,11 @@ def vti_layout(path: Path, *, limit: int | None = None, hint: str | None = None)
                  what=f"({len(every)} arrays)" if len(every) > 1 else None)  # fmt: skip
     if any(a.fmt == "appended" for a in every) and data_start is None:
         raise DVRInputError(f"{path}: field 'format': appended arrays but no <AppendedData>")
-    if encoding not in (None, "raw", "base64"):
-        raise DVRInputError(f"{path}: field 'AppendedData encoding': {shown(encoding)}")
+    if data_start is not None and encoding not in ("raw", "base64"):
+        raise DVRInputError(
+            f"{path}: field 'AppendedData encoding': {shown(encoding or '(none)')}; expected raw "
+            "or base64"
+        )
     chosen = _choose(path, arrays["PointData"], active, bool(arrays["CellData"]))
     if chosen.comps != 1:
         raise DVRInputError(

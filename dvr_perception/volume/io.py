@@ -411,6 +411,15 @@ def _write(volume: Volume, target: Path, ext: str) -> list[Path]:
             f"{target.name}: this format would lose the volume's oblique direction; write "
             ".nrrd, .nhdr, .vti, .nii or .nii.gz"
         )
+    if (
+        ext in (".mha", ".mhd")
+        and volume.data.dtype.itemsize == 8
+        and volume.data.dtype.kind in "iu"
+    ):
+        raise DVRInputError(
+            f"{target.name}: VTK's MetaImage writer cannot store 64-bit integers (it writes "
+            "half of them); write .nrrd, .nhdr, .vti or .nii"
+        )
     image = to_vtk_image(volume, with_direction=ext == ".vti")
     out = [target]
     if ext == ".vti":
