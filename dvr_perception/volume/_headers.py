@@ -813,17 +813,17 @@ def vti_layout(path: Path, *, limit: int | None = None, hint: str | None = None)
         return np.frombuffer(blob, chosen.dtype).copy() if isinstance(blob, bytes) else blob
 
     axes = direction * np.asarray(spacing)
+    origin = origin + axes @ np.array(extent[::2], float)  # the first point of the extent
     return Layout(path, (dims[0], dims[1], dims[2]), chosen.dtype, total, axes, origin, oriented,
                   path, reader)  # fmt: skip
 
 
 def _choose(path: Path, point: list[_Array], active: str | None, cells: bool) -> _Array:
     """Return the point array VTK would make the scalars (as :func:`.convert.from_vtk_image`)."""
-    if active is not None:
-        for arr in point:
-            if arr.name == active:
-                return arr
-    if len(point) == 1 and active is None:
+    for arr in point:
+        if active is not None and arr.name == active:
+            return arr
+    if len(point) == 1:  # no (or no such) active scalars: the only array
         return point[0]
     if not point and cells:
         raise DVRInputError(

@@ -411,3 +411,28 @@ def test_our_readers_read_what_vtks_readers_read(tmp_path, kind, dtype):
     assert (ours.spacing, ours.origin) == (theirs.spacing, theirs.origin) == (SPACING, ORIGIN)
     if "ascii" not in kind:
         np.testing.assert_array_equal(ours.data, vol.data)
+
+
+def test_vti_extent_not_from_zero_and_scalars_naming_no_array(tmp_path):
+    from vtkmodules.vtkIOXML import vtkXMLImageDataReader
+
+    from dvr_perception.volume import from_vtk_image
+
+    data = np.arange(24, dtype=np.uint16).tobytes()
+    path = tmp_path / "e.vti"
+    path.write_text(
+        '<VTKFile type="ImageData" byte_order="LittleEndian"><ImageData WholeExtent="2 5 -1 1 '
+        '3 4" Origin="1 2 3" Spacing="0.5 2 4" Direction="0 1 0 1 0 0 0 0 -1"><Piece '
+        'Extent="2 5 -1 1 3 4"><PointData Scalars="nothing"><DataArray type="UInt16" Name="v" '
+        f'format="ascii">{" ".join(map(str, range(24)))}</DataArray></PointData></Piece>'
+        "</ImageData></VTKFile>"
+    )
+    reader = vtkXMLImageDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    theirs = from_vtk_image(reader.GetOutput())
+    ours = load_volume(path)
+    np.testing.assert_array_equal(ours.data, theirs.data)
+    assert ours.origin == theirs.origin
+    assert ours.spacing == theirs.spacing == (2.0, 0.5, 4.0)  # the permutation applied
+    assert ours.data.tobytes() != data  # ... to the data order too
