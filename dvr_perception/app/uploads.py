@@ -113,6 +113,8 @@ def check_volume_bytes(name: str, content: bytes, *, max_volume_bytes: int) -> N
             _check_file(path, low, max_volume_bytes)
         except DVRInputError as exc:
             why = str(exc).replace(f"{path}: ", "").replace(str(path), name)
+            if not any(word in why for word in ("detached", "--max-volume-mb", "expands")):
+                why = f"not a readable volume ({why})"
             raise DVRInputError(f"upload {name}: {why}") from None
     finally:
         shutil.rmtree(folder, ignore_errors=True)
