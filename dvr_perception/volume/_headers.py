@@ -758,12 +758,19 @@ def vti_layout(path: Path, *, limit: int | None = None, hint: str | None = None)
     direction = np.eye(3)
     if oriented:
         direction = np.array(_floats(image.get("Direction"), 9, path, "Direction")).reshape(3, 3)
-    pieces = list(image)
-    if len(pieces) != 1 or pieces[0].tag != "Piece":
+    tags = [c.tag for c in image]
+    if tags not in (["Piece"], ["FieldData", "Piece"]):
         raise DVRInputError(
-            f"{path}: expected one <Piece> in <ImageData>, got {[c.tag for c in pieces]}"
+            f"{path}: expected one <Piece> (after an optional <FieldData>) in <ImageData>, got "
+            f"{tags}"
         )
-    piece = pieces[0]
+    piece = image[len(tags) - 1]
+    field_arrays = []
+    if tags[0] == "FieldData":  # e.g. ParaView's TimeValue: sized by NumberOfTuples
+        for elem in image[0]:
+            n = parse_int(_xml_attr(elem, "NumberOfTuples", where), where, "NumberOfTuples",
+                          lo=0, hi=2**40)  # fmt: skip
+            field_arrays.append(_vti_array(elem, f"{path}: FieldData", n, order))
     if _ints(_xml_attr(piece, "Extent", where), 6, where, "Extent", lo=-(2**31)) != extent:
         raise DVRInputError(f"{path}: field 'Extent': the piece differs from the WholeExtent")
     points = math.prod(dims)
@@ -782,7 +789,7 @@ def vti_layout(path: Path, *, limit: int | None = None, hint: str | None = None)
             arrays[part.tag].append(_vti_array(elem, f"{path}: {part.tag}", n, order))
         if part.tag == "PointData":
             active = part.get("Scalars")
-    every = arrays["PointData"] + arrays["CellData"]
+    every = arrays["PointData"] + arrays["CellData"] + field_arrays
     total = sum(a.tuples * a.comps * a.dtype.itemsize for a in every)
     widest = max((a.dtype for a in every), key=lambda d: d.itemsize, default=np.dtype("u1"))
     # every array VTK would allocate counts, not only the one read

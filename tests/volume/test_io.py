@@ -436,3 +436,24 @@ def test_vti_extent_not_from_zero_and_scalars_naming_no_array(tmp_path):
     assert ours.origin == theirs.origin
     assert ours.spacing == theirs.spacing == (2.0, 0.5, 4.0)  # the permutation applied
     assert ours.data.tobytes() != data  # ... to the data order too
+
+
+@pytest.mark.parametrize("mode", [0, 1, 2])  # ascii, binary, appended
+def test_vti_with_field_data_loads(tmp_path, mode):
+    from vtkmodules.vtkCommonCore import vtkDoubleArray
+
+    from dvr_perception.volume.convert import to_vtk_image
+
+    vol = _random(np.float32)
+    image = to_vtk_image(vol)
+    time = vtkDoubleArray()
+    time.SetName("TimeValue")
+    time.InsertNextValue(2.5)
+    image.GetFieldData().AddArray(time)  # as ParaView saves a time step
+    writer = vtkXMLImageDataWriter()
+    writer.SetInputData(image)
+    writer.SetDataMode(mode)
+    writer.SetFileName(str(tmp_path / "f.vti"))
+    writer.Write()
+    assert b"<FieldData>" in (tmp_path / "f.vti").read_bytes()
+    np.testing.assert_array_equal(load_volume(tmp_path / "f.vti").data, vol.data)
