@@ -817,7 +817,9 @@ def vti_layout(path: Path, *, limit: int | None = None, hint: str | None = None)
 
     def reader() -> np.ndarray:
         blob = source.read(chosen, expected)
-        return np.frombuffer(blob, chosen.dtype).copy() if isinstance(blob, bytes) else blob
+        if isinstance(blob, bytes):
+            return np.frombuffer(blob, chosen.dtype).copy()
+        return blob.view(chosen.dtype) if blob.dtype == np.uint8 else blob
 
     axes = direction * np.asarray(spacing)
     origin = origin + axes @ np.array(extent[::2], float)  # the first point of the extent
@@ -981,7 +983,13 @@ class _VtiSource:
                 raise DVRInputError(
                     f"{self.path}: {what}: holds {n} bytes, the extent needs {expected}"
                 )
-            return self._appended(arr.offset + self.hs, expected, what)
+            at = self.start + arr.offset + self.hs
+            if self.size - at < expected:
+                raise DVRInputError(
+                    f"{self.path}: {what}: truncated: expected {expected} bytes, found "
+                    f"{max(self.size - at, 0)}"
+                )
+            return _raw_array(self.path, at, np.dtype(np.uint8), expected, f"{self.path}: {what}")
         words = self._words(self._appended(arr.offset, 3 * self.hs, what), 3)
         nblocks = self._nblocks(words[0], expected, what)
         words = self._words(self._appended(arr.offset, (3 + nblocks) * self.hs, what),
@@ -1023,18 +1031,21 @@ class _VtiSource:
         packed = self._b64(chars(hlen, 4 * (-(-sum(words[3:]) // 3))), what)
         return self._unpack(packed, words[3:], sizes, what)
 
-    def _unpack(self, packed: bytes, stored: list[int], sizes: list[int], what: str) -> bytes:
+    def _unpack(self, packed: bytes, stored: list[int], sizes: list[int], what: str):
         if len(packed) < sum(stored):
             raise DVRInputError(
                 f"{self.path}: {what}: truncated: {len(packed)} compressed bytes, the header "
                 f"says {sum(stored)}"
             )
-        out = bytearray()
-        pos = 0
+        out = np.empty(sum(sizes), np.uint8)  # every byte written below, or refused
+        pos = done = 0
         for n, size in zip(stored, sizes, strict=True):
-            out += _inflate(packed[pos : pos + n], size, f"{self.path}: {what}")
+            out[done : done + size] = np.frombuffer(
+                _inflate(packed[pos : pos + n], size, f"{self.path}: {what}"), np.uint8
+            )
             pos += n
-        return bytes(out)
+            done += size
+        return out
 
 
 # -- NIfTI (read by VTK: checked exactly as vtkNIFTIImageReader parses it) -------------------
