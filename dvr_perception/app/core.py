@@ -28,6 +28,7 @@ from trame.decorators import change
 from dvr_perception.app._guard import guard
 from dvr_perception.app.lens import LensHandlers, lens_region
 from dvr_perception.app.optimise_handlers import MAX_ITER, STAGE_SETS, OptimiseHandlers
+from dvr_perception.app.page_input import PageInputGuard
 from dvr_perception.app.scene import new_plotter, show_spec
 from dvr_perception.app.security import (
     FRAME_BYTES,
@@ -183,9 +184,12 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
         self.ui = build_ui(self)
 
     def _install_guard(self, wslink_server, **_) -> None:
-        """Put the token, origin and size checks into the server before it starts."""
+        """Put the token, origin, size and page-input checks into the server before it starts."""
         guard = ConnectionGuard(self.token, wslink_server.host, self.max_message_bytes)
         guard.install(wslink_server, self.server.protocol)
+        page = PageInputGuard(self)
+        for handler in wslink_server._ws_handlers:
+            page.install(handler)
         quiet_disconnects()
 
     # -- helpers -----------------------------------------------------------------------------
@@ -480,11 +484,14 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
         measures, error = None, ""
         while True:
             self._measure_again = False
-            key, cam = self._key(), self.current_camera()
-            described = self._describe(cam)
             t0 = time.monotonic()
-            try:
+            key = self._key()
+            try:  # whatever fails, the next request measures again (nothing stays stuck)
+                cam = self.current_camera()
+                described = self._describe(cam)
                 measures = await loop.run_in_executor(None, self.session.measure, cam)
+            except DVRInputError as exc:
+                measures, error = None, f"measuring failed: {exc}"
             except Exception as exc:  # shown in the page; the server keeps running
                 log.exception("measuring failed")
                 measures, error = None, f"measuring failed: {exc}"
@@ -694,16 +701,13 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
         """Check, store and show the volume file chosen in the upload field."""
         if not upload:
             return
-        files = upload if isinstance(upload, list) else [upload]
         self.state.upload = None
         self.state.error = ""
         if self._task_running:
             raise DVRInputError("upload: wait until the optimisation has finished")
-        f = files[0]
-        content = f.get("content") or b""
-        if isinstance(content, list):
-            content = b"".join(content)
-        size = int(f.get("size") or len(content))
+        f = upload  # one file {name, size, content: bytes}, checked by page_input.Upload
+        content = f["content"]
+        size = max(int(f["size"]), len(content))
         if size > self.max_upload_bytes:
             raise DVRInputError(
                 f"upload {f.get('name')}: {size / 1e6:.2f} MB is larger than the limit of "

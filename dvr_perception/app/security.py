@@ -14,13 +14,22 @@ that server before it starts (trame's ``on_server_bind``):
   refuses (and closes the connection of) a chunk whose header claims more than the message
   limit, before anything is allocated, and stores only the bytes actually received.  The size
   of a single websocket frame is bounded by aiohttp (``max_msg_size``, from trame's
-  ``ws_max_msg_size``) before its payload is read.
+  ``ws_max_msg_size``) before its payload is read;
+* a whole message must be a well-formed wslink call (a map with a text ``id``, a text
+  ``method``, a list ``args`` and a map ``kwargs`` that fit the method's parameters); any other
+  is refused quietly (:func:`message_problem`): one log line and an error reply, the client
+  stays connected.  wslink's ``application.exit`` calls (no page makes them) are refused the
+  same way, and a call that fails in the server is one log line, never a traceback (nor a
+  trace sent to the client).  What the page's calls carry is checked by
+  :mod:`dvr_perception.app.page_input`.
 """
 
 from __future__ import annotations
 
 import asyncio
+import functools
 import hmac
+import inspect
 import logging
 import secrets
 import struct
@@ -34,6 +43,7 @@ __all__ = [
     "FRAME_BYTES",
     "BoundedUnChunker",
     "ConnectionGuard",
+    "message_problem",
     "new_token",
     "quiet_disconnects",
 ]
@@ -49,6 +59,12 @@ MAX_PENDING = 4
 #: wslink chunk header: message id, offset and total size (three little-endian uint32).
 _HEADER = struct.Struct("<III")
 #: Hosts the loopback server answers to (anything else is a DNS-rebinding attempt).
+#: wslink's (JSON-RPC's) error code of a malformed call.
+INVALID_REQUEST = -32600
+#: wslink calls no page makes that would stop the server for every user.
+REFUSED_METHODS = frozenset({"application.exit", "application.exit.later"})
+#: Longest text of a page's script error written to the log.
+CLIENT_ERROR_CHARS = 300
 _LOOPBACK = frozenset({"127.0.0.1", "localhost", "::1"})
 _ANY_HOST = frozenset({"", "0.0.0.0", "::"})
 
@@ -184,6 +200,111 @@ def _note_disconnect(exc: BaseException) -> None:
     log.log(level, "a client disconnected abruptly (%s: %s)", type(exc).__name__, exc)
 
 
+def message_problem(rpc, functions=None) -> str | None:
+    """Say what makes ``rpc`` no well-formed wslink call (``None``: nothing).
+
+    ``functions`` maps method names to ``(object, function)`` (wslink's ``functionMap``): the
+    arguments must then fit the method's parameters.
+
+    Examples
+    --------
+    >>> message_problem({"wslink": "1.0", "id": "rpc:c1:1", "args": []})
+    'a message without a method'
+    >>> message_problem({"id": "rpc:c1:2", "method": "m", "args": [1], "kwargs": {}}) is None
+    True
+    """
+    if not isinstance(rpc, dict):
+        return f"a message that is no map ({type(rpc).__name__})"
+    rpc_id = rpc.get("id")
+    if not isinstance(rpc_id, str) or not 0 < len(rpc_id) <= 200:
+        return "a message without a text id"
+    method = rpc.get("method")
+    if not isinstance(method, str) or not 0 < len(method) <= 200:
+        return "a message without a method"
+    args, kwargs = rpc.get("args", []), rpc.get("kwargs", {})
+    if not isinstance(args, list):
+        return f"{method}: arguments that are no list"
+    if not isinstance(kwargs, dict) or not all(isinstance(k, str) for k in kwargs):
+        return f"{method}: keyword arguments that are no map of names"
+    if method in REFUSED_METHODS:
+        return f"{method}: not a call of the page"
+    entry = (functions or {}).get(method)
+    if entry is not None:
+        try:
+            inspect.signature(entry[1]).bind(entry[0], *args, **kwargs)
+        except TypeError:
+            return f"{method}: {len(args)} arguments that do not fit it"
+    return None
+
+
+def _checked_messages(handler):
+    """Wrap wslink's ``handler.onCompleteMessage``: a malformed call is refused quietly."""
+    complete = handler.onCompleteMessage
+
+    async def on_complete(rpc, client_id):
+        problem = message_problem(rpc, handler.functionMap)
+        if problem is None:
+            return await complete(rpc, client_id)
+        log.warning("websocket client %s: message refused: %s", client_id, problem)
+        rpc_id = rpc.get("id") if isinstance(rpc, dict) else None
+        if isinstance(rpc_id, str) and 0 < len(rpc_id) <= 200:
+            await handler.sendWrappedError(
+                rpc_id, INVALID_REQUEST, f"message refused: {problem}", client_id=client_id
+            )
+        return None
+
+    return on_complete
+
+
+def _quiet_call(method: str, func):
+    """Wrap one of wslink's call functions: an exception is one log line, the answer ``None``.
+
+    wslink would log the exception as a traceback and send that trace to the client; a call
+    whose arguments make the server fail is the client's fault (the page's own calls are
+    checked by :mod:`dvr_perception.app.page_input`), so it costs one warning line (the
+    traceback only at debug level).
+    """
+
+    def failed(exc: Exception) -> None:
+        text = " ".join(str(exc).split())[:200]
+        log.warning("websocket call %s refused: %s: %s", method, type(exc).__name__, text)
+        log.debug("websocket call %s failed", method, exc_info=exc)
+
+    if inspect.iscoroutinefunction(func):
+
+        @functools.wraps(func)
+        async def call_async(obj, *args, **kwargs):
+            try:
+                return await func(obj, *args, **kwargs)
+            except Exception as exc:
+                failed(exc)
+                return None
+
+        return call_async
+
+    @functools.wraps(func)
+    def call(obj, *args, **kwargs):
+        try:
+            return func(obj, *args, **kwargs)
+        except Exception as exc:
+            failed(exc)
+            return None
+
+    return call
+
+
+def _one_line_client_error(func):
+    """Wrap ``trame.error.client``: the page's script error is logged as one short line."""
+
+    @functools.wraps(func)
+    def client_error(obj, message):
+        text = " ".join(str(message).split())
+        text = "".join(c if c.isprintable() else "?" for c in text)[:CLIENT_ERROR_CHARS]
+        return func(obj, text)
+
+    return client_error
+
+
 class ConnectionGuard:
     """The token, origin and message-size checks of one app server.
 
@@ -288,6 +409,16 @@ class ConnectionGuard:
             handler.unchunkers = _Unchunkers(handler, self.message_bytes)
             for name in ("sendWrappedMessage", "sendWrappedError"):
                 setattr(handler, name, _tolerant(getattr(handler, name)))
+            if not callable(getattr(handler, "onCompleteMessage", None)):
+                msg = "wslink handler without 'onCompleteMessage': cannot check messages"
+                raise RuntimeError(msg)
+            handler.onCompleteMessage = _checked_messages(handler)
+            calls = handler.functionMap
+            if "trame.error.client" in calls:
+                obj, func = calls["trame.error.client"]
+                calls["trame.error.client"] = (obj, _one_line_client_error(func))
+            for method, (obj, func) in list(calls.items()):
+                calls[method] = (obj, _quiet_call(method, func))
         protocol.updateSecret(self.token)
 
 

@@ -32,6 +32,7 @@ __all__ = [
     "Scene",
     "add_scene_args",
     "check_output_file",
+    "check_resample",
     "common_parent",
     "emit_json",
     "load_scene",
@@ -249,6 +250,39 @@ def parse_factors(text) -> tuple[int, int, int]:
     return f  # type: ignore[return-value]
 
 
+def check_resample(volume, factors, text=None) -> None:
+    """Refuse ``--resample`` factors whose up-sampled volume exceeds the memory limit.
+
+    Counted before anything is allocated: the up-sampled voxels (and labels) next to the
+    volume itself, against :func:`dvr_perception.rays.memory.limit` (``--memory-limit``).
+
+    Examples
+    --------
+    >>> from dvr_perception.volume import Volume
+    >>> vol = Volume(np.zeros((64, 64, 64), np.uint16))
+    >>> check_resample(vol, (2, 2, 2), "2")  # 4 MiB
+    >>> check_resample(vol, (64, 64, 64), "64")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    dvr_perception.errors.DVRInputError: --resample 64: the up-sampled volume of 4096x4096x4096 voxels needs about 128.00 GB, more than the memory limit of ... GB; use smaller factors or raise --memory-limit (or DVR_PERCEPTION_MEMORY_LIMIT)
+    """  # noqa: E501
+    from dvr_perception.rays import memory
+
+    data = volume.data
+    scale = int(np.prod(factors, dtype=np.int64))
+    per_voxel = data.itemsize + (volume.labels.itemsize if volume.labels is not None else 0)
+    need = data.size * scale * per_voxel + data.size * per_voxel
+    cap = memory.limit()
+    if need > cap:
+        dims = "x".join(str(n * f) for n, f in zip(data.shape[::-1], factors, strict=True))
+        shown = ",".join(map(str, factors)) if text is None else str(text).strip()
+        raise DVRInputError(
+            f"--resample {shown}: the up-sampled volume of {dims} voxels needs about "
+            f"{memory._human(need)}, more than the memory limit of {memory._human(cap)}; use "
+            f"smaller factors or raise --memory-limit (or {memory.ENV})"
+        )
+
+
 @dataclass
 class Scene:
     """A resolved volume, spec and camera, with where they came from."""
@@ -352,6 +386,7 @@ def load_scene(args: argparse.Namespace) -> Scene:
     if factors is not None and factors != (1, 1, 1):
         from dvr_perception.volume.resample import upsample
 
+        check_resample(volume, factors, resample)
         log.info("up-sampling by %s (x, y, z)", factors)
         t0 = time.perf_counter()
         volume = upsample(volume, factors)

@@ -66,7 +66,10 @@ from dvr_perception.cli._common import (
     parse_factors,
 )
 
-__all__ = ["add_parser", "run"]
+__all__ = ["MAX_REPEAT", "add_parser", "run"]
+
+#: Most ``--repeat`` (timed frames of each kind; a median of more says nothing new).
+MAX_REPEAT = 100
 
 EXAMPLE = """examples:
   dvr-perception bench --json
@@ -87,7 +90,13 @@ def add_parser(subparsers, parents) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_scene_args(p, volume_optional=True)
-    p.add_argument("--repeat", type=int, default=5, metavar="R", help="timed repeats (default 5)")
+    p.add_argument(
+        "--repeat",
+        type=int,
+        default=5,
+        metavar="R",
+        help=f"timed repeats (default 5, at most {MAX_REPEAT})",
+    )
     p.add_argument(
         "--seed", type=int, default=0, help="seed of the opacity perturbation (default 0)"
     )
@@ -254,6 +263,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.repeat < 1:
         raise DVRInputError(f"--repeat: expected a positive integer, got {args.repeat}")
+    if args.repeat > MAX_REPEAT:
+        raise DVRInputError(f"--repeat: expected at most {MAX_REPEAT}, got {args.repeat}")
     import numba
 
     from dvr_perception.rays.curvature_field import CurvatureField, curvature_source

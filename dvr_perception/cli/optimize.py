@@ -456,9 +456,12 @@ def run(args: argparse.Namespace) -> int:
 
 def print_summary(report: dict, *, indent: str = "  ") -> None:
     """Print the before/after terms, the stages and the output folder on stdout."""
+    from dvr_perception.structures.spec import printable
+
     a, b = report["initial"], report["final"]
     w, h = report["size"]
-    print(f"optimised {report.get('volume', 'scene')} ({w}x{h}, weights {report['weights']})")
+    volume = printable(report.get("volume", "scene"))
+    print(f"optimised {volume} ({w}x{h}, weights {report['weights']})")
     print(f"{indent}{'':8}{'E_v':>9}{'E_s':>9}{'E_t':>9}{'E':>9}")
     for label, t in (("before", a), ("after", b)):
         print(f"{indent}{label:8}" + "".join(f"{t[k]:9.4f}" for k in (*TERMS, "E")))
@@ -468,7 +471,7 @@ def print_summary(report: dict, *, indent: str = "  ") -> None:
             f"  ({s['iterations']} it, {s['seconds']:.1f} s; {s['message']})"
         )
     for entry in report.get("structures", {}).values():
-        print(f"{indent}{entry['line']}")
+        print(f"{indent}{printable(entry['line'])}")
     opt = report.get("optimizer", {})
     if "S" in opt.get("initial", {}):
         which = report.get("objective") or "default"
@@ -478,4 +481,4 @@ def print_summary(report: dict, *, indent: str = "  ") -> None:
     for note in report["notes"]:
         print(f"{indent}note: {note}")
     print(f"{indent}seconds {report['seconds']:.1f}; wrote {len(report['files'])} files into "
-          f"{report['out_dir']}/")  # fmt: skip
+          f"{printable(report['out_dir'])}/")  # fmt: skip
