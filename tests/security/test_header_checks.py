@@ -386,3 +386,44 @@ def test_check_and_read_agree(strategy):
     # not vacuous: the strategies reach files that load and files refused either way
     assert outcomes["loaded"] >= 3, outcomes
     assert outcomes["refused by the check"] >= 10, outcomes
+
+
+# -- the other front ends: ParaView's reader, pvbatch's MPI path, the app's data folder -----
+
+
+@pytest.mark.parametrize("name", ["meta_key_case", "vti_comment_before_root",
+                                  "legacy_later_dimensions", "nifti2_huge"])  # fmt: skip
+def test_the_paraview_reader_reports_one_error(tmp_path, name):
+    from dvr_perception.filters import VolumeReader
+
+    path, needles = H.CASES[name](_folder(tmp_path))
+    reader = VolumeReader()
+    reader.file_name = str(path)
+    assert not reader.Update()
+    assert reader.error_message.startswith(str(path)), reader.error_message
+    for needle in needles:
+        assert needle in reader.error_message
+
+
+@pytest.mark.parametrize("name", ["meta_key_case", "meta_repeated_dims", "vti_many_arrays",
+                                  "legacy_later_dimensions"])  # fmt: skip
+def test_pvbatch_ranks_refuse_a_header_their_paraview_readers_would_read_otherwise(tmp_path,
+                                                                                 name):  # fmt: skip
+    from dvr_perception.cli.pvbatch import _check_file_order
+
+    path, needles = H.CASES[name](_folder(tmp_path))
+    with pytest.raises(DVRInputError) as info:
+        _check_file_order(str(path))
+    assert str(info.value).startswith(str(path))
+    assert needles[0] in str(info.value)
+
+
+def test_the_app_data_folder_refuses_a_hostile_volume(tmp_path):
+    from dvr_perception.app.session import Session
+
+    folder = _folder(tmp_path)
+    path, _ = H.meta_key_case(folder)
+    session = Session(folder, tmp_path / "exports", state_dir=tmp_path / "state")
+    assert path.name in session.volume_choices()
+    with pytest.raises(DVRInputError, match="case-sensitive"):
+        session.load_volume(path.name)
