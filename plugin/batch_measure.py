@@ -325,6 +325,11 @@ def reader_scene(pvs, args):
         from dataclasses import replace
 
         spec = replace(spec, rendering=replace(spec.rendering, shade=bool(args.shade)))
+    from dvr_perception.volume.io import check_volume_file
+
+    # ParaView's own reader reads the file on the ranks: the header must first pass the one
+    # parse load_volume reads with (no ambiguous header, sizes within the memory limit)
+    check_volume_file(path)
     reader = pvs.OpenDataFile(path)
     if reader is None:
         raise BatchError(f"{args.volume}: ParaView has no reader for it")
