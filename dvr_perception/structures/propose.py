@@ -161,7 +161,14 @@ def _data_classes(data: np.ndarray, n_structures, seed: int):
         k = next((k for k in range(2, kmax + 1) if sse[k] <= floor), kmax)
     else:
         k = kmax
-    cuts = [0.5 * (upper[s - 1] + lower[s]) for s in splits[k]]
+    starts = list(splits[k])
+    if n_structures is None and len(starts) > 1:
+        # the background class is not cut through its own hump (noise around one value): the
+        # first class above it joins it when the counts at the cut are at least half its peak
+        first = starts[0]
+        if min(counts[first - 1], counts[first]) >= 0.5 * counts[:first].max():
+            starts = starts[1:]
+    cuts = [0.5 * (upper[s - 1] + lower[s]) for s in starts]
     vmax = float(data.max())
     edges = [c for c in cuts if c < vmax] + [vmax]
     return edges

@@ -46,9 +46,9 @@ def test_three_blobs_give_three_ranges(dtype, scale):
 
 def test_names_and_round_trip():
     spec = propose_structures(_three_blobs())
-    assert spec.structures[0].name.startswith("layer 1 (")
+    assert spec.structures[0].name.startswith("class 1 (")
     lo, hi = spec.structures[0].range
-    assert spec.structures[0].name == f"layer 1 ({math.ceil(lo)}\u2013{math.ceil(hi) - 1})"
+    assert spec.structures[0].name == f"class 1 ({math.ceil(lo)}\u2013{math.ceil(hi) - 1})"
     assert spec_from_dict(spec_to_dict(spec)) == spec  # the proposal is a valid spec
 
 
