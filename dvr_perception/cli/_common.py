@@ -129,8 +129,8 @@ def add_scene_args(
         "--classes",
         metavar="N",
         type=_classes,
-        help="propose N structures (1 to 8) from the data instead of a preset or the number "
-        "the data choose",
+        help="propose structures from the data even when a preset matches: 'auto' (the number "
+        "the data choose) or N (1 to 8)",
     )
     if save_spec:
         parser.add_argument(
@@ -288,15 +288,17 @@ def state_files_dir() -> Path:
     return presets_dir()
 
 
-def _classes(text) -> int:
-    """Parse ``--classes``: an integer from 1 to 8."""
+def _classes(text) -> int | str:
+    """Parse ``--classes``: ``auto`` or an integer from 1 to 8."""
+    if str(text).strip().lower() == "auto":
+        return "auto"
     try:
         n = int(str(text))
     except ValueError:
-        msg = f"expected an integer from 1 to 8, got {_cut(text)}"
+        msg = f"expected 'auto' or an integer from 1 to 8, got {_cut(text)}"
         raise argparse.ArgumentTypeError(msg) from None
     if not 1 <= n <= 8:
-        raise argparse.ArgumentTypeError(f"expected an integer from 1 to 8, got {n}")
+        raise argparse.ArgumentTypeError(f"expected 'auto' or an integer from 1 to 8, got {n}")
     return n
 
 
@@ -319,7 +321,8 @@ def _load_volume(text: str, *, paired: bool = True, series: str | None = None, c
     if paired:
         from dvr_perception.structures.presets import choose_spec
 
-        choice = choose_spec(volume, n_structures=classes)
+        auto = classes == "auto"
+        choice = choose_spec(volume, n_structures=None if auto else classes, propose=auto)
         return volume, choice.spec, choice.source, choice.line
     return volume, None, "", ""
 

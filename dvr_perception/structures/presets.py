@@ -168,7 +168,9 @@ class SpecChoice:
     line: str
 
 
-def choose_spec(volume, *, preset=None, n_structures=None, folder=None) -> SpecChoice:
+def choose_spec(
+    volume, *, preset=None, n_structures=None, propose: bool = False, folder=None
+) -> SpecChoice:
     """Choose the spec for ``volume``: the preset named, one matching its data, or a proposal.
 
     Parameters
@@ -179,6 +181,9 @@ def choose_spec(volume, *, preset=None, n_structures=None, folder=None) -> SpecC
         A preset name (``--preset NAME``); used whatever the data.
     n_structures : int, optional
         Number of proposed structures (``--classes N``); also skips the checksum pairing.
+    propose : bool
+        Propose (with the number of structures the data choose) even when a preset matches
+        (``--classes auto``).
     folder : path, optional
         The presets' folder (default :func:`presets_dir`).
 
@@ -200,7 +205,7 @@ def choose_spec(volume, *, preset=None, n_structures=None, folder=None) -> SpecC
     if preset is not None:
         spec, path = load_preset(preset, folder)
         return SpecChoice(spec, str(path), f"structures: preset {preset!r} (given with --preset)")
-    if n_structures is None:
+    if n_structures is None and not propose:
         found = match_preset(volume, folder)
         if found is not None:
             from dvr_perception.structures.io import load_spec
@@ -209,6 +214,8 @@ def choose_spec(volume, *, preset=None, n_structures=None, folder=None) -> SpecC
             line = f"structures: preset {name!r} (data checksum matches)"
             return SpecChoice(load_spec(path), str(path), line)
         why = "no preset matches this file"
+    elif n_structures is None:
+        why = "asked with --classes auto"
     else:
         why = f"{n_structures} requested with --classes"
     spec = propose_structures(volume, n_structures=n_structures)

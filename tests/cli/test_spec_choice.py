@@ -56,7 +56,7 @@ def test_preset_by_name_and_count_by_classes(capsys, tmp_path):
     ("extra", "message"),
     [
         (["--preset", "nosuch"], "--preset 'nosuch': no such preset (known: HeadMRVolume, "),
-        (["--classes", "9"], "--classes: expected an integer from 1 to 8, got 9"),
+        (["--classes", "9"], "--classes: expected 'auto' or an integer from 1 to 8, got 9"),
         (["--classes", "2", "--preset", "tooth"], "not allowed with argument"),
     ],
 )
@@ -77,6 +77,10 @@ def test_a_shared_volume_saved_elsewhere_keeps_its_preset(capsys, tmp_path, shar
     report, err = _render(capsys, tmp_path, tmp_path / "mine.vti")
     assert report["spec"] == str(presets_dir() / "neghip.json")
     assert "structures: preset 'neghip' (data checksum matches)\n" in err
+    report, err = _render(capsys, tmp_path, tmp_path / "mine.vti", "--classes", "auto")
+    assert report["spec"] == "proposed"
+    assert "structures proposed from the data (asked with --classes auto)\n" in err
+    assert all(n.startswith("class ") for n in report["structures"])
 
 
 def test_default_view_of_an_oriented_scan_is_anterior_head_up(capsys, tmp_path):
