@@ -27,7 +27,10 @@ smallest that leaves at most :data:`UNEXPLAINED` of the variance left by the bac
 foreground split unexplained (at most 8 structures); ``n_structures`` asks for a count instead.
 The lowest class is taken as background (air, resin, empty space) and every other class becomes
 one range structure named by intensity order, ranges touching midway between the classes,
-importance rising with intensity, colours from a colour-blind-safe palette.
+importance rising with intensity, colours from a colour-blind-safe palette.  The lowest
+classes, each holding more voxels than all classes above it together and at least 10 % of the
+volume (the bulk that fills it: noise around an object, an embedding), start nearly
+transparent (opacity :data:`BULK_OPACITY`).
 
 Limits: intensity alone cannot part tissues whose values overlap (in an MRI, grey and white
 matter are cut at the k-means boundary of one histogram hump, not by anatomy); a CT stored
@@ -37,6 +40,7 @@ vessels under the 0.1 % floor are folded into bone.
 
 from __future__ import annotations
 
+import itertools
 import math
 import warnings
 
@@ -62,6 +66,8 @@ PALETTE = (
 MAX_STRUCTURES = len(PALETTE)
 #: Share of the post-background variance the chosen number of data classes may leave.
 UNEXPLAINED = 0.08
+#: Starting opacity of a data class with more voxels than all classes above it.
+BULK_OPACITY = 0.03
 #: Tissue windows of a CT in Hounsfield units: name, low, high, colour, importance.
 HU_TISSUES = (
     ("air and lung", -950.0, -400.0, (0.62, 0.76, 0.90), 0.15),
@@ -149,7 +155,10 @@ def _kmeans_1d(x: np.ndarray, w: np.ndarray, kmax: int):
 
 
 def _data_classes(data: np.ndarray, n_structures, seed: int):
-    """Range edges ``[lo_1, hi_1 = lo_2, ..., hi_k]`` of the data classes above background."""
+    """Range edges ``[lo_1, hi_1 = lo_2, ..., hi_k]`` of the data classes above background.
+
+    Also returns the share of the voxels (of the sample, for sampled float data) of each class.
+    """
     counts, lower, upper, centres = _histogram(data, seed)
     if n_structures is None:
         kmax = min(MAX_STRUCTURES + 1, len(counts))
@@ -171,7 +180,12 @@ def _data_classes(data: np.ndarray, n_structures, seed: int):
     cuts = [0.5 * (upper[s - 1] + lower[s]) for s in starts]
     vmax = float(data.max())
     edges = [c for c in cuts if c < vmax] + [vmax]
-    return edges
+    sizes = [
+        float(counts[(centres >= lo) & ((centres < hi) if i < len(edges) - 2 else True)].sum())
+        / float(counts.sum())
+        for i, (lo, hi) in enumerate(itertools.pairwise(edges))
+    ]
+    return edges, sizes
 
 
 def is_hounsfield(volume) -> bool:
@@ -330,7 +344,7 @@ def propose_structures(
                 stacklevel=2,
             )
             n = distinct - 1
-    edges = _data_classes(data, n, int(seed))
+    edges, sizes = _data_classes(data, n, int(seed))
     k = len(edges) - 1
     if n is not None and k < n:
         warnings.warn(
@@ -342,15 +356,20 @@ def propose_structures(
     integer = data.dtype.kind in "ui"
     importances = [0.5] if k == 1 else list(np.linspace(0.15, 0.85, k))
     structures = []
+    bulk = k > 1
     for i in range(k):
         lo, hi = float(edges[i]), float(edges[i + 1])
         name = f"class {i + 1} ({_label(lo, hi, integer, i == k - 1)})"
+        # the lowest classes, each with more voxels than all classes above it, fill the volume
+        # (background noise, an embedding, the bulk around an object): almost transparent
+        bulk = bulk and i < k - 1 and sizes[i] > max(sum(sizes[i + 1 :]), 0.1)
         structures.append(
             Structure(
                 name=name,
                 importance=round(float(importances[i]), 4),
                 color=PALETTE[i % len(PALETTE)],
                 range=(lo, hi),
+                opacity=BULK_OPACITY if bulk else None,
             )
         )
     return StructureSpec(structures=tuple(structures))

@@ -234,3 +234,18 @@ def test_a_dicom_ct_series_gets_bone_and_soft_tissue(tmp_path):
     assert got["bone"].range[1] >= BONE_WINDOW[1]
     assert got["soft tissue"].range[0] <= SOFT_TISSUE_WINDOW[0]
     assert got["soft tissue"].range[1] >= SOFT_TISSUE_WINDOW[1]
+
+
+def test_the_bulk_filling_the_volume_starts_almost_transparent():
+    """A molar-like scan: zero padding, a noisy embedding (80 %), dentin, enamel."""
+    rng = np.random.default_rng(4)
+    data = np.zeros((30, 30, 30))
+    data[2:-2, 2:-2, 2:-2] = 80 + 4 * rng.standard_normal((26, 26, 26))  # the embedding
+    data[8:20, 8:20, 8:20] = 160 + 4 * rng.standard_normal((12, 12, 12))  # dentin
+    data[10:18, 10:18, 10:18] = 230 + 4 * rng.standard_normal((8, 8, 8))  # enamel
+    spec = propose_structures(Volume(np.clip(data, 0, 255).astype(np.uint8)))
+    assert len(spec.structures) == 3
+    lo, hi = spec.structures[0].range
+    assert lo < 70 and 90 < hi < 150  # noqa: PT018 (the embedding's class)
+    assert [s.opacity for s in spec.structures] == [0.03, None, None]
+    assert [s.render_opacity for s in spec.structures][1:] == [0.5, 0.85]
