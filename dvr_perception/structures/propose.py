@@ -30,7 +30,8 @@ one range structure named by intensity order, ranges touching midway between the
 importance rising with intensity, colours from a colour-blind-safe palette.  The lowest
 classes, each holding more voxels than all classes above it together and at least 10 % of the
 volume (the bulk that fills it: noise around an object, an embedding), start nearly
-transparent (opacity :data:`BULK_OPACITY`).
+transparent (opacity :data:`BULK_OPACITY`), as does a lowest class whose histogram only falls
+away from the background (its tail: noise, partial volume at the surface).
 
 Limits: intensity alone cannot part tissues whose values overlap (in an MRI, grey and white
 matter are cut at the k-means boundary of one histogram hump, not by anatomy); a CT stored
@@ -185,7 +186,22 @@ def _data_classes(data: np.ndarray, n_structures, seed: int):
         / float(counts.sum())
         for i, (lo, hi) in enumerate(itertools.pairwise(edges))
     ]
-    return edges, sizes
+    return edges, sizes, _is_tail(counts[(centres >= edges[0]) & (centres < edges[1])])
+
+
+def _is_tail(counts: np.ndarray) -> bool:
+    """Whether a class's histogram only falls away from its lower end (the background's tail).
+
+    Examples
+    --------
+    >>> _is_tail(np.array([90, 70, 50, 30, 20, 10.0])), _is_tail(np.array([10, 40, 90, 40, 10.0]))
+    (True, False)
+    """
+    if len(counts) < 3:
+        return False
+    smooth = np.convolve(counts, np.ones(3) / 3.0, mode="valid")
+    top = int(np.argmax(smooth))
+    return bool(top <= len(smooth) // 5 and smooth[-1] < 0.5 * smooth[top])
 
 
 def is_hounsfield(volume) -> bool:
@@ -344,7 +360,7 @@ def propose_structures(
                 stacklevel=2,
             )
             n = distinct - 1
-    edges, sizes = _data_classes(data, n, int(seed))
+    edges, sizes, tail = _data_classes(data, n, int(seed))
     k = len(edges) - 1
     if n is not None and k < n:
         warnings.warn(
@@ -363,13 +379,14 @@ def propose_structures(
         # the lowest classes, each with more voxels than all classes above it, fill the volume
         # (background noise, an embedding, the bulk around an object): almost transparent
         bulk = bulk and i < k - 1 and sizes[i] > max(sum(sizes[i + 1 :]), 0.1)
+        faint = bulk or (i == 0 and k > 1 and tail)
         structures.append(
             Structure(
                 name=name,
                 importance=round(float(importances[i]), 4),
                 color=PALETTE[i % len(PALETTE)],
                 range=(lo, hi),
-                opacity=BULK_OPACITY if bulk else None,
+                opacity=BULK_OPACITY if faint else None,
             )
         )
     return StructureSpec(structures=tuple(structures))
