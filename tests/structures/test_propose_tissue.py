@@ -1,7 +1,8 @@
 """Proposed structures by tissue: HU windows for a CT, data classes for the shared volumes.
 
-The reference classes are the tissue ranges ``../shared/data/MANIFEST.md`` lists (background,
-air and noise ranges left out: the proposal takes the lowest class as background).  Each must
+The reference classes are the tissue (and, for the industrial scans, material) ranges
+``../shared/data/MANIFEST.md`` lists; background and air ranges are left out (the proposal
+takes the lowest class as background).  Each must
 fall mainly (more than half of its voxels) in one proposed structure, and no two classes in
 the same one.
 """
@@ -29,6 +30,10 @@ TISSUES = {
                        "fat/scalp/marrow": (107, 242)},
     "aneurism": {"noise": (2, 110), "vessels": (145, 255)},
     "HeadMRVolume": {"brain and soft tissue": (7, 71), "CSF": (75, 244)},
+    # industrial and botanical CT: materials
+    "engine": {"metal block": (90, 170), "dense inserts": (190, 255)},
+    "bonsai": {"leaves and twigs": (27, 75), "trunk and soil": (90, 160), "pot": (170, 225)},
+    "lobster": {"resin": (9, 27), "shell and tissue": (70, 160)},
 }  # fmt: skip
 #: Volumes whose broad classes the intensity proposal still cuts (README: limits).
 KNOWN_MISSES = {"aneurism", "HeadMRVolume"}
