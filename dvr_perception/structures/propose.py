@@ -1,9 +1,11 @@
 """Automatic structure proposal: tissue classes for a CT in Hounsfield units, else data classes.
 
 **CT in Hounsfield units** (:func:`is_hounsfield`: signed values whose minimum lies where air
-and the CT's padding lie, -3100 to -900, with at least 1 % of the voxels at air (-900 or below)
-and 1 % at fat, water or soft tissue (-200 to 200)).  The structures are the standard HU
-windows of the tissues present (at least 0.1 % of the voxels, metal 0.001 %):
+and the CT's padding lie, -3100 to -900, with at least 0.1 % of the voxels at air (-900 or
+below) and 1 % at fat, water or soft tissue (-200 to 200); or a DICOM series or file, whose
+values come rescaled, with a minimum of -50 or below and that 1 % of soft tissue).  The
+structures are the standard HU windows of the tissues present (at least 0.1 % of the voxels,
+metal 0.001 %):
 
 ============================  ==============  =========  ==========
 structure                     HU              colour     importance
@@ -219,12 +221,27 @@ def is_hounsfield(volume) -> bool:
     if data.dtype.kind not in "if":
         return False
     lo, hi = (float(v) for v in volume.scalar_range)
-    if not (-3100.0 <= lo <= -900.0) or hi < 0.0 or hi > 40000.0:
+    if lo < -3100.0 or hi < 0.0 or hi > 40000.0:
         return False
     sample = _sample(data, 0)
-    air = np.count_nonzero(sample <= -900) / sample.size
     tissue = np.count_nonzero((sample >= -200) & (sample <= 200)) / sample.size
-    return bool(air >= 0.01 and tissue >= 0.01)
+    if _from_dicom(volume) and lo <= -50.0:  # rescaled DICOM with fat or air: a CT
+        return bool(tissue >= 0.01)
+    if lo > -900.0:
+        return False
+    air = np.count_nonzero(sample <= -900) / sample.size
+    return bool(air >= 0.001 and tissue >= 0.01)
+
+
+def _from_dicom(volume) -> bool:
+    """Whether ``volume`` was read from DICOM (a series folder or a ``.dcm`` file)."""
+    source = str(getattr(volume, "source", "") or "")
+    if not source or source == "phantom":
+        return False
+    from pathlib import Path
+
+    path = Path(source)
+    return path.suffix.lower() in (".dcm", ".dicom", ".ima") or path.is_dir()
 
 
 def _has_mode(values: np.ndarray, lo: float, hi: float) -> bool:

@@ -254,3 +254,16 @@ def test_the_bulk_filling_the_volume_starts_almost_transparent():
     assert lo < 70 and 90 < hi < 150  # noqa: PT018 (the embedding's class)
     assert [s.opacity for s in spec.structures] == [0.03, None, None]
     assert [s.render_opacity for s in spec.structures][1:] == [0.5, 0.85]
+
+
+def test_a_dicom_series_inside_the_body_is_hounsfield_without_air(tmp_path):
+    rng = np.random.default_rng(6)
+    hu = 40 + 10 * rng.standard_normal((6, 24, 24))  # muscle, no air in the field of view
+    hu[:, :, :5] = -100 + 10 * rng.standard_normal((6, 24, 5))  # fat
+    hu[:, 8:14, 8:14] = 700 + 100 * rng.standard_normal((6, 6, 6))  # bone
+    hu = np.round(hu).astype(np.int16)
+    assert not is_hounsfield(Volume(hu))  # in memory, without air: could be any signed data
+    _write_ct_series(tmp_path / "ct", hu)
+    vol = load_volume(tmp_path / "ct")
+    assert is_hounsfield(vol)  # read from DICOM: rescaled values, a CT
+    assert [s.name for s in propose_structures(vol).structures] == ["fat", "soft tissue", "bone"]
