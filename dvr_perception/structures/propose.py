@@ -29,9 +29,9 @@ smallest that leaves at most :data:`UNEXPLAINED` of the variance left by the bac
 foreground split unexplained (at most 8 structures); ``n_structures`` asks for a count instead.
 The lowest class is taken as background (air, resin, empty space) and every other class becomes
 one range structure named by intensity order, ranges touching midway between the classes,
-importance rising with intensity, colours from a colour-blind-safe palette.  The lowest
-classes, each holding more voxels than all classes above it together and at least 10 % of the
-volume (the bulk that fills it: noise around an object, an embedding), start nearly
+importance rising with intensity, colours from a ramp by intensity rank (dark red to ivory).
+The lowest classes, each holding more voxels than all classes above it together and at least
+10 % of the volume (the bulk that fills it: noise around an object, an embedding), start nearly
 transparent (opacity :data:`BULK_OPACITY`), as does a lowest class whose histogram only falls
 away from the background (its tail: noise, partial volume at the surface).
 
@@ -55,16 +55,18 @@ from dvr_perception.structures.spec import Structure, StructureSpec
 
 __all__ = ["HU_TISSUES", "describe_proposal", "is_hounsfield", "propose_structures"]
 
-#: Okabe–Ito colour-blind-safe palette (without black), in the order structures are coloured.
+#: Colours of the data classes, from the lowest intensity to the highest (darker and warmer to
+#: lighter): a class's colour is picked evenly along this ramp by its rank, so the densest class
+#: is always ivory, as bone is in a CT, and neighbours stay apart in hue and lightness.
 PALETTE = (
-    (0.902, 0.624, 0.000),  # orange
-    (0.337, 0.706, 0.914),  # sky blue
-    (0.000, 0.620, 0.451),  # bluish green
-    (0.941, 0.894, 0.259),  # yellow
-    (0.835, 0.369, 0.000),  # vermilion
-    (0.000, 0.447, 0.698),  # blue
-    (0.800, 0.475, 0.655),  # reddish purple
-    (0.600, 0.600, 0.600),  # grey
+    (0.50, 0.18, 0.12),  # dark red-brown
+    (0.80, 0.30, 0.16),  # brick red
+    (0.93, 0.52, 0.20),  # orange
+    (0.85, 0.66, 0.42),  # tan
+    (0.95, 0.62, 0.66),  # pink
+    (0.55, 0.75, 0.90),  # pale blue
+    (0.95, 0.90, 0.55),  # light yellow
+    (1.00, 0.96, 0.84),  # ivory
 )
 MAX_STRUCTURES = len(PALETTE)
 #: Share of the post-background variance the chosen number of data classes may leave.
@@ -281,6 +283,19 @@ def _hounsfield_structures(volume, seed: int) -> list[Structure]:
     return structures
 
 
+def _class_color(i: int, k: int) -> tuple[float, float, float]:
+    """Colour of class ``i`` of ``k``: evenly along :data:`PALETTE`, the last one ivory.
+
+    Examples
+    --------
+    >>> [_class_color(i, 3) for i in range(3)] == [PALETTE[0], PALETTE[4], PALETTE[7]]
+    True
+    """
+    if k <= 1:
+        return PALETTE[-1]
+    return PALETTE[round(i * (len(PALETTE) - 1) / (k - 1))]
+
+
 def _label(lo: float, hi: float, integer: bool, last: bool) -> str:
     """``"lo–hi"`` with, for integer data, the first and last integer the range holds."""
     if integer:  # a shared edge value belongs to the upper range
@@ -401,7 +416,7 @@ def propose_structures(
             Structure(
                 name=name,
                 importance=round(float(importances[i]), 4),
-                color=PALETTE[i % len(PALETTE)],
+                color=_class_color(i, k),
                 range=(lo, hi),
                 opacity=BULK_OPACITY if faint else None,
             )
