@@ -49,6 +49,9 @@ __all__ = [
 
 PROG = "dvr-perception"
 DEFAULT_SIZE = 512
+#: One-line notes for the user (e.g. which spec was chosen and why), printed on stderr by
+#: :func:`dvr_perception.cli.main` after the command has succeeded.
+NOTES: list[str] = []
 log = logging.getLogger("dvr_perception.cli")
 
 
@@ -313,7 +316,7 @@ def _load_volume(text: str, *, paired: bool = True, series: str | None = None, c
         from dvr_perception.volume.phantom import make_phantom
 
         volume, spec = make_phantom()
-        return volume, spec, "phantom (built-in spec)", "structures: the phantom's own"
+        return volume, spec, "phantom (built-in spec)", ""
     from dvr_perception.volume.io import load_volume
 
     path = Path(text)
@@ -368,9 +371,8 @@ def load_scene(args: argparse.Namespace) -> Scene:
     from dvr_perception.structures.io import attach_labels, check_spec_for_volume, load_spec
 
     given, given_source, given_line = None, "", ""
-    if args.structures is not None:
+    if args.structures is not None:  # the user's own spec: nothing to explain
         given, given_source = load_spec(args.structures), str(args.structures)
-        given_line = f"structures: {args.structures} (given with --structures)"
     elif getattr(args, "preset", None) is not None:
         from dvr_perception.structures.presets import load_preset
 
@@ -393,7 +395,8 @@ def load_scene(args: argparse.Namespace) -> Scene:
     load_s = time.perf_counter() - t0
     if given is not None:
         spec, spec_source, spec_line = given, given_source, given_line
-    print(spec_line, file=sys.stderr)
+    if spec_line:  # said once the command has succeeded (an error stays one line)
+        NOTES.append(spec_line)
     volume = attach_labels(volume, spec)
     if getattr(args, "orientation", None) is not None:
         from dvr_perception.volume.orient import reorient
