@@ -319,7 +319,6 @@ def reader_scene(pvs, args):
             f"--ranks {args.ranks}: needs --structures or --preset NAME (pairing a preset by "
             f"the data's checksum, or proposing a spec, would read all of {args.volume})"
         )
-    print(f"structures: {spec_source}", file=sys.stderr)
     if args.shade is not None:
         from dataclasses import replace
 
