@@ -5,8 +5,8 @@ Reported figures (seconds unless stated):
 * ``load_s`` – reading (or generating) the volume, and up-sampling it with ``--resample
   FX,FY,FZ`` (integer factors along x, y, z, trilinear; e.g. ``--resample 2,2,4`` turns
   cthead's 256×256×113 into 512×512×452); ``--save-volume PATH`` also writes that volume
-  (e.g. ``big/cthead.nhdr``, which pairs with ``state_files/cthead.json``) for the other
-  commands.
+  (e.g. ``big/cthead.nhdr``; its data are not cthead's, so give it ``--preset cthead``) for
+  the other commands.
 * ``curvature_s`` – the curvature volume; ``curvature_vtk_frames`` = ``curvature_s /
   vtk_frame_s``.
 * ``peak_rss_mb`` – the process's peak resident memory (``ru_maxrss``) at the end, MiB: the
