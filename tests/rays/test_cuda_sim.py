@@ -22,6 +22,7 @@ from pathlib import Path
 import pytest
 
 from dvr_perception.errors import DVRInputError
+from tests.conftest import _missing
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -144,6 +145,38 @@ try:
     out["brick"] = "no error"
 except DVRInputError as exc:
     out["brick"] = str(exc)
+import contextlib
+import io
+
+from dvr_perception.cli import main
+from dvr_perception.rays import vtk_process, vtk_reference
+
+
+@contextlib.contextmanager
+def no_vtk_frames(*_):  # bench's VTK reference frames: not what is compared here
+    yield lambda: 0.25
+
+
+vtk_reference.vtk_frame_timer = no_vtk_frames
+vtk_process.vtk_frame_process = no_vtk_frames
+
+
+def cli(*argv):
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = main([*argv, "--json"])
+    assert code == 0, (argv, code)
+    return json.loads(buf.getvalue())
+
+
+reports = {b: cli("measure", "phantom", "--size", "12x10", "--backend", b)
+           for b in ("numba", "cuda")}
+out["cli_measure"] = {k: abs(reports["cuda"][k] - reports["numba"][k])
+                      for k in ("E_v", "E_s", "E_t")}
+out["cli_measure_E_v"] = reports["numba"]["E_v"]
+benches = {b: cli("bench", "--size", "12x10", "--repeat", "1", "--backend", b)
+           for b in ("numba", "cuda")}
+out["bench"] = {b: {"keys": sorted(r), "backend": r["backend"]} for b, r in benches.items()}
 print(json.dumps(out))
 """
 
@@ -217,6 +250,23 @@ def test_optimize_runs_the_three_stages_on_cuda_with_a_lens(sim):
     assert rec["image"] <= 1e-5
 
 
+def test_cli_measure_and_bench_take_the_backend(sim):
+    assert sim["cli_measure_E_v"] > 0
+    assert max(sim["cli_measure"].values()) <= 1e-6, sim["cli_measure"]
+    bench = sim["bench"]
+    assert bench["cuda"]["backend"] == "cuda"
+    assert bench["numba"]["backend"] == "numba"
+    assert bench["cuda"]["keys"] == bench["numba"]["keys"]
+    assert "frame_s" in bench["cuda"]["keys"]
+
+
+def test_cli_backend_choices_are_the_engines():
+    from dvr_perception.cli._backend import BACKENDS as CLI
+    from dvr_perception.rays.engine import BACKENDS
+
+    assert CLI == BACKENDS
+
+
 def test_auto_never_takes_the_simulator_and_bricks_are_refused(sim):
     assert sim["auto"] == "numba"
     assert sim["brick"].startswith("brick: the cuda back end")
@@ -257,6 +307,101 @@ def test_auto_prefers_a_device_and_falls_back(monkeypatch):
     monkeypatch.delenv("DVR_PERCEPTION_NO_CUDA")
     monkeypatch.setattr(_cuda, "_AUTO", [False])
     assert engine._kind("auto", nk) == "numba"
+
+
+_LOWER = r"""
+# Lower the kernels to NVVM IR for a compute capability 9.0 device, with the argument types
+# the engine passes (its launches are intercepted): what a real GPU compiles, minus NVVM.
+import json
+import numpy as np
+import numba
+from numba import cuda, types
+from numba.cuda.compiler import compile_cuda
+import numba.cuda.dispatcher as dispatcher
+from dvr_perception.rays import _cuda, engine
+from dvr_perception.rays import _cuda_kernels as ck
+from dvr_perception.rays.camera import Camera
+from dvr_perception.volume import make_phantom
+
+assert cuda.implementation == "NVIDIA", cuda.implementation
+
+
+class Device:
+    compute_capability = (9, 0)
+
+
+dispatcher.get_current_device = lambda: Device()  # device functions ask for it
+
+
+class Host(np.ndarray):
+    def copy_to_host(self):
+        return np.asarray(self).copy()
+
+
+lowered = []
+
+
+class Launch:
+    def __init__(self, kernel):
+        self.kernel = kernel
+
+    def __getitem__(self, config):
+        def run(*args):
+            tys = tuple(numba.typeof(np.asarray(a) if isinstance(a, Host) else a) for a in args)
+            res = compile_cuda(self.kernel.py_func, types.void, tys, cc=(9, 0))
+            lowered.append([self.kernel.py_func.__name__, len(res.library.get_llvm_str())])
+        return run
+
+
+class Kernels:
+    BLOCK = ck.BLOCK
+    walk = Launch(ck.walk)
+    compact = Launch(ck.compact)
+
+
+_cuda.kernels = lambda: Kernels
+_cuda.to_device = lambda a, keep=False: np.ascontiguousarray(a).view(Host)
+_cuda.check_fits = lambda need: None
+cuda.device_array = lambda shape, dtype: np.zeros(shape, dtype).view(Host)
+engine._pick_backend = lambda backend: engine._numba_kernels()
+vol, spec = make_phantom(size=16)
+cam = Camera.from_view(vol.bounds, width=12, height=10)
+engine.analyze(vol, spec, cam, backend="cuda")
+engine.analyze(vol, spec, cam, backend="cuda", build_cache=False, occlusion_free=False,
+               curvature=np.ones(vol.data.shape, np.float32))
+print(json.dumps(lowered))
+"""
+
+
+@pytest.fixture(scope="module")
+def numba_cuda():
+    """numba-cuda (the ``gpu`` extra's CUDA target): skips without it, fails under CI."""
+    run = subprocess.run(
+        [sys.executable, "-c", "from numba import cuda; print(cuda.implementation)"],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    if run.stdout.strip() != "NVIDIA":
+        _missing("numba-cuda is not installed (pip install numba-cuda)")
+    return True
+
+
+def test_kernels_lower_for_a_real_gpu(numba_cuda):
+    run = subprocess.run(
+        [sys.executable, "-W", "error", "-c", _LOWER],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=900,
+        check=False,
+    )
+    assert run.returncode == 0, run.stderr[-4000:]
+    lowered = json.loads(run.stdout.strip().splitlines()[-1])
+    assert [name for name, _ in lowered] == ["walk", "compact", "walk"]
+    assert all(size > 10_000 for _, size in lowered)
 
 
 _NO_VTK = r"""
