@@ -669,6 +669,7 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
     dev = [_cuda.to_device(a, keep=True) for a in big]
     small = [_cuda.to_device(a) for a in (rep, kmap, tids, t_alpha, t_bit)]
     rays = [_cuda.to_device(seg[q]) for q in ("a", "b", "t")] + [_cuda.to_device(n)]
+    base_d = _cuda.to_device(base)
     tables = [_cuda.to_device(a) for a in (ids, memb, alpha_r, alpha_w, cols, light, tab)]
     from numba import cuda
 
@@ -692,13 +693,14 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
     bx, by = ck.BLOCK
     grid = (-(-w // bx), -(-h // by))
     vol_d, tix_d, cells_d, blocks_d, lab_d, cv_d = dev
-    ck.walk[grid, (bx, by)](
-        vol_d, tix_d, cells_d, blocks_d, small[0], lab_d, np.int64(lab[1]), *small[1:], cv_d,
-        *rays[:3], rays[3], _cuda.to_device(base), float(step), *tables, bool(shade),
-        bool(has_curv), bool(build), bool(tail), float(ert), out["rgba"], out["vis"], out["asg"],
-        out["present"], out["cimg"], out["count"], out["walked"], out["aimp"], out["state"],
-        *src, np.int64(w), np.int64(h),
-    )  # fmt: skip
+    with _cuda.quiet_launch():  # small images: no low-occupancy warning per frame
+        ck.walk[grid, (bx, by)](
+            vol_d, tix_d, cells_d, blocks_d, small[0], lab_d, np.int64(lab[1]), *small[1:],
+            cv_d, *rays, base_d, float(step), *tables, bool(shade),
+            bool(has_curv), bool(build), bool(tail), float(ert), out["rgba"], out["vis"],
+            out["asg"], out["present"], out["cimg"], out["count"], out["walked"], out["aimp"],
+            out["state"], *src, np.int64(w), np.int64(h),
+        )  # fmt: skip
     host = {q: out[q].copy_to_host() for q in ("rgba", "vis", "asg", "present", "cimg", "aimp")}
     walked = int(out["walked"].copy_to_host().sum())
     if report:
@@ -717,10 +719,11 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
             cuda.device_array(m if has_curv else 1, np.float32),
         )
         threads = 128
-        ck.compact[-(-nrays // threads), threads](
-            _cuda.to_device(base), out["count"], _cuda.to_device(start), *src, *dst, bool(shade),
-            bool(has_curv),
-        )  # fmt: skip
+        with _cuda.quiet_launch():
+            ck.compact[-(-nrays // threads), threads](
+                base_d, out["count"], _cuda.to_device(start), *src, *dst,
+                bool(shade), bool(has_curv),
+            )  # fmt: skip
         lut_h, j_h, sh_h, curv_h = (d.copy_to_host() for d in dst)
         entries = {
             "lut": lut_h[:e],

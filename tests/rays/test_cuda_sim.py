@@ -307,6 +307,11 @@ def test_auto_prefers_a_device_and_falls_back(monkeypatch):
     monkeypatch.delenv("DVR_PERCEPTION_NO_CUDA")
     monkeypatch.setattr(_cuda, "_AUTO", [False])
     assert engine._kind("auto", nk) == "numba"
+    # no NVIDIA driver: looked up without importing numba.cuda, and no
+    monkeypatch.setattr(_cuda, "_AUTO", [])
+    monkeypatch.setattr(_cuda, "_no_nvidia_driver", lambda: True)
+    assert _cuda.auto_usable() is False
+    assert _cuda._AUTO == [False]
 
 
 _LOWER = r"""
