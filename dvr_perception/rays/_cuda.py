@@ -60,6 +60,7 @@ def kernels():
             "backend: 'cuda' was requested but DVR_PERCEPTION_NO_NUMBA is set (the CUDA back "
             "end compiles with numba); unset it or use backend='numpy'"
         )
+    numpy_for_numba_cuda()
     try:
         from numba import cuda
 

@@ -273,6 +273,9 @@ def test_auto_never_takes_the_simulator_and_bricks_are_refused(sim):
 
 
 def test_cuda_without_a_device_is_one_clear_error(monkeypatch):
+    from dvr_perception.rays._cuda import numpy_for_numba_cuda
+
+    numpy_for_numba_cuda()
     from numba import cuda
 
     from dvr_perception.rays.camera import Camera
@@ -319,11 +322,13 @@ _LOWER = r"""
 # the engine passes (its launches are intercepted): what a real GPU compiles, minus NVVM.
 import json
 import numpy as np
+from dvr_perception.rays import _cuda, engine
+
+_cuda.numpy_for_numba_cuda()  # numpy >= 2.5: before numba.cuda
 import numba
 from numba import cuda, types
 from numba.cuda.compiler import compile_cuda
 import numba.cuda.dispatcher as dispatcher
-from dvr_perception.rays import _cuda, engine
 from dvr_perception.rays import _cuda_kernels as ck
 from dvr_perception.rays.camera import Camera
 from dvr_perception.volume import make_phantom
@@ -378,11 +383,19 @@ print(json.dumps(lowered))
 """
 
 
+_IMPLEMENTATION = """
+from dvr_perception.rays._cuda import numpy_for_numba_cuda
+numpy_for_numba_cuda()
+from numba import cuda
+print(cuda.implementation)
+"""
+
+
 @pytest.fixture(scope="module")
 def numba_cuda():
     """numba-cuda (the ``gpu`` extra's CUDA target): skips without it, fails under CI."""
     run = subprocess.run(
-        [sys.executable, "-c", "from numba import cuda; print(cuda.implementation)"],
+        [sys.executable, "-c", _IMPLEMENTATION],
         env=_env(),
         capture_output=True,
         text=True,
