@@ -346,6 +346,8 @@ def analyze(
             )
         kind = "numba"
     need = _plan(volume, spec, camera, seg, lut, memb, has_curv, build_cache, memory_limit, brick)
+    if kind == "cuda" and need["mode"] == "bricks" and need["whole"] <= need["limit"]:
+        need["mode"] = "whole"  # the CPU bricks large volumes for speed; the GPU takes them whole
     if kind == "cuda" and need["mode"] == "bricks":
         if backend == "cuda":
             raise DVRInputError(
@@ -518,7 +520,7 @@ def analyze_views(
     ]  # fmt: skip
     bricks = {tuple(p["brick"]) for p in plans if p["mode"] == "bricks"}
     shared = len(cameras) > 1 and len(bricks) == 1 and all(p["mode"] == "bricks" for p in plans)
-    if shared and backend != "cuda":  # bricks are the CPU's ("cuda": analyze() says so)
+    if shared and _kind(backend, nk) != "cuda":  # bricks are the CPU's (analyze() decides)
         from dvr_perception.rays.bricks import analyze_bricked_views
 
         return analyze_bricked_views(

@@ -140,6 +140,29 @@ out["optimize"] = {
     "image": float(np.max(np.abs(runs["cuda"]["image"] - runs["numba"]["image"]))),
 }
 out["auto"] = analyze(vol, spec, cam, build_cache=False).stats["backend"]
+# a "large" volume: the CPU bricks it, the GPU takes it whole while it fits the limit
+from dvr_perception.rays import memory
+
+memory.WHOLE_VOXELS = 1000
+a = analyze(vol, spec, side, backend="numba")
+b = analyze(vol, spec, side, backend="cuda")
+p = analyze_views(vol, spec, [side, cam], backend="cuda")
+out["large"] = {"cpu_bricks": a.stats.get("bricks", 0), "backend": b.stats["backend"],
+                "buffers": diff(a, b), "views": [v.stats["backend"] for v in p]}
+from dvr_perception.rays import engine
+
+big, bspec = make_phantom(size=96)
+_, _, _, lut, _, _, memb, seg = engine._scene(big, bspec, side, "numba")
+whole = engine._plan(big, bspec, side, seg, lut, memb, False, True, None, None)["whole"]
+cap = int(whole * 0.9)  # too small for the whole volume, enough for bricks of 32^3 cells
+plan = engine._plan(big, bspec, side, seg, lut, memb, False, True, cap, None)
+assert plan["mode"] == "bricks", plan
+try:  # fits in bricks only: cuda says so
+    analyze(big, bspec, side, backend="cuda", memory_limit=cap)
+    out["too_large"] = "no error"
+except DVRInputError as exc:
+    out["too_large"] = str(exc)
+memory.WHOLE_VOXELS = 64 * 2**20
 try:
     analyze(vol, spec, cam, backend="cuda", brick=(8, 8, 8))
     out["brick"] = "no error"
@@ -265,6 +288,17 @@ def test_cli_backend_choices_are_the_engines():
     from dvr_perception.rays.engine import BACKENDS
 
     assert CLI == BACKENDS
+
+
+def test_a_volume_the_cpu_bricks_is_analysed_whole_on_the_gpu(sim):
+    rec = sim["large"]
+    assert rec["cpu_bricks"] >= 1  # the CPU took the bricked path
+    assert rec["backend"] == "cuda"
+    assert rec["views"] == ["cuda", "cuda"]
+    assert max(rec["buffers"].values()) <= 1e-5, rec["buffers"]
+    assert sim["too_large"].startswith("memory_limit: volume 'phantom' needs a bricked"), sim[
+        "too_large"
+    ]
 
 
 def test_auto_never_takes_the_simulator_and_bricks_are_refused(sim):
@@ -446,7 +480,15 @@ from dvr_perception.optimize import optimize
 from dvr_perception.rays import Camera, analyze
 from dvr_perception.volume import make_phantom
 
+import os
+import tempfile
+
+from dvr_perception.volume import load_volume, save_volume
+
 vol, spec = make_phantom(size=16)
+path = os.path.join(tempfile.mkdtemp(), "phantom.nhdr")  # NRRD: read and written without VTK
+save_volume(vol, path)
+assert (load_volume(path).data == vol.data).all()
 cam = Camera.from_view(vol.bounds, width=12, height=10)
 m = all_measures(analyze(vol, spec, cam), spec)
 r = optimize(vol, spec, cam, stages=("opacity",), max_iter=1)
