@@ -335,6 +335,7 @@ def test_auto_prefers_a_device_and_falls_back(monkeypatch):
 
     nk = engine._numba_kernels()
     assert nk is not None
+    monkeypatch.delenv("DVR_PERCEPTION_NO_CUDA", raising=False)  # tests/conftest.py sets it
     monkeypatch.setattr(_cuda, "_AUTO", [True])
     assert engine._kind("auto", nk) == "cuda"
     assert engine._kind("numba", nk) == "numba"
