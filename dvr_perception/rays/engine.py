@@ -892,7 +892,9 @@ def reevaluate(
     entries that no earlier compositing reached (numba backend: computed once, on first use)
     and for the shading of all entries after a change of light direction or specular power.
     ``assigned`` and ``present`` do not depend on these parameters and are taken from the
-    cache.  Unspecified parameters keep the values of
+    cache.  The cache of a ``backend="cuda"`` analysis (entries built on the GPU, equal to
+    the CPU's) re-composites here on the CPU, with numba.  Unspecified parameters keep the
+    values of
     the :func:`analyze` call that built the cache.
 
     Parameters
