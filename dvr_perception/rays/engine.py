@@ -703,7 +703,8 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
             out["asg"], out["present"], out["cimg"], out["count"], out["walked"], out["aimp"],
             out["state"], *src, np.int64(w), np.int64(h),
         )  # fmt: skip
-    host = {q: out[q].copy_to_host() for q in ("rgba", "vis", "asg", "present", "cimg", "aimp")}
+    host = {q: out[q].copy_to_host() for q in ("rgba", "vis", "present", "cimg", "aimp")}
+    host["asg"] = out["asg"][:k].copy_to_host()  # not the spare row of the walk behind ERT
     walked = int(out["walked"].copy_to_host().sum())
     if report:
         report(0.9)
@@ -733,7 +734,7 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
             "shading": sh_h[: e if shade else 0],
             "curvature": curv_h[: e if has_curv else 0],
         }
-    return (host["rgba"], host["vis"], host["asg"][:k], host["present"], host["cimg"], start,
+    return (host["rgba"], host["vis"], host["asg"], host["present"], host["cimg"], start,
             count, entries, walked, host["aimp"])  # fmt: skip
 
 
