@@ -139,6 +139,20 @@ out["optimize"] = {
                                                  runs["numba"]["opacities"])))),
     "image": float(np.max(np.abs(runs["cuda"]["image"] - runs["numba"]["image"]))),
 }
+import warnings
+
+from dvr_perception.errors import DVRWarning
+
+away = Camera(position=(500, 500, 500), focal_point=(1000, 1000, 1000), width=6, height=5)
+with warnings.catch_warnings(record=True) as seen:
+    warnings.simplefilter("always", DVRWarning)
+    e = analyze(vol, spec, away, backend="cuda")
+out["empty"] = {"warned": [str(w.message)[:40] for w in seen], "backend": e.stats["backend"],
+                "image": e.image.reshape(-1, 3)[0].tolist(), "any": bool(e.accumulated.any()),
+                "entries": int(len(e.cache.lut)),
+                "bg": list(spec.background),
+                "reevaluated": bool(reevaluate(e.cache, opacities=[1.0] * len(spec.structures))
+                                    .accumulated.any())}
 out["auto"] = analyze(vol, spec, cam, build_cache=False).stats["backend"]
 # a "large" volume: the CPU bricks it, the GPU takes it whole while it fits the limit
 from dvr_perception.rays import memory
@@ -299,6 +313,17 @@ def test_a_volume_the_cpu_bricks_is_analysed_whole_on_the_gpu(sim):
     assert sim["too_large"].startswith("memory_limit: volume 'phantom' needs a bricked"), sim[
         "too_large"
     ]
+
+
+def test_a_camera_that_sees_nothing(sim):
+    rec = sim["empty"]
+    assert rec["backend"] == "cuda"
+    assert len(rec["warned"]) == 1
+    assert rec["warned"][0].startswith("camera sees none of volume")
+    assert not rec["any"]
+    assert rec["entries"] == 0
+    assert not rec["reevaluated"]
+    assert rec["image"] == pytest.approx(rec["bg"], abs=1e-6)  # the background
 
 
 def test_auto_never_takes_the_simulator_and_bricks_are_refused(sim):
