@@ -28,7 +28,7 @@ from numba import cuda  # noqa: E402
 
 from dvr_perception.rays import _numba_kernels as _nk  # noqa: E402
 
-__all__ = ["BLOCK", "compact", "walk"]
+__all__ = ["BLOCK", "compact", "finish", "walk"]
 
 #: Threads per block of :func:`walk`: (x, y) pixels, a tile of neighbouring rays.
 BLOCK = (16, 8)
@@ -114,6 +114,31 @@ def walk(
     count[r] = cnt
     walked[r] = wk
     aimp[r] = 1.0 - state[r, 4]
+
+
+@cuda.jit
+def finish(rgba, vis, cimg, bg, rgba32, image, acc, vis32, cimg32):
+    """float32 outputs and the image over the background, one thread per ray.
+
+    The per-ray body of :func:`_numba_kernels.finish` (the same float32 operations), so only
+    float32 buffers travel back to the host.
+    """
+    r = cuda.grid(1)
+    if r >= rgba.shape[0]:
+        return
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    a = np.float32(rgba[r, 3])
+    for c in range(3):
+        v = np.float32(rgba[r, c])
+        rgba32[r, c] = v
+        im = v + (one - a) * bg[c]
+        image[r, c] = min(max(im, zero), one)
+    rgba32[r, 3] = a
+    acc[r] = a
+    cimg32[r] = np.float32(cimg[r])
+    for s in range(vis.shape[0]):
+        vis32[s, r] = np.float32(vis[s, r])
 
 
 @cuda.jit

@@ -34,6 +34,7 @@ Conventions matched to ``vtkFixedPointVolumeRayCastMapper`` (``docs/vtk_conventi
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 import warnings
@@ -390,7 +391,9 @@ def analyze(
             rgba, vis, cimg = _npk.composite(start, count, c_lut, c_sh, c_curv, *args, k)
             present, asg, aimp = out["present"], out["assigned"], out["importance_accumulated"]
         else:
-            walker = _walk_cuda if kind == "cuda" else _walk_numba
+            walker = _walk_numba
+            if kind == "cuda":
+                walker = functools.partial(_walk_cuda, bg=np.asarray(spec.background, np.float32))
             res = walker(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
                          camera, build_cache, occlusion_free, locked,
                          report.sub(0.1, 0.9))  # fmt: skip
@@ -449,7 +452,10 @@ def analyze(
             )
             stats["cache_entries"] = len(c_lut)
             stats["cache_bytes"] = cache.nbytes
-        res = _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
+        if isinstance(rgba, tuple):  # the GPU made the float32 outputs and the image
+            res = _analysis(*rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
+        else:
+            res = _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
         report(1.0)
         return res
     finally:
@@ -640,10 +646,12 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
 
 
 def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k, camera, build,
-               tail, locked=False, report=None):  # fmt: skip
+               tail, locked=False, report=None, bg=None):  # fmt: skip
     """Run the walk on the GPU (:mod:`~dvr_perception.rays._cuda_kernels`); as :func:`_walk_numba`.
 
-    One thread per ray.  With ``build`` every ray packs its cache entries into a region of
+    One thread per ray.  The float32 outputs and the image over the background ``bg`` are
+    made on the device: ``rgba`` comes back as ``(rgba, image, accumulated)``, ``vis`` and
+    ``cimg`` as float32.  With ``build`` every ray packs its cache entries into a region of
     its own (its sample count: an upper bound), then the entries are packed in row-major
     pixel order on the device and copied back: the same cache as the CPU engine's.  The
     derived volumes stay on the device while the volume lives (:func:`_cuda.to_device`).
@@ -703,7 +711,23 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
             out["asg"], out["present"], out["cimg"], out["count"], out["walked"], out["aimp"],
             out["state"], *src, np.int64(w), np.int64(h),
         )  # fmt: skip
-    host = {q: out[q].copy_to_host() for q in ("rgba", "vis", "present", "cimg", "aimp")}
+    # float32 outputs and the image over the background made on the device (as _finish)
+    fin = {
+        "rgba": cuda.device_array((nrays, 4), np.float32),
+        "image": cuda.device_array((nrays, 3), np.float32),
+        "acc": cuda.device_array(nrays, np.float32),
+        "vis": cuda.device_array((k, nrays), np.float32),
+        "cimg": cuda.device_array(nrays, np.float32),
+    }
+    threads = 128
+    with _cuda.quiet_launch():
+        ck.finish[-(-nrays // threads), threads](
+            out["rgba"], out["vis"], out["cimg"], _cuda.to_device(bg), fin["rgba"],
+            fin["image"], fin["acc"], fin["vis"], fin["cimg"],
+        )  # fmt: skip
+    host = {q: d.copy_to_host() for q, d in fin.items()}
+    host["present"] = out["present"].copy_to_host()
+    host["aimp"] = out["aimp"].copy_to_host()
     host["asg"] = out["asg"][:k].copy_to_host()  # not the spare row of the walk behind ERT
     walked = int(out["walked"].copy_to_host().sum())
     if report:
@@ -721,7 +745,6 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
             cuda.device_array((m if shade else 1, 2), np.uint16),
             cuda.device_array(m if has_curv else 1, np.float32),
         )
-        threads = 128
         with _cuda.quiet_launch():
             ck.compact[-(-nrays // threads), threads](
                 base_d, out["count"], _cuda.to_device(start), *src, *dst,
@@ -734,8 +757,9 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
             "shading": sh_h[: e if shade else 0],
             "curvature": curv_h[: e if has_curv else 0],
         }
-    return (host["rgba"], host["vis"], host["asg"], host["present"], host["cimg"], start,
-            count, entries, walked, host["aimp"])  # fmt: skip
+    rgba = (host["rgba"], host["image"], host["acc"])  # finished: see analyze()
+    return (rgba, host["vis"], host["asg"], host["present"], host["cimg"], start, count,
+            entries, walked, host["aimp"])  # fmt: skip
 
 
 def _threads() -> int:

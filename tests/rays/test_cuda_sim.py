@@ -426,6 +426,7 @@ class Launch:
 class Kernels:
     BLOCK = ck.BLOCK
     walk = Launch(ck.walk)
+    finish = Launch(ck.finish)
     compact = Launch(ck.compact)
 
 
@@ -478,7 +479,7 @@ def test_kernels_lower_for_a_real_gpu(numba_cuda):
     )
     assert run.returncode == 0, run.stderr[-4000:]
     lowered = json.loads(run.stdout.strip().splitlines()[-1])
-    assert [name for name, _ in lowered] == ["walk", "compact", "walk"]
+    assert [name for name, _ in lowered] == ["walk", "finish", "compact", "walk", "finish"]
     assert all(size > 10_000 for _, size in lowered)
 
 
