@@ -264,9 +264,10 @@ def analyze(
         ``DVR_PERCEPTION_NO_CUDA=1``), else numba unless it is missing or
         ``DVR_PERCEPTION_NO_NUMBA=1``, else numpy.  "cuda" walks the rays on the GPU
         (:mod:`~dvr_perception.rays._cuda_kernels`, the ``gpu`` extra; the same results as
-        "numba"); it analyses the whole volume at once (no ``brick``: a volume that needs
-        bricks raises :class:`~dvr_perception.errors.DVRInputError`, where ``"auto"`` takes
-        the bricked CPU analysis) and its cache re-evaluates on the CPU.
+        "numba"); it analyses the whole volume at once whenever it fits ``memory_limit``
+        (no ``brick``; a volume that fits only in bricks raises
+        :class:`~dvr_perception.errors.DVRInputError`, where ``"auto"`` takes the bricked
+        CPU analysis) and its cache re-evaluates on the CPU.
     build_cache : bool
         Keep the per-ray sample lists for :func:`reevaluate` (costs memory and a little time).
     occlusion_free : bool
