@@ -28,7 +28,6 @@ except ImportError:  # pragma: no cover - not POSIX
 
 import numpy as np
 
-from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError
 
 __all__ = [
@@ -538,6 +537,8 @@ def write_png(path, image) -> Path:
     >>> read_png(out).shape
     (2, 3, 3)
     """
+    from dvr_perception import _vtk  # VTK on use: the core imports without it
+
     pixels = _to_uint8_image(image)
     h, w, c = pixels.shape
     # VTK images start at the bottom row
@@ -575,6 +576,8 @@ def read_png(path) -> np.ndarray:
     numpy.ndarray
         The pixels, ``uint8``.
     """
+    from dvr_perception import _vtk  # VTK on use: the core imports without it
+
     p = Path(path)
     if not p.is_file():
         raise DVRInputError(f"PNG file {p}: not found")
