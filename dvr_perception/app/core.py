@@ -400,25 +400,23 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
     def _show_loaded(self, label: str, *, view_name=None, wait: bool = False) -> None:
         """Show the session's newly loaded (or re-oriented) volume and spec, then re-measure.
 
-        The camera is the spec's view, or the patient view ``view_name``.
+        The camera is the patient view ``view_name``, or the spec's view, or (a spec without
+        one) :func:`~dvr_perception.rays.camera.default_camera`: an oriented scan from the
+        front, head up.
         """
         from dvr_perception.plotting import add_structures, set_plotter_camera
-        from dvr_perception.rays import Camera
-        from dvr_perception.rays.camera import patient_view
+        from dvr_perception.rays.camera import default_camera, patient_view
 
         volume, spec = self.session.volume, self.session.spec
         self._tf_before = None
         self._view_name = view_name
         self.plotter.clear_actors()
         self.handle = add_structures(self.plotter, volume, spec)
-        az, el, zoom = spec.view or (0.0, 0.0, 1.0)
         w, h = (int(v) for v in self.plotter.window_size)
         if view_name is not None:
             cam = patient_view(volume, view_name, width=w, height=h)
-        else:
-            cam = Camera.from_view(
-                volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
-            )
+        else:  # the spec's view; else an oriented scan from the front, head up
+            cam = default_camera(volume, spec.view, width=w, height=h)
         set_plotter_camera(self.plotter, cam, window_size=False)
         if self.preview is not None:
             self.preview.set_volume(volume, spec)
