@@ -55,7 +55,7 @@ _SCALE_SCRIPT = """
 
 #: The label at the view's top right: which image is on screen.
 LABEL = (
-    "{{ view_mode !== 'exact' ? 'quick preview (vtk.js, small copy, ' + "
+    "{{ view_mode !== 'exact' ? 'quick preview (vtk.js, ' + preview_detail + ', ' + "
     "(preview_scale === 1 ? 'full' : preview_scale === 0.5 ? 'half' : "
     "Math.round(100 * preview_scale) + ' %') + ' resolution, coarser while moving)' : "
     "(structures.some(r => r.label !== null && r.label !== undefined) ? "
@@ -73,6 +73,7 @@ def view_area(app) -> None:
     the numbers are out, renders its image, which covers the preview again.
     """
     end = (app.local_camera, "[trame.refs.local.getCamera()]")
+    app.state.preview_detail = app.preview.detail  # the volume's resolution in the preview
     app.state.preview_scale = 1  # each page says what it draws at (not synced back)
     app.state.client_only("preview_scale")
     client.Script(_SCALE_SCRIPT % {"scale": repr(float(PREVIEW_SCALE))})
@@ -106,6 +107,7 @@ def view_area(app) -> None:
         raw_attrs=[
             ':data-mode="view_mode"',
             ':data-scale="preview_scale"',
+            ':data-detail="preview_detail"',
             ':data-map="map_shown"',
         ],
         id="view-mode",
