@@ -271,7 +271,7 @@ class LensHandlers:
             s.before_text = self._errors_text(before)
         if before is not None and after is not None:
             self._lens_verdict(before, after)
-        self._lens_pending = (result, label, self._tf_no)
+        self._lens_pending = (result, label, self._tf_no, after, s.lens_whole_url)
 
     @guard
     def lens_apply(self):
@@ -281,7 +281,7 @@ class LensHandlers:
         pending = self._lens_pending
         if pending is None:
             raise DVRInputError("lens: no lens result to apply: refine a region first")
-        result, label, tf_no = pending
+        result, label, tf_no, after, whole_url = pending
         if tf_no != self._tf_no:
             self._drop_lens_result()
             raise DVRInputError("lens: the settings changed since the refinement: refine again")
@@ -290,6 +290,9 @@ class LensHandlers:
         self.session.spec = result.spec
         self._drop_lens_result()
         self._show_spec(label=f"{label}, applied to the whole view")
+        # the Optimise screen's "after": now the whole view with the result
+        self.state.after_url = whole_url
+        self.state.after_text = self._errors_text(after) if after is not None else ""
         self.state.why_lines = _why_lines(result)
         self.state.opt_key = self._key()
 

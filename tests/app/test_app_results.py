@@ -156,6 +156,8 @@ def test_lens_result_is_shown_inside_the_lens_and_applied_on_request(app):
     # the whole view's cost is named
     assert "whole view" in app.state.lens_whole_text
     assert "total" in app.state.lens_whole_text
+    assert app.state.after_text.startswith("inside the lens")
+    assert all(line.startswith("if applied: ") for line in app.state.why_lines)
     # one click applies it to the whole view: the whole image changes, one undo step
     _run(app, app.lens_apply)
     assert app.session.spec == pending
@@ -164,6 +166,10 @@ def test_lens_result_is_shown_inside_the_lens_and_applied_on_request(app):
     applied = app._render_rgb()
     assert np.abs(applied - whole).max() <= 1e-12
     assert np.abs(applied - view0)[~mask].mean() > 1e-4
+    # the Optimise screen's "after" is now the whole view with the result, and its errors
+    assert np.abs(_decode(app.state.after_url) - _thumb(app, applied)).max() <= PNG_STEP
+    assert app.state.after_text.startswith("visibility")
+    assert not app.state.why_lines[0].startswith("if applied")
     assert app.state.lens_result_key == ""
     assert app._lens_pending is None
     _run(app, lambda: app.undo(1))
