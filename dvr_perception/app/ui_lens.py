@@ -58,39 +58,37 @@ def lens_panel(app) -> None:
                     raw_attrs=[':data-key="measured_key"'],
                 )
             for use, key in (("use_vis", "vis"), ("use_tr", "tr")):
-                with (
-                    html.Td(style="min-width: 120px"),
-                    html.Div(classes="d-flex align-center"),
-                ):
-                    v3.VCheckboxBtn(
-                        model_value=(f"row.{use}",),
-                        density="compact",
-                        update_modelValue=(
-                            app.set_lens_target,
-                            f"[row.index, '{use}', $event]",
-                        ),
-                        classes=f"lens-{use}",
+                with html.Td(style="min-width: 120px"):
+                    with html.Div(classes="d-flex align-center"):
+                        v3.VCheckboxBtn(
+                            model_value=(f"row.{use}",),
+                            density="compact",
+                            update_modelValue=(
+                                app.set_lens_target,
+                                f"[row.index, '{use}', $event]",
+                            ),
+                            classes=f"lens-{use}",
+                        )
+                        v3.VSlider(
+                            model_value=(f"row.{key}",),
+                            min=0,
+                            max=1,
+                            step=0.05,
+                            thumb_label=True,
+                            hide_details=True,
+                            density="compact",
+                            end=(app.set_lens_target, f"[row.index, '{key}', $event]"),
+                        )
+                        html.Span(
+                            f"{{{{ row.{key}.toFixed(2) }}}}",
+                            classes="text-caption ml-1",
+                            style=(f"{{opacity: row.{use} && row.set_{key} ? 1 : 0.4}}",),
+                        )
+                    html.Div(
+                        "move the slider to set a target",
+                        v_if=f"row.{use} && !row.set_{key}",
+                        classes=f"text-caption text-medium-emphasis lens-unset-{key}",
                     )
-                    v3.VSlider(
-                        model_value=(f"row.{key}",),
-                        min=0,
-                        max=1,
-                        step=0.05,
-                        thumb_label=True,
-                        hide_details=True,
-                        density="compact",
-                        end=(app.set_lens_target, f"[row.index, '{key}', $event]"),
-                    )
-                    html.Span(
-                        f"{{{{ row.{key}.toFixed(2) }}}}",
-                        classes="text-caption ml-1",
-                        style=(f"{{opacity: row.{use} && row.set_{key} ? 1 : 0.4}}",),
-                    )
-                html.Div(
-                    "move the slider to set a target",
-                    v_if=f"row.{use} && !row.set_{key}",
-                    classes=f"text-caption text-medium-emphasis lens-unset-{key}",
-                )
     html.Div(
         "Move a slider to set a target (its box ticks; untick it to drop the target). "
         "Visible share: how much of what you see in the region should be this structure. "
