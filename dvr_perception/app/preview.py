@@ -6,8 +6,9 @@ structures, one colour and opacity function as
 :func:`~dvr_perception.structures.transfer.to_vtk_transfer_functions` builds them for the
 server's VTK image, with the same opacity unit distance), sits in a render window of its own
 that the server never renders: trame-vtk sends its scene to the page, where vtk.js's GPU ray
-caster draws it at interactive rate.  When the camera rests, the engine's exact image is shown
-again.  The page's label names the resolution (:func:`preview_detail`).
+caster draws it at interactive rate, with a sample every :data:`RAY_STEP_VOXELS` voxels along
+the rays.  When the camera rests, the engine's exact image is shown again.  The page's label
+names the resolution (:func:`preview_detail`).
 """
 
 from __future__ import annotations
@@ -17,11 +18,25 @@ from dataclasses import replace
 
 import numpy as np
 
-__all__ = ["PREVIEW_VOXELS", "Preview", "preview_detail", "preview_step", "preview_volume"]
+__all__ = [
+    "PREVIEW_VOXELS",
+    "RAY_STEP_VOXELS",
+    "Preview",
+    "preview_detail",
+    "preview_step",
+    "preview_volume",
+]
 
 #: Memory budget of the preview: most voxels of the copy sent to the browser (256\u00b3, 16.8
 #: million; 34 MB as 16-bit values).  A larger volume is reduced to every n-th voxel.
 PREVIEW_VOXELS = 256**3
+
+
+#: Voxels between two samples along a preview ray (the server's image: one sample a voxel).
+#: vtk.js draws one full-size frame when the camera stops, which the server's exact image soon
+#: covers; its cost grows with the samples per ray, and in software GL it held the page (and
+#: with it the numbers of the rested view) for 1.4-1.7 s with one sample a voxel of cthead.
+RAY_STEP_VOXELS = 2.0
 
 
 def preview_step(shape, max_voxels: int = PREVIEW_VOXELS) -> int:
@@ -69,7 +84,7 @@ def preview_volume(volume, *, max_voxels: int = PREVIEW_VOXELS):
 
 
 def preview_detail(full_shape, shape) -> str:
-    """Name the preview's resolution for the page's label.
+    """Name the preview's resolution for the page's label (sizes along x, y, z).
 
     Examples
     --------
@@ -113,7 +128,7 @@ class Preview:
         self.window.SetOffScreenRendering(1)
         self.window.AddRenderer(self.renderer)
         self.mapper = vtkOpenGLGPUVolumeRayCastMapper()
-        # vtk.js lengthens the step along the rays while the camera moves, to keep the rate
+        # vtk.js lowers the image resolution while the camera moves, to keep the rate
         self.mapper.SetAutoAdjustSampleDistances(1)
         self.property = vtkVolumeProperty()
         self.property.SetInterpolationTypeToLinear()
@@ -129,11 +144,11 @@ class Preview:
 
         self.unit = min(float(s) for s in volume.spacing)
         self.volume = preview_volume(volume)
-        self.detail = preview_detail(volume.data.shape, self.volume.data.shape)
+        self.detail = preview_detail(volume.dims, self.volume.dims)  # x, y, z
         self.image = to_vtk_image(self.volume)
         self.mapper.SetInputData(self.image)
-        # one sample a voxel of the copy along the ray
-        self.mapper.SetSampleDistance(min(float(s) for s in self.volume.spacing))
+        # a sample every RAY_STEP_VOXELS voxels of the copy along the ray
+        self.mapper.SetSampleDistance(RAY_STEP_VOXELS * min(float(s) for s in self.volume.spacing))
         self.set_spec(spec)
 
     def set_spec(self, spec) -> None:

@@ -7,6 +7,7 @@ import pytest
 
 from dvr_perception.app.preview import (
     PREVIEW_VOXELS,
+    RAY_STEP_VOXELS,
     Preview,
     preview_detail,
     preview_step,
@@ -82,7 +83,7 @@ def test_preview_scene_follows_the_spec():
     p = Preview(vol, spec)
     assert p.image.GetDimensions() == (100, 100, 100)  # the whole volume, under the budget
     assert p.detail == "full volume, 100\u00d7100\u00d7100 voxels"
-    assert p.mapper.GetSampleDistance() == pytest.approx(1.0)  # a sample per voxel
+    assert p.mapper.GetSampleDistance() == pytest.approx(RAY_STEP_VOXELS * 1.0)
     otf = p.property.GetScalarOpacity()
     assert otf.GetValue(25.0) == pytest.approx(0.5)  # inside a's range: its opacity
     assert otf.GetValue(70.0) == 0.0
