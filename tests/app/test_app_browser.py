@@ -409,7 +409,7 @@ def test_drawn_lens_triggers_region_refinement(page):
     page.mouse.click(track["x"] + 0.8 * track["width"], track["y"] + track["height"] / 2)
     page.wait_for_function(
         "(el) => el.innerText.trim() === '0.80'",
-        arg=row.locator("td:nth-child(2) .text-caption").element_handle(),
+        arg=row.locator("td:nth-child(2) span.text-caption").element_handle(),
     )
     row.locator(".lens-unset-vis").wait_for(state="detached")
     n_history = page.locator("#history-list > div").count()
@@ -431,6 +431,7 @@ def test_drawn_lens_triggers_region_refinement(page):
     _tab(page, "optimise")  # nothing applied yet
     assert page.locator("#history-list > div").count() == n_history
     _tab(page, "lens")
+    page.locator("#lens-apply").scroll_into_view_if_needed()  # the result's panel in the shot
     _shot(page, "lens")
     # one click applies it to the whole view: the image changes outside the lens too
     page.click("#lens-apply")
