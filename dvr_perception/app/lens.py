@@ -250,6 +250,8 @@ class LensHandlers:
         if self._tf_no != tf_no or self.state.lens is None:
             s.progress_text += "; the settings or the lens changed meanwhile: result dropped"
             return
+        if result.spec == current:
+            return  # no better setting found: nothing to show or apply
         try:
             self._render_spec(result.spec)
             whole = self._render_rgb()
