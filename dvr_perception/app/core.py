@@ -58,7 +58,7 @@ log = logging.getLogger("dvr_perception.app")
 #: Seconds an info banner stays; an error banner stays until closed or for ERROR_S.
 INFO_S = 5.0
 ERROR_S = 30.0
-#: Relative rise of the whole view's error after a lens refinement that asks to keep or undo.
+#: Relative rise of the whole view's error with a lens result that warns before applying it.
 LENS_WORSE = 0.10
 #: Seconds after which a pushed image is pushed once more (see ``DVRApp._push_image``).
 REPUSH_S = 0.8
@@ -251,6 +251,8 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
         s.lens_rows = []
         s.lens_drag = None
         s.client_only("lens_drag")
+        # a lens result shown inside the lens, for the view and settings lens_result_key
+        s.lens_result_key = s.lens_overlay_url = s.lens_whole_url = ""
         # calibration test
         s.cal_active = False
         s.cal_index = 0
@@ -319,7 +321,7 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
         else:
             self._tf_no += 1
             self._tf_label = label or "edited"
-            self.state.lens_worse = False  # the keep-or-undo question was about the last change
+            self.state.lens_worse = False  # the lens result's cost was for the last settings
         self.state.now_key = self._key()
 
     def _describe(self, camera) -> str:
@@ -360,12 +362,21 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
         self._update_tf()
         self._sync_preview()
 
-    def _snapshot(self) -> str:
-        """Return the current view as a small PNG data URL (for the before/after comparison)."""
-        img = self.plotter.screenshot(None, return_img=True)
-        w = img.shape[1]
-        step = max(1, round(w / THUMB_WIDTH))
-        return png_data_url(img[::step, ::step, :3] / 255.0)
+    def _render_rgb(self):
+        """Render the view now and return it as an ``(H, W, 3)`` float image in [0, 1].
+
+        The plotter's screenshot only reads the render window's last frame: a spec shown
+        with :meth:`_render_spec` (no render) is not in it until rendered (issue 30: the
+        "after" thumbnail was the "before" image).
+        """
+        self.plotter.ren_win.Render()
+        return self.plotter.screenshot(None, return_img=True)[..., :3] / 255.0
+
+    def _snapshot(self, img=None) -> str:
+        """Return the view (rendered now) or ``img`` as a small PNG data URL (before/after)."""
+        img = self._render_rgb() if img is None else img
+        step = max(1, round(img.shape[1] / THUMB_WIDTH))
+        return png_data_url(img[::step, ::step])
 
     def _push_image(self) -> None:
         """Send the view to the browser, and once more a little later.
@@ -660,7 +671,7 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
         self.remeasure()
 
     def _lens_verdict(self, before, after) -> None:
-        """Whole view before -> after beside the lens; ask to keep or undo when it got worse."""
+        """Whole view before -> after the lens result; warn when it would get worse."""
         e0 = before.E_v + before.E_s + before.E_t
         e1 = after.E_v + after.E_s + after.E_t
         rise = (e1 - e0) / e0 if e0 > 0 else 0.0
@@ -673,17 +684,6 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
             f"whole view: {parts}; total {e0:.3g} -> {e1:.3g} ({100 * rise:+.0f} %)"
         )
         self.state.lens_worse = rise > LENS_WORSE
-
-    @guard
-    def lens_keep(self):
-        """Keep a lens refinement that made the whole view worse."""
-        self.state.lens_worse = False
-
-    @guard
-    def lens_undo(self):
-        """Undo a lens refinement that made the whole view worse."""
-        self.state.lens_worse = False
-        self.undo(1)
 
     async def _after_text(self) -> None:
         """Fill the 'after' numbers once the new view is measured."""

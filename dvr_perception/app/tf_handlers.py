@@ -118,6 +118,7 @@ class TFHandlers:
         import asyncio
 
         self.preview.set_spec(self.session.spec)
+        self.state.preview_detail = self.preview.detail  # named in the view's label
         self.preview.set_camera(self.plotter.camera, self.plotter.window_size)
         self._preview_dirty = True
         try:
