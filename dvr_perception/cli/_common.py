@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-import dvr_perception
+from dvr_perception import _resources
 from dvr_perception._files import json_ready, write_npz
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.rays.camera import MAX_IMAGE, Camera, parse_patient_view, patient_view
@@ -263,7 +263,7 @@ class Scene:
 
 def state_files_dir() -> Path:
     """Return the repository's ``state_files`` folder (specs paired with shared volumes)."""
-    return Path(dvr_perception.__file__).resolve().parents[1] / "state_files"
+    return _resources.state_files_dir()
 
 
 def _load_volume(text: str, *, paired: bool = True, series: str | None = None):
