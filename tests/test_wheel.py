@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -32,6 +33,9 @@ REPO = Path(__file__).resolve().parents[1]
 SIZE = "32"
 #: Variables that would let the checkout or the test's venv leak into the installed package.
 _DROP = ("PYTHONPATH", "VIRTUAL_ENV", "PYTHONHOME", "PYTHONSTARTUP")
+#: What of the checkout is not source (environments, caches, build output, outputs).
+_NOT_SOURCE = (".git", ".venv", ".pvdeps", "build", "dist", "*.egg-info", "__pycache__",
+               ".pytest_cache", ".ruff_cache", ".hypothesis", "demo_out", "bench_out")  # fmt: skip
 
 
 class Installed:
@@ -73,9 +77,13 @@ class Installed:
 def installed(tmp_path_factory) -> Installed:
     root = tmp_path_factory.mktemp("wheel")
     assert REPO not in root.parents
+    # built from a copy: setuptools' build/ folder in the checkout could hold stale files, and
+    # the test writes nothing into the checkout
+    source = root / "source"
+    shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(*_NOT_SOURCE))
     dist = root / "dist"
     pip = [sys.executable, "-m", "pip", "--disable-pip-version-check"]
-    build = subprocess.run([*pip, "wheel", "--no-deps", "-q", "-w", str(dist), str(REPO)],
+    build = subprocess.run([*pip, "wheel", "--no-deps", "-q", "-w", str(dist), str(source)],
                            capture_output=True, text=True, check=False)  # fmt: skip
     assert build.returncode == 0, build.stderr
     (wheel,) = dist.glob("dvr_perception-*.whl")
@@ -108,6 +116,9 @@ def test_the_wheel_holds_the_plugin_macros_presets_and_report(installed):
     assert {n.rsplit("/", 1)[1] for n in names if n.startswith("dvr_perception/state_files/")
             and n.endswith(".json")} == presets  # fmt: skip
     assert not any(n.startswith(("tests/", "plugin/", "benchmarks/")) for n in names)
+    # the ParaView state scripts of state_files/ load a checkout's plugin: not in the wheel
+    assert not [n for n in names if n.startswith("dvr_perception/state_files/")
+                and not n.endswith(".json")]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -194,9 +205,9 @@ LoadPlugin({str(plugin)!r}, ns=globals())
 import dvr_perception, numpy
 from dvr_perception.volume import make_phantom
 vol, spec = make_phantom()
-leaked = sorted(name for name, m in list(sys.modules.items())
-                if (getattr(m, "__file__", None) or "").startswith({str(site)!r})
-                and not name.startswith("dvr_perception"))
+files = {{name: getattr(m, "__file__", None) or "" for name, m in list(sys.modules.items())}}
+leaked = sorted(name for name, f in files.items() if f.startswith({str(site)!r})
+                and not f.startswith({str(site / "dvr_perception")!r}))
 print({MARK!r} + json.dumps({{
     "package": dvr_perception.__file__,
     "filters": [n for n in ("PerceptionMeasures", "OptimizeTransferFunction") if n in globals()],
