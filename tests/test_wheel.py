@@ -168,6 +168,18 @@ def test_the_installed_package_runs_outside_the_repository(installed, shared_dat
     assert opt["final"]["E"] <= opt["initial"]["E"]
     assert opt["spec"] == got["spec"]
 
+    # the report code and its hand-written observations come with the wheel
+    report = installed.work / "report"
+    report.mkdir()
+    shutil.copy(REPO / "benchmarks" / "summary.json", report / "summary.json")
+    proc = installed.run("report", "--markdown-only", "--out", report)
+    assert proc.returncode == 0, proc.stderr
+    observations = (REPO / "dvr_perception" / "benchmarks" / "observations.md").read_text(
+        encoding="utf-8"
+    )
+    line = next(ln for ln in observations.split("\n### ", 1)[1].splitlines()[1:] if ln.strip())
+    assert line in (report / "REPORT.md").read_text(encoding="utf-8")
+
 
 class _stdout:
     """Send ``sys.stdout`` to ``fh`` for a block."""
