@@ -28,12 +28,12 @@ except ImportError:  # pragma: no cover - not POSIX
 
 import numpy as np
 
-from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError
 
 __all__ = [
     "LOCK_NAME",
     "StagedFolder",
+    "Terminated",
     "atomic_path",
     "check_distinct",
     "check_target",
@@ -45,6 +45,7 @@ __all__ = [
     "output_folder",
     "read_png",
     "staged_files",
+    "terminate_as_interrupt",
     "write_json",
     "write_npz",
     "write_png",
@@ -196,32 +197,86 @@ def file_mode() -> int:
     return 0o666 & ~_umask()
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread by :func:`terminate_as_interrupt`'s handler.
+
+    A :class:`KeyboardInterrupt`, so every clean-up that runs for Ctrl-C (staged files and
+    folders removed, locks released) runs for SIGTERM too.
+    """
+
+
+#: Signals held back while outputs are moved into place or cleaned up.
+_HELD = (signal.SIGINT, signal.SIGTERM)
+
+
 @contextmanager
-def _deferred_sigint() -> Iterator[None]:
-    """Hold Ctrl-C (SIGINT) back during the block and deliver it afterwards."""
-    if threading.current_thread() is not threading.main_thread() or (
-        signal.getsignal(signal.SIGINT) is None  # a C handler (pvpython's): cannot be restored
-    ):
+def terminate_as_interrupt() -> Iterator[None]:
+    """While active, SIGTERM raises :class:`Terminated` in the main thread (once).
+
+    The default action of SIGTERM ends the process at once, leaving a lock file and a staging
+    folder behind; raised as an exception it unwinds like Ctrl-C.  Further SIGTERMs during
+    that unwinding are ignored (the process is already ending).  Nothing changes outside the
+    main thread or where SIGTERM already has a Python handler (e.g. the web app's).
+
+    Examples
+    --------
+    >>> with terminate_as_interrupt():
+    ...     try:
+    ...         signal.raise_signal(signal.SIGTERM)
+    ...     except Terminated:
+    ...         print("terminated")
+    terminated
+    """
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(
+        signal.SIGTERM
+    ) not in (signal.SIG_DFL, None):
         yield
         return
-    caught: list = []
-    old = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(frame))
+    fired: list = []
+
+    def handler(signum, frame):
+        if not fired:
+            fired.append(signum)
+            raise Terminated
+
+    old = signal.signal(signal.SIGTERM, handler)
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, old)
-    if caught:
-        if callable(old):
-            old(signal.SIGINT, caught[0])
-        elif old == signal.SIG_DFL:
-            raise KeyboardInterrupt
+        if signal.getsignal(signal.SIGTERM) is handler:  # else the caller chose (e.g. SIG_IGN)
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if old is None else old)
+
+
+@contextmanager
+def _deferred_sigint() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) and SIGTERM back during the block and deliver them afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = [s for s in _HELD if signal.getsignal(s) is not None]  # None: a C handler (pvpython)
+    caught: list = []
+    old = {s: signal.signal(s, lambda signum, frame: caught.append((signum, frame))) for s in held}
+    try:
+        yield
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler)
+    for signum, frame in caught:
+        handler = old[signum]
+        if callable(handler):
+            handler(signum, frame)
+        elif handler == signal.SIG_DFL:
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            signal.raise_signal(signum)  # the default action, now that the files are in place
 
 
 def commit(moves) -> None:
     """Move every ``(staged, final)`` pair into place, all or none, Ctrl-C held back.
 
     Every target is checked first (a non-regular existing target refuses the whole set), then
-    the renames run with SIGINT deferred, so an interrupt leaves either all files or none.
+    the renames run with SIGINT and SIGTERM deferred, so an interrupt leaves either all files
+    or none.
     """
     moves = [(Path(a), Path(b)) for a, b in moves]
     for _, final in moves:
@@ -482,6 +537,8 @@ def write_png(path, image) -> Path:
     >>> read_png(out).shape
     (2, 3, 3)
     """
+    from dvr_perception import _vtk  # VTK on use: the core imports without it
+
     pixels = _to_uint8_image(image)
     h, w, c = pixels.shape
     # VTK images start at the bottom row
@@ -519,6 +576,8 @@ def read_png(path) -> np.ndarray:
     numpy.ndarray
         The pixels, ``uint8``.
     """
+    from dvr_perception import _vtk  # VTK on use: the core imports without it
+
     p = Path(path)
     if not p.is_file():
         raise DVRInputError(f"PNG file {p}: not found")

@@ -18,6 +18,7 @@ import traceback
 import warnings
 
 from dvr_perception import __version__
+from dvr_perception._files import Terminated, terminate_as_interrupt
 from dvr_perception.cli import (
     app,
     bench,
@@ -32,6 +33,7 @@ from dvr_perception.cli import (
 )
 from dvr_perception.cli._common import PROG, CLIParser, common_parent
 from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.structures.spec import printable
 
 __all__ = ["build_parser", "main"]
 
@@ -64,10 +66,22 @@ def build_parser() -> CLIParser:
 
 
 def _one_line(text: str, longest: int = 160) -> str:
-    """Join ``text`` into one line and cut any word longer than ``longest`` characters."""
+    r"""Join ``text`` into one line, escape control characters, cut words over ``longest``.
+
+    Whatever a message quotes (a path, a header value, a name), nothing but printable text
+    reaches the terminal: ESC and the other non-printable characters are escaped.
+
+    Examples
+    --------
+    >>> print(_one_line("bad\nname 'a\x1b[2J'"))
+    bad name 'a\x1b[2J'
+    """
     words = str(text).split()
     return " ".join(
-        w if len(w) <= longest else f"{w[: longest - 20]}...({len(w)} characters)" for w in words
+        printable(w)
+        if len(w) <= longest
+        else f"{printable(w[: longest - 20], longest - 20)}...({len(w)} characters)"
+        for w in words
     )
 
 
@@ -78,11 +92,18 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
     print(f"{PROG}: warning: {text}", file=sys.stderr)
 
 
+class _PrintableFormatter(logging.Formatter):
+    """Log lines with non-printable characters escaped (a logged path cannot drive a terminal)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return "\n".join(printable(line) for line in super().format(record).splitlines())
+
+
 @contextlib.contextmanager
 def _session(verbose: bool):
     """Route logging to stderr and warnings to one-line messages for one CLI call."""
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter(f"{PROG}: %(message)s"))
+    handler.setFormatter(_PrintableFormatter(f"{PROG}: %(message)s"))
     logger = logging.getLogger("dvr_perception")
     old_level = logger.level
     logger.addHandler(handler)
@@ -100,6 +121,7 @@ def _session(verbose: bool):
 def _ignore_sigint() -> None:
     with contextlib.suppress(ValueError):  # not the main thread
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def _error(message: str) -> None:
@@ -114,6 +136,10 @@ def _os_error_message(exc: OSError) -> str:
 
 def main(argv=None) -> int:
     """Run the command line; return the exit status (0 ok, 1 unexpected error, 2 bad input).
+
+    Ctrl-C returns 130 and SIGTERM 143 (128 + the signal number, as shells report a process
+    the signal ended), after the same clean-up: staged outputs, staging folders and locks are
+    removed, so nothing partial is left.
 
     Parameters
     ----------
@@ -134,10 +160,16 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
     verbose = "-v" in argv or "--verbose" in argv
-    with _session(verbose):
+    with _session(verbose), terminate_as_interrupt():
+        from dvr_perception.cli._common import NOTES
+
+        NOTES.clear()
         try:
             args = build_parser().parse_args(argv)
-            return int(args.run(args) or 0)
+            code = int(args.run(args) or 0)
+            for note in NOTES:  # e.g. "structures: preset 'cthead' (data checksum matches)"
+                print(note, file=sys.stderr)
+            return code
         except SystemExit as exc:  # --help
             return exc.code if isinstance(exc.code, int) else 0
         except DVRInputError as exc:
@@ -146,9 +178,12 @@ def main(argv=None) -> int:
         except OSError as exc:
             _error(_os_error_message(exc))
             return 2
-        except KeyboardInterrupt:
-            if not argv_given:  # the process's own entry: a further Ctrl-C cannot cut the exit
+        except KeyboardInterrupt as exc:
+            if not argv_given:  # the process's own entry: a further signal cannot cut the exit
                 _ignore_sigint()
+            if isinstance(exc, Terminated):  # SIGTERM: cleaned up as for Ctrl-C
+                _error("terminated")
+                return 128 + signal.SIGTERM
             _error("interrupted")
             return 130
         except Exception as exc:

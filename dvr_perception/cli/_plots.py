@@ -16,6 +16,7 @@ from dvr_perception._files import atomic_path
 
 __all__ = [
     "MEASURE_FIGURES",
+    "plot_text",
     "save_convergence",
     "save_deviation_map",
     "save_measure_figures",
@@ -24,9 +25,33 @@ __all__ = [
     "save_visibility_histograms",
 ]
 
+#: Longest structure name drawn in a figure (characters; longer names end in ``…``).
+PLOT_NAME_LENGTH = 32
+#: Most layer sets the region map's legend lists (the rest are counted in one entry).
+MAX_LEGEND = 24
+
 #: Colour of pixels outside the measured area (empty rays) in the deviation maps.
 EMPTY_COLOUR = "#d0d0d0"
 DPI = 100
+
+
+def plot_text(name, limit: int = PLOT_NAME_LENGTH) -> str:
+    r"""``name`` as figure text: escaped, cut to ``limit`` characters, ``$`` kept literal.
+
+    Matplotlib reads text between two ``$`` as mathematics (a bad formula fails the whole
+    figure), so every ``$`` is escaped; non-printable characters are escaped as in
+    :func:`dvr_perception.structures.spec.printable`.
+
+    Examples
+    --------
+    >>> print(plot_text("cost $5 $"))
+    cost \$5 \$
+    >>> len(plot_text("x" * 1000))
+    32
+    """
+    from dvr_perception.structures.spec import printable
+
+    return printable(name, limit).replace("$", r"\$")
 
 
 def _figure(width: float, height: float, *, layout: str | None = "constrained"):
@@ -164,7 +189,7 @@ def save_visibility_histograms(path, per_structure: dict, bin_edges, *, title: s
         ax.set_ylabel("fraction of rays", fontsize=8)
         ax.tick_params(labelsize=7)
         ax.set_title(
-            f"{name}: share {entry['visible_share']:.3f} / target "
+            f"{plot_text(name)}: share {entry['visible_share']:.3f} / target "
             f"{entry['target_share']:.3f} ({rays} rays)",
             fontsize=8,
         )
@@ -243,12 +268,17 @@ def save_region_map(path, region_id, regions: list, *, title: str, empty_colour=
     ax.set_axis_off()
     ax.set_title(title, fontsize=10)
     handles = []
-    for key in keys:
+    shown = sorted(keys, key=lambda k: -groups[k]["area"])[:MAX_LEGEND]  # the largest sets
+    for key in [k for k in keys if k in shown]:
         g = groups[key]
-        label = "{" + ", ".join(key) + "}" if key else "empty"
+        label = "{" + ", ".join(plot_text(name, 20) for name in key) + "}" if key else "empty"
         n = len(g["ids"])
         label += f"  ({n} region{'s' if n != 1 else ''}, {g['area']:.2%})"
         handles.append(Patch(facecolor=colours[key], edgecolor="0.5", label=label))
+    if len(keys) > len(shown):
+        rest = sum(groups[k]["area"] for k in keys if k not in shown)
+        more = f"{len(keys) - len(shown)} more layer sets ({rest:.2%})"
+        handles.append(Patch(facecolor="none", edgecolor="none", label=more))
     fig.legend(handles=handles, loc="outside right center", fontsize=7, frameon=False)
     return _save(fig, path)
 
@@ -304,7 +334,7 @@ def save_convergence(path, stages, *, title: str) -> Path:
                 marked = True
         if k:
             ax.axvline(start, color="0.6", ls="--", lw=1.0)
-        ax.text(start + max(len(history), 1) / 2, 1.01, stage["name"], ha="center",
+        ax.text(start + max(len(history), 1) / 2, 1.01, plot_text(stage["name"]), ha="center",
                 va="bottom", fontsize=8, transform=ax.get_xaxis_transform())  # fmt: skip
         start += len(history)
     ax.set_xlim(0, max(start, 1))

@@ -65,6 +65,8 @@ def write_share_grid(path, shares, names, *, mask=None, title: str = "visible sh
     """
     from matplotlib.figure import Figure
 
+    from dvr_perception.cli._plots import plot_text
+
     shares = np.asarray(shares, float)
     k = shares.shape[0]
     mask = np.ones(shares.shape[1:], bool) if mask is None else np.asarray(mask, bool)
@@ -78,7 +80,7 @@ def write_share_grid(path, shares, names, *, mask=None, title: str = "visible sh
         if i < k:
             im = ax.imshow(shares[i], vmin=0.0, vmax=1.0, cmap="magma", interpolation="nearest")
             mean = float(shares[i][mask].mean()) if mask.any() else 0.0
-            ax.set_title(f"{names[i]} (mean {mean:.3f})", fontsize=9)
+            ax.set_title(f"{plot_text(names[i])} (mean {mean:.3f})", fontsize=9)
     fig.suptitle(title)
     if im is not None:
         fig.colorbar(im, ax=list(axes), shrink=0.8)
@@ -160,7 +162,11 @@ STAGES = [stage_render, stage_optimize]
 
 def run(args: argparse.Namespace) -> int:
     """Execute ``demo``."""
+    from dvr_perception.rays import memory
+    from dvr_perception.volume.phantom import PHANTOM_MATERIALS
+
     w, h = parse_size(args.size)
+    memory.check_image(w, h, len(PHANTOM_MATERIALS))  # before the folder is made
     with output_folder(args.out) as staged:  # checked and locked before the work
         state = DemoState(out_dir=staged.path, width=w, height=h)
         t0 = time.perf_counter()

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from dvr_perception._files import output_folder, write_json, write_png
+from dvr_perception.cli._backend import add_backend_arg
 from dvr_perception.cli._common import (
     add_scene_args,
     coverage,
@@ -27,13 +28,18 @@ from dvr_perception.cli._common import (
     log,
     log_progress,
 )
+from dvr_perception.errors import DVRInputError
 
-__all__ = ["FIGURES", "add_parser", "run"]
+__all__ = ["FIGURES", "MAX_BINS", "add_parser", "run"]
 
 EXAMPLE = """examples:
   dvr-perception measure phantom --size 256 --json
   dvr-perception measure ../shared/data/engine.nhdr --view=30,20 --out-dir engine_measures
 """
+
+#: Most ``--bins`` (histograms of per-ray opacities on [0, 1]: finer bins say nothing more, and
+#: every bin is held per structure and drawn in the figure).
+MAX_BINS = 1000
 
 #: Files written into ``--out-dir``, in writing order.
 FIGURES = (
@@ -73,6 +79,7 @@ def add_parser(subparsers, parents) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_scene_args(p)
+    add_backend_arg(p)
     p.add_argument(
         "--out-dir",
         metavar="DIR",
@@ -83,7 +90,7 @@ def add_parser(subparsers, parents) -> None:
         type=_positive_int,
         default=20,
         metavar="N",
-        help="bins of the visibility histograms on [0, 1] (default 20)",
+        help=f"bins of the visibility histograms on [0, 1] (default 20, at most {MAX_BINS})",
     )
     p.set_defaults(run=run)
 
@@ -113,13 +120,23 @@ def _relations(trans) -> list[dict]:
     ]
 
 
-def _notes(curvature: np.ndarray, vis, shp, trans) -> list[str]:
-    """Return the measures' notes, each prefixed with the measure it comes from."""
+def _notes(curvature, ray_curvature, vis, shp, trans) -> list[str]:
+    """Return the measures' notes, each prefixed with the measure it comes from.
+
+    ``curvature`` is what the analysis was given: the whole ``|H|`` volume, or a
+    :class:`~dvr_perception.rays.curvature_field.CurvatureField` (a bricked analysis, whose
+    whole volume is never held); ``ray_curvature`` the analysis' per-ray curvature image.
+    """
     notes = []
-    if not np.any(curvature > 0):
+    if isinstance(curvature, np.ndarray) and not np.any(curvature > 0):
         notes.append(
             "shape: the curvature volume is 0 everywhere (no curved structure boundary), so "
             "v_s = 0 and E_s measures only the image variation (silhouettes, shading)"
+        )
+    elif not np.any(np.asarray(ray_curvature) > 0):
+        notes.append(
+            "shape: no ray meets a curved structure boundary (the curvature is 0 on every "
+            "ray), so v_s = 0 and E_s measures only the image variation (silhouettes, shading)"
         )
     for measure, result in (("visibility", vis), ("shape", shp), ("transparency", trans)):
         notes.extend(f"{measure}: {note}" for note in result.notes)
@@ -202,6 +219,8 @@ def _write_outputs(out_dir: Path, result, vis, shp, trans) -> list[Path]:
 def run(args: argparse.Namespace) -> int:
     """Execute ``measure``."""
     t_start = time.perf_counter()
+    if args.bins > MAX_BINS:
+        raise DVRInputError(f"--bins: expected 1 to {MAX_BINS}, got {args.bins}")
     scene = load_scene(args)  # validates the options and the spec before anything is written
     if not args.out_dir:
         return _run(args, scene, t_start, None)
@@ -223,7 +242,7 @@ def _run(args, scene, t_start: float, staged) -> int:
     log.info("analysing %dx%d rays", scene.camera.width, scene.camera.height)
     t0 = time.perf_counter()
     result = analyze(scene.volume, scene.spec, scene.camera, curvature=curvature, build_cache=False,
-                     progress=log_progress("rays"))  # fmt: skip
+                     progress=log_progress("rays"), backend=args.backend)  # fmt: skip
     t_analysis = time.perf_counter() - t0
     log.info("computing the measures")
     t0 = time.perf_counter()
@@ -241,7 +260,7 @@ def _run(args, scene, t_start: float, staged) -> int:
         "relations": _relations(trans),
         "regions": len(trans.regions),
         "undetermined": list(trans.undetermined),
-        "notes": _notes(curvature, vis, shp, trans),
+        "notes": _notes(curvature, result.curvature, vis, shp, trans),
         "seconds": None,
         "seconds_load": scene.load_s,
         "seconds_curvature": t_curv,
@@ -273,7 +292,9 @@ def _run(args, scene, t_start: float, staged) -> int:
 def _print_summary(report: dict) -> None:
     """Print a short human-readable summary of ``report`` on stdout."""
     w, h = report["size"]
-    print(f"measures of {report['volume']} ({w}x{h}, spec: {report['spec']})")
+    from dvr_perception.structures.spec import printable
+
+    print(f"measures of {printable(report['volume'])} ({w}x{h}, spec: {printable(report['spec'])})")
     print(
         f"  E_v {report['E_v']:.4f} (visibility, 0..2)   E_s {report['E_s']:.4f} (shape, 0..1)"
         f"   E_t {report['E_t']:.4f} (transparency, >= 0)"
@@ -284,7 +305,7 @@ def _print_summary(report: dict) -> None:
         alpha = s["perceived_transparency"]
         alpha_text = "undetermined" if alpha is None else f"{alpha:.3f}"
         print(
-            f"  {name:<{width}}  {s['visible_share']:7.3f}  {s['target_share']:7.3f}  "
+            f"  {printable(name):<{width}}  {s['visible_share']:7.3f}  {s['target_share']:7.3f}  "
             f"{alpha_text:>15}  {s['expected_opacity']:16.3f}"
         )
     if report["undetermined"]:
@@ -296,4 +317,4 @@ def _print_summary(report: dict) -> None:
         f"measures {report['seconds_measures']:.2f})"
     )
     for f in report["files"]:
-        print(f"  wrote {f}")
+        print(f"  wrote {printable(f)}")

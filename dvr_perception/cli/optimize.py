@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from dvr_perception._files import output_folder, write_json, write_png
+from dvr_perception.cli._backend import add_backend_arg
 from dvr_perception.cli._common import (
     add_scene_args,
     coverage,
@@ -75,6 +76,7 @@ def add_parser(subparsers, parents) -> None:
     )
     add_scene_args(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    add_backend_arg(p)
     p.add_argument(
         "--stages",
         default="opacity,lighting,colour",
@@ -201,12 +203,16 @@ class Progress:
         Expected iterations (stages x max_iter; stages may converge earlier).
     stream : file, optional
         Where the bar goes (default ``sys.stderr``).
+    verbose : bool
+        Name the measures (``E``, ``E_v``, ``E_s``, ``E_t``); by default they are given in
+        words (mismatch: visibility, shape cues, see-through).
     """
 
     width = 24
 
-    def __init__(self, total: int, stream=None) -> None:
+    def __init__(self, total: int, stream=None, verbose: bool = False) -> None:
         self.total = max(1, int(total))
+        self.verbose = bool(verbose)
         self.stream = stream if stream is not None else sys.stderr
         self.stop = False
         self.drawn = False
@@ -223,10 +229,13 @@ class Progress:
         fill = round(self.width * n / self.total)
         bar = "#" * fill + "-" * (self.width - fill)
         t = info.terms
-        text = (
-            f"{info.stage:<8} [{bar}] {info.nit:>3}/{self.total}  E {t['E']:.4f} "
-            f"(E_v {t['E_v']:.3f}, E_s {t['E_s']:.3f}, E_t {t['E_t']:.3f})"
-        )
+        if self.verbose:
+            terms = (f"E {t['E']:.4f} (E_v {t['E_v']:.3f}, E_s {t['E_s']:.3f}, "
+                     f"E_t {t['E_t']:.3f})")  # fmt: skip
+        else:
+            terms = (f"mismatch {t['E']:.3f} (visibility {t['E_v']:.3f}, shape cues "
+                     f"{t['E_s']:.3f}, see-through {t['E_t']:.3f})")  # fmt: skip
+        text = f"{info.stage:<8} [{bar}] {info.nit:>3}/{self.total}  {terms}"
         self.stream.write(("\r" + text) if self.tty else (text + "\n"))
         self.stream.flush()
         self.drawn = True
@@ -260,13 +269,14 @@ def stop_on_interrupt(progress: Progress):
 
 
 # -- measuring and writing -----------------------------------------------------------------------
-def _measure(volume, spec, camera, curvature, weights, result=None):
+def _measure(volume, spec, camera, curvature, weights, result=None, backend="auto"):
     from dvr_perception.cli.measure import _structures
     from dvr_perception.measures import all_measures
     from dvr_perception.rays.engine import analyze
 
     if result is None:
-        result = analyze(volume, spec, camera, curvature=curvature, build_cache=False)
+        result = analyze(volume, spec, camera, curvature=curvature, build_cache=False,
+                         backend=backend)  # fmt: skip
     vis, shp, trn = all_measures(result, spec)
     terms = {"E_v": float(vis.E_v), "E_s": float(shp.E_s), "E_t": float(trn.E_t)}
     terms["E"] = float(sum(w * terms[k] for w, k in zip(weights, TERMS, strict=True)))
@@ -281,17 +291,20 @@ def _measure(volume, spec, camera, curvature, weights, result=None):
     return result, (vis, shp, trn), terms
 
 
-def _why(res, initial: dict, final: dict) -> dict:
-    """Per structure: the optimiser's reason, with the shares measured at the user's size."""
-    from dvr_perception.optimize.explain import explanation_line
+def _why(res) -> dict:
+    """Per structure: the optimiser's reasons and their lines (plain, and with the measures).
+
+    The shares are the optimiser's (those its reasons quote); ``initial`` and ``final`` hold
+    the ones measured afresh at the user's size.
+    """
+    from dvr_perception.optimize.explain import explanation_lines
 
     out = {}
     for name, entry in res.structures.items():
         e = dict(entry)
-        before, after = initial["structures"][name], final["structures"][name]
-        e["share_before"], e["share_after"] = before["visible_share"], after["visible_share"]
-        e["target_share"] = before["target_share"]
-        e["line"] = explanation_line(name, e)
+        e["lines"] = explanation_lines(name, e)
+        e["lines_verbose"] = explanation_lines(name, e, verbose=True)
+        e["line"] = "; ".join(e["lines"])
         out[name] = e
     return out
 
@@ -303,13 +316,14 @@ def _terms(d: dict) -> dict:
 def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lighting", "colour"),
                    weights=(1.0, 1.0, 1.0), region=None, views=1, seed=0, max_iter=10,
                    resolution=None, coverage_keep=None, progress=None,
-                   objective=None, final_dir=None) -> dict:  # fmt: skip
+                   objective=None, final_dir=None, backend="auto") -> dict:  # fmt: skip
     """Optimise ``spec`` for ``camera``, write every output into ``out_dir``, return the report.
 
     ``region`` is ``(x0, y0, x1, y1)`` in pixels or ``None``; ``progress`` a :class:`Progress`
     (or any callback); ``objective`` ``"mean"`` or ``"least_squares"`` (``None``: the
     optimiser's default).  ``final_dir`` is the folder the files end up in when ``out_dir`` is
-    a staging folder (the optimised spec's ``labels`` path is made relative to it).  See the
+    a staging folder (the optimised spec's ``labels`` path is made relative to it).
+    ``backend``: the ray analyses' (:func:`~dvr_perception.rays.engine.analyze`).  See the
     module docstring for the files and the report.
     """
     from dvr_perception.cli import _plots
@@ -335,6 +349,7 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
         max_iter=max_iter,
         resolution=resolution,
         coverage_keep=coverage_keep,
+        backend=backend,
         **({} if objective is None else {"objective": objective}),
     )
     if isinstance(progress, Progress):
@@ -343,8 +358,8 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
     # the optimiser's renderings of the view (equal to fresh analyses), else analyse again
     first, last = res.analyses or (None, None)
     curvature = None if res.analyses else curvature_source(volume, spec)
-    before, m_before, initial = _measure(volume, spec, camera, curvature, weights, first)
-    after, m_after, final = _measure(volume, res.spec, camera, curvature, weights, last)
+    before, m_before, initial = _measure(volume, spec, camera, curvature, weights, first, backend)
+    after, m_after, final = _measure(volume, res.spec, camera, curvature, weights, last, backend)
     d = Path(out_dir)
     files = [write_png(d / "before.png", before.image), write_png(d / "after.png", after.image)]
     titles = [
@@ -381,7 +396,7 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
         for s in res.stages
     ]  # fmt: skip
     files.append(d / "result.json")
-    why = _why(res, initial, final)
+    why = _why(res)
     report = {
         "size": [camera.width, camera.height],
         "weights": list(weights),
@@ -434,7 +449,9 @@ def run(args: argparse.Namespace) -> int:
     region = None if args.region is None else parse_rect(args.region, cam.width, cam.height)
     # checked and locked before the work; every file appears at the end, all or none
     with output_folder(args.out) as staged:
-        progress = Progress(len(stages) * args.max_iter)
+        progress = Progress(
+            len(stages) * args.max_iter, verbose=bool(getattr(args, "verbose", False))
+        )
         with stop_on_interrupt(progress):
             report = optimize_scene(scene.volume, scene.spec, cam, staged.path, stages=stages,
                                     weights=weights, region=region, views=args.views,
@@ -442,7 +459,8 @@ def run(args: argparse.Namespace) -> int:
                                     resolution=args.resolution,
                                     coverage_keep=args.coverage_keep, progress=progress,
                                     objective=args.objective,
-                                    final_dir=staged.final)  # fmt: skip
+                                    final_dir=staged.final,
+                                    backend=args.backend)  # fmt: skip
         report = {"volume": scene.volume_source, "spec": scene.spec_source, **report}
         report["out_dir"] = str(staged.final)
         report["files"] = [str(staged.final_path(f)) for f in report["files"]]
@@ -450,32 +468,96 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(report)
     else:
-        print_summary(report)
+        print_summary(report, verbose=bool(getattr(args, "verbose", False)))
     return 0
 
 
-def print_summary(report: dict, *, indent: str = "  ") -> None:
-    """Print the before/after terms, the stages and the output folder on stdout."""
+#: ``status`` -> what the default text says (the codes and the optimiser's own messages are
+#: under ``-v`` and in ``--json``).
+PLAIN_STATUS = {
+    0: "finished: every stage settled on its best setting",
+    1: "stopped on request: the best settings found so far were kept",
+    2: "stopped at the step limit (--max-iter) before every stage settled: the best settings "
+    "found were kept",
+}
+#: The measures in plain words (default text), in the order of ``TERMS``.
+PLAIN_TERMS = ("visibility", "shape cues", "see-through")
+
+
+def _plain_stage(s: dict) -> str:
+    """Say what a stage did, without the measures' names."""
+    msg = str(s.get("message", ""))
+    if not s.get("accepted", True):
+        what = "undone: the result did not hold at full size"
+    elif msg.startswith("improved, with the step cut"):
+        what = "improved (with a shortened step, which held at full size)"
+    elif msg.startswith("improved"):
+        what = "improved"
+    elif msg.startswith("no feasible"):
+        what = "no better setting found; unchanged"
+    else:
+        what = msg
+    return f"{s['name']}: {what} ({s['iterations']} steps, {s['seconds']:.1f} s)"
+
+
+def print_summary(report: dict, *, indent: str = "  ", verbose: bool = False) -> None:
+    """Print the result on stdout: plain words by default, the measures with ``verbose``.
+
+    The default text names no measure (``E_v``, ``E_s``, ``E_t``, Eq. 13's ``S``) and no
+    status code: it gives the mismatch with the intended picture in words, what each stage
+    did, one consistent reason per structure with its shading and colour changes
+    (:func:`~dvr_perception.optimize.explain.explanation_lines`) and how the run ended.
+    ``verbose`` (``-v``) prints the measures, the stages' ``E``, Eq. 13's ``S`` and the status
+    code as well.
+    """
+    from dvr_perception.structures.spec import printable
+
     a, b = report["initial"], report["final"]
     w, h = report["size"]
-    print(f"optimised {report.get('volume', 'scene')} ({w}x{h}, weights {report['weights']})")
-    print(f"{indent}{'':8}{'E_v':>9}{'E_s':>9}{'E_t':>9}{'E':>9}")
-    for label, t in (("before", a), ("after", b)):
-        print(f"{indent}{label:8}" + "".join(f"{t[k]:9.4f}" for k in (*TERMS, "E")))
-    for s in report["stages"]:
-        print(
-            f"{indent}stage {s['name']:<9} E {s['before']['E']:.4f} -> {s['after']['E']:.4f}"
-            f"  ({s['iterations']} it, {s['seconds']:.1f} s; {s['message']})"
+    volume = printable(report.get("volume", "scene"))
+    if verbose:
+        print(f"optimised {volume} ({w}x{h}, weights {report['weights']})")
+        print(f"{indent}{'':8}{'E_v':>9}{'E_s':>9}{'E_t':>9}{'E':>9}")
+        for label, t in (("before", a), ("after", b)):
+            print(f"{indent}{label:8}" + "".join(f"{t[k]:9.4f}" for k in (*TERMS, "E")))
+        for s in report["stages"]:
+            print(
+                f"{indent}stage {s['name']:<9} E {s['before']['E']:.4f} -> {s['after']['E']:.4f}"
+                f"  ({s['iterations']} it, {s['seconds']:.1f} s; {s['message']})"
+            )
+    else:
+        print(f"optimised {volume} ({w}x{h})")
+        parts = ", ".join(
+            f"{word} {a[k]:.2f} -> {b[k]:.2f}" for word, k in zip(PLAIN_TERMS, TERMS, strict=True)
         )
-    for entry in report.get("structures", {}).values():
-        print(f"{indent}{entry['line']}")
-    opt = report.get("optimizer", {})
-    if "S" in opt.get("initial", {}):
-        which = report.get("objective") or "default"
-        print(f"{indent}S (Eq. 13) {opt['initial']['S']:.4f} -> {opt['final']['S']:.4f}; "
-              f"objective {which}")  # fmt: skip
-    print(f"{indent}status {report['status']}: {report['message']}")
+        print(f"{indent}mismatch with the intended picture (lower is better): {parts}; overall "
+              f"{a['E']:.2f} -> {b['E']:.2f}")  # fmt: skip
+        if report.get("objective"):
+            judged = {
+                "mean": "the picture's mean mismatch",
+                "least_squares": "each pixel's mismatch, squared (least squares)",
+            }
+            print(f"{indent}judged by {judged.get(report['objective'], report['objective'])}")
+        for s in report["stages"]:
+            print(f"{indent}{_plain_stage(s)}")
+    structures = report.get("structures", {})
+    if structures:
+        print(f"{indent}what changed and why:")
+    for entry in structures.values():
+        lines = entry.get("lines_verbose" if verbose else "lines") or [entry["line"]]
+        print(f"{indent}{indent}{printable(lines[0])}")
+        for line in lines[1:]:
+            print(f"{indent}{indent}{indent}{printable(line)}")
+    if verbose:
+        opt = report.get("optimizer", {})
+        if "S" in opt.get("initial", {}):
+            which = report.get("objective") or "default"
+            print(f"{indent}S (Eq. 13) {opt['initial']['S']:.4f} -> {opt['final']['S']:.4f}; "
+                  f"objective {which}")  # fmt: skip
+        print(f"{indent}status {report['status']}: {report['message']}")
+    else:
+        print(f"{indent}{PLAIN_STATUS.get(report['status'], report['message'])}")
     for note in report["notes"]:
         print(f"{indent}note: {note}")
     print(f"{indent}seconds {report['seconds']:.1f}; wrote {len(report['files'])} files into "
-          f"{report['out_dir']}/")  # fmt: skip
+          f"{printable(report['out_dir'])}/")  # fmt: skip

@@ -28,7 +28,9 @@ whole job (``mpiexec`` and every rank) when it takes longer.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import math
 import os
 import re
 import shutil
@@ -56,6 +58,11 @@ __all__ = [
     "virtual_display",
 ]
 
+#: Most ``--ranks`` (each rank is a pvbatch process holding its piece of the volume).
+MAX_RANKS = 64
+#: Largest ``--sigma`` (in units of the smallest voxel spacing; the Gaussian kernels reach
+#: about four sigma, and a brick's ghost as far).
+MAX_SIGMA = 32.0
 #: Seconds a pvbatch run (all its MPI ranks) may take before it is killed (``--timeout``).
 DEFAULT_TIMEOUT = 3600.0
 #: Environment variable naming the directory that holds ``pvpython``/``pvbatch``.
@@ -81,14 +88,20 @@ def add_parser(subparsers, parents) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_scene_args(p, save_spec=False)
-    p.add_argument("--sigma", type=float, default=1.0, help="curvature scale (default 1)")
+    p.add_argument(
+        "--sigma",
+        type=float,
+        default=1.0,
+        help=f"curvature scale in voxels (default 1, at most {MAX_SIGMA:g})",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument(
         "--ranks",
         type=int,
         default=1,
         metavar="N",
-        help="run on N MPI ranks (mpiexec -n N pvbatch), each reading its piece (default 1)",
+        help="run on N MPI ranks (mpiexec -n N pvbatch), each reading its piece (default 1, at "
+        f"most {MAX_RANKS})",
     )
     p.add_argument(
         "--no-screenshot",
@@ -231,7 +244,7 @@ def rank_threads(ranks: int, cores: int | None = None) -> int:
 def _script_args(args: argparse.Namespace) -> list[str]:
     """Return the command line of ``paraview/batch_measure.py`` (or ``batch_optimize.py``)."""
     argv = [str(args.volume)]
-    for opt in ("structures", "camera", "size", "series", "orientation"):
+    for opt in ("structures", "preset", "classes", "camera", "size", "series", "orientation"):
         if getattr(args, opt, None) is not None:
             argv += [f"--{opt}", str(getattr(args, opt))]
     if args.view is not None:
@@ -261,10 +274,12 @@ def _check_optimize(args: argparse.Namespace) -> None:
     args.weights = parse_weights(args.weights)
     if args.seed < 0:
         raise DVRInputError(f"--seed: expected an integer >= 0, got {args.seed}")
-    if args.max_iter < 1:
-        raise DVRInputError(f"--max-iter: expected a positive integer, got {args.max_iter}")
-    if args.resolution is not None and args.resolution < 8:
-        raise DVRInputError(f"--resolution: expected an integer >= 8, got {args.resolution}")
+    from dvr_perception.cli.optimize import MAX_ITER, MAX_RESOLUTION
+
+    if not 1 <= args.max_iter <= MAX_ITER:
+        raise DVRInputError(f"--max-iter: expected 1 to {MAX_ITER}, got {args.max_iter}")
+    if args.resolution is not None and not 8 <= args.resolution <= MAX_RESOLUTION:
+        raise DVRInputError(f"--resolution: expected 8 to {MAX_RESOLUTION}, got {args.resolution}")
     if args.region is not None:
         _numbers(args.region, "--region", 4, "four numbers x0,y0,x1,y1")
 
@@ -313,7 +328,9 @@ def run_job(cmd: list[str], env: dict, timeout: float, what: str) -> subprocess.
 
     After ``timeout`` seconds the whole group (``mpiexec`` and every rank) gets SIGTERM, then
     SIGKILL, and a ``RuntimeError`` names ``what`` and ``--timeout``: a rank that hangs never
-    leaves the command (or a test) waiting.
+    leaves the command (or a test) waiting.  Interrupted (Ctrl-C, or SIGTERM raised by the
+    command line), the group is killed before the interrupt goes on: being in a session of its
+    own it would otherwise keep running.
     """
     import signal
 
@@ -342,6 +359,13 @@ def run_job(cmd: list[str], env: dict, timeout: float, what: str) -> subprocess.
         raise RuntimeError(
             f"{what} did not finish within {timeout:g} s (--timeout); the job was killed"
         ) from None
+    except BaseException:  # Ctrl-C or SIGTERM: the job's own session would outlive us
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        for pipe in (proc.stdout, proc.stderr):
+            pipe.close()
+        proc.wait()
+        raise
     return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
 
 
@@ -425,6 +449,8 @@ def _check_file_order(volume: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Execute ``pvbatch``."""
+    if not 1 <= args.ranks <= MAX_RANKS:
+        raise DVRInputError(f"--ranks: expected 1 to {MAX_RANKS} ranks, got {args.ranks}")
     if args.size is not None:
         parse_size(args.size)
     if args.view is not None:
@@ -440,11 +466,11 @@ def run(args: argparse.Namespace) -> int:
         )
     if getattr(args, "ranks", 1) > 1:
         _check_file_order(args.volume)
-    if not (args.sigma > 0):
-        raise DVRInputError(f"--sigma: expected a positive number, got {args.sigma}")
-    if args.ranks < 1:
-        raise DVRInputError(f"--ranks: expected a positive number of ranks, got {args.ranks}")
-    if not (args.timeout > 0):
+    if not (0 < args.sigma <= MAX_SIGMA):
+        raise DVRInputError(
+            f"--sigma: expected a positive number of at most {MAX_SIGMA:g}, got {args.sigma}"
+        )
+    if not (0 < args.timeout < math.inf):
         raise DVRInputError(f"--timeout: expected a positive number of seconds, got {args.timeout}")
     if args.optimize:
         _check_optimize(args)

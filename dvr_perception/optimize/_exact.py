@@ -201,3 +201,44 @@ class OpacityModel:
         nv = len(self.views)
         out = (e_v / nv, cov / nv, g_v / nv, g_c / nv)
         return (*out, share / nv, d_share / nv) if shares else out
+
+    def covering(self, ops) -> tuple:
+        """Who hides whom, and who shows more than its target, at opacities ``ops``.
+
+        Returns ``(covers, own)``.  ``covers`` (K, K): entry ``[k, j]`` is
+        ``-sum_r d visible_j / d o_k`` over the counted rays divided by the picture's visible
+        opacity ``sum_r sum_s visible_s`` (mean over the views): to first order, the share of
+        the picture ``j`` gains per unit that ``k``'s opacity falls.  Only a structure in
+        front hides one behind (a sample lowers the transmittance of those after it), so a
+        structure that lies wholly behind another covers it by 0; diagonal 0, never negative.
+        ``own`` (K,): ``sum_r sign(visible_k - target_k) d visible_k / d o_k``, normalised
+        the same way: positive when, where the structure shows, its visible opacity is mostly
+        above its target opacity (so lowering it brings its own rays closer to the target).
+        """
+        ops = np.clip(np.asarray(ops, np.float64), 0.0, 1.0)
+        k = self.k
+        out, own = np.zeros((k, k)), np.zeros(k)
+        for cache, rays, target in self.views:
+            n = rays.size
+            if n == 0:
+                continue
+            if hasattr(cache, "opacity_pass"):
+                vis, dvis, _, _ = cache.opacity_pass(rays, ops, True)
+            else:
+                alpha, dalpha, ids = self._tables(cache, ops)
+                vis, acc = np.empty((k, n)), np.empty(n)
+                dvis, dacc = np.zeros((k, k, n)), np.zeros((k, n))
+                _composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha,
+                                k, _tables.ERT, True, vis, dvis, acc, dacc)  # fmt: skip
+            vis = np.asarray(vis, np.float64)
+            dvis = np.asarray(dvis, np.float64)
+            total = float(vis.sum())
+            if total > 0:
+                out -= dvis.sum(axis=2).T / total  # dvis[s, q]: d vis_s / d o_q
+                self_d = dvis[np.arange(k), np.arange(k)]  # (K, rays)
+                sign = np.sign(vis.astype(np.float32).astype(np.float64) - target)
+                own += (sign * self_d).sum(axis=1) / total
+        nv = max(len(self.views), 1)
+        out /= nv
+        np.fill_diagonal(out, 0.0)
+        return np.clip(out, 0.0, None), own / nv

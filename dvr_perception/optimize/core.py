@@ -11,6 +11,7 @@ from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures import calibrate
 from dvr_perception.measures.visibility import COMPOSITIONS
+from dvr_perception.optimize._exact import OpacityModel
 from dvr_perception.optimize._problem import Params, Problem, public_terms
 from dvr_perception.optimize._region import parse_region, parse_targets, resample_mask
 from dvr_perception.optimize._solver import run_stage
@@ -24,7 +25,7 @@ from dvr_perception.optimize.results import (
 from dvr_perception.optimize.stages import STAGES
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature_field import curvature_source
-from dvr_perception.rays.engine import analyze_views
+from dvr_perception.rays.engine import BACKENDS, analyze_views
 from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.volume.volume import Volume
 
@@ -152,6 +153,7 @@ def optimize(
     objective="mean",
     analyzer=None,
     progress=None,
+    backend="auto",
 ) -> OptimizationResult:
     """Optimise opacity, lighting and colour of ``spec`` for a readable rendering (Eq. 12-15).
 
@@ -242,6 +244,9 @@ def optimize(
         fraction in [0, 1], ending with 1.0; the iterations report through ``callback``.  A
         ``progress`` that raises :class:`StopIteration` cancels the optimisation with
         :class:`~dvr_perception.errors.DVRCancelled`.
+    backend : {"auto", "numba", "numpy", "cuda"}
+        Back end of the views' ray analyses (:func:`~dvr_perception.rays.engine.analyze`);
+        the re-evaluations composite the cached rays on the CPU whatever the back end.
 
     Returns
     -------
@@ -262,6 +267,8 @@ def optimize(
     (True, True)
     """
     t_start = time.perf_counter()
+    if backend not in BACKENDS:
+        raise DVRInputError(f"backend: expected one of {BACKENDS}, got {backend!r}")
     w = _check(volume, spec, camera, stages, weights, cameras, region, calibration, seed, callback,
                max_iter, resolution, opacity_floor, coverage_keep, analyzer)  # fmt: skip
     if composition not in COMPOSITIONS:
@@ -285,7 +292,8 @@ def optimize(
         if curvature is None:
             curvature = curvature_source(volume, spec, progress=prep.sub(0.0, 0.3))
         # every camera in one call: a volume analysed in bricks is read once for all
-        found = analyze_views(volume, spec, todo, curvature=curvature, progress=prep.sub(0.3, 1))
+        found = analyze_views(volume, spec, todo, curvature=curvature, progress=prep.sub(0.3, 1),
+                              backend=backend)  # fmt: skip
     else:
         found = [analyzer(cam) for cam in todo]
     prep(1.0)
@@ -367,9 +375,8 @@ def optimize(
         done[kept - 1] = (stage, info, before, t_before, _Shortened(params, t_opt, frac), t_opt)
     records = [_record(d, names, spec, i < kept) for i, d in enumerate(done)]
     final = _report(full_problem, params, mask is not None, final_terms)
-    why = explain(names, Params.from_spec(spec).opacities, params.opacities,
-                  initial["visible_share"], final["visible_share"], initial["target_share"],
-                  full_problem.copresence())  # fmt: skip
+    why = _why(problem, full_problem, Params.from_spec(spec), params, initial, final,
+               done[:kept])  # fmt: skip
     nfev = problem.nfev + (0 if same else full_problem.nfev)
     nfev += 0 if coarse is None else coarse.nfev
     return OptimizationResult(
@@ -386,6 +393,45 @@ def optimize(
         structures=why,
         analyses=(full_analyses[0], full_problem.render(params, 0)),
     )
+
+
+def _why(problem, full_problem, start, params, initial, final, kept_stages) -> dict:
+    """Per structure, what changed and why in words (:func:`~.explain.explain`).
+
+    Who covers whom comes from the exact opacity gradients on the optimisation camera (mean
+    of the start and the result); each structure's shape and transparency mismatch across
+    the stage that leads that measure (the kept stages only) say why shading and colour
+    changed.
+    """
+    changed = np.abs(params.opacities - start.opacities) >= 0.005
+    covers = own = None
+    if changed.any():
+        model = OpacityModel(problem, start)
+        (c0, own), (c1, _) = model.covering(start.opacities), model.covering(params.opacities)
+        covers = 0.5 * (c0 + c1)
+    bad = {}  # (stage lead, measure) -> per-structure mismatch before the first such stage, after
+    for stage, _, _, t_before, chosen, t_after in kept_stages:
+        if chosen is None or stage.lead not in ("E_s", "E_t"):
+            continue
+        for term in ("E_s", "E_t"):
+            first = bad.get((stage.lead, term), (t_before["badness"][term], None))[0]
+            bad[(stage.lead, term)] = (first, t_after["badness"][term])
+    shape = bad.get(("E_s", "E_s"), (None, None))
+    trans = bad.get(("E_t", "E_t"), (None, None))
+    shape_c = bad.get(("E_t", "E_s"), (None, None))
+    lighting = {
+        "materials_before": start.lighting, "materials_after": params.lighting,
+        "light_before": start.light, "light_after": params.light,
+        "shape_before": shape[0], "shape_after": shape[1],
+    }  # fmt: skip
+    colour = {
+        "colors_before": start.colors, "colors_after": params.colors,
+        "transparency_before": trans[0], "transparency_after": trans[1],
+        "shape_before": shape_c[0], "shape_after": shape_c[1],
+    }  # fmt: skip
+    return explain(problem.names, start.opacities, params.opacities, initial["visible_share"],
+                   final["visible_share"], initial["target_share"], covers, lighting=lighting,
+                   colour=colour, overlap=full_problem.copresence(), over=own)  # fmt: skip
 
 
 def _most_important(spec, active) -> str | None:

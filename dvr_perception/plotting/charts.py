@@ -11,6 +11,7 @@ import math
 import numpy as np
 
 from dvr_perception.errors import DVRInputError
+from dvr_perception.structures.spec import printable
 
 __all__ = ["plot_convergence", "plot_visibility_histograms"]
 
@@ -61,7 +62,7 @@ def plot_visibility_histograms(vis_result):
         asg = np.asarray(d["histogram_assigned"], dtype=np.float64)
         ax.bar(centres, vis, width=widths, alpha=0.6, label="visible")
         ax.step(edges, np.append(asg, asg[-1:]), where="post", color="k", label="assigned")
-        ax.set_title(str(name))
+        ax.set_title(printable(name, 32).replace("$", r"\$"))  # never mathtext
         ax.set_xlabel("share of ray opacity")
         ax.set_ylabel("rays")
     for ax in axes[n:]:

@@ -1,4 +1,4 @@
-"""3D Slicer segmentations (``.seg.nrrd``) as label structures.
+r"""3D Slicer segmentations (``.seg.nrrd``) as label structures.
 
 A Slicer segmentation is a NRRD label volume whose header carries one group of ``key:=value``
 fields per segment ``N`` (``SegmentN_ID``, ``SegmentN_Name``, ``SegmentN_Color`` as ``"r g b"``
@@ -27,6 +27,19 @@ Geometry
     Segment voxels outside the volume, a spacing that differs or an origin off the volume's grid
     give one :class:`~dvr_perception.errors.DVRInputError` naming the file and what differs.
 
+Names
+    A segment's name is kept when it is a valid structure name
+    (:func:`~dvr_perception.structures.spec.name_problem`: at most
+    :data:`~dvr_perception.structures.spec.MAX_NAME_LENGTH` printable characters).  Otherwise
+    it is sanitised with one :class:`~dvr_perception.errors.DVRWarning` naming the file and the
+    field: control and other non-printable characters are escaped (``\x1b``) and a long name
+    is cut (ending in ``…``).  Unlike a spec JSON, whose author fixes a refused name in a text
+    editor, a segmentation is written by Slicer (names often come from its terminology
+    lists) into a file that mixes a text header with binary data, and segments are matched by
+    their label value, not by name: refusing the file would leave a valid segmentation
+    unusable for a display label.  A spec written with ``--save-spec`` holds the sanitised
+    names.  Two names that become equal are refused as duplicates.
+
 Limits
     Only single-layer segmentations (3-D, segments do not overlap) are read; a multi-layer file
     (4-D, ``kinds: list domain domain domain``, written by Slicer when segments overlap) is
@@ -38,12 +51,20 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from dvr_perception.errors import DVRInputError
-from dvr_perception.structures.spec import MAX_STRUCTURES, Structure, StructureSpec
+from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.structures.spec import (
+    MAX_NAME_LENGTH,
+    MAX_STRUCTURES,
+    Structure,
+    StructureSpec,
+    name_problem,
+    printable,
+)
 
 __all__ = [
     "SEGMENTATION_SUFFIXES",
@@ -59,8 +80,6 @@ __all__ = [
 SEGMENTATION_SUFFIXES = (".seg.nrrd", ".seg.nhdr")
 _NRRD = (".nrrd", ".nhdr")
 _SEGMENT_KEY = re.compile(r"^Segment(\d{1,6})_(\w+)$")
-#: Longest segment name kept (characters).
-MAX_NAME = 200
 _LABEL_MAX = 2**31 - 1
 _IMPORTANCE_RANGE = (0.15, 0.85)
 _OTHER_VOLUME = (
@@ -130,13 +149,16 @@ def _color(path: Path, key: str, text: str) -> tuple[float, float, float]:
     return rgb  # type: ignore[return-value]
 
 
-def read_segments(path) -> list[dict]:
+def read_segments(path, *, warn: bool = True) -> list[dict]:
     """Read and check the segment fields of a ``.seg.nrrd`` header (no voxel data is read).
 
     Parameters
     ----------
     path : str or os.PathLike
         The segmentation file.
+    warn : bool
+        Emit a :class:`~dvr_perception.errors.DVRWarning` per sanitised name (see Names in the
+        module docstring); ``False`` where the file was read before.
 
     Returns
     -------
@@ -211,12 +233,13 @@ def read_segments(path) -> list[dict]:
             _fail(path, pre + "Color", "is missing; expected 'r g b' in [0, 1]")
         color = _color(path, pre + "Color", g["Color"])
         seg_id = g.get("ID", "").strip()
-        name = g.get("Name", "").strip() or seg_id or f"Segment_{index}"
-        if len(name) > MAX_NAME or any(ord(ch) < 32 for ch in name):
-            _fail(
-                path,
-                pre + "Name",
-                f"expected a name of at most {MAX_NAME} printable characters",
+        raw = g.get("Name", "").strip() or seg_id or f"Segment_{index}"
+        name = printable(raw, MAX_NAME_LENGTH)
+        if name != raw and warn:  # sanitised, not refused: see the module docstring (Names)
+            warnings.warn(
+                f"{path}: {pre}Name {name_problem(raw)}; shown as {name!r}",
+                DVRWarning,
+                stacklevel=2,
             )
         if label in seen_label:
             _fail(path, pre + "LabelValue", f"{label} duplicates {seen_label[label]}")
@@ -361,7 +384,7 @@ def segmentation_labels(path, volume) -> np.ndarray:
     from dvr_perception.volume.io import load_volume
 
     path = Path(path)
-    read_segments(path)  # the header checks, before any voxel is read
+    read_segments(path, warn=False)  # the header checks, before any voxel is read
     fields, _ = _header(path)
     seg = load_volume(path)
     spacing = np.array(seg.spacing, float)

@@ -21,14 +21,74 @@ from dataclasses import dataclass, field, replace
 
 from dvr_perception.errors import DVRInputError
 
-__all__ = ["MAX_STRUCTURES", "Lighting", "RenderSettings", "Structure", "StructureSpec"]
+__all__ = [
+    "MAX_NAME_LENGTH",
+    "MAX_STRUCTURES",
+    "Lighting",
+    "RenderSettings",
+    "Structure",
+    "StructureSpec",
+    "name_problem",
+    "printable",
+]
 
 SPEC_VERSION = 1
 #: Most structures a spec may hold (the engine keeps one bit per structure in 32 bits); checked
 #: before any per-structure or pairwise work.
 MAX_STRUCTURES = 32
+#: Longest structure name (characters).  A name labels table rows, plot titles and legends;
+#: without a bound one long name makes every figure take unbounded time and memory.
+MAX_NAME_LENGTH = 64
 #: Label ids are 32-bit signed integers.
 _LABEL_RANGE = (-(2**31), 2**31 - 1)
+
+
+def printable(text, limit: int | None = None) -> str:
+    r"""Return ``text`` with every non-printable character escaped, cut to ``limit`` characters.
+
+    Control, format and separator characters (everything :meth:`str.isprintable` refuses,
+    e.g. ESC, newline, the right-to-left override) are written as Python escapes
+    (``\x1b``, ``\n``, ``\u202e``), so a name can never drive a terminal; with ``limit``
+    a longer result is cut and ends with ``…``.
+
+    Examples
+    --------
+    >>> print(printable("bone\x1b[2J"))
+    bone\x1b[2J
+    >>> printable("a" * 10, limit=5)
+    'aaaa…'
+    """
+    text = str(text)
+    if limit is not None and len(text) > 4 * limit:
+        text = text[: 4 * limit]  # enough to cut from: escapes only lengthen the text
+    if not text.isprintable():
+        text = "".join(ch if ch.isprintable() else ascii(ch)[1:-1] for ch in text)
+    if limit is not None and len(text) > limit:
+        text = text[: max(limit - 1, 0)] + "…"
+    return text
+
+
+def name_problem(name) -> str | None:
+    r"""Why ``name`` cannot be a structure name, or ``None`` when it can.
+
+    A name is a non-empty string of at most :data:`MAX_NAME_LENGTH` printable characters
+    (:meth:`str.isprintable`: no control, format or line/paragraph separator characters).
+
+    Examples
+    --------
+    >>> name_problem("brain and soft tissue") is None
+    True
+    >>> print(name_problem("bone\x1b[31m"))
+    must hold printable characters only, got '\x1b' at position 4
+    """
+    if not isinstance(name, str) or not name.strip():
+        return "must be a non-empty string"
+    if len(name) > MAX_NAME_LENGTH:
+        return f"must be at most {MAX_NAME_LENGTH} characters, got {len(name)} characters"
+    if not name.isprintable():
+        i = next(i for i, ch in enumerate(name) if not ch.isprintable())
+        return f"must hold printable characters only, got {name[i]!a} at position {i}"
+    return None
 
 
 @dataclass(frozen=True)
@@ -59,6 +119,13 @@ class Structure:
     lighting: Lighting = field(default_factory=Lighting)
     opacity: float | None = None
     expected_opacity: float | None = None
+
+    def __post_init__(self) -> None:
+        """Refuse a name that is too long or not printable (:func:`name_problem`)."""
+        problem = name_problem(self.name)
+        if problem is not None:
+            shown = printable(self.name, 40) if isinstance(self.name, str) else type(self.name)
+            raise DVRInputError(f"structure name {shown!r}: {problem}")
 
     @property
     def render_opacity(self) -> float:
@@ -205,8 +272,9 @@ class _Checker:
 def _parse_structure(c: _Checker, d, path: str, has_labels: bool) -> Structure:
     d = c.obj(d, path, _STRUCTURE_KEYS)
     name = d.get("name")
-    if not isinstance(name, str) or not name.strip():
-        c.fail(f"{path}.name", "must be a non-empty string", name)
+    problem = name_problem(name)
+    if problem is not None:
+        c.fail(f"{path}.name", problem, name, show_got=not isinstance(name, str) or not name)
     has_range, has_label = d.get("range") is not None, d.get("label") is not None
     if has_range == has_label:
         which = "both" if has_range else "neither"

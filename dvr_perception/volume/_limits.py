@@ -154,22 +154,46 @@ def _human(n: float) -> str:
     return f"{n / 2**30:.2f} GB" if n >= 2**30 else f"{n / 2**20:.1f} MB"
 
 
-def check_budget(where, dims, dtype, field: str = "sizes") -> int:
+def check_budget(
+    where,
+    dims,
+    dtype,
+    field: str = "sizes",
+    *,
+    limit: int | None = None,
+    hint: str | None = None,
+    nbytes: int | None = None,
+    what: str | None = None,
+) -> int:
     """Return the data's byte count; refuse sizes whose data cannot fit the memory limit.
 
     The product is exact (Python integers), so sizes whose product overflows 64 bits are
-    refused here rather than wrapping around.
-    """
+    refused here rather than wrapping around.  ``limit`` (bytes) and ``hint`` (how to raise
+    it) replace the memory limit, e.g. for the web app's ``--max-volume-mb``; ``nbytes`` and
+    ``what`` replace the product and its description when several arrays share the sizes.
+
+    Examples
+    --------
+    >>> check_budget("v.mha", (4, 4, 4), "uint16")
+    128
+    >>> check_budget("up.mha", (64, 64, 64), "uint8", "DimSize", limit=1000, hint="--max-volume-mb")
+    Traceback (most recent call last):
+    ...
+    dvr_perception.errors.DVRInputError: up.mha: field 'DimSize': sizes 64 64 64 of uint8 need 0.2 MB, more than the limit of 0.0 MB; raise it with --max-volume-mb
+    """  # noqa: E501
     from dvr_perception.rays import memory
 
-    nbytes = math.prod(int(d) for d in dims) * np.dtype(dtype).itemsize
-    cap = memory.limit()
+    if nbytes is None:
+        nbytes = math.prod(int(d) for d in dims) * np.dtype(dtype).itemsize
+    cap = memory.limit() if limit is None else int(limit)
     if nbytes > cap:
         sizes = " ".join(str(int(d)) for d in dims)
+        kind = what or f"of {np.dtype(dtype).name}"
+        name = "the memory limit" if limit is None else "the limit"
         raise DVRInputError(
-            f"{where}: field {field!r}: sizes {sizes} of {np.dtype(dtype).name} need "
-            f"{_human(nbytes)}, more than the memory limit of {_human(cap)}; raise it with "
-            f"--memory-limit (or {memory.ENV})"
+            f"{where}: field {field!r}: sizes {sizes} {kind} need {_human(nbytes)}, more than "
+            f"{name} of {_human(cap)}; raise it with "
+            + (hint or f"--memory-limit (or {memory.ENV})")
         )
     return nbytes
 

@@ -75,6 +75,9 @@ _NRRD_SPACES = {
 }
 
 
+_DATA_KEYS = {"data file", "datafile"}
+
+
 def nrrd_header(path: Path, keyvalues: dict[str, str] | None = None) -> tuple[dict[str, str], int]:
     """Return the NRRD header's fields (keys lower case) and the data offset.
 
@@ -108,7 +111,12 @@ def nrrd_header(path: Path, keyvalues: dict[str, str] | None = None) -> tuple[di
         key, sep, value = line.partition(": ")
         if not sep:
             raise DVRInputError(f"{path}: malformed NRRD header line {shown(line)}")
-        fields[key.strip().lower()] = value.strip()
+        low = key.strip().lower()
+        if low in fields or (low in ("data file", "datafile") and fields.keys() & _DATA_KEYS):
+            raise DVRInputError(
+                f"{path}: NRRD field {key.strip()!r}: given twice; each field may appear once"
+            )
+        fields[low] = value.strip()
     if not ended and len(head) == HEADER_MAX:
         raise DVRInputError(
             f"{path}: the NRRD header is longer than {HEADER_MAX} bytes (no blank line ends it)"
@@ -121,7 +129,14 @@ def nrrd_vector(text: str, path: Path, field: str) -> tuple[float, ...]:
     return tuple(parse_float(v, path, field) for v in text.strip().strip("()").split(","))
 
 
-def read_nrrd(path: Path):
+def read_nrrd(
+    path: Path, *, limit: int | None = None, hint: str | None = None, check_only: bool = False
+):
+    """Read a NRRD file: ``(data, axes, origin, oriented)``.
+
+    With ``check_only`` the header, sizes (against ``limit``, default the memory limit) and
+    data file are checked and ``(dims, dtype, data file)`` returned without reading data.
+    """
     fields, offset = nrrd_header(path)
 
     def need(key: str) -> str:
@@ -163,7 +178,7 @@ def read_nrrd(path: Path):
         axes, origin = ras_to_lps(axes, origin)
     elif nrrd_space(fields, path) == "las":
         axes, origin = axes * [[-1.0], [1.0], [1.0]], np.multiply(origin, [-1.0, 1.0, 1.0])
-    expected = check_budget(path, dims, dt)
+    expected = check_budget(path, dims, dt, limit=limit, hint=hint)
     data_file = fields.get("data file", fields.get("datafile"))
     if data_file is not None:
         if data_file.split()[:1] == ["LIST"] or "%" in data_file:
@@ -172,6 +187,8 @@ def read_nrrd(path: Path):
         where, offset = f"{path} (data file {src.name})", 0
     else:
         src, where = path, str(path)
+    if check_only:
+        return dims, dt, src
     if encoding == "raw":
         check_size(where, src.stat().st_size - offset, expected, dims)
         with open(src, "rb") as f:
@@ -235,8 +252,7 @@ def _nrrd_spacing(fields: dict[str, str], path: Path) -> tuple[float, float, flo
             raise DVRInputError(
                 f"{path}: NRRD field 'spacings': expected 3 values, got {shown(fields['spacings'])}"
             )
-        out = [parse_float(v, path, "spacings") if v.lower() != "nan" else 1.0 for v in vals]
-        return check_spacing(out, path, "spacings")
+        return check_spacing([parse_float(v, path, "spacings") for v in vals], path, "spacings")
     return (1.0, 1.0, 1.0)
 
 

@@ -22,7 +22,6 @@ any data is read; compressed data is decompressed with a bound.
 
 from __future__ import annotations
 
-import gzip
 import os
 import re
 import shutil
@@ -33,32 +32,66 @@ from pathlib import Path
 
 import numpy as np
 
-from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError, DVRWarning
-from dvr_perception.volume._limits import (
-    HEADER_MAX,
-    check_budget,
-    check_ratio,
-    check_size,
-    check_spacing,
-    parse_float,
-    parse_int,
-    resolve_data_file,
-    shown,
+from dvr_perception.volume._headers import (
+    Layout,
+    check_nifti,
+    legacy_layout,
+    meta_layout,
+    read_layout,
+    vti_layout,
 )
+from dvr_perception.volume._limits import check_budget, check_size, parse_int
 from dvr_perception.volume._nrrd import nrrd_axes, nrrd_header, nrrd_space, read_nrrd, write_nrrd
-from dvr_perception.volume._vtk_headers import check_legacy_vtk, check_vti
-from dvr_perception.volume.convert import from_vtk_image, to_vtk_image, vtk_errors
 from dvr_perception.volume.orient import from_axes, ras_to_lps
 from dvr_perception.volume.volume import Volume
 
-__all__ = ["header_axes", "load_volume", "save_volume"]
+__all__ = ["check_volume_file", "header_axes", "load_volume", "save_volume"]
+
+
+class _LazyVTK:
+    """:mod:`dvr_perception._vtk`, imported when a VTK class is first asked for.
+
+    NRRD, raw and the other formats we parse ourselves load without ``vtkmodules`` (a GPU
+    machine without VTK); the VTK readers and writers import it on use.
+    """
+
+    def __getattr__(self, name: str):
+        from dvr_perception import _vtk as module
+
+        return getattr(module, name)
+
+
+_vtk = _LazyVTK()
+
+
+def from_vtk_image(*args, **kwargs):
+    """:func:`dvr_perception.volume.convert.from_vtk_image` (imported on use: VTK)."""
+    from dvr_perception.volume.convert import from_vtk_image as convert
+
+    return convert(*args, **kwargs)
+
+
+def to_vtk_image(*args, **kwargs):
+    """:func:`dvr_perception.volume.convert.to_vtk_image` (imported on use: VTK)."""
+    from dvr_perception.volume.convert import to_vtk_image as convert
+
+    return convert(*args, **kwargs)
+
+
+def vtk_errors(*args, **kwargs):
+    """:func:`dvr_perception.volume.convert.vtk_errors` (imported on use: VTK)."""
+    from dvr_perception.volume.convert import vtk_errors as convert
+
+    return convert(*args, **kwargs)
+
 
 RAW_DTYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
 _RAW_NAME = re.compile(r"^(?P<name>.+)_(?P<x>\d+)x(?P<y>\d+)x(?P<z>\d+)_(?P<dtype>\w+)\.raw$")
 _FORMATS = (".nhdr", ".nrrd", ".mha", ".mhd", ".vti", ".vtk", ".nii", ".nii.gz", ".mgz", ".mgh")
 _FORMATS += (".dcm", ".raw")
-_META_DIRECTIONS = ("transformmatrix", "rotation", "orientation")
+#: Formats parsed by :mod:`._headers` and read by our own code (VTK never opens them).
+_LAYOUTS = {".mha": meta_layout, ".mhd": meta_layout, ".vti": vti_layout, ".vtk": legacy_layout}
 _WRITABLE = (".vti", ".nhdr", ".nrrd", ".mha", ".mhd", ".nii", ".nii.gz", ".vtk")
 
 
@@ -146,29 +179,13 @@ def load_volume(path, *, name: str | None = None, series: str | None = None) -> 
         from dvr_perception.volume.medical import read_mgh
 
         data, axes, origin = read_mgh(path)
-    else:
-        if ext in (".mha", ".mhd"):
-            fields = _check_meta(path)
-            oriented = any(k in fields for k in _META_DIRECTIONS)
-        elif ext in (".nii", ".nii.gz"):
-            _check_nifti(path, ext)
-        elif ext == ".vti":
-            oriented = check_vti(path)
-        elif ext == ".vtk":
-            check_legacy_vtk(path)
-            oriented = False  # legacy structured points have no direction
-        reader = {
-            ".mha": _vtk.vtkMetaImageReader,
-            ".mhd": _vtk.vtkMetaImageReader,
-            ".vti": _vtk.vtkXMLImageDataReader,
-            ".vtk": _vtk.vtkDataSetReader,
-            ".nii": _vtk.vtkNIFTIImageReader,
-            ".nii.gz": _vtk.vtkNIFTIImageReader,
-        }[ext]()
-        vol = _read_vtk(reader, path, vname, oriented=oriented)
-        if ext in (".mha", ".mhd"):
-            vol = _meta_geometry(fields, vol, path)
-        return vol
+    elif ext in _LAYOUTS:
+        layout = _LAYOUTS[ext](path)
+        data, axes, origin = read_layout(layout), layout.axes, layout.origin
+        oriented = layout.oriented
+    else:  # NIfTI: checked exactly as VTK's reader parses it, then read by it
+        check_nifti(path, ext)
+        return _read_vtk(_vtk.vtkNIFTIImageReader(), path, vname, oriented=True)
     if data.size == 0:
         raise DVRInputError(f"{path}: the volume is empty (shape (z, y, x) = {data.shape})")
     where = str(path)
@@ -176,9 +193,12 @@ def load_volume(path, *, name: str | None = None, series: str | None = None) -> 
 
 
 def header_axes(path) -> np.ndarray | None:
-    """Return a NRRD, MetaImage or ``.vti`` file's axis vectors (LPS columns) from its header.
+    """Return a NRRD, MetaImage, ``.vti`` or legacy ``.vtk`` file's axis vectors (LPS columns).
 
-    ``None`` for other formats.  For callers that must not read the data, e.g. the MPI path
+    From the header alone, parsed and checked exactly as :func:`load_volume` parses it (sizes
+    against the memory limit, the data file inside the allowed folders, attached raw data
+    complete), so a file passed here is one VTK's readers read the same way.  ``None`` for
+    other formats.  For callers that must not read the data, e.g. the MPI path
     of ``dvr-perception pvbatch``, whose ranks read their pieces with ParaView's readers in
     file order: they need to know whether the file's axes are flipped, permuted or rotated.
 
@@ -198,6 +218,7 @@ def header_axes(path) -> np.ndarray | None:
     path = Path(os.fspath(path))
     ext = "" if path.is_dir() else _ext(path)
     if ext in (".nhdr", ".nrrd"):
+        read_nrrd(path, check_only=True)  # sizes, budget, data file: as load_volume
         fields, _ = nrrd_header(path)
         axes = nrrd_axes(fields, path)
         space = nrrd_space(fields, path)
@@ -206,24 +227,58 @@ def header_axes(path) -> np.ndarray | None:
         elif space == "las":
             axes = axes * [[-1.0], [1.0], [1.0]]
         return axes
-    if ext in (".mha", ".mhd"):
-        fields, _ = _meta_header(path)
-        spacing = np.ones(3)
-        for key in ("elementspacing", "elementsize"):
-            if key in fields:
-                spacing = np.array([parse_float(v, path, key) for v in fields[key].split()[:3]])
-                break
-        for key in _META_DIRECTIONS:
-            if key in fields:
-                vals = [parse_float(v, path, "TransformMatrix") for v in fields[key].split()]
-                if len(vals) == 9:
-                    return np.array(vals).reshape(3, 3).T * spacing
-        return np.diag(spacing)
-    if ext == ".vti":
-        from dvr_perception.volume._vtk_headers import vti_axes
-
-        return vti_axes(path)
+    if ext in _LAYOUTS:
+        return _LAYOUTS[ext](path).axes
     return None
+
+
+def check_volume_file(path, *, limit: int | None = None, hint: str | None = None):
+    """Check a volume file's header exactly as :func:`load_volume` reads it; read no voxels.
+
+    The one parse that :func:`load_volume` also uses: sizes and type against ``limit`` (bytes;
+    default the memory limit, ``hint`` says how to raise it), the data file inside the allowed
+    folders, the data complete.  For the web app's upload check, the ParaView reader and
+    ``pvbatch``.
+
+    Returns
+    -------
+    tuple
+        ``(dims, dtype, data_file)``: points along x, y, z, the stored voxel type, and the file
+        holding the voxels (``path`` itself for attached data; ``None`` where VTK reads it).
+
+    Raises
+    ------
+    DVRInputError
+        Everything :func:`load_volume` would refuse from the header (the message names the
+        file and the field); formats read without a header (raw, DICOM, MGZ) are only
+        checked for their existence here.
+
+    Examples
+    --------
+    >>> import tempfile, os
+    >>> d = tempfile.mkdtemp()
+    >>> save_volume(Volume(np.zeros((2, 3, 4), np.int16)), f"{d}/v.mha")
+    >>> dims, dtype, src = check_volume_file(f"{d}/v.mha")
+    >>> dims, dtype.name, src.name
+    ((4, 3, 2), 'int16', 'v.mha')
+    >>> check_volume_file(f"{d}/v.mha", limit=10, hint="--max-volume-mb")
+    Traceback (most recent call last):
+    ...
+    dvr_perception.errors.DVRInputError: ...v.mha: field 'DimSize': sizes 4 3 2 of int16 need 0.0 MB, more than the limit of 0.0 MB; raise it with --max-volume-mb
+    """  # noqa: E501
+    path = Path(os.fspath(path))
+    if not path.exists():
+        raise DVRInputError(f"{path}: file not found")
+    ext = "" if path.is_dir() else _ext(path)
+    if ext in _LAYOUTS:
+        layout: Layout = _LAYOUTS[ext](path, limit=limit, hint=hint)
+        return layout.dims, layout.dtype, layout.data_file
+    if ext in (".nii", ".nii.gz"):
+        dims, dtype = check_nifti(path, ext, limit=limit, hint=hint)
+        return dims, dtype, path
+    if ext in (".nhdr", ".nrrd"):
+        return read_nrrd(path, limit=limit, hint=hint, check_only=True)
+    return None, None, None
 
 
 def _read_dicom(path: Path, name: str, series: str | None) -> Volume:
@@ -309,29 +364,6 @@ def _nifti_geometry(reader, vol: Volume) -> Volume:
     return from_axes(vol.data, axes, origin, name=vol.name, source=vol.source, where=where)
 
 
-def _meta_geometry(fields: dict[str, str], vol: Volume, path: Path) -> Volume:
-    """Apply a MetaImage header's ``TransformMatrix`` (one axis direction per triple)."""
-    for key in _META_DIRECTIONS:
-        if key in fields:
-            vals = [parse_float(v, path, "TransformMatrix") for v in fields[key].split()]
-            if len(vals) != 9:
-                raise DVRInputError(
-                    f"{path}: field 'TransformMatrix': expected 9 numbers, got {len(vals)}"
-                )
-            directions = np.array(vals).reshape(3, 3).T  # column k: index axis k
-            break
-    else:
-        return vol
-    origin = np.zeros(3)
-    for key in ("offset", "position", "origin"):
-        if key in fields:
-            origin = np.array([parse_float(v, path, "Offset") for v in fields[key].split()[:3]])
-            break
-    axes = directions * np.asarray(vol.spacing)
-    where = f"{path}: MetaImage TransformMatrix"  # (vol.oriented: the matrix records it)
-    return from_axes(vol.data, axes, origin, name=vol.name, source=vol.source, where=where)
-
-
 def _read_raw(path: Path) -> np.ndarray:
     m = _RAW_NAME.match(path.name)
     if m is None:
@@ -351,111 +383,6 @@ def _read_raw(path: Path) -> np.ndarray:
     dt = np.dtype(dtype).newbyteorder("<")
     check_size(path, path.stat().st_size, check_budget(path, dims, dt, "file name"), dims)
     return np.fromfile(path, dtype=dt).reshape(dims[::-1]).astype(dt.newbyteorder("="))
-
-
-_META_TYPES = {
-    "MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4,
-    "MET_UINT": 4, "MET_LONG": 4, "MET_ULONG": 4, "MET_LONG_LONG": 8, "MET_ULONG_LONG": 8,
-    "MET_FLOAT": 4, "MET_DOUBLE": 8,
-}  # fmt: skip
-
-
-def _meta_header(path: Path) -> tuple[dict[str, str], int]:
-    """Return the MetaImage header's fields (keys lower case) and the data offset."""
-    with open(path, "rb") as f:
-        head = f.read(HEADER_MAX)
-    fields: dict[str, str] = {}
-    offset = 0
-    for raw in head.split(b"\n"):
-        if offset + len(raw) >= len(head) and len(head) == HEADER_MAX:
-            raise DVRInputError(f"{path}: the MetaImage header is longer than {HEADER_MAX} bytes")
-        offset += len(raw) + 1
-        line = raw.decode("latin-1").strip()
-        if not line:
-            continue
-        key, sep, value = line.partition("=")
-        if not sep:
-            raise DVRInputError(f"{path}: malformed MetaImage header line {shown(line)}")
-        fields[key.strip().lower()] = value.strip()
-        if key.strip().lower() == "elementdatafile":
-            break  # the last field; attached data follows
-    return fields, min(offset, len(head))
-
-
-def _check_meta(path: Path) -> dict[str, str]:
-    """Check a ``.mha``/``.mhd`` header (data file, sizes, spacing, size) before VTK reads it."""
-    fields, offset = _meta_header(path)
-
-    def need(key: str, name: str) -> str:
-        if key not in fields:
-            raise DVRInputError(f"{path}: MetaImage header has no {name!r} field")
-        return fields[key]
-
-    if need("ndims", "NDims") != "3":
-        raise DVRInputError(f"{path}: field 'NDims': expected 3, got {shown(fields['ndims'])}")
-    tokens = need("dimsize", "DimSize").split()
-    if len(tokens) != 3:
-        raise DVRInputError(f"{path}: field 'DimSize': expected 3 integers, got {shown(tokens)}")
-    dims = tuple(parse_int(t, path, "DimSize") for t in tokens)
-    etype = need("elementtype", "ElementType").upper()
-    if etype not in _META_TYPES:
-        raise DVRInputError(
-            f"{path}: field 'ElementType': unsupported type {shown(etype)}; expected one of "
-            f"{', '.join(_META_TYPES)}"
-        )
-    channels = fields.get("elementnumberofchannels", "1")
-    channels = parse_int(channels, path, "ElementNumberOfChannels")
-    for key, name in (("elementspacing", "ElementSpacing"), ("elementsize", "ElementSize")):
-        if key in fields:
-            vals = fields[key].split()
-            if len(vals) != 3:
-                raise DVRInputError(
-                    f"{path}: field {name!r}: expected 3 numbers, got {shown(vals)}"
-                )
-            check_spacing([parse_float(v, path, name) for v in vals], path, name)
-    for key, name in (("offset", "Offset"), ("position", "Position"), ("origin", "Origin")):
-        for v in fields.get(key, "").split()[:3]:
-            parse_float(v, path, name)
-    expected = check_budget(path, (*dims, channels), np.dtype(f"u{_META_TYPES[etype]}"), "DimSize")
-    data_file = need("elementdatafile", "ElementDataFile")
-    if data_file.upper() == "LOCAL":
-        src = path
-    else:
-        if data_file.split()[:1] == ["LIST"] or "%" in data_file:
-            raise DVRInputError(f"{path}: field 'ElementDataFile': file lists are not supported")
-        src, offset = resolve_data_file(path, data_file, "ElementDataFile"), 0
-    header_size = parse_int(fields.get("headersize", "0"), path, "HeaderSize", lo=-1)
-    available = src.stat().st_size - offset - max(header_size, 0)
-    where = f"{path} (data file {src.name})" if src != path else str(path)
-    if fields.get("compresseddata", "false").lower() == "true":
-        check_ratio(where, available, expected)
-    elif available < expected:
-        raise DVRInputError(
-            f"{where}: truncated: expected {expected} bytes, found {max(available, 0)} "
-            f"(DimSize {tuple(dims)})"
-        )
-    return fields
-
-
-def _check_nifti(path: Path, ext: str) -> None:
-    """Refuse a NIfTI-1 header whose sizes cannot fit the memory limit (before VTK reads it)."""
-    try:
-        with gzip.open(path, "rb") if ext == ".nii.gz" else open(path, "rb") as f:
-            head = f.read(348)
-    except (OSError, EOFError) as exc:
-        raise DVRInputError(f"{path}: cannot read the NIfTI header ({exc})") from None
-    if len(head) < 348:
-        raise DVRInputError(f"{path}: truncated: the NIfTI header needs 348 bytes")
-    for order in "<>":
-        if int(np.frombuffer(head[:4], order + "i4")[0]) == 348:
-            break
-    else:
-        return  # not NIfTI-1: VTK's reader decides
-    dim = np.frombuffer(head[40:56], order + "i2").astype(np.int64)
-    bitpix = int(np.frombuffer(head[72:74], order + "i2")[0])
-    if not 1 <= dim[0] <= 7 or bitpix <= 0 or np.any(dim[1 : dim[0] + 1] < 0):
-        raise DVRInputError(f"{path}: NIfTI field 'dim': invalid sizes {dim.tolist()}")
-    check_budget(path, [int(d) for d in dim[1 : dim[0] + 1]], f"u{max(bitpix // 8, 1)}", "dim")
 
 
 def save_volume(volume: Volume, path) -> None:
@@ -519,6 +446,15 @@ def _write(volume: Volume, target: Path, ext: str) -> list[Path]:
         raise DVRInputError(
             f"{target.name}: this format would lose the volume's oblique direction; write "
             ".nrrd, .nhdr, .vti, .nii or .nii.gz"
+        )
+    if (
+        ext in (".mha", ".mhd")
+        and volume.data.dtype.itemsize == 8
+        and volume.data.dtype.kind in "iu"
+    ):
+        raise DVRInputError(
+            f"{target.name}: VTK's MetaImage writer cannot store 64-bit integers (it writes "
+            "half of them); write .nrrd, .nhdr, .vti or .nii"
         )
     image = to_vtk_image(volume, with_direction=ext == ".vti")
     out = [target]

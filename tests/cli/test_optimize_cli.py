@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import re
 import signal
 
 import pytest
@@ -26,6 +27,8 @@ FILES = {
     *(f"{p}_{f}" for p in ("before", "after") for f in MEASURE_FIGURES),
 }
 TERM_KEYS = {"E_v", "E_s", "E_t", "E"}
+#: The measures' names and status codes, which the default text never uses.
+JARGON = re.compile(r"\bE_[vst]\b|\bE\b|Eq\. ?13|\bS \(|status \d|max_iter|StopIteration")
 STRUCTURE_KEYS = {
     "visible_share",
     "target_share",
@@ -122,12 +125,44 @@ def test_text_summary_views_and_region(capsys, tmp_path):
     argv = ["optimize", "phantom", "--size", "40", "--stages", "opacity", "--max-iter", "2"]
     code, out, err = _run(capsys, [*argv, "--views", "2", "--out", str(tmp_path / "v")])
     assert code == 0, err
+    assert "mismatch with the intended picture (lower is better): visibility" in out
+    assert "what changed and why:" in out
+    assert not JARGON.search(out), out
+    code, out, err = _run(
+        capsys, [*argv, "-v", "--region", "5,5,30,30", "--out", str(tmp_path / "r")]
+    )
+    assert code == 0, err
     assert "before" in out
     assert "after" in out
-    assert "status" in out
-    code, out, err = _run(capsys, [*argv, "--region", "5,5,30,30", "--out", str(tmp_path / "r")])
-    assert code == 0, err
+    assert re.search(r"status \d: ", out)
     assert json.loads((tmp_path / "r" / "result.json").read_text())["region"] == [5, 5, 30, 30]
+
+
+def test_default_text_is_plain_and_explains_shading_and_colour(capsys, tmp_path):
+    """All three stages: the default text (and the progress bar) names no measure and no
+    status code, and says how each structure's shading and colour changed; ``-v`` adds the
+    measures, Eq. 13's S and the status code; ``--json`` holds both."""
+    argv = ["optimize", "phantom", "--size", "40", "--max-iter", "3"]
+    code, out, err = _run(capsys, [*argv, "--out", str(tmp_path / "plain")])
+    assert code == 0, err
+    assert not JARGON.search(out), out
+    assert not JARGON.search(err), err
+    assert "\n      shading: " in out
+    assert "\n      colour: " in out
+    assert "finished: " in out or "stopped at the step limit" in out
+    report = json.loads((tmp_path / "plain" / "result.json").read_text())
+    assert {"E_v", "E_s", "E_t", "E", "S"} <= set(report["optimizer"]["final"])
+    assert report["status"] in (0, 2)
+    for name, e in report["structures"].items():
+        assert e["lines"][0].startswith(f"{name}: opacity ")
+        assert e["line"] == "; ".join(e["lines"])
+        assert e["line"] in out.replace("\n      ", "; ")
+    code, out, err = _run(capsys, [*argv, "-v", "--out", str(tmp_path / "verbose")])
+    assert code == 0, err
+    for word in ("E_v", "E_s", "E_t", "S (Eq. 13)", "[E_s on its pixels"):
+        assert word in out
+    assert re.search(r"status \d: ", out)
+    assert "E_v" in err
 
 
 def test_ctrl_c_saves_best_so_far(capsys, tmp_path, monkeypatch):
@@ -197,6 +232,11 @@ def test_least_squares_objective_reports_S_and_never_raises_it(capsys, tmp_path)
     argv = ["optimize", "phantom", "--size", "40", "--stages", "opacity", "--max-iter", "2"]
     out_dir = tmp_path / "ls"
     code, out, err = _run(capsys, [*argv, "--objective", "least_squares", "--out", str(out_dir)])
+    assert code == 0, err
+    assert "judged by each pixel's mismatch, squared (least squares)" in out
+    assert not JARGON.search(out), out
+    code, out, err = _run(capsys, [*argv, "-v", "--objective", "least_squares", "--out",
+                                   str(tmp_path / "ls_v")])  # fmt: skip
     assert code == 0, err
     assert "S (Eq. 13)" in out
     rep = json.loads((out_dir / "result.json").read_text())
