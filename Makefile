@@ -5,7 +5,8 @@
 #   make bench   benchmark JSON for the phantom, engine and cthead at 512x512
 #   make report  regenerate benchmarks/REPORT.md (the paper's experiments; REPORT_ARGS=--quick)
 #   make scale   benchmarks/scale.json: time and memory against volume size, MPI ranks
-#   make paraview-setup   ParaView, Xvfb and .pvdeps/ for the plugin and `dvr-perception pvbatch`
+#   make paraview-setup   ParaView, Xvfb and .pvdeps/ for the plugin and `dvr-perception pvbatch`;
+#                         prints the plugin file to load (`dvr-perception paraview-plugin`)
 #   make paraview-macros  the DVR Perception toolbar (macros) into ParaView's user macro folder
 #
 # "setup" installs the EGL/Mesa system libraries VTK needs to render off-screen (with apt-get,
@@ -28,7 +29,7 @@ BROWSER_APT_PACKAGES := chromium
 # core's dependencies from $(PVDEPS) (pip --target with ParaView's numpy 1.24 left in place:
 # --no-deps and the pins of $(PVDEPS_REQ)); never the venv, whose VTK would crash pvpython.
 PVDEPS ?= .pvdeps
-PVDEPS_REQ := plugin/pvdeps-requirements.txt
+PVDEPS_REQ := dvr_perception/paraview/pvdeps-requirements.txt
 PVDEPS_STAMP := $(PVDEPS)/.dvr-perception-installed
 # openmpi-bin: the MPI test (mpiexec -n 2 pvbatch); gcc + libc6-dev: the pvserver test builds
 # a small LD_PRELOAD shim that keeps pvserver on loopback.
@@ -89,11 +90,13 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 paraview-setup: setup paraview-system $(PVDEPS_STAMP)
+	@$(BIN)/dvr-perception paraview-plugin
 
-# The DVR Perception toolbar (issue 19): the macros of plugin/macros in ParaView's user macro
-# folder (~/.config/ParaView/Macros); ParaView shows them on its Macro Toolbar at start-up.
-paraview-macros:
-	$(PYTHON) plugin/install_macros.py
+# The DVR Perception toolbar (issue 19): the macros of dvr_perception/paraview/macros in
+# ParaView's user macro folder (~/.config/ParaView/Macros); ParaView shows them on its Macro
+# Toolbar at start-up.
+paraview-macros: setup
+	$(BIN)/dvr-perception paraview-plugin --install-macros
 
 paraview-system:
 	@missing=""; \
@@ -121,11 +124,10 @@ $(PVDEPS_STAMP): $(PVDEPS_REQ) | $(STAMP) paraview-system
 	  echo "paraview-setup: no pvpython, so no $(PVDEPS)/"; exit 0; \
 	fi; \
 	set -e; \
-	echo "paraview-setup: pip install --no-deps --target $(PVDEPS) -r $(PVDEPS_REQ)"; \
+	echo "paraview-setup: dvr-perception paraview-plugin --install-deps (pip install --no-deps --target $(PVDEPS) -r $(PVDEPS_REQ))"; \
 	rm -rf $(PVDEPS); \
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check --no-deps \
-	  --target $(PVDEPS) -r $(PVDEPS_REQ); \
-	env -u VTK_DEFAULT_OPENGL_WINDOW PYTHONPATH="$(CURDIR)/plugin/pvsite" \
+	DVR_PERCEPTION_PVDEPS="$(abspath $(PVDEPS))" $(BIN)/dvr-perception paraview-plugin --install-deps >/dev/null; \
+	env -u VTK_DEFAULT_OPENGL_WINDOW PYTHONPATH="$(CURDIR)/dvr_perception/paraview/pvsite" \
 	  DVR_PERCEPTION_PVDEPS="$(abspath $(PVDEPS))" pvpython -c \
 	  "import dvr_perception._paraview_compat as c; c.setup(); import dvr_perception.filters, \
 	  numpy, scipy, skimage, numba, pydicom, nibabel, libjpeg, openjpeg; print('paraview-setup: pvpython imports numpy', \

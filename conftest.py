@@ -18,3 +18,8 @@ def pytest_unconfigure(config):
     if pv is not None:
         pv.close_all()
     gc.collect()
+
+
+#: The ParaView plugin's files (``dvr_perception/paraview``) are ParaView scripts: they import
+#: ``paraview``, so pytest's doctest collection must not import them in the pip environment.
+collect_ignore = ["dvr_perception/paraview"]

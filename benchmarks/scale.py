@@ -13,8 +13,8 @@ own (its ``VmHWM``):
   size: wall time, E terms, and per rank its extent, voxels and peak RSS (``result.json``).
 
 On a 2-core machine 4 ranks share 2 cores: the figures show what is bounded by memory per
-rank (it falls with N), not a speed-up.  ``benchmarks/report.py`` renders ``scale.json`` into
-the report's performance section.
+rank (it falls with N), not a speed-up.  the report code
+(``dvr_perception.benchmarks.report``) renders ``scale.json`` into the report's performance section.
 """
 
 from __future__ import annotations

@@ -2,7 +2,8 @@
 
 Usage (from the repository root, with an X display -- e.g. under ``xvfb-run``)::
 
-    PYTHONPATH=plugin/pvsite pvpython plugin/make_state_files.py [--data DIR] [NAME ...]
+    PYTHONPATH=dvr_perception/paraview/pvsite pvpython plugin/make_state_files.py \
+        [--data DIR] [NAME ...]
 
 For each NAME (default: neghip tooth) the pipeline is built in ParaView -- NRRD reader of
 ``DIR/NAME.nhdr`` (default ``../shared/data``), the plugin's *Perception Measures* filter with
@@ -31,7 +32,7 @@ import tempfile
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
-PLUGIN = os.path.join(HERE, "dvr_perception_plugin.py")
+PLUGIN = os.path.join(ROOT, "dvr_perception", "paraview", "dvr_perception_plugin.py")
 STATE_DIR = os.path.join(ROOT, "state_files")
 PLACEHOLDER = "/path/to/shared/data"
 IMAGE_SIZE = 256
@@ -39,10 +40,10 @@ IMAGE_SIZE = 256
 PY_HEADER = '''"""ParaView Python state: {name} with the dvr_perception Perception Measures filter.
 
 Written by plugin/make_state_files.py (ParaView {version}); the body below is ParaView's own
-Python state.  Run it in pvpython (``PYTHONPATH=plugin/pvsite``), with ``exec``/``runpy`` and a
-global ``data_directory``, or load it in the GUI (*File > Load State*, Python state).  The
-volume is looked up in ``data_directory``, else ``$DVR_SHARED_DATA``, else
-``<repo>/../shared/data``.
+Python state.  Run it in pvpython (``PYTHONPATH=dvr_perception/paraview/pvsite``),
+with ``exec``/``runpy`` and a global ``data_directory``, or load it in the GUI (*File > Load
+State*, Python state).  The volume is looked up in ``data_directory``, else
+``$DVR_SHARED_DATA``, else ``<repo>/../shared/data``.
 """
 
 import os
@@ -63,7 +64,8 @@ data_directory = (
     or os.path.join(os.path.dirname(_repo), "shared", "data")
 )
 if "PerceptionMeasures" not in globals():
-    LoadPlugin(os.path.join(_repo, "plugin", "dvr_perception_plugin.py"), ns=globals())
+    LoadPlugin(os.path.join(_repo, "dvr_perception", "paraview", "dvr_perception_plugin.py"),
+               ns=globals())
 
 #### disable automatic camera reset on 'Show'
 paraview.simple._DisableFirstRenderCameraReset()

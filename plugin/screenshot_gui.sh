@@ -3,7 +3,7 @@
 #
 #   plugin/screenshot_gui.sh [OUT_DIR]        (default: docs/images)
 #
-# Starts a private Xvfb (1600x1400), runs `paraview --dr` with PV_PLUGIN_PATH=plugin and the
+# Starts a private Xvfb (1600x1400), runs `paraview --dr` with PV_PLUGIN_PATH=dvr_perception/paraview and the
 # scene plugin/screenshot/gui_scene.py (neghip volume-rendered with its preset, an *Optimize
 # Transfer Function* filter selected) and writes
 #
@@ -20,6 +20,7 @@ set -euo pipefail
 
 HERE=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
 ROOT=$(dirname "$HERE")
+PLUGIN_DIR="$ROOT/dvr_perception/paraview"
 OUT=${1:-$ROOT/docs/images}
 SCREEN=1600x1400
 FILTERS_XY=${DVR_SCREENSHOT_FILTERS_XY:-215 10}     # "Filters" in the menu bar
@@ -47,8 +48,8 @@ xvfb_pid=$!
 for _ in $(seq 100); do [ -s "$work/display" ] && break; sleep 0.1; done
 export DISPLAY=":$(head -n1 "$work/display")"
 
-PYTHONPATH="$HERE/pvsite${PYTHONPATH:+:$PYTHONPATH}" PV_PLUGIN_PATH="$HERE" \
-    DVR_SCREENSHOT_PLUGIN_DIR="$HERE" DVR_SCREENSHOT_READY="$work/ready" \
+PYTHONPATH="$PLUGIN_DIR/pvsite${PYTHONPATH:+:$PYTHONPATH}" PV_PLUGIN_PATH="$PLUGIN_DIR" \
+    DVR_SCREENSHOT_PLUGIN_DIR="$PLUGIN_DIR" DVR_SCREENSHOT_READY="$work/ready" \
     paraview --dr --script="$HERE/screenshot/gui_scene.py" >"$work/paraview.log" 2>&1 &
 pv_pid=$!
 for _ in $(seq 180); do

@@ -1,10 +1,10 @@
 """ParaView Python state: neghip with the dvr_perception Perception Measures filter.
 
 Written by plugin/make_state_files.py (ParaView 5.11.0); the body below is ParaView's own
-Python state.  Run it in pvpython (``PYTHONPATH=plugin/pvsite``), with ``exec``/``runpy`` and a
-global ``data_directory``, or load it in the GUI (*File > Load State*, Python state).  The
-volume is looked up in ``data_directory``, else ``$DVR_SHARED_DATA``, else
-``<repo>/../shared/data``.
+Python state.  Run it in pvpython (``PYTHONPATH=dvr_perception/paraview/pvsite``),
+with ``exec``/``runpy`` and a global ``data_directory``, or load it in the GUI (*File > Load
+State*, Python state).  The volume is looked up in ``data_directory``, else
+``$DVR_SHARED_DATA``, else ``<repo>/../shared/data``.
 """
 
 import os
@@ -25,7 +25,8 @@ data_directory = (
     or os.path.join(os.path.dirname(_repo), "shared", "data")
 )
 if "PerceptionMeasures" not in globals():
-    LoadPlugin(os.path.join(_repo, "plugin", "dvr_perception_plugin.py"), ns=globals())
+    LoadPlugin(os.path.join(_repo, "dvr_perception", "paraview", "dvr_perception_plugin.py"),
+               ns=globals())
 
 #### disable automatic camera reset on 'Show'
 paraview.simple._DisableFirstRenderCameraReset()

@@ -1,4 +1,4 @@
-"""The ``dvr-perception`` command line: ``render``, ``check-renderer``, ``bench``, ``demo``.
+"""The ``dvr-perception`` command line: ``render``, ``measure``, ``optimize``, ``demo``, ...
 
 Each sub-command lives in its own module with ``add_parser(subparsers, parents)`` and
 ``run(args) -> int``.  :func:`main` owns the error policy: a
@@ -17,6 +17,7 @@ import sys
 import traceback
 import warnings
 
+from dvr_perception import __version__
 from dvr_perception._files import Terminated, terminate_as_interrupt
 from dvr_perception.cli import (
     app,
@@ -25,6 +26,7 @@ from dvr_perception.cli import (
     demo,
     measure,
     optimize,
+    paraview_plugin,
     pvbatch,
     render,
     report,
@@ -35,7 +37,18 @@ from dvr_perception.structures.spec import printable
 
 __all__ = ["build_parser", "main"]
 
-COMMANDS = (render, check_renderer, bench, demo, measure, optimize, pvbatch, app, report)
+COMMANDS = (
+    render,
+    check_renderer,
+    bench,
+    demo,
+    measure,
+    optimize,
+    pvbatch,
+    paraview_plugin,
+    app,
+    report,
+)
 
 
 def build_parser() -> CLIParser:
@@ -44,6 +57,7 @@ def build_parser() -> CLIParser:
         prog=PROG,
         description="Perception-based transparency analysis for direct volume rendering.",
     )
+    parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
     subs = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     parents = [common_parent()]
     for module in COMMANDS:

@@ -1,6 +1,7 @@
 """``dvr-perception pvbatch``: the Perception Measures of one volume, computed inside ParaView.
 
-Runs ``plugin/batch_measure.py`` under the installed ParaView's ``pvbatch``: the volume goes
+Runs ``paraview/batch_measure.py`` (in the package) under the installed ParaView's
+``pvbatch``: the volume goes
 through the plugin's *Perception Measures* filter (``paraview.simple``) and ParaView renders it
 with the spec's transfer functions.  The output directory receives ``screenshot.png`` (ParaView's
 rendering), ``image.png`` and the three deviation maps, and ``result.json`` (``E_v``, ``E_s``,
@@ -10,7 +11,7 @@ and ``measure``.
 ParaView's Python must never see this environment's packages (a second VTK crashes it), so the
 command builds a separate environment (:func:`paraview_env`): the repository root, the
 dependency folder ``.pvdeps`` of ``make paraview-setup`` and the start-up shims of
-``plugin/pvsite``.  Without a ``DISPLAY`` a private Xvfb server is started for the run
+``paraview/pvsite``.  Without a ``DISPLAY`` a private Xvfb server is started for the run
 (:func:`virtual_display`; Debian's ParaView renders only through X).
 
 ``--ranks N`` runs ``mpiexec -n N pvbatch`` (the MPI that ParaView is built with; Debian's is
@@ -18,7 +19,7 @@ Open MPI, for which ``--oversubscribe`` and, as root, ``OMPI_ALLOW_RUN_AS_ROOT``
 rank reads and analyses its piece of the volume and ``result.json`` adds ``ranks``.  The ranks
 read NRRD, MetaImage and VTK image files in file order (:data:`RANK_FORMATS`); a file stored
 flipped, permuted or rotated, and NIfTI, DICOM, MGZ or raw files, are refused up front.
-``--optimize`` runs ``plugin/batch_optimize.py`` instead (*Optimize Transfer Function*; with
+``--optimize`` runs ``paraview/batch_optimize.py`` instead (*Optimize Transfer Function*; with
 ``--ranks N`` over the ranks, each keeping its piece's cache entries): ``before.png``,
 ``after.png``, ``optimized_spec.json``, the preset and ``result.json``.  ``--timeout`` stops the
 whole job (``mpiexec`` and every rank) when it takes longer.
@@ -39,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dvr_perception import _paraview_compat
+from dvr_perception import _paraview_compat, _resources
 from dvr_perception._files import output_folder
 from dvr_perception.cli._common import PROG, add_scene_args, emit_json, log, parse_size
 from dvr_perception.cli.xdisplay import display_answers, virtual_display
@@ -109,7 +110,7 @@ def add_parser(subparsers, parents) -> None:
     )
     o = p.add_argument_group(
         "optimisation (--optimize)",
-        "optimise the transfer function inside ParaView (plugin/batch_optimize.py): the options "
+        "optimise the transfer function inside ParaView (paraview/batch_optimize.py): the options "
         "mean what they mean for 'dvr-perception optimize'",
     )
     o.add_argument(
@@ -160,7 +161,9 @@ def find_paraview(program: str = "pvbatch") -> Path:
 def paraview_env(display: str | None = None, base: dict | None = None) -> dict:
     """Return the environment for ParaView's Python with the core and its dependencies.
 
-    ``PYTHONPATH`` is ``plugin/pvsite`` (start-up shims), the repository root and the
+    ``PYTHONPATH`` is ``dvr_perception/paraview/pvsite`` (start-up shims), the repository
+    root (a checkout only: an installed package's ``site-packages`` holds the pip environment's
+    VTK, and the start-up hook imports the package from its own folder instead) and the
     dependency folder; variables of this environment that would leak into ParaView are
     dropped.  Raises :class:`~dvr_perception.errors.DVRInputError` when the dependency
     folder is missing or unusable.
@@ -170,11 +173,12 @@ def paraview_env(display: str | None = None, base: dict | None = None) -> dict:
     why = _paraview_compat.check_pvdeps(deps)
     if why:
         raise DVRInputError(f"ParaView dependencies: {why}")
-    site = root / "plugin" / "pvsite"
+    site = _resources.pvsite_dir()
     if not (site / "sitecustomize.py").is_file():
-        raise DVRInputError(f"{site}: not found; pvbatch needs a source checkout of the project")
+        raise DVRInputError(f"{site}: not found; the package is incomplete (reinstall it)")
     env = {k: v for k, v in (os.environ if base is None else base).items() if k not in _DROP}
-    env["PYTHONPATH"] = os.pathsep.join(str(p) for p in (site, root, deps))
+    path = (site, root, deps) if _paraview_compat.safe_on_path(root) else (site, deps)
+    env["PYTHONPATH"] = os.pathsep.join(str(p) for p in path)
     env[_paraview_compat.PVDEPS_ENV] = str(deps)
     if display is not None:
         env["DISPLAY"] = display
@@ -238,7 +242,7 @@ def rank_threads(ranks: int, cores: int | None = None) -> int:
 
 
 def _script_args(args: argparse.Namespace) -> list[str]:
-    """Return the command line of ``plugin/batch_measure.py`` (or ``batch_optimize.py``)."""
+    """Return the command line of ``paraview/batch_measure.py`` (or ``batch_optimize.py``)."""
     argv = [str(args.volume)]
     for opt in ("structures", "preset", "classes", "camera", "size", "series", "orientation"):
         if getattr(args, opt, None) is not None:
@@ -368,7 +372,7 @@ def run_job(cmd: list[str], env: dict, timeout: float, what: str) -> subprocess.
 def _launch(args: argparse.Namespace, pvbatch: Path) -> subprocess.CompletedProcess:
     """Run the batch script under ``pvbatch`` (retrying ParaView's start-up crashes)."""
     name = "batch_optimize.py" if args.optimize else "batch_measure.py"
-    script = _paraview_compat.repo_root() / "plugin" / name
+    script = _resources.paraview_dir() / name
     env = paraview_env()
     prefix = mpi_command(args.ranks, pvbatch, env) if args.ranks > 1 else []
     if prefix:

@@ -1,9 +1,9 @@
 """``dvr-perception report``: regenerate the benchmark report (the paper's Sec. 7 on real data).
 
-The report code lives in the repository's ``benchmarks/`` folder (next to ``state_files/``),
-not in the installed package: this command loads it from there, so it needs a source checkout
-(an editable install).  It writes ``REPORT.md``, ``summary.json`` and ``images/`` into
-``--out``; ``--quick`` is the reduced form CI runs (128² images).  The acceptance checks are in
+The report code is :mod:`dvr_perception.benchmarks` (it ships in the package, an installed
+wheel runs it too).  It writes ``REPORT.md``, ``summary.json`` and ``images/`` into ``--out``
+(default: the checkout's ``benchmarks/`` folder, or ``./dvr_perception_report`` for an installed
+package); ``--quick`` is the reduced form CI runs (128² images).  The acceptance checks are in
 ``summary.json`` under ``"checks"``; ``--strict`` makes a failed check exit with status 1.
 """
 
@@ -15,11 +15,12 @@ import os
 import sys
 from pathlib import Path
 
+from dvr_perception import _resources
 from dvr_perception._files import output_folder
 from dvr_perception.cli._common import emit_json
 from dvr_perception.errors import DVRInputError
 
-__all__ = ["add_parser", "load_benchmarks", "run"]
+__all__ = ["add_parser", "default_out", "load_benchmarks", "run"]
 
 REPO = Path(__file__).resolve().parents[2]
 QUICK_SIZE = 128
@@ -36,16 +37,15 @@ def default_data() -> Path:
     return Path(env) if env else REPO.parent / "shared" / "data"
 
 
+def default_out() -> Path:
+    """Return the checkout's ``benchmarks/`` folder, or ``./dvr_perception_report``."""
+    root = _resources.checkout_root()
+    return root / "benchmarks" if root is not None else Path("dvr_perception_report")
+
+
 def load_benchmarks():
-    """Import and return the repository's ``benchmarks.report`` module."""
-    if not (REPO / "benchmarks" / "report.py").is_file():
-        raise DVRInputError(
-            f"report: the benchmarks/ folder is not next to the package ({REPO}); "
-            "run from a source checkout (pip install -e .)"
-        )
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
-    return importlib.import_module("benchmarks.report")
+    """Import and return the report module (:mod:`dvr_perception.benchmarks.report`)."""
+    return importlib.import_module("dvr_perception.benchmarks.report")
 
 
 def add_parser(subparsers, parents) -> None:
@@ -68,8 +68,9 @@ def add_parser(subparsers, parents) -> None:
     p.add_argument(
         "--out",
         metavar="DIR",
-        default=str(REPO / "benchmarks"),
-        help="output folder for REPORT.md, summary.json and images/ (default: benchmarks/)",
+        default=str(default_out()),
+        help="output folder for REPORT.md, summary.json and images/ (default: the checkout's "
+        "benchmarks/, else ./dvr_perception_report)",
     )
     p.add_argument(
         "--size",
@@ -89,7 +90,7 @@ def add_parser(subparsers, parents) -> None:
         "--markdown-only",
         action="store_true",
         help="only rewrite OUT/REPORT.md from OUT/summary.json (e.g. after editing "
-        "benchmarks/observations.md); runs no experiment",
+        "dvr_perception/benchmarks/observations.md); runs no experiment",
     )
     p.set_defaults(run=run)
 
@@ -113,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         raise DVRInputError(f"--data {data}: missing {', '.join(f'{n}.nhdr' for n in missing)}")
     report = load_benchmarks()
-    from benchmarks.experiments import Config
+    from dvr_perception.benchmarks.experiments import Config
 
     def log(msg):
         if args.verbose:

@@ -40,3 +40,10 @@ __all__ = [
     "optimize",
     "register_stage",
 ]
+
+# ``dvr_perception.optimize(volume, spec, camera)`` calls :func:`optimize` (the top-level API)
+import sys
+
+from dvr_perception import _CallableModule
+
+sys.modules[__name__].__class__ = _CallableModule

@@ -38,8 +38,10 @@ _SLAB_BYTES = 64 * 2**20
 
 
 def presets_dir() -> Path:
-    """Return the repository's ``state_files`` folder (the presets of the shared volumes)."""
-    return Path(__file__).resolve().parents[2] / "state_files"
+    """Return the presets folder: the checkout's ``state_files``, or the wheel's copy of it."""
+    from dvr_perception._resources import state_files_dir
+
+    return state_files_dir()
 
 
 def data_checksum(data) -> str:

@@ -258,7 +258,7 @@ def _pixels(f: Path, where: str):
     return ds, np.asarray(arr)
 
 
-#: pydicom's JPEG plug-ins (the ``medical`` extra and ``plugin/pvdeps-requirements.txt``).
+#: pydicom's JPEG plug-ins (the ``medical`` extra and ``paraview/pvdeps-requirements.txt``).
 JPEG_PLUGINS = ("pylibjpeg", "libjpeg", "openjpeg")
 
 

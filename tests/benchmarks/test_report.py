@@ -20,7 +20,7 @@ from dvr_perception.cli.report import load_benchmarks
 @pytest.fixture(scope="module")
 def checks():
     load_benchmarks()
-    from benchmarks import checks as module
+    from dvr_perception.benchmarks import checks as module
 
     return module
 

@@ -2,19 +2,24 @@
 
 from __future__ import annotations
 
+import importlib.util
 import sys
+from pathlib import Path
 
 import pytest
 
 from dvr_perception.cli.report import load_benchmarks
 
+#: ``benchmarks/scale.py``: a developer tool of the checkout (not in the package).
+SCALE = Path(__file__).resolve().parents[2] / "benchmarks" / "scale.py"
+
 
 @pytest.fixture(scope="module")
 def modules():
-    load_benchmarks()
-    from benchmarks import report, scale
-
-    return scale, report
+    spec = importlib.util.spec_from_file_location("_benchmarks_scale", SCALE)
+    scale = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(scale)
+    return scale, load_benchmarks()
 
 
 @pytest.mark.parametrize("mb", [50, 400])

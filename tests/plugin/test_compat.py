@@ -82,7 +82,8 @@ def test_paraview_env_isolates_paraview_from_this_venv(tmp_path, monkeypatch):
     env = paraview_env(display=":7", base=base)
     root = compat.repo_root()
     parts = env["PYTHONPATH"].split(os.pathsep)
-    assert parts == [str(root / "plugin" / "pvsite"), str(root), str(deps.resolve())]
+    assert parts == [str(root / "dvr_perception" / "paraview" / "pvsite"), str(root),
+                     str(deps.resolve())]  # fmt: skip
     assert "VIRTUAL_ENV" not in env
     assert "VTK_DEFAULT_OPENGL_WINDOW" not in env
     assert (env["DISPLAY"], env["PATH"]) == (":7", "/usr/bin")
@@ -193,3 +194,52 @@ def test_pvbatch_retries_paraviews_x_abort_under_mpiexec(tmp_path, monkeypatch, 
     assert main(["pvbatch", "phantom", "--out", str(tmp_path / "o")]) == 1
     assert len(calls) == 1
     assert "pvbatch failed with exit code 1: vtkXOpenGLRenderWindow" in capsys.readouterr().err
+
+
+def test_an_installed_packages_site_packages_stays_off_the_path(tmp_path, monkeypatch):
+    """The parent of an installed package holds the pip environment's VTK: never on the path."""
+    site = tmp_path / "site-packages"
+    (site / "vtkmodules").mkdir(parents=True)
+    deps = tmp_path / "deps"
+    deps.mkdir()
+    monkeypatch.setenv(compat.PVDEPS_ENV, str(deps))
+    monkeypatch.setattr("sys.path", ["x"])
+    assert compat.add_paths(site) == [str(deps.resolve())]
+    import sys
+
+    assert sys.path == [str(deps.resolve()), "x"]
+    assert not compat.safe_on_path(site)
+    assert compat.safe_on_path(tmp_path / "checkout")
+
+
+def test_default_pvdeps_of_a_checkout_and_of_an_installed_package(tmp_path, monkeypatch):
+    monkeypatch.delenv(compat.PVDEPS_ENV, raising=False)
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    checkout = tmp_path / "checkout"
+    (checkout / "dvr_perception").mkdir(parents=True)
+    (checkout / "pyproject.toml").write_text("", encoding="utf-8")
+    assert compat.pvdeps_dir(checkout) == checkout / ".pvdeps"
+    site = tmp_path / "site-packages"
+    (site / "dvr_perception").mkdir(parents=True)
+    assert compat.pvdeps_dir(site) == tmp_path / "data" / "dvr-perception" / "pvdeps"
+
+
+def test_the_plugin_binds_the_package_without_its_parent_on_the_path(tmp_path):
+    """``dvr_boot.bind`` (plugin, batch scripts) imports the package from its own folder."""
+    import subprocess
+    import sys
+
+    boot = Path(compat.__file__).resolve().parent / "paraview"
+    code = (
+        f"import sys; sys.path = [p for p in sys.path if p not in ('', {str(boot.parents[1])!r})]\n"
+        f"sys.path.insert(0, {str(boot)!r})\n"
+        "import dvr_boot; m = dvr_boot.bind()\n"
+        "import dvr_perception._resources as r\n"
+        "print(m.__file__); print(r.plugin_file().is_file())"
+    )
+    env = {"PATH": "/usr/bin:/bin", "PYTHONNOUSERSITE": "1"}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=env, cwd=tmp_path, check=False)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.split()
+    assert lines == [str(boot.parent / "__init__.py"), "True"]

@@ -181,7 +181,7 @@ def test_ranks_must_match_mpiexec(mpiexec, tmp_path, volumes):
     """pvbatch started without mpiexec but told --ranks 2: one line, exit 2."""
     volume, spec = volumes["neghip"]
     env = dict(mpiexec.env)
-    script = REPO / "plugin" / "batch_measure.py"
+    script = REPO / "dvr_perception" / "paraview" / "batch_measure.py"
     argv = [str(volume), "--structures", str(spec), "--ranks", "2", "--out", str(tmp_path)]
     with virtual_display() as display:
         proc = subprocess.run(

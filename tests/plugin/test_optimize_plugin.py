@@ -19,7 +19,7 @@ from dvr_perception.structures.transfer import GPU_TABLE_SAMPLES, to_vtk_transfe
 from tests.plugin.conftest import assert_no_vtk_messages
 
 REPO = Path(__file__).resolve().parents[2]
-PLUGIN_DIR = REPO / "plugin"
+PLUGIN_DIR = REPO / "dvr_perception" / "paraview"
 MARK = "@@RESULT@@ "  # must match conftest.MARK
 SIZE = 40
 VIEW = (30.0, 20.0, 1.2)

@@ -23,7 +23,7 @@ from dvr_perception.volume import load_volume
 from tests.plugin.conftest import CROSS_ENV_ABS, assert_no_vtk_messages
 
 REPO = Path(__file__).resolve().parents[2]
-PLUGIN = REPO / "plugin" / "dvr_perception_plugin.py"
+PLUGIN = REPO / "dvr_perception" / "paraview" / "dvr_perception_plugin.py"
 MARK = "@@RESULT@@ "  # the line the pvpython scripts print their JSON result on
 SIZE = 40
 VIEW = (30.0, 20.0, 1.2)

@@ -30,7 +30,7 @@ from dvr_perception.errors import DVRInputError
 from tests.plugin.conftest import CROSS_ENV_ABS
 
 REPO = Path(__file__).resolve().parents[2]
-PLUGIN = REPO / "plugin" / "dvr_perception_plugin.py"
+PLUGIN = REPO / "dvr_perception" / "paraview" / "dvr_perception_plugin.py"
 SPEC = REPO / "state_files" / "neghip.json"
 SIZE = 32
 MARK = "@@RESULT@@ "

@@ -23,7 +23,7 @@ from dvr_perception.errors import DVRInputError
 from tests.plugin.conftest import CROSS_ENV_ABS
 
 REPO = Path(__file__).resolve().parents[2]
-PLUGIN = REPO / "plugin" / "dvr_perception_plugin.py"
+PLUGIN = REPO / "dvr_perception" / "paraview" / "dvr_perception_plugin.py"
 STATES = REPO / "state_files"
 NAMES = ("neghip", "tooth")
 PLACEHOLDER = "/path/to/shared/data"

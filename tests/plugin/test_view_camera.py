@@ -26,7 +26,7 @@ from dvr_perception.volume import load_volume
 from tests.plugin.conftest import CROSS_ENV_ABS
 
 REPO = Path(__file__).resolve().parents[2]
-PLUGIN_DIR = REPO / "plugin"
+PLUGIN_DIR = REPO / "dvr_perception" / "paraview"
 MACRO = PLUGIN_DIR / "macros" / "DVR_Use_View_Camera.py"
 SPEC = REPO / "state_files" / "neghip.json"
 MARK = "@@RESULT@@ "  # must match conftest.MARK

@@ -17,7 +17,7 @@ import pytest
 
 from dvr_perception.rays.camera import Camera
 
-PLUGIN = Path(__file__).resolve().parents[2] / "plugin"
+PLUGIN = Path(__file__).resolve().parents[2] / "dvr_perception" / "paraview"
 
 
 def _module():

@@ -21,7 +21,7 @@ from dvr_perception.rays.vtk_reference import compare_images
 from dvr_perception.volume import Volume, load_volume, save_volume
 
 REPO = Path(__file__).resolve().parents[2]
-PLUGIN = REPO / "plugin" / "dvr_perception_plugin.py"
+PLUGIN = REPO / "dvr_perception" / "paraview" / "dvr_perception_plugin.py"
 MARK = "@@RESULT@@ "
 N = 24
 SPACING = (1.0, 1.0, 1.5)

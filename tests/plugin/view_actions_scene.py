@@ -23,11 +23,13 @@ T0 = time.time()
 REPO = os.environ["DVR_REPO"]
 OUT = os.environ["DVR_OUT"]
 PORT = os.environ.get("DVR_SERVER_PORT")
-sys.path.insert(0, os.path.join(REPO, "plugin"))
+sys.path.insert(0, os.path.join(REPO, "dvr_perception", "paraview"))
 
 if PORT:
     pvs.Connect("127.0.0.1", int(PORT))
-pvs.LoadPlugin(os.path.join(REPO, "plugin", "dvr_perception_plugin.py"), remote=True)
+pvs.LoadPlugin(
+    os.path.join(REPO, "dvr_perception", "paraview", "dvr_perception_plugin.py"), remote=True
+)
 
 import dvr_view  # noqa: E402
 from view_camera import matched_width  # noqa: E402

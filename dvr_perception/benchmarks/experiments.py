@@ -1,8 +1,9 @@
 """The paper's experiments (Sec. 7, Figs. 7-11) on the shared volumes, and the timings.
 
 Each ``run_*`` function returns a plain dict (numbers and names, JSON-ready) plus the images
-the report draws, under the key ``"_images"`` (NumPy arrays; :mod:`benchmarks.report` strips
-them before writing ``summary.json``).  Every term is measured at the user's image size with
+the report draws, under the key ``"_images"`` (NumPy arrays;
+:mod:`~dvr_perception.benchmarks.report` strips them before writing ``summary.json``).
+Every term is measured at the user's image size with
 the public measures on a fresh :func:`~dvr_perception.rays.engine.analyze` (curvature volume
 included), not taken from the optimiser's own records, which are at its reduced
 optimisation resolution.
@@ -18,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks import checks
+from dvr_perception import _resources
+from dvr_perception.benchmarks import checks
 from dvr_perception.cli.bench import _median_time
 from dvr_perception.measures import covered_transmittance, shape, transparency, visibility
 from dvr_perception.optimize import optimize
@@ -45,7 +47,7 @@ __all__ = [
 
 #: The objective ``optimize()`` uses by default (its signature's).
 DEFAULT_OBJECTIVE = inspect.signature(optimize).parameters["objective"].default
-STATE_FILES = Path(__file__).resolve().parents[1] / "state_files"
+STATE_FILES = _resources.state_files_dir()
 TERMS = ("E_v", "E_s", "E_t")
 #: Stage -> the term it leads (paper, Sec. 5).
 LEAD = {"opacity": "E_v", "lighting": "E_s", "colour": "E_t"}

@@ -5,7 +5,7 @@
 projection and scale).  :func:`use_active_view_camera` fills it from the active render view's
 camera, so the filter measures or optimises exactly the view on the screen::
 
-    import sys; sys.path.insert(0, "/path/to/repo/plugin")
+    import sys; sys.path.insert(0, "/path/to/dvr_perception/paraview")
     from view_camera import use_active_view_camera
     pm = PerceptionMeasures(Input=reader, SpecFile="state_files/neghip.json")
     SetActiveSource(pm)            # the GUI: select the filter in the Pipeline Browser
@@ -14,7 +14,7 @@ camera, so the filter measures or optimises exactly the view on the screen::
 The copy is a snapshot: move the camera again and call it again (the filter re-executes only
 when the camera changed).  The view's aspect ratio is kept by default: ``Height`` stays and
 ``Width`` becomes ``Height`` x view width / view height (clamped to 16-4096), so the filter
-sees the same field of view as the screen.  ``plugin/macros/DVR_Use_View_Camera.py`` runs it
+sees the same field of view as the screen.  ``paraview/macros/DVR_Use_View_Camera.py`` runs it
 as a ParaView macro (*Macros > Import new macro...*; then select the filter and click it).
 """
 

@@ -1,9 +1,10 @@
 """pvbatch script: Optimize Transfer Function on one volume, with before/after renderings.
 
-Usage (with the environment of ``dvr-perception pvbatch``: ``PYTHONPATH=plugin/pvsite``, the
+Usage (with the environment of ``dvr-perception pvbatch``: ``PYTHONPATH=paraview/pvsite``, the
 repository root and ``.pvdeps``, and an X display)::
 
-    pvbatch plugin/batch_optimize.py VOLUME [--structures SPEC] [--view A,E[,Z] | --camera CAM]
+    pvbatch dvr_perception/paraview/batch_optimize.py VOLUME [--structures SPEC]
+        [--view A,E[,Z] | --camera CAM]
             [--size N|WxH] [--shade|--no-shade] [--stages S] [--weights WV,WS,WT] [--seed N]
             [--max-iter N] [--resolution N] [--region X0,Y0,X1,Y1] [--ranks N] --out DIR
 
@@ -47,7 +48,9 @@ TERMS = ("E_v", "E_s", "E_t", "E")
 
 
 def parse_args(argv):
-    sys.path.insert(0, bm.ROOT)
+    import dvr_boot
+
+    dvr_boot.bind()
     from dvr_perception._paraview_compat import setup
 
     try:

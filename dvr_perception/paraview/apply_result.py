@@ -23,11 +23,11 @@ import os
 import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
-if ROOT not in sys.path:
-    sys.path.insert(0, ROOT)
 if HERE not in sys.path:
     sys.path.insert(0, HERE)
+import dvr_boot  # noqa: E402
+
+dvr_boot.bind()  # the package holding this folder, its site-packages kept off the path
 
 from dvr_perception._paraview_compat import setup as _setup  # noqa: E402
 

@@ -13,7 +13,7 @@ import sys
 
 plugin = sys.modules.get("dvr_perception_plugin")
 if plugin is None:
-    raise RuntimeError("DVR_Use_View_Camera: load plugin/dvr_perception_plugin.py first")
+    raise RuntimeError("DVR_Use_View_Camera: load dvr_perception_plugin.py first")
 folder = os.path.dirname(os.path.abspath(plugin.__file__))
 if folder not in sys.path:
     sys.path.insert(0, folder)

@@ -2,7 +2,7 @@
 
 Load it with *Tools > Manage Plugins > Load New...*, ``LoadPlugin(path, ns=globals())`` in
 pvpython, or put this folder on ``PV_PLUGIN_PATH``.  ParaView 5.11 with Python >= 3.11 also
-needs ``plugin/pvsite`` on ``PYTHONPATH`` (see ``plugin/README.md``).
+needs ``dvr_perception/paraview/pvsite`` on ``PYTHONPATH`` (see ``paraview/README.md``).
 
 The three proxies are shells: they declare the properties ParaView shows and hand every pipeline
 pass to the library's VTK filter (:mod:`dvr_perception.filters`), which is imported only when
@@ -58,9 +58,12 @@ RANGES = {
 
 def _setup_paths():
     """Make ``dvr_perception`` and its dependencies importable; apply the compat shims."""
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    if root not in sys.path:
-        sys.path.insert(0, root)
+    here = os.path.dirname(os.path.abspath(__file__))
+    if here not in sys.path:
+        sys.path.insert(0, here)
+    import dvr_boot
+
+    dvr_boot.bind()  # the package holding this folder, its site-packages kept off the path
     from dvr_perception import _paraview_compat
 
     _paraview_compat.setup()
@@ -72,10 +75,10 @@ from dvr_volume_reader import VolumeReader  # noqa: E402, F401  (reader "DVR Per
 
 
 def run_macro(action):
-    """Run one DVR Perception toolbar action (``plugin/macros/DVR_*.py`` call this).
+    """Run one DVR Perception toolbar action (``paraview/macros/DVR_*.py`` call this).
 
     ``action`` is ``"measure"``, ``"optimise"``, ``"refine"`` or ``"undo"``; see
-    ``plugin/dvr_view.py``, imported from this plugin's folder.
+    ``paraview/dvr_view.py``, imported from this plugin's folder.
     """
     here = os.path.dirname(os.path.abspath(__file__))
     if here not in sys.path:
@@ -433,8 +436,8 @@ class OptimizeTransferFunction(_LibraryShell):
     and field data of *Perception Measures* for the optimised spec, plus the optimised
     per-structure ``opacity``, ``color``, ``ambient``, ``diffuse``, ``specular``,
     ``specular_power``, ``initial_E*`` and the string ``optimized_spec_json`` (apply it to a
-    volume display with ``plugin/dvr_view.py``'s ``optimise_this_view``, the *DVR Optimise
-    View* macro, or ``plugin/apply_result.py``).
+    volume display with ``paraview/dvr_view.py``'s ``optimise_this_view``, the *DVR Optimise
+    View* macro, or ``paraview/apply_result.py``).
 
     The last output is kept: setting only ``ParaViewSSIM`` (what ``optimise_this_view``
     reports after rendering the applied result in ParaView) re-executes without optimising

@@ -2,9 +2,9 @@
 
 Usage (``dvr-perception pvbatch`` runs this with the right environment and Xvfb)::
 
-    pvbatch plugin/batch_measure.py VOLUME [--structures SPEC | --preset NAME | --classes N]
-            [--view A,E[,Z] | --camera CAM]
-            [--size N|WxH] [--shade|--no-shade] [--sigma S] --out DIR
+    pvbatch dvr_perception/paraview/batch_measure.py VOLUME
+        [--structures SPEC | --preset NAME | --classes N] [--view A,E[,Z] | --camera CAM]
+        [--size N|WxH] [--shade|--no-shade] [--sigma S] --out DIR
 
 VOLUME, the spec and the camera are resolved exactly as the ``dvr-perception`` commands do
 (``dvr_perception.cli._common.load_scene``: the preset of ``state_files/`` whose recorded data
@@ -37,7 +37,7 @@ import time
 
 PROG = "dvr-perception"
 HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
+ROOT = os.path.dirname(os.path.dirname(HERE))  # the folder holding the dvr_perception package
 PLUGIN = os.path.join(HERE, "dvr_perception_plugin.py")
 # (output file, point array, colour range or None for "0..max")
 DEVIATION_IMAGES = (
@@ -59,7 +59,11 @@ class BatchError(Exception):
 
 
 def parse_args(argv):
-    sys.path.insert(0, ROOT)
+    if HERE not in sys.path:
+        sys.path.insert(0, HERE)
+    import dvr_boot
+
+    dvr_boot.bind()
     from dvr_perception._paraview_compat import setup
 
     try:

@@ -4,7 +4,8 @@ ParaView 5.11 imports ``paraview.detail.pythonalgorithm`` -- which needs
 ``inspect.getargspec``, gone since Python 3.11 -- *before* it runs a Python plugin file, so
 the plugin cannot patch it itself.  Python imports ``sitecustomize`` at start-up, before
 ParaView auto-loads plugins from ``PV_PLUGIN_PATH``; this one applies the shims of
-``dvr_perception._paraview_compat`` and then runs the system's ``sitecustomize`` (Debian's
+``dvr_perception._paraview_compat`` (and makes the package importable when its folder is not
+on ``sys.path``) and then runs the system's ``sitecustomize`` (Debian's
 apport hook) if there is one further down ``sys.path``.
 """
 
@@ -14,8 +15,8 @@ import sys
 
 def _apply():
     here = os.path.dirname(os.path.abspath(__file__))
-    root = os.path.dirname(os.path.dirname(here))
-    path = os.path.join(root, "dvr_perception", "_paraview_compat.py")
+    package = os.path.dirname(os.path.dirname(here))  # dvr_perception/paraview/pvsite
+    path = os.path.join(package, "_paraview_compat.py")
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("_dvr_perception_pv_compat_boot", path)
@@ -24,6 +25,10 @@ def _apply():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     module.apply_shims()
+    # an installed package: its site-packages stays off the path (the pip environment's VTK),
+    # so ``import dvr_perception`` is bound to the package holding this folder
+    if importlib.util.find_spec("dvr_perception") is None:
+        module.bind_package()
 
 
 def _chain():

@@ -5,13 +5,13 @@ built-in server or a ``pvserver``); this module reads the client's render view, 
 camera into the filter, updates it, fetches the small 2-D output and changes the client's
 representations.  So it works the same in the GUI, in pvpython and connected to a pvserver::
 
-    import sys; sys.path.insert(0, "/path/to/repo/plugin")
+    import sys; sys.path.insert(0, "/path/to/dvr_perception/paraview")
     import dvr_view
     # the volume selected in the Pipeline Browser, shown as a volume in the active 3D view
     report = dvr_view.optimise_this_view(spec_file="state_files/neghip.json")
     dvr_view.undo()                      # back to the transfer functions before
 
-The actions (each also a macro in ``plugin/macros``, see :func:`install_macros`):
+The actions (each also a macro in ``paraview/macros``, see :func:`install_macros`):
 
 :func:`measure_this_view`
     *Perception Measures* from the active view's camera; the quality maps beside the view.
@@ -46,10 +46,11 @@ import sys
 import tempfile
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
-for _path in (ROOT, HERE):
-    if _path not in sys.path:
-        sys.path.insert(0, _path)
+if HERE not in sys.path:
+    sys.path.insert(0, HERE)
+import dvr_boot  # noqa: E402
+
+dvr_boot.bind()  # the package holding this folder, its site-packages kept off the path
 
 from dvr_perception._paraview_compat import setup as _setup  # noqa: E402
 
@@ -147,7 +148,7 @@ def _constructor(kind):
     simple._add_functions(found)  # the constructors of every proxy the session knows now
     if label not in found:
         raise ValueError(
-            "DVR Perception: load plugin/dvr_perception_plugin.py first (Tools > Manage Plugins)"
+            "DVR Perception: load dvr_perception_plugin.py first (Tools > Manage Plugins)"
         )
     return found[label]
 

@@ -1,11 +1,11 @@
-"""Install the DVR Perception toolbar: copy ``plugin/macros/*.py`` into ParaView's macro folder.
+"""Install the DVR Perception toolbar: copy ``paraview/macros/*.py`` into ParaView's macro folder.
 
 ParaView (5.11) lists every Python file of its user macro folder in the *Macros* menu and on
 the *Macro Toolbar* when it starts: ``$XDG_CONFIG_HOME/ParaView/Macros``, by default
 ``~/.config/ParaView/Macros`` (Qt's settings folder).  Run once, then restart ParaView::
 
-    python3 plugin/install_macros.py          # or: make paraview-macros
-    python3 plugin/install_macros.py --folder DIR
+    dvr-perception paraview-plugin --install-macros   # or: make paraview-macros
+    dvr-perception paraview-plugin --install-macros --macro-folder DIR
 
 The macros find this folder through the loaded plugin, so the plugin must be loaded (*Tools >
 Manage Plugins*, *Auto Load*).  Only the standard library is used: any Python runs it.
@@ -38,7 +38,7 @@ def macro_folder(environ=None):
 
 
 def install(folder=None):
-    """Copy every macro of ``plugin/macros`` into ``folder`` (default :func:`macro_folder`).
+    """Copy every macro of ``paraview/macros`` into ``folder`` (default :func:`macro_folder`).
 
     Returns the written paths, sorted.
     """
