@@ -243,7 +243,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         result = res.analyses[-1] if res.analyses else None
         if result is None:
             curvature, _ = curvature_volume(volume, opt, progress=self.progress_range(0.9, 0.93))
-            result = analyze(volume, opt, camera, curvature=curvature, build_cache=False,
+            result = analyze(volume, opt, camera, curvature=curvature, build_cache=True,
                              progress=self.progress_range(0.93, 0.96))  # fmt: skip
         self._fill_result(output, result, res, camera)
 

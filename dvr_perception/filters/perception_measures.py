@@ -186,7 +186,7 @@ class PerceptionMeasures(DVRFilterBase):
         self.UpdateProgress(0.05)
         curvature, _ = curvature_volume(volume, spec, sigma=self.sigma,
                                         progress=self.progress_range(0.05, 0.3))  # fmt: skip
-        result = analyze(volume, spec, camera, curvature=curvature, build_cache=False,
+        result = analyze(volume, spec, camera, curvature=curvature, build_cache=True,
                          progress=self.progress_range(0.3, 0.7))  # fmt: skip
         self._fill(output, result, spec, camera)
 

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from dvr_perception.errors import DVRInputError
-from dvr_perception.measures._scene import DENOMINATOR_EPS
-from dvr_perception.measures.psychophysics import luminance_range, tap_transmittance
+from dvr_perception.measures._scene import DENOMINATOR_EPS, transmitted_tap
+from dvr_perception.measures.psychophysics import luminance_range
 from dvr_perception.measures.regions import layer_footprints
 from dvr_perception.measures.results import _accumulated, _image_luminance, _names, _visible
 
@@ -160,5 +160,5 @@ def covered_transmittance(
     if hi - lo < DENOMINATOR_EPS:
         why = f"what {structure!r} covers has no luminance contrast without it"
         return CoveredTransmittance(structure, float("nan"), n, contrast, why)
-    alpha = tap_transmittance(y[covered], lum_a, contrast=contrast)
+    alpha = transmitted_tap(y[covered], lum_a, contrast)
     return CoveredTransmittance(structure, float(alpha), n, contrast)
