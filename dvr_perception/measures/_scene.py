@@ -28,6 +28,9 @@ DENOMINATOR_EPS = 1e-3
 HIDDEN_FRACTION = 0.1
 #: The carried opacity is capped here, where presence saturates (D8).
 PRESENCE_CAP = 0.7
+#: A layer set covering less than this share of the image is no reference (D9): its mean and
+#: contrast would rest on a handful of pixels, a number that changes with the image size.
+MIN_REFERENCE_FRACTION = 1e-3
 
 
 @dataclass(frozen=True)
@@ -164,6 +167,8 @@ class _Scene:
         else:
             sets, inverse = np.unique(flat, return_inverse=True)
             count, mean, std = _group_stats(self.y.ravel(), inverse, sets.size)
+        #: Pixels a layer set needs to be a reference (``MIN_REFERENCE_FRACTION``, at least 1).
+        self.min_count = max(1, math.ceil(MIN_REFERENCE_FRACTION * self.layer_set.size))
         rows = zip(sets.tolist(), count.tolist(), mean.tolist(), std.tolist(), strict=True)
         self._stats = {b: (n, m, d) for b, n, m, d in rows}
 
@@ -177,10 +182,22 @@ class _Scene:
         return self._masks[bits]
 
     def missing(self, sets) -> str | None:
+        """Why some of ``sets`` are no reference (absent or below the minimum area), or None."""
         absent = [self.label(b) for b in sets if b not in self._stats]
-        if not absent:
-            return None
-        return "no region shows exactly the layer set(s) " + ", ".join(dict.fromkeys(absent))
+        small = [
+            self.label(b) for b in sets if b in self._stats and self._stats[b][0] < self.min_count
+        ]
+        why = []
+        if absent:
+            why.append(
+                "no region shows exactly the layer set(s) " + ", ".join(dict.fromkeys(absent))
+            )
+        if small:
+            why.append(
+                f"the layer set(s) {', '.join(dict.fromkeys(small))} cover less than "
+                f"{MIN_REFERENCE_FRACTION:.1%} of the image"
+            )
+        return "; ".join(why) if why else None
 
     def mean(self, bits: int) -> float:
         return self._stats[bits][1]

@@ -2,20 +2,36 @@ r"""Shape deviation of a rendering: structural curvature versus image variation 
 
 * The **structural shape** ``v_s`` of a pixel is the analysis ``curvature`` image: the
   visibility-weighted ``|H|`` (mean curvature) of the boundary samples along the ray.
-* The **image variation** ``v_i`` is the Sobel gradient magnitude
-  (:func:`skimage.filters.sobel`) of the linear CIE Y luminance of the rendering composited over
-  the background.
+* The **image variation** ``v_i`` is the gradient magnitude of the *log* luminance,
+  ``log(Y + Y_0)`` with ``Y`` the linear CIE Y of the rendering composited over the background
+  and ``Y_0 = DARK_LUMINANCE`` (0.01 of white): the local Weber contrast, the variation a
+  viewer perceives.  Scaling every colour leaves it unchanged where the image is well above
+  ``Y_0`` and lowers it where the image sinks toward black, so darkening alone never makes the
+  image look more like the shape (decision D9: with the linear luminance, colours x 0.1 left
+  white highlights carrying all the variation and lowered ``E_s``).
+
+**One meaning at every image size (D9).**  Both images are read at a fixed scale relative to
+the image, not per pixel: the gradient is a derivative of Gaussian (the paper's Sobel
+operator, smoothed) with ``sigma = max(H, W) / REFERENCE_SIZE`` pixels (2 px at 96 px, the
+optimiser's sampling size; 10.7 px at 512), in log-luminance per ``sigma``, and the curvature
+image is smoothed with the same Gaussian over the non-empty pixels only (a Gaussian mean of
+their values, so empty rays do not dilute the silhouette).  A smooth shading ramp and a
+silhouette edge then keep their proportions at every size (with per-pixel Sobel the ramps'
+share fell with the size and ``E_s`` fell from 0.81 to 0.47 on the phantom between 32 and 128
+px).  Each pixel's curvature is one ray's point sample: a scale of 1 px at 96 px left the
+sampling noise of fine structures in the normalisation (bonsai's ``E_s`` spread 19 % over
+96..512 px), 2 px brings it to 6 %.  Below 24 px ``sigma`` stays 0.5 px.
 
 Both are normalised to [0, 1] by a **robust maximum**: divided by their ``percentile``-th
 percentile (default 99) over the non-empty pixels and clipped to 1, so that a few extreme
 values (curvature spikes at thin features, silhouette edges) do not flatten the rest of the
 image.  If that percentile is 0 the normalised image is 0.  Gradient magnitudes below
-``GRADIENT_FLOOR`` (1e-5 luminance per pixel, far below 8-bit display quantisation) are float
-rounding of a flat image and count as 0; otherwise a flat image would be normalised by its
-rounding noise.  Likewise curvatures below ``CURVATURE_FLOOR`` (1e-6 per world unit, a radius
-of a million units) are the float rounding of a flat boundary and count as 0: without this
-floor, an image of flat structures would have its rounding noise normalised to 1 and score
-``delta_s`` near 1 everywhere.  The per-pixel deviation (Eq. 3)
+``GRADIENT_FLOOR`` (1e-5 per ``sigma``) are float rounding of a flat image and count as 0;
+otherwise a flat image would be normalised by its rounding noise.  Likewise curvatures below
+``CURVATURE_FLOOR`` (1e-6 per world unit, a radius of a million units) are the float rounding
+of a flat boundary and count as 0: without this floor, an image of flat structures would have
+its rounding noise normalised to 1 and score ``delta_s`` near 1 everywhere.  The per-pixel
+deviation (Eq. 3)
 
 .. math:: \delta_s = 1 - \exp(-(v_s - v_i)^2 / s)
 
@@ -23,13 +39,14 @@ is high where the image hides a curved structure or shows variation over a flat 
 default steepness ``s = 0.05`` makes a normalised difference of 0.1 cost 0.18, of 0.3 cost
 0.83 and of 0.5 cost 0.99: small mismatches (noise, shading falloff) are tolerated while a
 clearly wrong shape cue counts almost fully.  ``E_s`` (Eq. 4) is the mean of ``delta_s`` over the
-non-empty pixels (accumulated opacity above 1e-3).
+non-empty pixels (accumulated opacity above 1e-3), a share of the image that does not depend
+on its pixel count.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from skimage.filters import sobel
+from scipy import ndimage
 
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures.results import (
@@ -44,8 +61,12 @@ __all__ = ["shape"]
 
 #: Pixels with accumulated opacity above this show some structure.
 NONEMPTY_OPACITY = 1e-3
-#: Sobel magnitudes of the luminance below this are rounding noise and set to 0.
+#: Gradient magnitudes of the log luminance (per sigma) below this are rounding noise: 0.
 GRADIENT_FLOOR = 1e-5
+#: Image size (longer side, pixels) at which the image variation is read at 1 px (D9).
+REFERENCE_SIZE = 48
+#: ``Y_0`` of the log luminance ``log(Y + Y_0)``: contrast far below it is not seen.
+DARK_LUMINANCE = 0.01
 #: Curvatures (1/world units) below this are rounding noise of flat boundaries and set to 0.
 CURVATURE_FLOOR = 1e-6
 
@@ -65,6 +86,27 @@ def _robust_normalise(
             )
         return np.zeros_like(values)
     return np.clip(values / scale, 0.0, 1.0)
+
+
+def _smoothed_over(values: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian mean of ``values`` over the pixels of ``mask`` (0 outside it)."""
+    weight = mask.astype(np.float64)
+    num = ndimage.gaussian_filter(values * weight, sigma, mode="nearest")
+    den = ndimage.gaussian_filter(weight, sigma, mode="nearest")
+    out = np.divide(num, den, out=np.zeros_like(num), where=mask & (den > 0))
+    out[out < CURVATURE_FLOOR] = 0.0
+    return out
+
+
+def image_scale(shape) -> float:
+    """Gaussian ``sigma`` (pixels) of the image variation for an image of ``shape`` (D9).
+
+    Examples
+    --------
+    >>> image_scale((96, 96)), image_scale((512, 384)), image_scale((16, 16))
+    (2.0, 10.666666666666666, 0.5)
+    """
+    return max(max(shape) / REFERENCE_SIZE, 0.5)
 
 
 def _check_options(steepness, percentile) -> tuple[float, float]:
@@ -125,9 +167,12 @@ def shape(analysis, spec=None, *, steepness: float = 0.05, percentile: float = 9
     y, notes = _image_luminance(analysis, spec, accumulated.shape)
 
     nonempty = accumulated > NONEMPTY_OPACITY
+    sigma = image_scale(accumulated.shape)
     curvature = np.where(curvature < CURVATURE_FLOOR, 0.0, curvature)
+    curvature = _smoothed_over(curvature, nonempty, sigma)
     v_s = _robust_normalise(curvature, nonempty, p, "curvature", notes)
-    gradient = sobel(y)
+    log_y = np.log(np.asarray(y, np.float64) + DARK_LUMINANCE)
+    gradient = ndimage.gaussian_gradient_magnitude(log_y, sigma, mode="nearest") * sigma
     gradient[gradient < GRADIENT_FLOOR] = 0.0
     v_i = _robust_normalise(gradient, nonempty, p, "image gradient", notes)
     delta = np.where(nonempty, -np.expm1(-((v_s - v_i) ** 2) / s), 0.0)

@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from skimage.filters import sobel
+from scipy import ndimage
 
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures import ShapeResult, shape
@@ -24,15 +24,31 @@ def grey_analysis(grey, curvature, accumulated=None):
     )
 
 
-def test_luminance_varying_as_curvature_gives_zero():
-    rr, cc = np.mgrid[:9, :11]
-    grey = 0.5 + 0.4 * np.sin(rr / 2.0) * np.cos(cc / 3.0)
-    curvature = 3.7 * sobel(grey)  # curvature in other units, same pattern
-    res = shape(grey_analysis(grey, curvature))
+def test_a_log_luminance_ramp_over_a_uniformly_curved_structure_matches():
+    """Constant Weber contrast (an exponential ramp) shows a constant curvature: v_i = v_s = 1
+    away from the image border, where the deviation vanishes."""
+    cc = np.mgrid[:9, :21][1]
+    grey = 0.05 * np.exp(0.07 * cc) - 0.01  # log(Y + 0.01) rises linearly along the columns
+    res = shape(grey_analysis(grey, np.full(grey.shape, 2.0)))
     assert isinstance(res, ShapeResult)
-    assert res.E_s == pytest.approx(0.0, abs=1e-9)
-    np.testing.assert_allclose(res.v_s, res.v_i, atol=1e-6)
-    assert res.v_s.max() == pytest.approx(1.0)
+    np.testing.assert_allclose(res.v_s, 1.0)
+    np.testing.assert_allclose(res.v_i[:, 2:-2], 1.0, atol=1e-6)
+    np.testing.assert_allclose(res.deviation[:, 2:-2], 0.0, atol=1e-6)
+    assert res.v_i[:, 0].max() < 1.0  # at the border the gradient is read one-sided
+    assert res.E_s < 0.5
+
+
+def test_the_image_variation_is_the_smoothed_log_luminance_gradient():
+    """v_i by its definition (D9): |grad G_sigma log(Y + 0.01)| * sigma, normalised."""
+    rng = np.random.default_rng(3)
+    grey = ndimage.gaussian_filter(rng.random((30, 40)), 2.0)
+    curvature = rng.random((30, 40))
+    res = shape(grey_analysis(grey, curvature))
+    sigma = max(40 / 48, 0.5)
+    g = ndimage.gaussian_gradient_magnitude(np.log(grey + 0.01), sigma, mode="nearest")
+    np.testing.assert_allclose(res.v_i, np.clip(g / np.percentile(g, 99), 0, 1), atol=1e-5)
+    c = ndimage.gaussian_filter(curvature, sigma, mode="nearest")
+    np.testing.assert_allclose(res.v_s, np.clip(c / np.percentile(c, 99), 0, 1), atol=1e-5)
 
 
 def test_flat_image_over_curved_structure_is_maximal():
@@ -59,12 +75,12 @@ def test_steepness_sets_the_cost_of_a_difference():
 
 
 def test_robust_maximum_ignores_an_outlier():
-    curvature = np.ones((20, 20))
-    curvature[0, 0] = 1000.0  # one spike among 400 pixels: above the 99th percentile
-    res = shape(grey_analysis(np.full((20, 20), 0.5), curvature))
-    np.testing.assert_allclose(res.v_s, 1.0)
-    res = shape(grey_analysis(np.full((20, 20), 0.5), curvature), percentile=100.0)
-    assert res.v_s[1, 1] == pytest.approx(1e-3)
+    curvature = np.ones((60, 60))
+    curvature[0, 0] = 1000.0  # one spike among 3600 pixels: smoothed, still above the 99th pct
+    res = shape(grey_analysis(np.full((60, 60), 0.5), curvature))
+    np.testing.assert_allclose(res.v_s[10:, 10:], 1.0, atol=1e-6)
+    res = shape(grey_analysis(np.full((60, 60), 0.5), curvature), percentile=100.0)
+    assert res.v_s[30, 30] < 0.01
 
 
 def test_only_nonempty_pixels_count():

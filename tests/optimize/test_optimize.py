@@ -43,7 +43,7 @@ def stage1(phantom):
 
 def _measure(vol, spec, cam):
     curv, _ = curvature_volume(vol, spec)
-    a = analyze(vol, spec, cam, curvature=curv, build_cache=False)
+    a = analyze(vol, spec, cam, curvature=curv, build_cache=True)
     return a, visibility(a, spec).E_v, shape(a, spec).E_s, transparency(a, spec).E_t
 
 
