@@ -91,6 +91,7 @@ from dvr_perception.measures._estimates import region_estimates, region_table
 from dvr_perception.measures._scene import DENOMINATOR_EPS as DENOMINATOR_EPS  # re-export
 from dvr_perception.measures._scene import PRESENCE_CAP, _Scene
 from dvr_perception.measures.covered import _without as _luminance_without
+from dvr_perception.measures.covered import has_cache
 from dvr_perception.measures.psychophysics import calibrate
 from dvr_perception.measures.regions import _relations, layer_footprints, subregions
 from dvr_perception.measures.results import (
@@ -101,7 +102,7 @@ from dvr_perception.measures.results import (
     _names,
     _visible,
 )
-from dvr_perception.rays._results import RayCache, engine_made
+from dvr_perception.rays._results import engine_made
 
 __all__ = ["transparency"]
 
@@ -146,7 +147,7 @@ def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure
     if enclosure == "unoccluded":
         enclosers = sorted({r.encloser for r in relations.values() if r.kind == "enclose"})
         scene.without = {e: _luminance_without(analysis, spec, e) for e in enclosers}
-    elif isinstance(getattr(analysis, "cache", None), RayCache):
+    elif has_cache(analysis):
         scene.recomposite = partial(_luminance_without, analysis, spec)
         scene.prefer_recomposite = enclosure == "auto"
     elif enclosure == "auto" and any(r.kind == "enclose" for r in relations.values()):
