@@ -22,10 +22,15 @@ px).  Each pixel's curvature is one ray's point sample: a scale of 1 px at 96 px
 sampling noise of fine structures in the normalisation (bonsai's ``E_s`` spread 19 % over
 96..512 px), 2 px brings it to 6 %.  Below 24 px ``sigma`` stays 0.5 px.
 
-Both are normalised to [0, 1] by a **robust maximum**: divided by their ``percentile``-th
-percentile (default 99) over the non-empty pixels and clipped to 1, so that a few extreme
-values (curvature spikes at thin features, silhouette edges) do not flatten the rest of the
-image.  If that percentile is 0 the normalised image is 0.  Gradient magnitudes below
+Both are normalised to [0, 1] by a **scale that smoothing keeps**: divided by
+``MEAN_FACTOR`` (3) times their mean over the non-empty pixels and clipped to 1.  A
+Gaussian keeps a mean but not an upper percentile: each pixel is one ray's point sample, and
+at 96 px the point samples of fine structures (noise, hair, thin vessels) are smoothed over
+few pixels, at 512 px over many, so a 99th-percentile "robust maximum" shrank with the size
+(cthead's ``E_s`` rose from 0.34 at 48 px to 0.56 at 128 px on the paper's Fig. 8 view);
+with the mean it moves by 1-3 % over 96..512 px (``benchmarks/size_invariance.py``).  With
+``percentile`` set, the ``percentile``-th percentile is the scale instead (the earlier
+robust maximum).  If the scale is 0 the normalised image is 0.  Gradient magnitudes below
 ``GRADIENT_FLOOR`` (1e-5 per ``sigma``) are float rounding of a flat image and count as 0;
 otherwise a flat image would be normalised by its rounding noise.  Likewise curvatures below
 ``CURVATURE_FLOOR`` (1e-6 per world unit, a radius of a million units) are the float rounding
@@ -67,22 +72,33 @@ GRADIENT_FLOOR = 1e-5
 REFERENCE_SIZE = 48
 #: ``Y_0`` of the log luminance ``log(Y + Y_0)``: contrast far below it is not seen.
 DARK_LUMINANCE = 0.01
+#: Both images are divided by this times their mean over the non-empty pixels (D9).
+MEAN_FACTOR = 3.0
 #: Curvatures (1/world units) below this are rounding noise of flat boundaries and set to 0.
 CURVATURE_FLOOR = 1e-6
 
 
 def _robust_normalise(
-    values: np.ndarray, nonempty: np.ndarray, percentile: float, what: str, notes: list[str]
+    values: np.ndarray, nonempty: np.ndarray, percentile, what: str, notes: list[str]
 ) -> np.ndarray:
-    """``values / percentile(values[nonempty])`` clipped to [0, 1]; 0 if the percentile is 0."""
+    """``values / scale`` clipped to [0, 1]; 0 if the scale is 0.
+
+    The scale is ``MEAN_FACTOR`` times the mean over ``nonempty``, or the ``percentile``-th
+    percentile there when ``percentile`` is not ``None``.
+    """
     if not nonempty.any():
         return np.zeros_like(values)
-    scale = float(np.percentile(values[nonempty], percentile))
+    if percentile is None:
+        scale = MEAN_FACTOR * float(values[nonempty].mean())
+        which = f"{MEAN_FACTOR:g} x the mean"
+    else:
+        scale = float(np.percentile(values[nonempty], percentile))
+        which = f"the {percentile:g}th percentile"
     if scale <= 0.0:
         if values[nonempty].max() > 0:
             notes.append(
-                f"{what}: the {percentile:g}th percentile over non-empty pixels is 0 although "
-                "some pixels vary; normalised to 0"
+                f"{what}: {which} over non-empty pixels is 0 although some pixels vary; "
+                "normalised to 0"
             )
         return np.zeros_like(values)
     return np.clip(values / scale, 0.0, 1.0)
@@ -109,21 +125,24 @@ def image_scale(shape) -> float:
     return max(max(shape) / REFERENCE_SIZE, 0.5)
 
 
-def _check_options(steepness, percentile) -> tuple[float, float]:
+def _check_options(steepness, percentile) -> tuple[float, float | None]:
     try:
-        s, p = float(steepness), float(percentile)
+        s = float(steepness)
+        p = None if percentile is None else float(percentile)
     except (TypeError, ValueError):
         raise DVRInputError(
             f"steepness and percentile must be numbers, got {steepness!r}, {percentile!r}"
         ) from None
     if not (np.isfinite(s) and s > 0):
         raise DVRInputError(f"steepness must be a positive finite number, got {steepness!r}")
-    if not 0.0 < p <= 100.0:
+    if p is not None and not 0.0 < p <= 100.0:
         raise DVRInputError(f"percentile must lie in (0, 100], got {percentile!r}")
     return s, p
 
 
-def shape(analysis, spec=None, *, steepness: float = 0.05, percentile: float = 99.0) -> ShapeResult:
+def shape(
+    analysis, spec=None, *, steepness: float = 0.05, percentile: float | None = None
+) -> ShapeResult:
     """Shape deviation ``E_s`` of a rendering (Eq. 3-4).
 
     Parameters
@@ -137,7 +156,9 @@ def shape(analysis, spec=None, *, steepness: float = 0.05, percentile: float = 9
     steepness : float, optional
         ``s`` of Eq. 3 (default 0.05; see the module docstring).
     percentile : float, optional
-        Percentile in (0, 100] used as the robust maximum of both images (default 99).
+        Normalise both images by this percentile in (0, 100] over the non-empty pixels (a
+        robust maximum) instead of ``MEAN_FACTOR`` times their mean (default ``None``: the
+        mean, which keeps ``E_s`` the same at every image size, D9).
 
     Returns
     -------
@@ -156,8 +177,10 @@ def shape(analysis, spec=None, *, steepness: float = 0.05, percentile: float = 9
     >>> from types import SimpleNamespace
     >>> flat = SimpleNamespace(curvature=np.ones((4, 4)), accumulated=np.ones((4, 4)),
     ...                        image=np.full((4, 4, 3), 0.5))  # curved structure, flat image
-    >>> round(shape(flat).E_s, 6)  # 1 - exp(-1 / 0.05)
+    >>> round(shape(flat, percentile=99.0).E_s, 6)  # v_s 1, v_i 0: 1 - exp(-1 / 0.05)
     1.0
+    >>> round(shape(flat).E_s, 4)  # by default v_s = 1/3 (3 x the mean): 1 - exp(-1 / 0.45)
+    0.8916
     """
     s, p = _check_options(steepness, percentile)
     accumulated = _accumulated(analysis)

@@ -1,4 +1,4 @@
-"""Decision D9: E_s and E_t mean the same at every image size; darkening does not lower E_s.
+"""Decision D9: E_s and E_t mean the same at every image size.
 
 The same view rendered at several sizes (the optimiser samples at about 96 px, the user looks
 at 512): ``E_s`` within 10 % (relative) and ``E_t`` within 0.05 (absolute).  On the head
@@ -10,8 +10,6 @@ shared volumes).  With the per-pixel Sobel gradient of the linear luminance, the
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 import numpy as np
 import pytest
@@ -79,17 +77,20 @@ def test_the_slab_scene_means_the_same_at_every_size():
     assert spread(e_s)[1] <= 0.10, e_s
 
 
-def darker(spec, factor):
-    structures = tuple(
-        dataclasses.replace(s, color=tuple(c * factor for c in s.color)) for s in spec.structures
-    )
-    return dataclasses.replace(spec, structures=structures)
+def test_cthead_at_the_papers_fig8_view_means_the_same_at_every_size(shared_data):
+    """The preset view of cthead (Fig. 8's head): with a 99th-percentile scale E_s read 0.46
+    at 96 px and 0.56 at 128 px, so the lighting stage (at 96 px) chased another objective."""
+    from dvr_perception.rays.curvature_field import curvature_source
+    from dvr_perception.structures.io import attach_labels, load_spec
+    from dvr_perception.volume.io import load_volume
+    from tests.conftest import REPO
 
-
-@pytest.mark.parametrize("view", [(0.0, 20.0), (60.0, 20.0)])
-def test_darkening_every_colour_does_not_lower_e_s(phantom, view):
-    vol, spec, curv = phantom
-    cam = Camera.from_view(vol.bounds, azimuth=view[0], elevation=view[1], width=96, height=96)
-    base = shape(analyze(vol, spec, cam, curvature=curv), spec).E_s
-    dark = darker(spec, 0.1)
-    assert shape(analyze(vol, dark, cam, curvature=curv), dark).E_s >= base
+    spec = load_spec(REPO / "state_files" / "cthead.json")
+    vol = attach_labels(load_volume(shared_data / "cthead.nhdr"), spec)
+    curv = curvature_source(vol, spec)
+    az, el, zoom = spec.view or (0.0, 0.0, 1.0)
+    e_s = []
+    for n in (96, 128, 256):
+        cam = Camera.from_view(vol.bounds, azimuth=az, elevation=el, zoom=zoom, width=n, height=n)
+        e_s.append(shape(analyze(vol, spec, cam, curvature=curv, build_cache=False), spec).E_s)
+    assert spread(e_s)[1] <= 0.10, e_s
