@@ -174,7 +174,7 @@ def shape_figure(path, exp: dict) -> Path:
         axes[1, 2],
         a["_images"]["v_i"],
         a["_images"]["ds_mask"],
-        "v_i after: image variation (Sobel)",
+        "v_i after: image variation (log-luminance gradient)",
         1.0,
         "magma",
     )
