@@ -276,8 +276,10 @@ class TransferFunctionOptimizer(PerceptionMeasures):
             opacities=np.clip(p.opacities, 0.0, 1.0), lighting=p.materials(),
             colors=np.clip(p.colors, 0.0, 1.0), light_direction=p.light,
         )  # fmt: skip
-        records = session.stop()
-        self._fill_result(output, result, res, camera)
+        try:  # measured while the ranks serve: E_t may re-composite through them (D7)
+            self._fill_result(output, result, res, camera)
+        finally:
+            records = session.stop()
         output.GetFieldData().AddArray(string_array([json.dumps(r) for r in records], "ranks"))
 
     def _fill_result(self, output, result, res, camera) -> None:

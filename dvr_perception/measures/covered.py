@@ -65,7 +65,11 @@ def has_cache(analysis) -> bool:
     from dvr_perception.rays.engine import RayCache
 
     cache = getattr(analysis, "cache", None)
-    return isinstance(cache, RayCache) or callable(getattr(cache, "reevaluate", None))
+    if isinstance(cache, RayCache):
+        return True
+    if getattr(getattr(cache, "session", None), "stopped", False):
+        return False  # the ranks no longer serve: nothing to re-composite through
+    return callable(getattr(cache, "reevaluate", None))
 
 
 def _without(analysis, spec, layer: int) -> np.ndarray:
