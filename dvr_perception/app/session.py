@@ -615,7 +615,7 @@ class Session:
         spec = self.spec if spec is None else spec
         cam = measure_camera(camera)
         curvature = self.curvature(spec)
-        analysis = analyze(self.volume, spec, cam, curvature=curvature, build_cache=False)
+        analysis = analyze(self.volume, spec, cam, curvature=curvature, build_cache=True)
         return self.measures_of(analysis, spec)
 
     def measures_of(self, analysis, spec) -> Measures:

@@ -135,10 +135,11 @@ def measure(volume, spec, cam, curv, composition="importance") -> dict:
     ``S`` is Eq. 13 per pixel with unit weights: the mean over the rays that carry assigned
     opacity of ``(d_v + d_s + d_t)^2`` (the measures' deviation images), as the optimiser's.
     """
-    a = analyze(volume, spec, cam, curvature=curv, build_cache=False)
+    a = analyze(volume, spec, cam, curvature=curv)  # with the cache: enclosers' default (D7)
     vis = visibility(a, spec, composition=composition)
     shp = shape(a, spec)
     trn = transparency(a, spec)
+    plain = transparency(a, spec, enclosure="plain")  # the paper's ring, shown beside
     rays = np.asarray(a.assigned).sum(axis=0) > 0
     per_ray = (
         np.asarray(vis.deviation, float)
@@ -150,12 +151,16 @@ def measure(volume, spec, cam, curv, composition="importance") -> dict:
         "E_v": float(vis.E_v),
         "E_s": float(shp.E_s),
         "E_t": float(trn.E_t),
+        "E_t_plain": float(plain.E_t),
         "S": float(np.mean(per_ray**2)) if per_ray.size else 0.0,
         "visible_share": {n: float(v["visible_share"]) for n, v in per.items()},
         "target_share": {n: float(v["target_share"]) for n, v in per.items()},
         "assigned_share": {n: float(v["assigned_share"]) for n, v in per.items()},
         "perceived_transparency": {
             n: v["perceived_transparency"] for n, v in trn.per_structure.items()
+        },
+        "perceived_transparency_plain": {
+            n: v["perceived_transparency"] for n, v in plain.per_structure.items()
         },
         "coverage": float(np.mean(a.accumulated[vis.nonempty])) if vis.nonempty.any() else 0.0,
         "_images": {
@@ -167,6 +172,7 @@ def measure(volume, spec, cam, curv, composition="importance") -> dict:
             "v_s": np.asarray(shp.v_s),
             "v_i": np.asarray(shp.v_i),
             "dt": np.asarray(trn.deviation),
+            "dt_plain": np.asarray(plain.deviation),
             "dt_mask": np.asarray(trn.layer_set) != 0,
         },
     }
@@ -421,6 +427,8 @@ def run_saturation(cfg: Config, name: str = "neghip", outer: str = "diffuse lobe
                 "color": [float(c) for c in next(x.color for x in s.structures if x.name == outer)],
                 "perceived_transparency": m["perceived_transparency"],
                 "outer_transparency": m["perceived_transparency"][outer],
+                "outer_transparency_plain": m["perceived_transparency_plain"][outer],
+                "E_t_plain": m["E_t_plain"],
                 "outer_tap": None if tap.reason else tap.alpha,
                 "outer_tap_pixels": tap.pixels,
                 "E_t": m["E_t"],

@@ -174,7 +174,7 @@ def shape_figure(path, exp: dict) -> Path:
         axes[1, 2],
         a["_images"]["v_i"],
         a["_images"]["ds_mask"],
-        "v_i after: image variation (Sobel)",
+        "v_i after: image variation (log-luminance gradient)",
         1.0,
         "magma",
     )
@@ -205,6 +205,10 @@ def saturation_figure(path, exp: dict) -> Path:
             label=n,
             linewidth=2 if n == exp["outer"] else 1,
         )
+    plain = [p.get("outer_transparency_plain") for p in series]
+    if any(v is not None for v in plain):  # the paper's plain-view reading of an encloser
+        ys = [np.nan if v is None else v for v in plain]
+        ax.plot(xs, ys, "^:", color="grey", label=f"{exp['outer']} (plain view)")
     taps = [np.nan if p.get("outer_tap") is None else p["outer_tap"] for p in series]
     ax.plot(xs, taps, "s-", color="black", linewidth=2, label=f"TAP {exp['outer']}")
     ax.set_xlabel(f"saturation of '{exp['outer']}' (%)", fontsize=8)

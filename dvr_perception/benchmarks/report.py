@@ -661,13 +661,30 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
             "(" + ", ".join(f"{c:.2f}" for c in p["color"]) + ")",
             _f(p.get("outer_tap")),
             *(_f(p["perceived_transparency"][k]) for k in names),
+            _f(p.get("outer_transparency_plain")),
             _f(p["E_t"], 4),
+            _f(p.get("E_t_plain"), 4),
         ]
         for p in sat["series"]
     ]
     L += _table(
-        ["saturation", "outer colour", "TAP outer", *(f"α_t {k}" for k in names), "E_t"], rows
+        [
+            "saturation",
+            "outer colour",
+            "TAP outer",
+            *(f"α_t {k}" for k in names),
+            "α_t outer (plain view)",
+            "E_t",
+            "E_t (plain view)",
+        ],
+        rows,
     )
+    L += [
+        '**plain view** = the paper-literal reading of an enclosing layer (`enclosure="plain"`: '
+        "TAP against the layer's own ring); the default (decision D7) reads an encloser against "
+        "what it covers re-composited without it, counting only the contrast it transmits.",
+        "",
+    ]
     cs = sat["colour_stage"]
     L += [
         "Expected opacities (1 − α_t wanted): "
@@ -702,6 +719,7 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
                 f"{st['E_v']:.4f}",
                 f"{st['E_s']:.4f}",
                 f"{st['E_t']:.4f}",
+                _f(st.get("E_t_plain"), 4),
                 f"{st['coverage']:.3f}",
             ]
             for st in p["steps"]
@@ -711,7 +729,7 @@ def render_markdown(s: dict, obs: dict | None = None) -> str:
             f"): {_s(p['seconds'])} s, {p['nfev']} evaluations; {p['message']}",
             "",
         ]
-        L += _table(["image", "E_v", "E_s", "E_t", "coverage"], rows)
+        L += _table(["image", "E_v", "E_s", "E_t", "E_t (plain view)", "coverage"], rows)
         srows = [
             [
                 st["name"],

@@ -241,7 +241,7 @@ def _run(args, scene, t_start: float, staged) -> int:
     t_curv = time.perf_counter() - t0
     log.info("analysing %dx%d rays", scene.camera.width, scene.camera.height)
     t0 = time.perf_counter()
-    result = analyze(scene.volume, scene.spec, scene.camera, curvature=curvature, build_cache=False,
+    result = analyze(scene.volume, scene.spec, scene.camera, curvature=curvature, build_cache=True,
                      progress=log_progress("rays"), backend=args.backend)  # fmt: skip
     t_analysis = time.perf_counter() - t0
     log.info("computing the measures")

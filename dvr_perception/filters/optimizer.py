@@ -243,7 +243,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         result = res.analyses[-1] if res.analyses else None
         if result is None:
             curvature, _ = curvature_volume(volume, opt, progress=self.progress_range(0.9, 0.93))
-            result = analyze(volume, opt, camera, curvature=curvature, build_cache=False,
+            result = analyze(volume, opt, camera, curvature=curvature, build_cache=True,
                              progress=self.progress_range(0.93, 0.96))  # fmt: skip
         self._fill_result(output, result, res, camera)
 
@@ -276,8 +276,10 @@ class TransferFunctionOptimizer(PerceptionMeasures):
             opacities=np.clip(p.opacities, 0.0, 1.0), lighting=p.materials(),
             colors=np.clip(p.colors, 0.0, 1.0), light_direction=p.light,
         )  # fmt: skip
-        records = session.stop()
-        self._fill_result(output, result, res, camera)
+        try:  # measured while the ranks serve: E_t may re-composite through them (D7)
+            self._fill_result(output, result, res, camera)
+        finally:
+            records = session.stop()
         output.GetFieldData().AddArray(string_array([json.dumps(r) for r in records], "ranks"))
 
     def _fill_result(self, output, result, res, camera) -> None:

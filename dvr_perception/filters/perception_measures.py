@@ -36,10 +36,12 @@ Several MPI ranks
     ``mpiexec -n N pvbatch`` / ``pvserver``), each rank asks its input for the extent of its
     piece (VTK's block split, :func:`piece_extent`) plus the ghost layers the normals and the
     curvature need, so no rank reads the whole volume; the ranks then compute the serial
-    result together (:func:`~dvr_perception.rays.ranks.analyze_ranks`) and piece 0 holds the
+    result together (a :class:`~dvr_perception.rays.ranks.RankSession`, whose ranks keep
+    their cache entries while rank 0 measures, so that the transparency measure re-composites
+    the view without an enclosing layer as the serial filter does) and piece 0 holds the
     whole output image, the other pieces are empty.  Rank 0's field data adds the string
     array ``ranks``: one JSON record per rank (``rank``, ``extent``, ``voxels``, ``cells``,
-    ``order``, ``seconds``, ``peak_rss_mb``).
+    ``order``, ``views``, ``evaluations``, ``seconds``, ``peak_rss_mb``).
 
 Errors are reported through VTK's error mechanism (see :mod:`dvr_perception.filters._base`).
 """
@@ -186,7 +188,7 @@ class PerceptionMeasures(DVRFilterBase):
         self.UpdateProgress(0.05)
         curvature, _ = curvature_volume(volume, spec, sigma=self.sigma,
                                         progress=self.progress_range(0.05, 0.3))  # fmt: skip
-        result = analyze(volume, spec, camera, curvature=curvature, build_cache=False,
+        result = analyze(volume, spec, camera, curvature=curvature, build_cache=True,
                          progress=self.progress_range(0.3, 0.7))  # fmt: skip
         self._fill(output, result, spec, camera)
 
@@ -290,14 +292,22 @@ class PerceptionMeasures(DVRFilterBase):
 
     def execute_piece(self, image, output, comm, piece: int, whole) -> None:
         """Compute this rank's part of the output (collective; see *Several MPI ranks*)."""
-        from dvr_perception.rays.ranks import analyze_ranks
+        from dvr_perception.rays.ranks import RankSession
 
         part, spec, camera = self.piece_scene(image, comm, piece, whole)
-        result, records = analyze_ranks(comm, part, spec, camera, sigma=self.sigma)
-        if result is None:
+        # a session (not a one-off walk): the ranks keep their cache entries while rank 0
+        # measures, so the transparency measure can re-composite the view without an
+        # enclosing layer (decision D7) as the serial filter does from its cache
+        session = RankSession(comm, part, spec, sigma=self.sigma)
+        if comm.rank != 0:
+            session.serve()
             output.Initialize()
             return
-        self._fill(output, result, spec, camera)
+        try:
+            result = session.analyze(camera)
+            self._fill(output, result, spec, camera)
+        finally:
+            records = session.stop()
         output.GetFieldData().AddArray(string_array([json.dumps(r) for r in records], "ranks"))
 
     def _fill(self, output, result, spec, camera) -> None:

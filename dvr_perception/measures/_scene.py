@@ -23,6 +23,14 @@ from dvr_perception.measures.psychophysics import (
 
 #: A Metelli denominator or a TAP background range below this (in luminance) is "~0".
 DENOMINATOR_EPS = 1e-3
+#: A covered structure is hidden on a pixel where its visible opacity is at most this fraction
+#: of the opacity it carries there (D7: relative, not an absolute threshold).
+HIDDEN_FRACTION = 0.1
+#: The carried opacity is capped here, where presence saturates (D8).
+PRESENCE_CAP = 0.7
+#: A layer set covering less than this share of the image is no reference (D9): its mean and
+#: contrast would rest on a handful of pixels, a number that changes with the image size.
+MIN_REFERENCE_FRACTION = 1e-3
 
 
 @dataclass(frozen=True)
@@ -81,6 +89,30 @@ def _blend(met: float, tap: float, contrast: float) -> float:
     return h * met + (1.0 - h) * tap
 
 
+def transmitted_tap(lum_p: np.ndarray, lum_a: np.ndarray, contrast: str) -> float:
+    """TAP ``C(P) / C(A)`` of the same pixels seen with (``lum_p``) and without a layer.
+
+    Only the contrast the layer *transmits* counts (D7: its own shading texture is not
+    transmitted contrast): ``P``'s luminance is regressed on ``A``'s, ``P ~ c + b A``, and
+    ``P``'s robust range is that of its mean with the standard deviation ``max(b, 0)
+    sigma(A)`` of the transmitted part.  For a uniform layer (``P = T A + c`` exactly) that
+    is ``P``'s own standard deviation, so the reading is the plain TAP.  NaN when ``A`` has
+    no luminance range (below ``DENOMINATOR_EPS``) or no contrast.
+    """
+    lum_p = np.asarray(lum_p, np.float64).ravel()
+    lum_a = np.asarray(lum_a, np.float64).ravel()
+    mean_a, std_a = float(lum_a.mean()), float(lum_a.std())
+    lo_a, hi_a = _robust(mean_a, std_a)
+    if hi_a - lo_a < DENOMINATOR_EPS:
+        return float("nan")
+    c_a = _contrast(lo_a, hi_a, contrast)
+    if c_a < 1e-6:
+        return float("nan")
+    mean_p = float(lum_p.mean())
+    slope = float(np.mean((lum_p - mean_p) * (lum_a - mean_a))) / (std_a * std_a)
+    return _contrast(*_robust(mean_p, max(slope, 0.0) * std_a), contrast) / c_a
+
+
 def _bits(layers) -> int:
     out = 0
     for k in layers:
@@ -113,11 +145,12 @@ class _Scene:
         self._templates: dict[frozenset, tuple] = {}
         #: ``enclosure="unoccluded"``: per enclosing layer, the luminance without it.
         self.without: dict[int, np.ndarray] | None = None
-        #: (K, H, W) visible opacities and the footprint threshold: an enclosed layer whose
-        #: visible opacity is at most ``threshold`` on a covered pixel is hidden there (D3);
-        #: ``None``: footprints are visible ones, nothing covered is hidden.
+        #: (K, H, W) visible opacities and carried (occlusion-free, capped) opacities: a
+        #: covered layer whose visible opacity is at most ``HIDDEN_FRACTION`` of what it
+        #: carries on a pixel is hidden there (D3, D7); ``None``: footprints are visible
+        #: ones, nothing covered is hidden.
         self.visible: np.ndarray | None = None
-        self.threshold = 0.05
+        self.carry: np.ndarray | None = None
         #: Luminance of the view without layer ``e`` (``recomposite(e)``, computed once per
         #: layer), or ``None`` when the analysis has no re-evaluation cache; ``prefer``: an
         #: encloser's TAP background is that view first (D3), else only when its plain view
@@ -134,6 +167,8 @@ class _Scene:
         else:
             sets, inverse = np.unique(flat, return_inverse=True)
             count, mean, std = _group_stats(self.y.ravel(), inverse, sets.size)
+        #: Pixels a layer set needs to be a reference (``MIN_REFERENCE_FRACTION``, at least 1).
+        self.min_count = max(1, math.ceil(MIN_REFERENCE_FRACTION * self.layer_set.size))
         rows = zip(sets.tolist(), count.tolist(), mean.tolist(), std.tolist(), strict=True)
         self._stats = {b: (n, m, d) for b, n, m, d in rows}
 
@@ -147,10 +182,22 @@ class _Scene:
         return self._masks[bits]
 
     def missing(self, sets) -> str | None:
+        """Why some of ``sets`` are no reference (absent or below the minimum area), or None."""
         absent = [self.label(b) for b in sets if b not in self._stats]
-        if not absent:
-            return None
-        return "no region shows exactly the layer set(s) " + ", ".join(dict.fromkeys(absent))
+        small = [
+            self.label(b) for b in sets if b in self._stats and self._stats[b][0] < self.min_count
+        ]
+        why = []
+        if absent:
+            why.append(
+                "no region shows exactly the layer set(s) " + ", ".join(dict.fromkeys(absent))
+            )
+        if small:
+            why.append(
+                f"the layer set(s) {', '.join(dict.fromkeys(small))} cover less than "
+                f"{MIN_REFERENCE_FRACTION:.1%} of the image"
+            )
+        return "; ".join(why) if why else None
 
     def mean(self, bits: int) -> float:
         return self._stats[bits][1]
@@ -160,16 +207,6 @@ class _Scene:
         if hi - lo < DENOMINATOR_EPS:
             return float("nan")
         return tap_transmittance(lum_p, lum_a, contrast=self.contrast)
-
-    def tap_sets(self, p: int, a: int) -> float:
-        """TAP ``C(P) / C(A)`` of two exact layer sets, from their cached mean and std."""
-        lo_a, hi_a = _robust(*self._stats[a][1:])
-        if hi_a - lo_a < DENOMINATOR_EPS:
-            return float("nan")
-        c_a = _contrast(lo_a, hi_a, self.contrast)
-        if c_a < 1e-6:
-            return float("nan")
-        return _contrast(*_robust(*self._stats[p][1:]), self.contrast) / c_a
 
     def encloser(self, e: int) -> _Estimate:
         """TAP transmittance of an enclosing layer: enclosed part ``P`` over plain view ``A``."""
@@ -208,8 +245,7 @@ class _Scene:
         shown = covered
         if self.visible is not None:  # D3: pixels where what e covers is not seen
             pix = np.flatnonzero(covered)
-            flat = self.visible.reshape(self.visible.shape[0], -1)
-            seen = flat[np.ix_(inner_layers, pix)].sum(axis=0) > self.threshold
+            seen = self.seen(inner_layers, pix)
             shown = np.zeros(covered.shape, bool)
             shown.ravel()[pix[seen]] = True
         n_shown = int(np.count_nonzero(shown))
@@ -222,11 +258,22 @@ class _Scene:
             return _Estimate(reason=head + why)
         return _Estimate(alpha=alpha * (n_shown / n_covered), method="tap")
 
+    def seen(self, layers, pix: np.ndarray) -> np.ndarray:
+        """Whether ``layers`` (together) are seen on the flat pixels ``pix`` (D3, D7).
+
+        Hidden where their summed visible opacity is at most ``HIDDEN_FRACTION`` of the
+        opacity they carry there (:func:`~.transparency._carried`).
+        """
+        k = self.visible.shape[0]
+        vis = self.visible.reshape(k, -1)[np.ix_(layers, pix)].sum(axis=0)
+        carry = self.carry.reshape(k, -1)[np.ix_(layers, pix)].sum(axis=0)
+        return (vis > HIDDEN_FRACTION * carry) | (carry <= 0.0)
+
     def _encloser_tap(self, e: int, shown: np.ndarray) -> tuple[float, str | None]:
         """TAP of ``e`` on the pixels ``shown``: ``(alpha, None)`` or ``(nan, reason)``."""
         lum_p = self.y[shown]
         if self.without is not None:  # enclosure="unoccluded": the same pixels without e
-            alpha = self.tap(lum_p, self.without[e][shown])
+            alpha = transmitted_tap(lum_p, self.without[e][shown], self.contrast)
             if math.isnan(alpha):
                 return alpha, "what it covers has no contrast without it (TAP denominator ~0)"
             return alpha, None
@@ -261,34 +308,67 @@ class _Scene:
             return float("nan"), ""
         if e not in self._recomposited:
             self._recomposited[e] = self.recomposite(e)
-        alpha = self.tap(lum_p, self._recomposited[e][shown])
+        alpha = transmitted_tap(lum_p, self._recomposited[e][shown], self.contrast)
         if math.isnan(alpha):
             return alpha, "what it covers has no luminance contrast without it"
         return alpha, None
 
     def _pair_terms(self, i: int, j: int, base: int) -> tuple:
-        """``(metelli, tap, reason)`` of Eq. 8 for ``i`` over ``j``; region-independent, cached."""
+        """``(metelli, tap, reason, shown)`` of Eq. 8 for ``i`` over ``j``; cached.
+
+        Region-independent.  D3 for every layer (D7): on the pixels of ``P`` where ``j`` is
+        hidden, ``i`` lets nothing of it through (transmittance 0), so both terms are read on
+        the rest ``P'`` and scaled by its share ``shown = |P'| / |P|`` (0: ``j`` is hidden
+        on all of ``P``).  ``i``'s own texture is not transmitted contrast: TAP's contrast of
+        ``P'`` keeps only the luminance variance that ``i``'s plain view ``Q`` lacks
+        (``sigma^2(P') - sigma^2(Q)``, at least 0).
+        """
         key = (i, j, base)
         if key not in self._pairs:
             p, q, a, b = base | 1 << i | 1 << j, base | 1 << i, base | 1 << j, base
             why = self.missing([p, q, a, b])
             if why is not None:
-                self._pairs[key] = (None, None, f"Eq. 8 with {self.names[j]}: {why}")
-            else:
-                met = float(
-                    metelli_transmittance(
-                        self.mean(p), self.mean(q), self.mean(a), self.mean(b), eps=DENOMINATOR_EPS
-                    )
+                self._pairs[key] = (None, None, f"Eq. 8 with {self.names[j]}: {why}", 1.0)
+                return self._pairs[key]
+            n_p, mean_p, std_p = self._stats[p]
+            shown = 1.0
+            if self.visible is not None:
+                pix = np.flatnonzero(self.mask(p))
+                seen = self.seen([j], pix)
+                n_seen = int(np.count_nonzero(seen))
+                shown = n_seen / n_p
+                if n_seen == 0:
+                    self._pairs[key] = (0.0, 0.0, None, 0.0)
+                    return self._pairs[key]
+                if n_seen < n_p:
+                    lum = self.y.ravel()[pix[seen]]
+                    mean_p, std_p = float(lum.mean()), float(lum.std())
+            met = float(
+                metelli_transmittance(
+                    mean_p, self.mean(q), self.mean(a), self.mean(b), eps=DENOMINATOR_EPS
                 )
-                tap = self.tap_sets(p, a)
-                why = None
-                if math.isnan(met) and math.isnan(tap):
-                    why = (
-                        f"Eq. 8 with {self.names[j]}: Metelli denominator I{self.label(a)} - "
-                        f"I{self.label(b)} and TAP contrast of {self.label(a)} are ~0"
-                    )
-                self._pairs[key] = (met, tap, why)
+            )
+            own = self._stats[q][2]
+            transmitted = math.sqrt(max(std_p * std_p - own * own, 0.0))
+            tap = self._tap_stats(mean_p, transmitted, a)
+            why = None
+            if math.isnan(met) and math.isnan(tap):
+                why = (
+                    f"Eq. 8 with {self.names[j]}: Metelli denominator I{self.label(a)} - "
+                    f"I{self.label(b)} and TAP contrast of {self.label(a)} are ~0"
+                )
+            self._pairs[key] = (met * shown, tap * shown, why, shown)
         return self._pairs[key]
+
+    def _tap_stats(self, mean_p: float, std_p: float, a: int) -> float:
+        """TAP ``C(P) / C(A)`` from ``P``'s mean and std and the cached stats of set ``a``."""
+        lo_a, hi_a = _robust(*self._stats[a][1:])
+        if hi_a - lo_a < DENOMINATOR_EPS:
+            return float("nan")
+        c_a = _contrast(lo_a, hi_a, self.contrast)
+        if c_a < 1e-6:
+            return float("nan")
+        return _contrast(*_robust(mean_p, std_p), self.contrast) / c_a
 
     def generalized(self, i: int, active: list[int], base: int) -> _Estimate:
         """Eq. 9 for layer ``i`` of three or more overlapping active layers (cached)."""
@@ -371,9 +451,11 @@ class _Scene:
         notes: list[str] = []
 
         def pair_item(i, j):
-            met, tap, why = self._pair_terms(i, j, base)
+            met, tap, why, shown = self._pair_terms(i, j, base)
             if why is not None:
                 return (i, _Estimate(reason=why), None, None)
+            if shown == 0.0:  # what i overlaps is hidden wherever they overlap (D3, D7)
+                return (i, _Estimate(alpha=0.0, method="hidden"), None, None)
             return (i, None, met, tap)
 
         if len(active) == 1:
@@ -381,7 +463,7 @@ class _Scene:
             reasons = []
             for j in self.partners[i]:
                 item = pair_item(i, j)
-                if item[1] is None:
+                if item[1] is None or item[1].reason is None:
                     items.append(item)
                     break
                 reasons.append(item[1].reason)

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from dvr_perception.errors import DVRInputError
-from dvr_perception.measures._scene import DENOMINATOR_EPS
-from dvr_perception.measures.psychophysics import luminance_range, tap_transmittance
+from dvr_perception.measures._scene import DENOMINATOR_EPS, transmitted_tap
+from dvr_perception.measures.psychophysics import luminance_range
 from dvr_perception.measures.regions import layer_footprints
 from dvr_perception.measures.results import _accumulated, _image_luminance, _names, _visible
 
@@ -55,6 +55,23 @@ class CoveredTransmittance:
     reason: str | None = None
 
 
+def has_cache(analysis) -> bool:
+    """Whether ``analysis`` can be re-composited without a layer.
+
+    True for a :class:`~dvr_perception.rays.engine.RayCache`, or a stand-in with a
+    ``reevaluate`` method of its own (the MPI ranks' ``RankCache``, through which the
+    optimiser renders).
+    """
+    from dvr_perception.rays.engine import RayCache
+
+    cache = getattr(analysis, "cache", None)
+    if isinstance(cache, RayCache):
+        return True
+    if getattr(getattr(cache, "session", None), "stopped", False):
+        return False  # the ranks no longer serve: nothing to re-composite through
+    return callable(getattr(cache, "reevaluate", None))
+
+
 def _without(analysis, spec, layer: int) -> np.ndarray:
     """Luminance of the same view with ``layer``'s opacity 0 (from the re-evaluation cache).
 
@@ -65,7 +82,7 @@ def _without(analysis, spec, layer: int) -> np.ndarray:
     from dvr_perception.rays.engine import RayCache, reevaluate
 
     cache = getattr(analysis, "cache", None)
-    if not isinstance(cache, RayCache):
+    if not has_cache(analysis):
         raise DVRInputError(
             "analysis: the view without a layer needs the analysis's re-evaluation cache "
             "(analyze(..., build_cache=True))"
@@ -74,19 +91,20 @@ def _without(analysis, spec, layer: int) -> np.ndarray:
     if params is not None:
         ops = list(params["opacities"])
         ops[layer] = 0.0
-        other = reevaluate(
-            cache,
-            opacities=ops,
-            colors=params["colors"],
-            lighting=params["lighting"],
-            light_direction=params["light_direction"],
-            background=spec.background,
-        )
+        kwargs = {"opacities": ops, "colors": params["colors"], "lighting": params["lighting"],
+                  "light_direction": params["light_direction"]}  # fmt: skip
+        if isinstance(cache, RayCache):
+            other = reevaluate(cache, background=spec.background, **kwargs)
+        else:  # a stand-in that re-composites itself (the MPI ranks' RankCache)
+            other = cache.reevaluate(**kwargs)
     else:
         ops = [float(s.render_opacity) for s in spec.structures]
         ops[layer] = 0.0
         colors = [tuple(s.color) for s in spec.structures]
-        other = reevaluate(cache, opacities=ops, colors=colors, background=spec.background)
+        if isinstance(cache, RayCache):
+            other = reevaluate(cache, opacities=ops, colors=colors, background=spec.background)
+        else:
+            other = cache.reevaluate(opacities=ops, colors=colors)
     y, _ = _image_luminance(other, spec, analysis.accumulated.shape)
     return y
 
@@ -160,5 +178,5 @@ def covered_transmittance(
     if hi - lo < DENOMINATOR_EPS:
         why = f"what {structure!r} covers has no luminance contrast without it"
         return CoveredTransmittance(structure, float("nan"), n, contrast, why)
-    alpha = tap_transmittance(y[covered], lum_a, contrast=contrast)
+    alpha = transmitted_tap(y[covered], lum_a, contrast)
     return CoveredTransmittance(structure, float(alpha), n, contrast)

@@ -27,25 +27,27 @@ Pipeline (all luminances are linear CIE Y of ``rgba`` composited over ``spec.bac
    Its transparent region ``P`` is every pixel where ``e`` and a layer it encloses are
    present, and:
 
-   * **hidden is opaque** (D3): on the pixels of ``P`` where the enclosed layers are hidden
-     (their summed visible opacity is at most ``threshold``), ``e`` lets nothing of them
+   * **hidden is opaque** (D3, D7): on the pixels of ``P`` where the enclosed layers are
+     hidden (their summed visible opacity is at most ``HIDDEN_FRACTION`` = 0.1 of the opacity
+     they carry there: their occlusion-free opacity capped at 0.7, where presence saturates,
+     times their rendering opacity over their importance), ``e`` lets nothing of them
      through, transmittance 0;
    * the rest, ``P'``, is read by TAP, ``alpha = C(P') / C(A)`` (Eq. 6-7).  By default
-     (``enclosure="plain"``) ``A`` is the paper's: the plain view of ``e`` (layer set ``{e}``
-     plus the layers enclosing ``e``).  Where that plain view is not in the image or has no
-     contrast, ``A`` is what ``e`` covers seen *without* it (D3): the same pixels
-     re-composited from the analysis's cache with ``e``'s opacity 0 (and the analysis's own
-     opacities, colours and light), as :func:`~.covered.covered_transmittance` (the Fig. 9
-     reading) does.  Without a cache such a layer reads 0 if part of ``P`` is hidden, else
-     it is undetermined.  ``enclosure="auto"`` reads every encloser against the re-composite
-     when the analysis has a cache (the plain view otherwise), and ``"unoccluded"`` demands
-     it (an error without a cache).  With the re-composite a brighter or more opaque
-     enclosing layer lowers the Michelson contrast of what it covers and reads as less
-     transparent (tested against the closed form ``T mu / (T mu + c)``); the plain view
-     saturates at 1 where what ``e`` covers has more contrast than ``e``'s own plain view
-     (a faint shell around contrasted blobs), and never depends on the cache, which is why
-     it stays the default (``E_t`` of an analysis with a cache and of one without agree
-     unless a plain view is missing or uniform).
+     (``enclosure="auto"``, decision D7) ``A`` is what ``e`` covers seen *without* it: the
+     same pixels re-composited from the analysis's cache with ``e``'s opacity 0 (and the
+     analysis's own opacities, colours and light), as :func:`~.covered.covered_transmittance`
+     (the Fig. 9 reading) does, and only the contrast ``e`` transmits counts (``P'``
+     regressed on ``A``: ``e``'s own shading texture is not transmitted contrast;
+     :func:`~._scene.transmitted_tap`).  A brighter or more opaque enclosing layer lowers the
+     Michelson contrast of what it covers and reads as less transparent (tested against the
+     closed form ``T mu / (T mu + c)``).  ``enclosure="plain"`` is the paper's Case 2: the
+     plain view of ``e`` (layer set ``{e}`` plus the layers enclosing ``e``), which saturates
+     at 1 where what ``e`` covers has more contrast than ``e``'s ring (a faint shell around
+     contrasted blobs) and is not monotone in ``e``'s opacity; it is reported beside the
+     default.  Each reading is the fallback of the other where it is missing or uniform; an
+     analysis without a cache reads the plain view (with a note: the front ends analyse with
+     ``build_cache=True`` so that every path gives the same ``E_t``), and ``"unoccluded"``
+     demands the re-composite (an error without a cache).
 
    The estimate is the mean over ``P``: ``|P'| / |P| * C(P') / C(A)``, so hiding more of what
    it covers makes a layer more opaque, and hiding all of it gives 0 (method ``"hidden"``).
@@ -55,7 +57,11 @@ Pipeline (all luminances are linear CIE Y of ``rgba`` composited over ``spec.bac
    * none or one active layer ``i`` without an *overlap* partner: Case 1, no transmittance;
    * one active layer ``i`` overlapping others (Case 2): Eq. 8 against the partner ``j`` with
      the largest overlap whose references exist, Metelli (Eq. 5) on ``P = {i, j}``, ``Q =
-     {i}``, ``A = {j}``, ``B = {}`` and TAP ``C(P) / C(A)``;
+     {i}``, ``A = {j}``, ``B = {}`` and TAP ``C(P) / C(A)``.  D3 holds here too (D7): on the
+     pixels of ``P`` where ``j`` is hidden (as above), ``i`` transmits nothing, so both terms
+     are read on the rest and scaled by its share of ``P`` (all hidden: 0, method
+     ``"hidden"``); and TAP's contrast of ``P`` keeps only the variance that ``i``'s plain
+     view ``Q`` lacks, so ``i``'s own shading texture is not transmitted contrast;
    * two overlapping active layers (Case 3): the same Eq. 8 for each of them;
    * three or more active layers (Case 3): the generalised Metelli Eq. 9 for each.
 
@@ -83,8 +89,9 @@ import numpy as np
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures._estimates import region_estimates, region_table
 from dvr_perception.measures._scene import DENOMINATOR_EPS as DENOMINATOR_EPS  # re-export
-from dvr_perception.measures._scene import _Scene
+from dvr_perception.measures._scene import PRESENCE_CAP, _Scene
 from dvr_perception.measures.covered import _without as _luminance_without
+from dvr_perception.measures.covered import has_cache
 from dvr_perception.measures.psychophysics import calibrate
 from dvr_perception.measures.regions import _relations, layer_footprints, subregions
 from dvr_perception.measures.results import (
@@ -95,12 +102,12 @@ from dvr_perception.measures.results import (
     _names,
     _visible,
 )
-from dvr_perception.rays._results import RayCache, engine_made
+from dvr_perception.rays._results import engine_made
 
 __all__ = ["transparency"]
 
 #: TAP backgrounds of an enclosing layer (see the module docstring, rule 3).
-ENCLOSURES = ("plain", "auto", "unoccluded")
+ENCLOSURES = ("auto", "plain", "unoccluded")
 
 
 def _check_options(spec, contrast, calibration):
@@ -136,15 +143,40 @@ def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure
     relations = _relations(rmap.layer_set, len(names), tolerance)  # = layer_relations
     scene = _Scene(y, rmap, relations, names, contrast)
     if assigned is not None:
-        scene.visible, scene.threshold = visible, float(threshold)
+        scene.visible, scene.carry = visible, _carried(analysis, spec, assigned)
     if enclosure == "unoccluded":
         enclosers = sorted({r.encloser for r in relations.values() if r.kind == "enclose"})
         scene.without = {e: _luminance_without(analysis, spec, e) for e in enclosers}
-    elif isinstance(getattr(analysis, "cache", None), RayCache):
+    elif has_cache(analysis):
         scene.recomposite = partial(_luminance_without, analysis, spec)
         scene.prefer_recomposite = enclosure == "auto"
+    elif enclosure == "auto" and any(r.kind == "enclose" for r in relations.values()):
+        notes.append(
+            "the analysis has no re-evaluation cache: enclosing layers are read against their "
+            "plain view (analyze(..., build_cache=True) reads them against the view without them)"
+        )
     est = region_estimates(scene, rmap, y, expected, calibration, notes)
     return names, expected, rmap, relations, est, notes
+
+
+def _carried(analysis, spec, assigned: np.ndarray) -> np.ndarray:
+    """(K, H, W) opacity each structure carries on each pixel, occlusion ignored (D7).
+
+    The occlusion-free opacity ``assigned`` (at the importance opacities) capped at
+    :data:`~._scene.PRESENCE_CAP`, where presence saturates (D8: the skipping walk is exact
+    below it), and scaled by the structure's rendering opacity over its importance, so a
+    structure the rendering fades is not taken for a hidden one.  A covered structure whose
+    visible opacity is at most :data:`~._scene.HIDDEN_FRACTION` of this is hidden there.
+    """
+    importance = np.array([float(s.importance) for s in spec.structures])
+    params = getattr(analysis, "stats", None)
+    params = params.get("params") if isinstance(params, dict) else None
+    if params is not None:
+        render = np.asarray(params["opacities"], np.float64)
+    else:
+        render = np.array([float(s.render_opacity) for s in spec.structures])
+    scale = np.divide(render, importance, out=np.ones_like(render), where=importance > 0)
+    return np.minimum(assigned, PRESENCE_CAP) * scale[:, None, None]
 
 
 def _occlusion_free(analysis, shape) -> np.ndarray | None:
@@ -169,7 +201,7 @@ def transparency_table(analysis, spec, *, calibration=None):
     other options are :func:`transparency`'s defaults.
     """
     names, _, rmap, _, est, _ = _core(
-        analysis, spec, 0.05, calibration, 0.02, "michelson", "plain"
+        analysis, spec, 0.05, calibration, 0.02, "michelson", "auto"
     )  # fmt: skip
     alpha, empty = region_table(est, rmap, len(names))
     return rmap.region_id, est.deltas, alpha, empty
@@ -183,7 +215,7 @@ def transparency(
     calibration=None,
     tolerance: float = 0.02,
     contrast: str = "michelson",
-    enclosure: str = "plain",
+    enclosure: str = "auto",
 ) -> TransparencyResult:
     """Transparency deviation ``E_t`` of a rendering (Eq. 5-11, rules of Sec. 4.3.2).
 
@@ -199,8 +231,7 @@ def transparency(
         opacity) and the background colour entering the luminance.
     threshold : float, optional
         A structure is a layer of a pixel where its visible or its occlusion-free opacity
-        exceeds this (default 0.05, see :func:`~.regions.layer_footprints`); an enclosed layer
-        whose visible opacity is at most this is hidden there.
+        exceeds this (default 0.05, see :func:`~.regions.layer_footprints`).
     calibration : pair of array_like (x, y), optional
         Knots of a monotone curve mapping measured to perceived transmittance (see
         :func:`~.psychophysics.calibrate`); ``None`` is the identity.
@@ -208,11 +239,11 @@ def transparency(
         Footprint fraction forgiven by the layer relations (default 0.02).
     contrast : {"michelson", "range"}, optional
         TAP contrast: Michelson (Eq. 7, default) or luminance range (Eq. 6).
-    enclosure : {"plain", "auto", "unoccluded"}, optional
-        TAP background ``A`` of an enclosing layer: its plain view (default, the paper's Case
-        2), or, where that is missing or uniform and the analysis has a re-evaluation cache,
-        the covered pixels re-composited without the layer (D3); the re-composite first when
-        there is a cache (``"auto"``); or always the re-composite (``"unoccluded"``, needs
+    enclosure : {"auto", "plain", "unoccluded"}, optional
+        TAP background ``A`` of an enclosing layer: the covered pixels re-composited without
+        the layer when the analysis has a re-evaluation cache (default, decision D7), its
+        plain view otherwise or where the re-composite is uniform; the plain view first
+        (``"plain"``, the paper's Case 2); or always the re-composite (``"unoccluded"``, needs
         ``analysis.cache``, i.e. an engine analysis made with ``build_cache=True``).  See the
         module docstring, rule 3.
 

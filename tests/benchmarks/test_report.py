@@ -105,7 +105,15 @@ def test_quick_report_checks_cover_the_acceptance(quick_report):
 
 #: Checks of the reduced run that fail today, with why (issue 8 stays open until they hold).
 #: Each must still fail: when a fix makes one pass, this test says so and it leaves the list.
-KNOWN_GAPS: dict[str, str] = {}
+KNOWN_GAPS: dict[str, str] = {
+    "lighting stage lowers E_s: cthead": (
+        "issue 32 (D9): E_s is read at a scale relative to the image and scaled by 3 x its "
+        "mean, so it means the same at 96 and 512 px; the lighting stage then finds -1.7 to "
+        "-1.9 % on the equalised head (a grid over the materials and light reaches about -4 %), "
+        "where the per-pixel Sobel with a 99th-percentile scale gave -8.5 %, partly by letting "
+        "a highlight rescale the whole image"
+    ),
+}
 
 
 def _gap(name: str) -> str | None:

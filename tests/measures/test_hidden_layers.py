@@ -80,7 +80,7 @@ def series():
     for opacity in (*OPACITIES, EXPECTED, 1.0):
         vol, spec, cam = shell_scene(opacity)
         a = analyze(vol, spec, cam)
-        out[opacity] = (a, spec, transparency(a, spec, enclosure="auto"), transparency(a, spec))
+        out[opacity] = (a, spec, transparency(a, spec), transparency(a, spec, enclosure="plain"))
     return out
 
 

@@ -468,7 +468,7 @@ def test_unoccluded_enclosure_gives_the_tap_of_what_the_layer_covers(grey):
     assert auto.per_structure["shell"]["perceived_transparency"] == pytest.approx(
         res.per_structure["shell"]["perceived_transparency"], abs=1e-3
     )
-    plain = transparency(a, spec)  # the paper's Case 2 reference: the shell's plain view
+    plain = transparency(a, spec, enclosure="plain")  # the paper's Case 2: the plain view
     assert plain.per_structure["shell"]["perceived_transparency"] != pytest.approx(
         expected, abs=0.02
     )

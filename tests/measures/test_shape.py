@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from skimage.filters import sobel
+from scipy import ndimage
 
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures import ShapeResult, shape
@@ -24,19 +24,37 @@ def grey_analysis(grey, curvature, accumulated=None):
     )
 
 
-def test_luminance_varying_as_curvature_gives_zero():
-    rr, cc = np.mgrid[:9, :11]
-    grey = 0.5 + 0.4 * np.sin(rr / 2.0) * np.cos(cc / 3.0)
-    curvature = 3.7 * sobel(grey)  # curvature in other units, same pattern
-    res = shape(grey_analysis(grey, curvature))
+def test_a_log_luminance_ramp_over_a_uniformly_curved_structure_matches():
+    """Constant Weber contrast (an exponential ramp) shows a constant curvature: v_i = v_s = 1
+    away from the image border, where the deviation vanishes."""
+    cc = np.mgrid[:9, :21][1]
+    grey = 0.05 * np.exp(0.07 * cc) - 0.01  # log(Y + 0.01) rises linearly along the columns
+    res = shape(grey_analysis(grey, np.full(grey.shape, 2.0)), percentile=99.0)
     assert isinstance(res, ShapeResult)
-    assert res.E_s == pytest.approx(0.0, abs=1e-9)
-    np.testing.assert_allclose(res.v_s, res.v_i, atol=1e-6)
-    assert res.v_s.max() == pytest.approx(1.0)
+    np.testing.assert_allclose(res.v_s, 1.0)
+    np.testing.assert_allclose(res.v_i[:, 2:-2], 1.0, atol=1e-6)
+    np.testing.assert_allclose(res.deviation[:, 2:-2], 0.0, atol=1e-6)
+    assert res.v_i[:, 0].max() < 1.0  # at the border the gradient is read one-sided
+    assert res.E_s < 0.5
+
+
+def test_the_image_variation_is_the_smoothed_log_luminance_gradient():
+    """v_i by its definition (D9): |grad G_sigma log(Y + 0.01)| * sigma, normalised."""
+    rng = np.random.default_rng(3)
+    grey = ndimage.gaussian_filter(rng.random((30, 40)), 2.0)
+    curvature = rng.random((30, 40))
+    res = shape(grey_analysis(grey, curvature))
+    sigma = max(40 / 48, 0.5)
+    g = ndimage.gaussian_gradient_magnitude(np.log(grey + 0.01), sigma, mode="nearest")
+    np.testing.assert_allclose(res.v_i, np.clip(g / (3 * g.mean()), 0, 1), atol=1e-5)
+    c = ndimage.gaussian_filter(curvature, sigma, mode="nearest")
+    np.testing.assert_allclose(res.v_s, np.clip(c / (3 * c.mean()), 0, 1), atol=1e-5)
+    p99 = shape(grey_analysis(grey, curvature), percentile=99.0)  # the robust maximum instead
+    np.testing.assert_allclose(p99.v_i, np.clip(g / np.percentile(g, 99), 0, 1), atol=1e-5)
 
 
 def test_flat_image_over_curved_structure_is_maximal():
-    res = shape(grey_analysis(np.full((5, 5), 0.5), np.full((5, 5), 2.0)))
+    res = shape(grey_analysis(np.full((5, 5), 0.5), np.full((5, 5), 2.0)), percentile=99.0)
     assert not res.v_i.any()
     np.testing.assert_allclose(res.v_s, 1.0)
     assert res.E_s == pytest.approx(1.0 - np.exp(-1.0 / 0.05))
@@ -51,7 +69,9 @@ def test_constant_volume_and_flat_image_is_zero():
 def test_steepness_sets_the_cost_of_a_difference():
     # curvature normalised to 1 everywhere; image gradient 0 -> difference 1
     ana = grey_analysis(np.full((3, 3), 0.5), np.ones((3, 3)))
-    assert shape(ana, steepness=1.0).E_s == pytest.approx(1.0 - np.exp(-1.0))
+    assert shape(ana, steepness=1.0, percentile=99.0).E_s == pytest.approx(1.0 - np.exp(-1.0))
+    # by default a uniform field is scaled to 1/3 (3 x its mean is 1)
+    assert shape(ana, steepness=1.0).E_s == pytest.approx(1.0 - np.exp(-1.0 / 9.0))
     with pytest.raises(DVRInputError, match="steepness"):
         shape(ana, steepness=0.0)
     with pytest.raises(DVRInputError, match="percentile"):
@@ -59,12 +79,12 @@ def test_steepness_sets_the_cost_of_a_difference():
 
 
 def test_robust_maximum_ignores_an_outlier():
-    curvature = np.ones((20, 20))
-    curvature[0, 0] = 1000.0  # one spike among 400 pixels: above the 99th percentile
-    res = shape(grey_analysis(np.full((20, 20), 0.5), curvature))
-    np.testing.assert_allclose(res.v_s, 1.0)
-    res = shape(grey_analysis(np.full((20, 20), 0.5), curvature), percentile=100.0)
-    assert res.v_s[1, 1] == pytest.approx(1e-3)
+    curvature = np.ones((60, 60))
+    curvature[0, 0] = 1000.0  # one spike among 3600 pixels: smoothed, still above the 99th pct
+    res = shape(grey_analysis(np.full((60, 60), 0.5), curvature), percentile=99.0)
+    np.testing.assert_allclose(res.v_s[10:, 10:], 1.0, atol=1e-6)
+    res = shape(grey_analysis(np.full((60, 60), 0.5), curvature), percentile=100.0)
+    assert res.v_s[30, 30] < 0.01
 
 
 def test_only_nonempty_pixels_count():
@@ -92,7 +112,7 @@ def test_background_enters_the_luminance():
         structures=(Structure(name="s", importance=1.0, color=(0.5, 0.5, 0.5), range=(0, 1)),)
     )
     grey = StructureSpec(structures=black.structures, background=(0.5, 0.5, 0.5))
-    assert shape(ana, black).v_i.max() == pytest.approx(1.0)  # silhouette edge on black
+    assert shape(ana, black, percentile=99.0).v_i.max() == pytest.approx(1.0)  # silhouette edge
     assert not shape(ana, grey).v_i.any()  # the structure matches the background
 
 

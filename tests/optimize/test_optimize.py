@@ -43,7 +43,7 @@ def stage1(phantom):
 
 def _measure(vol, spec, cam):
     curv, _ = curvature_volume(vol, spec)
-    a = analyze(vol, spec, cam, curvature=curv, build_cache=False)
+    a = analyze(vol, spec, cam, curvature=curv, build_cache=True)
     return a, visibility(a, spec).E_v, shape(a, spec).E_s, transparency(a, spec).E_t
 
 
@@ -332,8 +332,10 @@ def test_two_views_lower_the_worse_view_more_than_one():
     assert e_one[1] > e_one[0]  # the side is the worse view after the front alone
     assert max(e_two) < max(e_one) - 0.1
     assert e_two[1] < e_one[1] - 0.1
-    ops_one, ops_two = (np.array([s.opacity for s in r.spec.structures]) for r in (one, two))
-    assert ops_two[1] < ops_one[1] - 0.3  # the x walls, seen only from the side, are lowered
+    ops_two = np.array([s.opacity for s in two.spec.structures])
+    # the x walls, which hide the core from the side, are lowered well below their start (0.9);
+    # since E_s and E_t read the same at every size (D9) the front view alone lowers them too
+    assert ops_two[1] < 0.9 - 0.3
     assert two.final["E"] <= two.initial["E"]
 
 

@@ -50,7 +50,7 @@ def library(neghip):
     az, el, zoom = VIEW
     cam = Camera.from_view(vol.bounds, azimuth=az, elevation=el, zoom=zoom, width=SIZE, height=SIZE)
     curv, boundary = curvature_volume(vol, spec, sigma=1.0)
-    result = analyze(vol, spec, cam, curvature=curv, build_cache=False)
+    result = analyze(vol, spec, cam, curvature=curv, build_cache=True)
     return {
         "E_v": visibility(result, spec).E_v,
         "E_s": shape(result, spec).E_s,

@@ -128,7 +128,7 @@ def _library_e(shared_data):
     az, el, zoom = spec.view or (0.0, 0.0, 1.0)
     cam = Camera.from_view(vol.bounds, azimuth=az, elevation=el, zoom=zoom, width=SIZE, height=SIZE)
     curv, _ = curvature_volume(vol, spec, sigma=1.0)
-    result = analyze(vol, spec, cam, curvature=curv, build_cache=False)
+    result = analyze(vol, spec, cam, curvature=curv, build_cache=True)
     return {
         "E_v": visibility(result, spec).E_v,
         "E_s": shape(result, spec).E_s,

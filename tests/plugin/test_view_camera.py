@@ -105,7 +105,7 @@ print({MARK!r} + json.dumps(out), flush=True)
 def _library(volume, camera):
     vol, spec = load_volume(volume), load_spec(SPEC)
     curv, _ = curvature_volume(vol, spec, sigma=1.0)
-    result = analyze(vol, spec, camera, curvature=curv, build_cache=False)
+    result = analyze(vol, spec, camera, curvature=curv, build_cache=True)
     return {
         "E_v": visibility(result, spec).E_v,
         "E_s": shape(result, spec).E_s,
