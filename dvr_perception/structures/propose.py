@@ -13,7 +13,6 @@ import math
 import warnings
 
 import numpy as np
-from skimage.filters import threshold_multiotsu
 
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.structures._counts import int_histogram
@@ -93,6 +92,8 @@ def _thresholds(counts, centres, width, distinct, classes: int) -> np.ndarray:
         occupied = v[c > 0]
         t = 0.5 * (occupied[:-1] + occupied[1:])
     else:
+        from skimage.filters import threshold_multiotsu  # imported here: 0.4 s, rarely needed
+
         t = np.asarray(threshold_multiotsu(hist=(c, v), classes=classes), dtype=np.float64)
     # values from a threshold bin's centre upwards go to the upper class (as np.digitize)
     k = np.searchsorted(distinct, t, side="left")
