@@ -245,7 +245,7 @@ def analyze(
     brick : tuple of int, optional
         Analyse in bricks of this many cells ``(z, y, x)`` (:mod:`~dvr_perception.rays.
         bricks`; the same result).  By default the whole volume is analysed at once when it
-        is small and fits, else in bricks sized by the memory limit
+        fits the memory limit (however many voxels), else in bricks sized by the limit
         (:func:`~dvr_perception.rays.memory.plan`).
     memory_limit : int or str, optional
         Bytes (or ``"8G"``) the analysis may use; default
