@@ -16,7 +16,7 @@ The limit is, in order: the ``memory_limit`` argument, :func:`set_limit` (the co
 ``--memory-limit``), the environment variable ``DVR_PERCEPTION_MEMORY_LIMIT`` and
 :data:`DEFAULT_FRACTION` of the machine's physical memory.  Sizes here are binary (GB =
 2**30 bytes).  A 512 x 512 x 452 uint16 CT at 512 x 512 pixels needs about 1.5 GB whole (2
-bytes a voxel for the volume, 13 for the derived volumes and ``|H|``, 348 a pixel), so it is
+bytes a voxel for the volume, 11 for the derived volumes and ``|H|``, 348 a pixel), so it is
 analysed whole on any machine with 3 GB; a 1024 x 1024 x 904 one needs about 11.6 GB, whole
 from 23.2 GB of memory (11.8 GB is the default limit on a 23.5 GB machine), else in bricks.
 """
@@ -151,7 +151,7 @@ def whole_volume_bytes(volume, *, shade: bool = True, curvature: bool = True,
     --------
     >>> import numpy as np
     >>> vol = np.broadcast_to(np.uint16(0), (452, 512, 512))  # a CT's shape, no memory
-    >>> round(whole_volume_bytes(type("V", (), {"data": vol})()) / 2**30, 2)  # 2 + 12 B
+    >>> round(whole_volume_bytes(type("V", (), {"data": vol})()) / 2**30, 2)  # 2 + 11 B
     1.54
     """
     data = volume.data
