@@ -30,7 +30,6 @@ except ImportError:  # pragma: no cover - not POSIX
 
 import numpy as np
 
-from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError
 
 __all__ = [
@@ -623,6 +622,8 @@ def read_png(path) -> np.ndarray:
     numpy.ndarray
         The pixels, ``uint8``.
     """
+    from dvr_perception import _vtk  # VTK on use: the core imports without it
+
     p = Path(path)
     if not p.is_file():
         raise DVRInputError(f"PNG file {p}: not found")

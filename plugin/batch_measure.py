@@ -2,14 +2,15 @@
 
 Usage (``dvr-perception pvbatch`` runs this with the right environment and Xvfb)::
 
-    pvbatch plugin/batch_measure.py VOLUME [--structures SPEC] [--view A,E[,Z] | --camera CAM]
+    pvbatch plugin/batch_measure.py VOLUME [--structures SPEC | --preset NAME | --classes N]
+            [--view A,E[,Z] | --camera CAM]
             [--size N|WxH] [--shade|--no-shade] [--sigma S] --out DIR
 
 VOLUME, the spec and the camera are resolved exactly as the ``dvr-perception`` commands do
-(``dvr_perception.cli._common.load_scene``: the spec paired with the volume in
-``state_files/``, the spec's view, 512 x 512).  The volume goes into ParaView through a
-``TrivialProducer``; the *Perception Measures* filter of ``dvr_perception_plugin.py`` runs on it
-through ``paraview.simple``.  Written into DIR:
+(``dvr_perception.cli._common.load_scene``: the preset of ``state_files/`` whose recorded data
+checksum matches the volume's, else a proposal; the spec's view, 512 x 512).  The volume goes
+into ParaView through a ``TrivialProducer``; the *Perception Measures* filter of
+``dvr_perception_plugin.py`` runs on it through ``paraview.simple``.  Written into DIR:
 
 ``screenshot.png``
     ParaView's own volume rendering (CPU ray caster) with the spec's colour and opacity
@@ -23,7 +24,7 @@ through ``paraview.simple``.  Written into DIR:
 Under ``mpiexec -n N pvbatch ... --ranks N`` (what ``dvr-perception pvbatch --ranks N`` runs)
 the volume is opened with ParaView's reader instead, so each rank reads only its piece, the
 camera comes from the reader's header information (the volume is never loaded whole; a spec is
-required: ``--structures`` or the one paired with the volume), and ``result.json`` adds
+required: ``--structures`` or ``--preset NAME``), and ``result.json`` adds
 ``ranks``: one record per rank (``rank``, ``extent``, ``voxels``, ``peak_rss_mb``, ...).
 
 Errors print one line ``dvr-perception: error: ...`` on stderr and exit with status 2.
@@ -297,15 +298,10 @@ def reader_scene(pvs, args):
     """ParaView's reader of ``args.volume`` and the scene, from the reader's header only."""
     from types import SimpleNamespace
 
-    from dvr_perception.cli._common import (
-        DEFAULT_SIZE,
-        Scene,
-        _read_camera,
-        parse_size,
-        state_files_dir,
-    )
+    from dvr_perception.cli._common import DEFAULT_SIZE, Scene, _read_camera, parse_size
     from dvr_perception.rays.camera import Camera, parse_view
     from dvr_perception.structures.io import load_spec
+    from dvr_perception.structures.presets import load_preset
 
     size = parse_size(args.size) if args.size is not None else None
     view = parse_view(args.view) if args.view is not None else None
@@ -313,14 +309,16 @@ def reader_scene(pvs, args):
     path = os.path.abspath(args.volume)
     if not os.path.isfile(path):
         raise BatchError(f"{args.volume}: file not found")
-    paired = os.path.join(str(state_files_dir()), os.path.basename(path).split(".")[0] + ".json")
-    spec_source = args.structures or (paired if os.path.isfile(paired) else None)
-    if spec_source is None:
+    if args.structures is not None:
+        spec_source = args.structures
+        spec = load_spec(spec_source)
+    elif getattr(args, "preset", None) is not None:
+        spec, spec_source = load_preset(args.preset)
+    else:  # a preset pairs by the data's checksum: this rank would have to read it all
         raise BatchError(
-            f"--ranks {args.ranks}: needs --structures (no spec is paired with {args.volume}, "
-            "and proposing one would read the whole volume)"
+            f"--ranks {args.ranks}: needs --structures or --preset NAME (pairing a preset by "
+            f"the data's checksum, or proposing a spec, would read all of {args.volume})"
         )
-    spec = load_spec(spec_source)
     if args.shade is not None:
         from dataclasses import replace
 

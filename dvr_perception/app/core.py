@@ -58,7 +58,7 @@ log = logging.getLogger("dvr_perception.app")
 #: Seconds an info banner stays; an error banner stays until closed or for ERROR_S.
 INFO_S = 5.0
 ERROR_S = 30.0
-#: Relative rise of the whole view's error after a lens refinement that asks to keep or undo.
+#: Relative rise of the whole view's error with a lens result that warns before applying it.
 LENS_WORSE = 0.10
 #: Seconds after which a pushed image is pushed once more (see ``DVRApp._push_image``).
 REPUSH_S = 0.8
@@ -251,6 +251,8 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
         s.lens_rows = []
         s.lens_drag = None
         s.client_only("lens_drag")
+        # a lens result shown inside the lens, for the view and settings lens_result_key
+        s.lens_result_key = s.lens_overlay_url = s.lens_whole_url = ""
         # calibration test
         s.cal_active = False
         s.cal_index = 0
@@ -319,7 +321,7 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
         else:
             self._tf_no += 1
             self._tf_label = label or "edited"
-            self.state.lens_worse = False  # the keep-or-undo question was about the last change
+            self.state.lens_worse = False  # the lens result's cost was for the last settings
         self.state.now_key = self._key()
 
     def _describe(self, camera) -> str:
@@ -360,12 +362,21 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
         self._update_tf()
         self._sync_preview()
 
-    def _snapshot(self) -> str:
-        """Return the current view as a small PNG data URL (for the before/after comparison)."""
-        img = self.plotter.screenshot(None, return_img=True)
-        w = img.shape[1]
-        step = max(1, round(w / THUMB_WIDTH))
-        return png_data_url(img[::step, ::step, :3] / 255.0)
+    def _render_rgb(self):
+        """Render the view now and return it as an ``(H, W, 3)`` float image in [0, 1].
+
+        The plotter's screenshot only reads the render window's last frame: a spec shown
+        with :meth:`_render_spec` (no render) is not in it until rendered (issue 30: the
+        "after" thumbnail was the "before" image).
+        """
+        self.plotter.ren_win.Render()
+        return self.plotter.screenshot(None, return_img=True)[..., :3] / 255.0
+
+    def _snapshot(self, img=None) -> str:
+        """Return the view (rendered now) or ``img`` as a small PNG data URL (before/after)."""
+        img = self._render_rgb() if img is None else img
+        step = max(1, round(img.shape[1] / THUMB_WIDTH))
+        return png_data_url(img[::step, ::step])
 
     def _push_image(self) -> None:
         """Send the view to the browser, and once more a little later.
@@ -400,25 +411,23 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
     def _show_loaded(self, label: str, *, view_name=None, wait: bool = False) -> None:
         """Show the session's newly loaded (or re-oriented) volume and spec, then re-measure.
 
-        The camera is the spec's view, or the patient view ``view_name``.
+        The camera is the patient view ``view_name``, or the spec's view, or (a spec without
+        one) :func:`~dvr_perception.rays.camera.default_camera`: an oriented scan from the
+        front, head up.
         """
         from dvr_perception.plotting import add_structures, set_plotter_camera
-        from dvr_perception.rays import Camera
-        from dvr_perception.rays.camera import patient_view
+        from dvr_perception.rays.camera import default_camera, patient_view
 
         volume, spec = self.session.volume, self.session.spec
         self._tf_before = None
         self._view_name = view_name
         self.plotter.clear_actors()
         self.handle = add_structures(self.plotter, volume, spec)
-        az, el, zoom = spec.view or (0.0, 0.0, 1.0)
         w, h = (int(v) for v in self.plotter.window_size)
         if view_name is not None:
             cam = patient_view(volume, view_name, width=w, height=h)
-        else:
-            cam = Camera.from_view(
-                volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
-            )
+        else:  # the spec's view; else an oriented scan from the front, head up
+            cam = default_camera(volume, spec.view, width=w, height=h)
         set_plotter_camera(self.plotter, cam, window_size=False)
         if self.preview is not None:
             self.preview.set_volume(volume, spec)
@@ -662,7 +671,7 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
         self.remeasure()
 
     def _lens_verdict(self, before, after) -> None:
-        """Whole view before -> after beside the lens; ask to keep or undo when it got worse."""
+        """Whole view before -> after the lens result; warn when it would get worse."""
         e0 = before.E_v + before.E_s + before.E_t
         e1 = after.E_v + after.E_s + after.E_t
         rise = (e1 - e0) / e0 if e0 > 0 else 0.0
@@ -675,17 +684,6 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
             f"whole view: {parts}; total {e0:.3g} -> {e1:.3g} ({100 * rise:+.0f} %)"
         )
         self.state.lens_worse = rise > LENS_WORSE
-
-    @guard
-    def lens_keep(self):
-        """Keep a lens refinement that made the whole view worse."""
-        self.state.lens_worse = False
-
-    @guard
-    def lens_undo(self):
-        """Undo a lens refinement that made the whole view worse."""
-        self.state.lens_worse = False
-        self.undo(1)
 
     async def _after_text(self) -> None:
         """Fill the 'after' numbers once the new view is measured."""

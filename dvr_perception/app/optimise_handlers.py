@@ -64,8 +64,9 @@ class OptimiseHandlers:
         """Start optimising this view (``"opacity"`` or ``"all"`` stages) in the background.
 
         With ``in_lens`` only the lens region drives the optimisation, with the targets set
-        for the structures inside it; the whole view's terms before and after are shown
-        beside it, and a rise of more than :data:`LENS_WORSE` asks to keep or undo.
+        for the structures inside it.  Its result is not applied: it is shown inside the lens
+        over the current rendering, with the whole view's change and cost beside it, and one
+        click applies it to the whole view (:meth:`~.LensHandlers.lens_apply`).
         """
         if self._task_running:
             return
@@ -81,7 +82,12 @@ class OptimiseHandlers:
         self._task_running = True
         self._cancel.clear()
         stages = STAGE_SETS[which]
-        self._run = {"t0": time.monotonic(), "stages": stages, "view": self._view_no}
+        self._run = {
+            "t0": time.monotonic(),
+            "stages": stages,
+            "view": self._view_no,
+            "tf": self._tf_no,
+        }
         s.busy = True
         s.progress = 0
         s.progress_text = "analysing the view..."
@@ -89,11 +95,10 @@ class OptimiseHandlers:
         s.opt_for = self._describe(camera)
         s.opt_camera = camera.to_dict()  # the optimiser's camera, for the CLI to redo it
         s.opt_sampling = self._sampling_text(camera)
-        s.before_url = self._snapshot()
+        s.before_url = self._snapshot()  # rendered now: what is on screen for this camera
         s.before_text = self._errors_text() if s.measured_key == s.now_key else ""
         s.after_url = s.after_text = ""
-        s.lens_whole_text = ""
-        s.lens_worse = False
+        self._drop_lens_result()
         s.live_shares = []
         s.why_lines = []
         self._e_history = []
@@ -263,15 +268,20 @@ class OptimiseHandlers:
             )
         # the outcome is on the page before the new view is rendered (seconds for a large view)
         await asyncio.sleep(0.05)
+        label += " (cancelled)" if cancelled else ""
+        if region is not None:  # shown inside the lens, applied to the whole view on request
+            with self.state:
+                self.state.busy = False
+                self._show_lens_result(result, before, after, label, run["tf"])
+            return
         with self.state:
             self.state.busy = False
-            label += " (cancelled)" if cancelled else ""
             self.session.push_undo(label)
             self._tf_before = self.session.spec  # drawn dashed in the transfer-function view
             self.session.spec = result.spec
             self.state.why_lines = _why_lines(result)
             self._render_spec(result.spec)
-            self.state.after_url = self._snapshot()
+            self.state.after_url = self._snapshot()  # rendered with the result (issue 30)
             fresh = after is not None and run["view"] == self._view_no
             self._show_spec(label=label, measure=not fresh)
             self.state.opt_key = self._key()
@@ -281,7 +291,5 @@ class OptimiseHandlers:
             if fresh:
                 self._set_measures(after, self._key(), self.state.opt_for)
                 self.state.after_text = self._errors_text(after)
-                if region is not None:
-                    self._lens_verdict(before, after)
             else:
                 asynchronous.create_task(self._after_text())

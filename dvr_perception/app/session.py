@@ -309,13 +309,12 @@ class Session:
         return folder
 
     def load_volume(self, name: str, *, orientation=None):
-        """Load the phantom or an offered volume with its paired spec (else a proposal).
+        """Load the phantom or an offered volume with its preset (by data checksum) or a proposal.
 
         ``orientation`` (``dvr-perception app --orientation CODE``) declares where the file's
         index axes point, as the other commands' ``--orientation`` does.
         """
-        from dvr_perception.structures import check_spec_for_volume, load_spec
-        from dvr_perception.structures import propose_structures as propose
+        from dvr_perception.structures import check_spec_for_volume
         from dvr_perception.volume import load_volume, make_phantom
 
         if name == PHANTOM:
@@ -326,14 +325,11 @@ class Session:
                 name, self.volume_choices()[1:], "volumes", UPLOADED, self.upload_dir
             )
             volume = load_volume(path)
-            spec, source = None, ""
-            from dvr_perception.cli._common import state_files_dir
+            from dvr_perception.structures.presets import choose_spec
 
-            paired = state_files_dir() / f"{path.name.split('.')[0]}.json"
-            if paired.is_file():
-                spec, source = load_spec(paired), f"preset {paired.name}"
-            else:
-                spec, source = propose(volume), "automatic proposal"
+            choice = choose_spec(volume)  # a preset by the data's checksum, else a proposal
+            line = choice.line.removeprefix("structures: ").removeprefix("structures ")
+            spec, source = choice.spec, line  # "preset 'x' (...)" / "proposed from the data (...)"
         read, orientation = volume, _code(orientation)
         base = volume = _oriented(read, orientation)
         labels_file = None

@@ -118,6 +118,7 @@ class TFHandlers:
         import asyncio
 
         self.preview.set_spec(self.session.spec)
+        self.state.preview_detail = self.preview.detail  # named in the view's label
         self.preview.set_camera(self.plotter.camera, self.plotter.window_size)
         self._preview_dirty = True
         try:
@@ -281,14 +282,14 @@ class TFHandlers:
 
     @guard
     def reset_view(self):
-        """Go back to the spec's view (or the default front view), the whole volume in sight."""
-        from dvr_perception.rays import Camera
+        """Go back to the spec's view (or the default view), the whole volume in sight.
 
-        az, el, zoom = self.session.spec.view or (0.0, 0.0, 1.0)
+        Without a view in the spec, an oriented scan is seen from the front, head up
+        (:func:`~dvr_perception.rays.camera.default_camera`), as on loading.
+        """
+        from dvr_perception.rays.camera import default_camera
+
         w, h = (int(v) for v in self.plotter.window_size)
         self._view_name = None
-        self._set_camera(
-            Camera.from_view(
-                self.session.volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
-            )
-        )
+        self._set_camera(default_camera(self.session.volume, self.session.spec.view, width=w,
+                                        height=h))  # fmt: skip

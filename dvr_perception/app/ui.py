@@ -10,7 +10,8 @@ Screens (tabs in the top bar):
 3. **Optimise** -- opacity only or all stages, live progress, cancel, before/after, history
    with undo to any earlier step;
 4. **Lens** -- draw a rectangle or circle on the view, set targets for the structures
-   inside, refine only that region;
+   inside, refine from that region: the result is shown inside the lens over the current
+   rendering, with the whole view's change and cost, and applied to the whole view on request;
 5. **Calibration** -- rate test images of known see-through, fit and save your curve;
 6. **Ranking study** -- order images by how see-through a structure looks; answers saved;
 7. **Export** -- PNG, spec JSON, ParaView preset, Slicer file.

@@ -15,9 +15,10 @@ def lens_panel(app) -> None:
     """Side panel of the Lens screen: shape, drawing hint, targets per structure, refine."""
     heading(
         "Lens: improve one region",
-        "Choose a shape, then drag on the image to mark the region to improve. Only that "
-        "region is optimised; you can ask for how visible or how see-through each structure "
-        "inside it should be.",
+        "Choose a shape, then drag on the image to mark the region to improve. The "
+        "settings are optimised for that region (you can ask how visible or how see-through "
+        "each structure inside it should be); the result is shown inside the region over the "
+        "current rendering, and applied to the whole view only when you click Apply.",
     )
     with v3.VBtnToggle(
         v_model=("lens_shape",),
@@ -57,38 +58,41 @@ def lens_panel(app) -> None:
                     raw_attrs=[':data-key="measured_key"'],
                 )
             for use, key in (("use_vis", "vis"), ("use_tr", "tr")):
-                with (
-                    html.Td(style="min-width: 120px"),
-                    html.Div(classes="d-flex align-center"),
-                ):
-                    v3.VCheckboxBtn(
-                        model_value=(f"row.{use}",),
-                        density="compact",
-                        update_modelValue=(
-                            app.set_lens_target,
-                            f"[row.index, '{use}', $event]",
-                        ),
-                        classes=f"lens-{use}",
-                    )
-                    v3.VSlider(
-                        model_value=(f"row.{key}",),
-                        min=0,
-                        max=1,
-                        step=0.05,
-                        thumb_label=True,
-                        hide_details=True,
-                        density="compact",
-                        disabled=(f"!row.{use}",),
-                        end=(app.set_lens_target, f"[row.index, '{key}', $event]"),
-                    )
-                    html.Span(
-                        f"{{{{ row.{key}.toFixed(2) }}}}",
-                        classes="text-caption ml-1",
-                        style=(f"{{opacity: row.{use} ? 1 : 0.4}}",),
+                with html.Td(style="min-width: 120px"):
+                    with html.Div(classes="d-flex align-center"):
+                        v3.VCheckboxBtn(
+                            model_value=(f"row.{use}",),
+                            density="compact",
+                            update_modelValue=(
+                                app.set_lens_target,
+                                f"[row.index, '{use}', $event]",
+                            ),
+                            classes=f"lens-{use}",
+                        )
+                        v3.VSlider(
+                            model_value=(f"row.{key}",),
+                            min=0,
+                            max=1,
+                            step=0.05,
+                            thumb_label=True,
+                            hide_details=True,
+                            density="compact",
+                            end=(app.set_lens_target, f"[row.index, '{key}', $event]"),
+                        )
+                        html.Span(
+                            f"{{{{ row.{key}.toFixed(2) }}}}",
+                            classes="text-caption ml-1",
+                            style=(f"{{opacity: row.{use} && row.set_{key} ? 1 : 0.4}}",),
+                        )
+                    html.Div(
+                        "move the slider to set a target",
+                        v_if=f"row.{use} && !row.set_{key}",
+                        classes=f"text-caption text-medium-emphasis lens-unset-{key}",
                     )
     html.Div(
-        "Tick a box to set a target. Visible share: how much of what you see in the region "
-        "should be this structure. See-through: 0 = solid, 1 = invisible.",
+        "Move a slider to set a target (its box ticks; untick it to drop the target). "
+        "Visible share: how much of what you see in the region should be this structure. "
+        "See-through: 0 = solid, 1 = invisible.",
         classes="text-caption",
         v_if="lens_rows.length",
     )
@@ -107,28 +111,59 @@ def lens_panel(app) -> None:
             disabled=("busy || !lens",),
             id="clear-lens",
         )
-    html.Div(
-        "{{ opt_key === now_key ? lens_whole_text : '' }}",
-        v_show="lens_whole_text",
-        classes="text-body-2 mt-2 measured",
-        raw_attrs=[':data-key="opt_key"'],
-        id="lens-whole",
-    )
-    with v3.VAlert(
-        v_if="lens_worse",
-        type="warning",
-        density="compact",
-        variant="tonal",
-        classes="mt-2",
-        id="lens-prompt",
+    with html.Div(
+        v_if="lens_result_key && lens_result_key === now_key",
+        classes="mt-3",
+        id="lens-result",
     ):
+        html.Div("The refined setting", classes="text-body-2 font-weight-bold")
         html.Div(
-            "The refinement made the whole view worse by more than 10 %. Keep it or undo it?",
-            classes="text-body-2",
+            "Inside the lens on the view: the refined setting; around it: the current one "
+            "(nothing is applied yet). It changes the transfer function, so it changes the "
+            "whole view, as here:",
+            classes="text-caption",
         )
+        html.Img(
+            src=("lens_whole_url",),
+            style="width: 100%; height: 120px; object-fit: contain; background: #000;",
+            id="lens-whole-image",
+        )
+        html.Div(
+            "{{ opt_key === now_key ? lens_whole_text : '' }}",
+            v_show="lens_whole_text",
+            classes="text-body-2 mt-1 measured",
+            raw_attrs=[':data-key="opt_key"'],
+            id="lens-whole",
+        )
+        with v3.VAlert(
+            v_if="lens_worse",
+            type="warning",
+            density="compact",
+            variant="tonal",
+            classes="mt-2",
+            id="lens-prompt",
+        ):
+            html.Div(
+                "Applied to the whole view, this setting makes the whole view worse by more "
+                "than 10 %.",
+                classes="text-body-2",
+            )
         with v3.VRow(dense=True, classes="mt-1"):
-            half_button("Keep", click=app.lens_keep, id="lens-keep")
-            half_button("Undo", click=app.lens_undo, color="primary", id="lens-undo")
+            half_button(
+                "Apply to whole view",
+                title="use the refined setting everywhere (one step in the history)",
+                click=app.lens_apply,
+                color="primary",
+                disabled=("busy",),
+                id="lens-apply",
+            )
+            half_button(
+                "Discard",
+                title="forget the refined setting",
+                click=app.lens_discard,
+                disabled=("busy",),
+                id="lens-discard",
+            )
 
 
 def _outline_style(x0, y0, x1, y1, circle) -> str:
@@ -174,6 +209,13 @@ def lens_pad(app) -> None:
         )
         drawing = _outline_style(
             f"{d}.x0", f"{d}.y0", f"{d}.x1", f"{d}.y1", "lens_shape === 'circle'"
+        )
+        # the lens result inside the lens over the current rendering (transparent outside)
+        html.Img(
+            v_if="lens_overlay_url && lens_result_key === now_key && view_mode === 'exact'",
+            src=("lens_overlay_url",),
+            style="position: absolute; inset: 0; width: 100%; height: 100%; pointer-events: none",
+            id="lens-result-overlay",
         )
         html.Div(v_if=d, style=(f"[{outline}, {drawing}]",), id="lens-drawing")
         c = "lens"

@@ -8,11 +8,15 @@ resolution further while the camera moves (its automatic image sample distance, 
 frames/s), so the label says "coarser while moving".
 
 Measured on cthead at 512x512 in headless Chromium (software GL, SwiftShader), load average
-5-6 on a shared 2-core machine: one full-quality frame of the 64-voxel copy takes 4.7 s at
-512x512, 0.96 s at 256x256, 0.26 s at 128x128 and 0.12 s at 64x64 (twice the sample distance
-halves it), so only vtk.js's adaptive resolution makes a drag interactive; with it, 9.5
-frames/s with the canvas at full size (its full-size buffers and copies cost per frame) and
-31-35 frames/s at half size (50-56 at a third).
+5-6 on a shared 2-core machine: one full-quality frame of the 64-voxel copy the preview used
+to be takes 4.7 s at 512x512, 0.96 s at 256x256, 0.26 s at 128x128 and 0.12 s at 64x64 (twice
+the sample distance halves it), so only vtk.js's adaptive resolution makes a drag interactive;
+with it, 9.5 frames/s with the canvas at full size (its full-size buffers and copies cost per
+frame) and 31-35 frames/s at half size (50-56 at a third).  With the full volume (issue 30;
+256x256x113 voxels, a sample every 2 voxels along the rays): 11.9-16.2 frames/s at load 6-8
+(the page handled one pointer move per frame), and the one full-quality frame vtk.js draws
+when the camera stops takes 1.0-1.3 s at 256x256 (1.4-1.7 s with a sample every voxel, which
+delayed the numbers of the rested view to 1.7-3.2 s; now 0.4-1.3 s).
 """
 
 from __future__ import annotations
@@ -55,7 +59,7 @@ _SCALE_SCRIPT = """
 
 #: The label at the view's top right: which image is on screen.
 LABEL = (
-    "{{ view_mode !== 'exact' ? 'quick preview (vtk.js, small copy, ' + "
+    "{{ view_mode !== 'exact' ? 'quick preview (vtk.js, ' + preview_detail + ', ' + "
     "(preview_scale === 1 ? 'full' : preview_scale === 0.5 ? 'half' : "
     "Math.round(100 * preview_scale) + ' %') + ' resolution, coarser while moving)' : "
     "(structures.some(r => r.label !== null && r.label !== undefined) ? "
@@ -73,6 +77,7 @@ def view_area(app) -> None:
     the numbers are out, renders its image, which covers the preview again.
     """
     end = (app.local_camera, "[trame.refs.local.getCamera()]")
+    app.state.preview_detail = app.preview.detail  # the volume's resolution in the preview
     app.state.preview_scale = 1  # each page says what it draws at (not synced back)
     app.state.client_only("preview_scale")
     client.Script(_SCALE_SCRIPT % {"scale": repr(float(PREVIEW_SCALE))})
@@ -106,6 +111,7 @@ def view_area(app) -> None:
         raw_attrs=[
             ':data-mode="view_mode"',
             ':data-scale="preview_scale"',
+            ':data-detail="preview_detail"',
             ':data-map="map_shown"',
         ],
         id="view-mode",

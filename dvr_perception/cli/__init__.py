@@ -147,9 +147,15 @@ def main(argv=None) -> int:
     debug = "--debug" in argv
     verbose = "-v" in argv or "--verbose" in argv
     with _session(verbose), terminate_as_interrupt():
+        from dvr_perception.cli._common import NOTES
+
+        NOTES.clear()
         try:
             args = build_parser().parse_args(argv)
-            return int(args.run(args) or 0)
+            code = int(args.run(args) or 0)
+            for note in NOTES:  # e.g. "structures: preset 'cthead' (data checksum matches)"
+                print(note, file=sys.stderr)
+            return code
         except SystemExit as exc:  # --help
             return exc.code if isinstance(exc.code, int) else 0
         except DVRInputError as exc:

@@ -21,10 +21,15 @@ from pathlib import Path
 
 import numpy as np
 
-import dvr_perception
 from dvr_perception._files import json_ready, write_npz
 from dvr_perception.errors import DVRInputError, DVRWarning
-from dvr_perception.rays.camera import MAX_IMAGE, Camera, parse_patient_view, patient_view
+from dvr_perception.rays.camera import (
+    MAX_IMAGE,
+    Camera,
+    default_camera,
+    parse_patient_view,
+    patient_view,
+)
 
 __all__ = [
     "PROG",
@@ -45,6 +50,9 @@ __all__ = [
 
 PROG = "dvr-perception"
 DEFAULT_SIZE = 512
+#: One-line notes for the user (e.g. which spec was chosen and why), printed on stderr by
+#: :func:`dvr_perception.cli.main` after the command has succeeded.
+NOTES: list[str] = []
 log = logging.getLogger("dvr_perception.cli")
 
 
@@ -108,11 +116,25 @@ def add_scene_args(
         )
     else:
         parser.add_argument("volume", metavar="VOLUME", help=help_volume)
-    parser.add_argument(
+    spec_group = parser.add_mutually_exclusive_group()
+    spec_group.add_argument(
         "--structures",
         metavar="SPEC.json",
         help="structure spec, or a 3D Slicer segmentation (.seg.nrrd: one label structure per "
-        "segment) (default: the spec paired with the volume, else a proposal)",
+        "segment) (default: the preset whose recorded data checksum matches the volume's, else "
+        "a proposal)",
+    )
+    spec_group.add_argument(
+        "--preset",
+        metavar="NAME",
+        help="use the preset NAME of the repository's state_files/ (e.g. cthead) whatever the data",
+    )
+    spec_group.add_argument(
+        "--classes",
+        metavar="N",
+        type=_classes,
+        help="propose structures from the data even when a preset matches: 'auto' (the number "
+        "the data choose) or N (1 to 8)",
     )
     if save_spec:
         parser.add_argument(
@@ -125,10 +147,10 @@ def add_scene_args(
     cam.add_argument(
         "--view",
         metavar="[NAME,]A,E[,Z]",
-        help="azimuth, elevation (degrees) and zoom, relative to the default view (down -z, +y "
-        "up) or to a patient view NAME: anterior, posterior, left, right, superior, inferior "
-        "(patient LPS, e.g. --view anterior shows the face); use --view=-30,10 for negative "
-        "angles",
+        help="azimuth, elevation (degrees) and zoom, relative to the down -z, +y up view or to a "
+        "patient view NAME: anterior, posterior, left, right, superior, inferior (patient LPS, "
+        "e.g. --view anterior shows the face); use --view=-30,10 for negative angles (default: "
+        "the spec's view, else anterior for a scan that records its orientation, else down -z)",
     )
     cam.add_argument("--camera", metavar="CAM.json", help="camera JSON (Camera.to_dict format)")
     parser.add_argument("--orientation", metavar="CODE", help=ORIENTATION_HELP)
@@ -293,30 +315,53 @@ class Scene:
     volume_source: str
     spec_source: str
     load_s: float
+    spec_line: str = ""
 
 
 def state_files_dir() -> Path:
-    """Return the repository's ``state_files`` folder (specs paired with shared volumes)."""
-    return Path(dvr_perception.__file__).resolve().parents[1] / "state_files"
+    """Return the repository's ``state_files`` folder (the presets of the shared volumes)."""
+    from dvr_perception.structures.presets import presets_dir
+
+    return presets_dir()
 
 
-def _load_volume(text: str, *, paired: bool = True, series: str | None = None):
-    """Return ``(volume, paired_spec_or_None, paired_source)`` for a VOLUME argument."""
+def _classes(text) -> int | str:
+    """Parse ``--classes``: ``auto`` or an integer from 1 to 8."""
+    if str(text).strip().lower() == "auto":
+        return "auto"
+    try:
+        n = int(str(text))
+    except ValueError:
+        msg = f"expected 'auto' or an integer from 1 to 8, got {_cut(text)}"
+        raise argparse.ArgumentTypeError(msg) from None
+    if not 1 <= n <= 8:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or an integer from 1 to 8, got {n}")
+    return n
+
+
+def _load_volume(text: str, *, paired: bool = True, series: str | None = None, classes=None):
+    """Return ``(volume, spec_or_None, spec_source, line)`` for a VOLUME argument.
+
+    With ``paired`` the spec is chosen by
+    :func:`~dvr_perception.structures.presets.choose_spec` (a preset whose data checksum
+    matches, else a proposal; ``classes`` asks for a proposal of that many structures).
+    """
     if text == "phantom":
         from dvr_perception.volume.phantom import make_phantom
 
         volume, spec = make_phantom()
-        return volume, spec, "phantom (built-in spec)"
+        return volume, spec, "phantom (built-in spec)", ""
     from dvr_perception.volume.io import load_volume
 
     path = Path(text)
     volume = load_volume(path, series=series) if series is not None else load_volume(path)
-    spec_file = state_files_dir() / f"{path.name.split('.')[0]}.json"
-    if paired and spec_file.is_file():
-        from dvr_perception.structures.io import load_spec
+    if paired:
+        from dvr_perception.structures.presets import choose_spec
 
-        return volume, load_spec(spec_file), str(spec_file)
-    return volume, None, ""
+        auto = classes == "auto"
+        choice = choose_spec(volume, n_structures=None if auto else classes, propose=auto)
+        return volume, choice.spec, choice.source, choice.line
+    return volume, None, "", ""
 
 
 def _read_camera(path_text: str, size: tuple[int, int] | None) -> Camera:
@@ -359,7 +404,15 @@ def load_scene(args: argparse.Namespace) -> Scene:
         save_to = check_output_file(save_to)
     from dvr_perception.structures.io import attach_labels, check_spec_for_volume, load_spec
 
-    given = load_spec(args.structures) if args.structures is not None else None
+    given, given_source, given_line = None, "", ""
+    if args.structures is not None:  # the user's own spec: nothing to explain
+        given, given_source = load_spec(args.structures), str(args.structures)
+    elif getattr(args, "preset", None) is not None:
+        from dvr_perception.structures.presets import load_preset
+
+        given, path = load_preset(args.preset)
+        given_source = str(path)
+        given_line = f"structures: preset {args.preset!r} (given with --preset)"
     k = len(given.structures) if given is not None else 1
     if camera is not None:  # before the volume is read: the image must fit the limit
         memory.check_image(camera.width, camera.height, k, source=f"--camera {args.camera}")
@@ -367,17 +420,17 @@ def load_scene(args: argparse.Namespace) -> Scene:
         memory.check_image(*size, k)
     t0 = time.perf_counter()
     log.info("loading volume %s", args.volume)
-    volume, spec, spec_source = _load_volume(
-        args.volume, paired=given is None, series=getattr(args, "series", None)
+    volume, spec, spec_source, spec_line = _load_volume(
+        args.volume,
+        paired=given is None,
+        series=getattr(args, "series", None),
+        classes=getattr(args, "classes", None),
     )
     load_s = time.perf_counter() - t0
     if given is not None:
-        spec, spec_source = given, str(args.structures)
-    elif spec is None:
-        from dvr_perception.structures.propose import propose_structures
-
-        log.info("no spec given or paired with %s: proposing structures", args.volume)
-        spec, spec_source = propose_structures(volume), "proposed"
+        spec, spec_source, spec_line = given, given_source, given_line
+    if spec_line:  # said once the command has succeeded (an error stays one line)
+        NOTES.append(spec_line)
     volume = attach_labels(volume, spec)
     if getattr(args, "orientation", None) is not None:
         from dvr_perception.volume.orient import reorient
@@ -400,18 +453,21 @@ def load_scene(args: argparse.Namespace) -> Scene:
         save_spec(spec, save_to)
         log.info("wrote the structure spec to %s", save_to)
     if camera is None:
-        name, az, el, zoom = view if view is not None else (None, *(spec.view or (0, 0, 1)))
         w, h = size if size is not None else (DEFAULT_SIZE, DEFAULT_SIZE)
-        if name is not None:
+        if view is None:  # the spec's view, else anterior for an oriented scan
+            camera = default_camera(volume, spec.view, width=w, height=h)
+        elif view[0] is not None:
+            name, az, el, zoom = view
             _warn_unoriented(volume)
             camera = patient_view(
                 volume, name, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
             )
         else:
+            _, az, el, zoom = view
             camera = Camera.from_view(
                 volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
             )
-    return Scene(volume, spec, camera, args.volume, spec_source, load_s)
+    return Scene(volume, spec, camera, args.volume, spec_source, load_s, spec_line)
 
 
 def _warn_unoriented(volume) -> None:

@@ -5,8 +5,8 @@ Reported figures (seconds unless stated):
 * ``load_s`` – reading (or generating) the volume, and up-sampling it with ``--resample
   FX,FY,FZ`` (integer factors along x, y, z, trilinear; e.g. ``--resample 2,2,4`` turns
   cthead's 256×256×113 into 512×512×452); ``--save-volume PATH`` also writes that volume
-  (e.g. ``big/cthead.nhdr``, which pairs with ``state_files/cthead.json``) for the other
-  commands.
+  (e.g. ``big/cthead.nhdr``; its data are not cthead's, so give it ``--preset cthead``) for
+  the other commands.
 * ``curvature_s`` – the curvature volume; ``curvature_vtk_frames`` = ``curvature_s /
   vtk_frame_s``.
 * ``peak_rss_mb`` – the process's peak resident memory (``ru_maxrss``) at the end, MiB: the
@@ -29,6 +29,9 @@ Reported figures (seconds unless stated):
   (what one optimiser step costs); ``reeval_vtk_frames`` = ``reeval_s / vtk_frame_s``.
 * ``samples_per_s`` – ray samples per second of a full frame; ``cache_mb`` – size of the
   re-evaluation cache.
+* ``backend`` – the back end that analysed (``--backend``, default ``auto``: ``cuda`` where
+  numba finds a CUDA device, else ``numba``); the same keys on every back end (with
+  ``cuda`` the re-evaluations still composite the cache on the CPU).
 * ``measure_s`` – median time of the three measures (visibility, shape, transparency, as
   :func:`~dvr_perception.measures.all_measures` computes them), each run on a fresh analysis
   (the measures remember checked fields and the luminance on the analysis they were given);
@@ -62,6 +65,7 @@ import time
 import numpy as np
 
 from dvr_perception._files import file_lock
+from dvr_perception.cli._backend import add_backend_arg
 from dvr_perception.cli._common import (
     add_scene_args,
     check_output_file,
@@ -95,6 +99,7 @@ def add_parser(subparsers, parents) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_scene_args(p, volume_optional=True)
+    add_backend_arg(p)
     p.add_argument(
         "--repeat",
         type=int,
@@ -225,14 +230,14 @@ def _measure_times(make_analysis, spec, repeat: int) -> float:
     return float(statistics.median(times))
 
 
-def _optimize_report(vol, spec, cam, curv, seed: int) -> dict:
+def _optimize_report(vol, spec, cam, curv, seed: int, backend: str = "auto") -> dict:
     """Time one default :func:`~dvr_perception.optimize.optimize` run (see the module doc)."""
     from dvr_perception.optimize import optimize
     from dvr_perception.optimize.stages import STAGES
 
     log.info("3-stage optimisation")
     t0 = time.perf_counter()
-    res = optimize(vol, spec, cam, curvature=curv, seed=seed)
+    res = optimize(vol, spec, cam, curvature=curv, seed=seed, backend=backend)
     optimize_s = time.perf_counter() - t0
     keys = ("E_v", "E_s", "E_t", "E", "coverage")
     stages = {}
@@ -275,6 +280,7 @@ def run(args: argparse.Namespace) -> int:
     from dvr_perception.rays.curvature_field import CurvatureField, curvature_source
     from dvr_perception.rays.engine import analyze, reevaluate
 
+    analyze = functools.partial(analyze, backend=args.backend)  # every frame on that back end
     with contextlib.ExitStack() as held:
         if args.save_volume is not None:
             check_output_file(args.save_volume)
@@ -379,7 +385,7 @@ def run(args: argparse.Namespace) -> int:
     if vtk_error is not None:
         report["vtk_error"] = vtk_error
     if args.optimize:
-        opt = _optimize_report(vol, spec, cam, curv, args.seed)
+        opt = _optimize_report(vol, spec, cam, curv, args.seed, args.backend)
         frames = opt["optimize_s"] / vtk_frame_s if vtk_frame_s else None
         opt["optimize_vtk_frames"] = frames
         opt["optimize_with_curvature_s"] = opt["optimize_s"] + curvature_s

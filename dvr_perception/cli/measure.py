@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from dvr_perception._files import output_folder, write_json, write_png
+from dvr_perception.cli._backend import add_backend_arg
 from dvr_perception.cli._common import (
     add_scene_args,
     coverage,
@@ -78,6 +79,7 @@ def add_parser(subparsers, parents) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_scene_args(p)
+    add_backend_arg(p)
     p.add_argument(
         "--out-dir",
         metavar="DIR",
@@ -240,7 +242,7 @@ def _run(args, scene, t_start: float, staged) -> int:
     log.info("analysing %dx%d rays", scene.camera.width, scene.camera.height)
     t0 = time.perf_counter()
     result = analyze(scene.volume, scene.spec, scene.camera, curvature=curvature, build_cache=False,
-                     progress=log_progress("rays"))  # fmt: skip
+                     progress=log_progress("rays"), backend=args.backend)  # fmt: skip
     t_analysis = time.perf_counter() - t0
     log.info("computing the measures")
     t0 = time.perf_counter()

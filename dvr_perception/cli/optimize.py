@@ -44,6 +44,7 @@ import numpy as np
 
 from dvr_perception._files import output_folder, write_json, write_png
 from dvr_perception.cli import _plots
+from dvr_perception.cli._backend import add_backend_arg
 from dvr_perception.cli._common import (
     add_scene_args,
     coverage,
@@ -101,6 +102,7 @@ def add_parser(subparsers, parents) -> None:
     )
     add_scene_args(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    add_backend_arg(p)
     p.add_argument(
         "--stages",
         default="opacity,lighting,colour",
@@ -300,13 +302,14 @@ def stop_on_interrupt(progress: Progress):
 
 
 # -- measuring and writing -----------------------------------------------------------------------
-def _measure(volume, spec, camera, curvature, weights, result=None):
+def _measure(volume, spec, camera, curvature, weights, result=None, backend="auto"):
     from dvr_perception.cli.measure import _structures
     from dvr_perception.measures import all_measures
     from dvr_perception.rays.engine import analyze
 
     if result is None:
-        result = analyze(volume, spec, camera, curvature=curvature, build_cache=False)
+        result = analyze(volume, spec, camera, curvature=curvature, build_cache=False,
+                         backend=backend)  # fmt: skip
     vis, shp, trn = all_measures(result, spec)
     terms = {"E_v": float(vis.E_v), "E_s": float(shp.E_s), "E_t": float(trn.E_t)}
     terms["E"] = float(sum(w * terms[k] for w, k in zip(weights, TERMS, strict=True)))
@@ -345,14 +348,15 @@ def _terms(d: dict) -> dict:
 
 def optimize_result(volume, spec, camera, out_dir, *, stages=("opacity", "lighting", "colour"),
                     weights=(1.0, 1.0, 1.0), region=None, views=1, seed=0, max_iter=10,
-                    resolution=None, coverage_keep=None, progress=None,
-                    objective=None, final_dir=None) -> tuple[dict, dict]:  # fmt: skip
+                    resolution=None, coverage_keep=None, progress=None, objective=None,
+                    final_dir=None, backend="auto") -> tuple[dict, dict]:  # fmt: skip
     """Optimise ``spec`` for ``camera``, write the result (step 1) into ``out_dir``.
 
     ``region`` is ``(x0, y0, x1, y1)`` in pixels or ``None``; ``progress`` a :class:`Progress`
     (or any callback); ``objective`` ``"mean"`` or ``"least_squares"`` (``None``: the
     optimiser's default).  ``final_dir`` is the folder the files end up in when ``out_dir`` is
-    a staging folder (the optimised spec's ``labels`` path is made relative to it).  See the
+    a staging folder (the optimised spec's ``labels`` path is made relative to it).
+    ``backend``: the ray analyses' (:func:`~dvr_perception.rays.engine.analyze`).  See the
     module docstring for the files and the report.
 
     Returns
@@ -384,6 +388,7 @@ def optimize_result(volume, spec, camera, out_dir, *, stages=("opacity", "lighti
         max_iter=max_iter,
         resolution=resolution,
         coverage_keep=coverage_keep,
+        backend=backend,
         **({} if objective is None else {"objective": objective}),
     )
     if isinstance(progress, Progress):
@@ -393,8 +398,8 @@ def optimize_result(volume, spec, camera, out_dir, *, stages=("opacity", "lighti
     # the optimiser's renderings of the view (equal to fresh analyses), else analyse again
     first, last = res.analyses or (None, None)
     curvature = None if res.analyses else curvature_source(volume, spec)
-    before, m_before, initial = _measure(volume, spec, camera, curvature, weights, first)
-    after, m_after, final = _measure(volume, res.spec, camera, curvature, weights, last)
+    before, m_before, initial = _measure(volume, spec, camera, curvature, weights, first, backend)
+    after, m_after, final = _measure(volume, res.spec, camera, curvature, weights, last, backend)
     t_measured = time.perf_counter()
     d = Path(out_dir)
     files = [write_png(d / "before.png", before.image), write_png(d / "after.png", after.image)]
@@ -561,7 +566,8 @@ def run(args: argparse.Namespace) -> int:
                                               resolution=args.resolution,
                                               coverage_keep=args.coverage_keep,
                                               progress=progress, objective=args.objective,
-                                              final_dir=staged.final)  # fmt: skip
+                                              final_dir=staged.final,
+                                              backend=args.backend)  # fmt: skip
         report = {"volume": scene.volume_source, "spec": scene.spec_source, **report}
         report["out_dir"] = str(staged.final)
         report["files"] = [str(staged.final_path(f)) for f in report["files"]]

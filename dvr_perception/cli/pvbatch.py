@@ -240,7 +240,7 @@ def rank_threads(ranks: int, cores: int | None = None) -> int:
 def _script_args(args: argparse.Namespace) -> list[str]:
     """Return the command line of ``plugin/batch_measure.py`` (or ``batch_optimize.py``)."""
     argv = [str(args.volume)]
-    for opt in ("structures", "camera", "size", "series", "orientation"):
+    for opt in ("structures", "preset", "classes", "camera", "size", "series", "orientation"):
         if getattr(args, opt, None) is not None:
             argv += [f"--{opt}", str(getattr(args, opt))]
     if args.view is not None:

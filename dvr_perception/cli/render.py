@@ -6,6 +6,7 @@ import argparse
 import time
 
 from dvr_perception._files import check_distinct, staged_files, write_png
+from dvr_perception.cli._backend import add_backend_arg
 from dvr_perception.cli._common import (
     add_scene_args,
     check_output_file,
@@ -37,6 +38,7 @@ def add_parser(subparsers, parents) -> None:
     )
     add_scene_args(p)
     p.add_argument("--out", required=True, metavar="IMG.png", help="output image")
+    add_backend_arg(p)
     p.add_argument(
         "--buffers",
         metavar="OUT.npz",
@@ -65,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     # (occlusion-free) opacities need every sample of every ray
     result = analyze(
         scene.volume, scene.spec, scene.camera, curvature=curvature, build_cache=False,
-        occlusion_free=buffers is not None,
+        occlusion_free=buffers is not None, backend=args.backend,
     )  # fmt: skip
     seconds = time.perf_counter() - t0
     with staged_files(*([out] if buffers is None else [out, buffers])) as tmps:

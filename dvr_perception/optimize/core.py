@@ -25,7 +25,7 @@ from dvr_perception.optimize.results import (
 from dvr_perception.optimize.stages import STAGES
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature_field import curvature_source
-from dvr_perception.rays.engine import analyze_views
+from dvr_perception.rays.engine import BACKENDS, analyze_views
 from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.volume.volume import Volume
 
@@ -153,6 +153,7 @@ def optimize(
     objective="mean",
     analyzer=None,
     progress=None,
+    backend="auto",
 ) -> OptimizationResult:
     """Optimise opacity, lighting and colour of ``spec`` for a readable rendering (Eq. 12-15).
 
@@ -243,6 +244,9 @@ def optimize(
         fraction in [0, 1], ending with 1.0; the iterations report through ``callback``.  A
         ``progress`` that raises :class:`StopIteration` cancels the optimisation with
         :class:`~dvr_perception.errors.DVRCancelled`.
+    backend : {"auto", "numba", "numpy", "cuda"}
+        Back end of the views' ray analyses (:func:`~dvr_perception.rays.engine.analyze`);
+        the re-evaluations composite the cached rays on the CPU whatever the back end.
 
     Returns
     -------
@@ -263,6 +267,8 @@ def optimize(
     (True, True)
     """
     t_start = time.perf_counter()
+    if backend not in BACKENDS:
+        raise DVRInputError(f"backend: expected one of {BACKENDS}, got {backend!r}")
     w = _check(volume, spec, camera, stages, weights, cameras, region, calibration, seed, callback,
                max_iter, resolution, opacity_floor, coverage_keep, analyzer)  # fmt: skip
     if composition not in COMPOSITIONS:
@@ -286,7 +292,8 @@ def optimize(
         if curvature is None:
             curvature = curvature_source(volume, spec, progress=prep.sub(0.0, 0.3))
         # every camera in one call: a volume analysed in bricks is read once for all
-        found = analyze_views(volume, spec, todo, curvature=curvature, progress=prep.sub(0.3, 1))
+        found = analyze_views(volume, spec, todo, curvature=curvature, progress=prep.sub(0.3, 1),
+                              backend=backend)  # fmt: skip
     else:
         found = [analyzer(cam) for cam in todo]
     prep(1.0)

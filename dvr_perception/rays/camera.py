@@ -27,6 +27,7 @@ __all__ = [
     "MAX_IMAGE",
     "PATIENT_VIEWS",
     "Camera",
+    "default_camera",
     "parse_patient_view",
     "parse_view",
     "patient_angles",
@@ -313,6 +314,31 @@ def patient_view(
         view_angle=view_angle,
         width=width,
         height=height,
+    )
+
+
+def default_camera(volume, view=None, *, width: int = 512, height: int = 512) -> Camera:
+    """Return the camera a volume is first seen from.
+
+    ``view`` (a spec's ``(azimuth, elevation, zoom)``) is relative to the down -z, +y up view
+    (:meth:`Camera.from_view`), as ``--view A,E,Z`` is.  Without one, a volume whose patient
+    orientation is known (``Volume.oriented``) is seen from the front, head up
+    (:func:`patient_view` ``"anterior"``); a file without orientation keeps the down -z view.
+
+    Examples
+    --------
+    >>> from dvr_perception.volume import Volume
+    >>> v = Volume(np.zeros((2, 2, 2), np.uint8))
+    >>> default_camera(v, width=8, height=8).view_up
+    (0.0, 0.0, 1.0)
+    >>> [abs(c) for c in default_camera(Volume(v.data, oriented=False)).view_up]
+    [0.0, 1.0, 0.0]
+    """
+    if view is None and getattr(volume, "oriented", False):
+        return patient_view(volume, "anterior", width=width, height=height)
+    az, el, zoom = view if view is not None else (0.0, 0.0, 1.0)
+    return Camera.from_view(
+        volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=width, height=height
     )
 
 

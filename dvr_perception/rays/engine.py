@@ -34,6 +34,7 @@ Conventions matched to ``vtkFixedPointVolumeRayCastMapper`` (``docs/vtk_conventi
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 import warnings
@@ -54,7 +55,7 @@ from dvr_perception.volume.volume import Volume
 
 __all__ = ["RayAnalysis", "RayCache", "analyze", "analyze_views", "reevaluate"]
 
-BACKENDS = ("auto", "numba", "numpy")
+BACKENDS = ("auto", "numba", "numpy", "cuda")
 _MAX_STRUCTURES = MAX_STRUCTURES
 
 
@@ -131,13 +132,40 @@ def _checked_curvature(nk, c: np.ndarray) -> int:
 
 
 def _pick_backend(backend: str):
-    nk = _numba_kernels() if backend in ("auto", "numba") else None
+    """Return the numba kernel module for ``backend`` (None: numpy); check ``"cuda"``'s needs.
+
+    The CUDA back end walks the rays on the GPU; the rays and the per-volume arrays are made
+    by the numba kernels (the same numbers as the CPU engine), so it needs them too.
+    """
+    if backend == "cuda":
+        from dvr_perception.rays import _cuda
+
+        _cuda.kernels()  # one clear error without numba.cuda or a device
+    nk = _numba_kernels() if backend in ("auto", "numba", "cuda") else None
     if backend == "numba" and nk is None:
         raise DVRInputError(
             "backend: 'numba' was requested but numba cannot be imported "
             "(or DVR_PERCEPTION_NO_NUMBA is set); use backend='numpy' or 'auto'"
         )
     return nk
+
+
+def _kind(backend: str, nk) -> str:
+    """Return the back end that runs: ``"cuda"``, ``"numba"`` or ``"numpy"`` (``auto`` resolved).
+
+    ``auto`` takes the GPU when numba finds a CUDA device (never the simulator), else numba,
+    else numpy.
+    """
+    if backend == "cuda":
+        return "cuda"
+    if nk is None:
+        return "numpy"
+    if backend == "auto":
+        from dvr_perception.rays import _cuda
+
+        if _cuda.auto_usable():
+            return "cuda"
+    return "numba"
 
 
 def _segments(nk, camera, volume, step: float) -> dict:
@@ -231,9 +259,15 @@ def analyze(
     curvature : numpy.ndarray, optional
         ``|mean curvature|`` per voxel ``[z, y, x]`` (0 off boundaries), e.g. from
         :func:`dvr_perception.rays.curvature.curvature_volume`; looked up at the nearest voxel.
-    backend : {"auto", "numba", "numpy"}
-        Kernel implementation; "auto" uses numba unless it is missing or
-        ``DVR_PERCEPTION_NO_NUMBA=1``.
+    backend : {"auto", "numba", "numpy", "cuda"}
+        Kernel implementation; "auto" uses the GPU when numba finds a CUDA device (not with
+        ``DVR_PERCEPTION_NO_CUDA=1``), else numba unless it is missing or
+        ``DVR_PERCEPTION_NO_NUMBA=1``, else numpy.  "cuda" walks the rays on the GPU
+        (:mod:`~dvr_perception.rays._cuda_kernels`, the ``gpu`` extra; the same results as
+        "numba"); it analyses the whole volume at once whenever it fits ``memory_limit``
+        (no ``brick``; a volume that fits only in bricks raises
+        :class:`~dvr_perception.errors.DVRInputError`, where ``"auto"`` takes the bricked
+        CPU analysis) and its cache re-evaluates on the CPU.
     build_cache : bool
         Keep the per-ray sample lists for :func:`reevaluate` (costs memory and a little time).
     occlusion_free : bool
@@ -305,7 +339,25 @@ def analyze(
             DVRWarning,
             stacklevel=2,
         )
+    kind = _kind(backend, nk)
+    if kind == "cuda" and brick is not None:
+        if backend == "cuda":
+            raise DVRInputError(
+                "brick: the cuda back end analyses the whole volume at once; bricked analysis "
+                "is CPU only (backend='numba' or 'auto')"
+            )
+        kind = "numba"
     need = _plan(volume, spec, camera, seg, lut, memb, has_curv, build_cache, memory_limit, brick)
+    if kind == "cuda" and need["mode"] == "bricks" and need["whole"] <= need["limit"]:
+        need["mode"] = "whole"  # the CPU bricks large volumes for speed; the GPU takes them whole
+    if kind == "cuda" and need["mode"] == "bricks":
+        if backend == "cuda":
+            raise DVRInputError(
+                f"memory_limit: volume {volume.name!r} needs a bricked analysis within the "
+                "memory limit, which the cuda back end does not do; use backend='auto' or "
+                "'numba', or raise memory_limit"
+            )
+        kind = "numba"
     if need["mode"] == "whole" and curv is not None and not isinstance(curv, np.ndarray):
         curv = _check_curvature(np.asarray(curv), volume)  # a field, read whole
     report(0.0)
@@ -329,7 +381,7 @@ def analyze(
     report(0.1)  # the derived volumes are ready; the walk follows
     # float64 accumulators come from reused scratch (fresh memory costs page faults); the
     # lock is held until _finish has copied them out
-    locked = nk is not None and _SCRATCH_LOCK.acquire(blocking=False)
+    locked = kind == "numba" and _SCRATCH_LOCK.acquire(blocking=False)
     try:
         if nk is None:
             out = _npk.walk(idx, *lab, cv, seg, step, ids, memb, alpha_w, has_curv, k, _tables.ERT)
@@ -340,9 +392,12 @@ def analyze(
             rgba, vis, cimg = _npk.composite(start, count, c_lut, c_sh, c_curv, *args, k)
             present, asg, aimp = out["present"], out["assigned"], out["importance_accumulated"]
         else:
-            res = _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
-                              camera, build_cache, occlusion_free, locked,
-                              report.sub(0.1, 0.9))  # fmt: skip
+            walker = _walk_numba
+            if kind == "cuda":
+                walker = functools.partial(_walk_cuda, bg=np.asarray(spec.background, np.float32))
+            res = walker(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
+                         camera, build_cache, occlusion_free, locked,
+                         report.sub(0.1, 0.9))  # fmt: skip
             rgba, vis, asg, present, cimg, start, count, entries, walked, aimp = res
             if entries is not None:
                 c_lut, c_j = entries["lut"], entries["steps"]
@@ -367,7 +422,7 @@ def analyze(
             "samples_walked": walked,
             "samples_per_second": samples / seconds if seconds > 0 else 0.0,
             "seconds": seconds,
-            "backend": "numpy" if nk is None else "numba",
+            "backend": kind,
             "sample_distance": step,
             "occlusion_free": bool(occlusion_free),
             "params": _params(ops, cols, mats, rs.light_direction),
@@ -398,7 +453,10 @@ def analyze(
             )
             stats["cache_entries"] = len(c_lut)
             stats["cache_bytes"] = cache.nbytes
-        res = _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
+        if isinstance(rgba, tuple):  # the GPU made the float32 outputs and the image
+            res = _analysis(*rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
+        else:
+            res = _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
         report(1.0)
         return res
     finally:
@@ -433,6 +491,7 @@ def analyze_views(
     build_cache: bool = True,
     memory_limit=None,
     progress=None,
+    backend: str = "auto",
 ) -> list[RayAnalysis]:
     """:func:`analyze` for each camera; a volume analysed in bricks is read once for all.
 
@@ -440,7 +499,9 @@ def analyze_views(
     that meet the bricks in the same order (one view at several resolutions) share a pass
     over the volume (:func:`~dvr_perception.rays.bricks.analyze_bricked_views`): each brick
     is derived once instead of once per camera.  The results equal separate calls.
-    ``progress``: as :func:`analyze`, over all the cameras.
+    ``progress``: as :func:`analyze`, over all the cameras; ``backend``: as :func:`analyze`
+    (the shared bricked pass is the CPU's: with ``"cuda"`` every camera is analysed whole on
+    the GPU).
 
     Examples
     --------
@@ -456,23 +517,29 @@ def analyze_views(
     report = reporter(progress)
     curv = _check_curvature(curvature, volume)
     for cam in cameras:
-        _check_inputs(volume, spec, cam, "auto")
+        _check_inputs(volume, spec, cam, backend)
     # the tables and label map are the same for every camera: only the rays differ
-    nk, step, _, lut, _, _, memb, _ = _scene(volume, spec, cameras[0], "auto")
+    nk, step, _, lut, _, _, memb, _ = _scene(volume, spec, cameras[0], backend)
     plans = [
         _plan(volume, spec, cam, _segments(nk, cam, volume, step), lut, memb, curv is not None,
               build_cache, memory_limit, None)
         for cam in cameras
     ]  # fmt: skip
     bricks = {tuple(p["brick"]) for p in plans if p["mode"] == "bricks"}
-    if len(cameras) > 1 and len(bricks) == 1 and all(p["mode"] == "bricks" for p in plans):
+    shared = len(cameras) > 1 and len(bricks) == 1 and all(p["mode"] == "bricks" for p in plans)
+    if shared and _kind(backend, nk) != "cuda":  # bricks are the CPU's (analyze() decides)
         from dvr_perception.rays.bricks import analyze_bricked_views
 
         return analyze_bricked_views(
             volume, spec, cameras, brick=bricks.pop(), curvature=curv, build_cache=build_cache,
             memory_limit=memory_limit, progress=report,
         )  # fmt: skip
-    kw = {"curvature": curvature, "build_cache": build_cache, "memory_limit": memory_limit}
+    kw = {
+        "curvature": curvature,
+        "build_cache": build_cache,
+        "memory_limit": memory_limit,
+        "backend": backend,
+    }
     n = len(cameras)
     return [analyze(volume, spec, cam, progress=report.sub(i / n, (i + 1) / n), **kw)
             for i, cam in enumerate(cameras)]  # fmt: skip
@@ -577,6 +644,123 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
                         src_j, src_sh, src_curv, start, count, chunk_end, walked, aimp,
                         _scratch("state", nrays, (7,), np.float64, locked), report)  # fmt: skip
     return (out[0], out[1], asg_all[:k], *out[3:], aimp)
+
+
+def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k, camera, build,
+               tail, locked=False, report=None, bg=None):  # fmt: skip
+    """Run the walk on the GPU (:mod:`~dvr_perception.rays._cuda_kernels`); as :func:`_walk_numba`.
+
+    One thread per ray.  The float32 outputs and the image over the background ``bg`` are
+    made on the device: ``rgba`` comes back as ``(rgba, image, accumulated)``, ``vis`` and
+    ``cimg`` as float32.  With ``build`` every ray packs its cache entries into a region of
+    its own (its sample count: an upper bound), then the entries are packed in row-major
+    pixel order on the device and copied back: the same cache as the CPU engine's.  The
+    derived volumes stay on the device while the volume lives (:func:`_cuda.to_device`).
+    """
+    from dvr_perception.rays import _cuda
+
+    ck = _cuda.kernels()
+    ids, alpha_r, cols, light, tab, shade, has_curv, ert = args
+    h, w = camera.height, camera.width
+    nrays = h * w
+    n = np.ascontiguousarray(seg["n"])
+    tix = _grid.compact_index(volume, idx)
+    cells = _grid.cell_map(volume, idx, ids, memb, lab[0] if lab[1] >= 0 else None)
+    blocks = _grid.block_map(volume, cells)
+    rep = _plateau_entries(ids, memb, k)
+    kmap, tids, t_alpha, t_bit = _tail_tables(ids, memb, alpha_w, rep, k)
+    base = np.zeros(nrays, np.int64)
+    if build:
+        np.cumsum(n[:-1], out=base[1:])
+    cap = max(int(n.sum()), 1) if build else 1
+    big = (vol, tix, cells, blocks, lab[0], cv)
+    entry = 2 + 4 + (4 if shade else 0) + (4 if has_curv else 0)
+    need = sum(a.nbytes for a in big) + nrays * 8 * (2 * k + 25) + (cap * entry if build else 0)
+    _cuda.check_fits(int(need * 1.1) + (2 * cap * entry if build else 0))
+    dev = [_cuda.to_device(a, keep=True) for a in big]
+    small = [_cuda.to_device(a) for a in (rep, kmap, tids, t_alpha, t_bit)]
+    rays = [_cuda.to_device(seg[q]) for q in ("a", "b", "t")] + [_cuda.to_device(n)]
+    base_d = _cuda.to_device(base)
+    tables = [_cuda.to_device(a) for a in (ids, memb, alpha_r, alpha_w, cols, light, tab)]
+    from numba import cuda
+
+    out = {
+        "rgba": cuda.device_array((nrays, 4), np.float64),
+        "vis": cuda.device_array((k, nrays), np.float64),
+        "asg": cuda.device_array((k + 1, nrays), np.float64),
+        "present": cuda.device_array(nrays, np.uint32),
+        "cimg": cuda.device_array(nrays, np.float64),
+        "count": cuda.device_array(nrays, np.int64),
+        "walked": cuda.device_array(nrays, np.int64),
+        "aimp": cuda.device_array(nrays, np.float64),
+        "state": cuda.device_array((nrays, 7), np.float64),
+    }
+    src = (
+        cuda.device_array(cap, np.uint16),
+        cuda.device_array(cap, np.int32),
+        cuda.device_array((cap if build and shade else 1, 2), np.uint16),
+        cuda.device_array(cap if build and has_curv else 1, np.float32),
+    )
+    bx, by = ck.BLOCK
+    grid = (-(-w // bx), -(-h // by))
+    vol_d, tix_d, cells_d, blocks_d, lab_d, cv_d = dev
+    with _cuda.quiet_launch():  # small images: no low-occupancy warning per frame
+        ck.walk[grid, (bx, by)](
+            vol_d, tix_d, cells_d, blocks_d, small[0], lab_d, np.int64(lab[1]), *small[1:],
+            cv_d, *rays, base_d, float(step), *tables, bool(shade),
+            bool(has_curv), bool(build), bool(tail), float(ert), out["rgba"], out["vis"],
+            out["asg"], out["present"], out["cimg"], out["count"], out["walked"], out["aimp"],
+            out["state"], *src, np.int64(w), np.int64(h),
+        )  # fmt: skip
+    # float32 outputs and the image over the background made on the device (as _finish)
+    fin = {
+        "rgba": cuda.device_array((nrays, 4), np.float32),
+        "image": cuda.device_array((nrays, 3), np.float32),
+        "acc": cuda.device_array(nrays, np.float32),
+        "vis": cuda.device_array((k, nrays), np.float32),
+        "cimg": cuda.device_array(nrays, np.float32),
+    }
+    threads = 128
+    with _cuda.quiet_launch():
+        ck.finish[-(-nrays // threads), threads](
+            out["rgba"], out["vis"], out["cimg"], _cuda.to_device(bg), fin["rgba"],
+            fin["image"], fin["acc"], fin["vis"], fin["cimg"],
+        )  # fmt: skip
+    host = {q: d.copy_to_host() for q, d in fin.items()}
+    host["present"] = out["present"].copy_to_host()
+    host["aimp"] = out["aimp"].copy_to_host()
+    host["asg"] = out["asg"][:k].copy_to_host()  # not the spare row of the walk behind ERT
+    walked = int(out["walked"].copy_to_host().sum())
+    if report:
+        report(0.9)
+    start, count, entries = None, None, None
+    if build:
+        count = out["count"].copy_to_host()
+        start = np.zeros(nrays, np.int64)
+        np.cumsum(count[:-1], out=start[1:])
+        e = int(start[-1] + count[-1]) if nrays else 0
+        m = max(e, 1)
+        dst = (
+            cuda.device_array(m, np.uint16),
+            cuda.device_array(m, np.int32),
+            cuda.device_array((m if shade else 1, 2), np.uint16),
+            cuda.device_array(m if has_curv else 1, np.float32),
+        )
+        with _cuda.quiet_launch():
+            ck.compact[-(-nrays // threads), threads](
+                base_d, out["count"], _cuda.to_device(start), *src, *dst,
+                bool(shade), bool(has_curv),
+            )  # fmt: skip
+        lut_h, j_h, sh_h, curv_h = (d.copy_to_host() for d in dst)
+        entries = {
+            "lut": lut_h[:e],
+            "steps": j_h[:e],
+            "shading": sh_h[: e if shade else 0],
+            "curvature": curv_h[: e if has_curv else 0],
+        }
+    rgba = (host["rgba"], host["image"], host["acc"])  # finished: see analyze()
+    return (rgba, host["vis"], host["asg"], host["present"], host["cimg"], start, count,
+            entries, walked, host["aimp"])  # fmt: skip
 
 
 def _threads() -> int:
@@ -734,7 +918,9 @@ def reevaluate(
     entries that no earlier compositing reached (numba backend: computed once, on first use)
     and for the shading of all entries after a change of light direction or specular power.
     ``assigned`` and ``present`` do not depend on these parameters and are taken from the
-    cache.  Unspecified parameters keep the values of
+    cache.  The cache of a ``backend="cuda"`` analysis (entries built on the GPU, equal to
+    the CPU's) re-composites here on the CPU, with numba.  Unspecified parameters keep the
+    values of
     the :func:`analyze` call that built the cache.
 
     Parameters
@@ -784,7 +970,7 @@ def reevaluate(
     tab = _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16)
     args = (cache.ids, alpha_r, cols, light, tab, shade, has_curv, _tables.ERT)
     h, w = camera.height, camera.width
-    nk = _numba_kernels() if cache.backend == "numba" else None
+    nk = _numba_kernels() if cache.backend in ("numba", "cuda") else None
     key = _tables.shading_key(light, k) if shade else b""
     if key != z["shading_key"]:  # new light or specular powers: shading tables changed
         if nk is None:

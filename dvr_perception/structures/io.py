@@ -14,7 +14,9 @@ The format::
      "rendering": {"shade", "sample_distance", "opacity_unit_distance",
                    "light_direction", "light_intensity"},   # optional
      "view": [azimuth, elevation, zoom],                    # optional
-     "labels": "path/to/label_volume"}                      # optional, relative to the file
+     "labels": "path/to/label_volume",                      # optional, relative to the file
+     "data": {"dtype", "dims", "sha256"}}                   # optional: the data a preset
+                                                            # belongs to (structures.presets)
 
 Every violation raises one :class:`~dvr_perception.errors.DVRInputError` naming the field path,
 e.g. ``spec.json: structures[2].importance must be in (0, 1], got 1.5``; unknown keys give one
@@ -70,12 +72,19 @@ def spec_from_dict(d, *, source: str = "spec") -> StructureSpec:
     >>> spec.structures[0].range
     (200.0, 650.0)
     """
-    spec, unknown = parse_spec_dict(d, source)
+    spec, unknown = parse_spec_dict(_without_data_field(d), source)
     if unknown:
         warnings.warn(
             f"{source}: ignoring unknown field(s) {', '.join(unknown)}", DVRWarning, stacklevel=2
         )
     return spec
+
+
+def _without_data_field(d):
+    """``d`` without a preset's ``"data"`` record (read by :mod:`~.presets`, not the spec)."""
+    if isinstance(d, dict) and isinstance(d.get("data"), dict):
+        return {k: v for k, v in d.items() if k != "data"}
+    return d
 
 
 def _lighting_dict(light) -> dict:
@@ -187,7 +196,7 @@ def load_spec(path) -> StructureSpec:
         raise DVRInputError(f"{name}: JSON nested too deeply") from None
     except ValueError as exc:  # e.g. an integer of more than 4300 digits
         raise DVRInputError(f"{name}: not valid JSON ({str(exc)[:80]})") from None
-    spec, unknown = parse_spec_dict(d, name)
+    spec, unknown = parse_spec_dict(_without_data_field(d), name)
     if unknown:
         warnings.warn(
             f"{name}: ignoring unknown field(s) {', '.join(unknown)}", DVRWarning, stacklevel=2

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.structures.spec import Lighting, Structure, StructureSpec
 
@@ -336,6 +335,8 @@ def to_vtk_transfer_functions(
         )
     ranges = sorted(_range_structures(spec), key=lambda t: t[1])
     gap = _node_gap(ranges, samples, scalar_range)
+    from dvr_perception import _vtk  # VTK only here: the core imports without it
+
     ctf = _vtk.vtkColorTransferFunction()
     otf = _vtk.vtkPiecewiseFunction()
     last = None  # the opacity node added last
@@ -387,6 +388,8 @@ def to_vtk_property(spec: StructureSpec, volume, *, opacities=None, shade=None):
     unit = float(min(volume.spacing)) if unit is None else float(unit)
     if not (math.isfinite(unit) and unit > 0):
         raise DVRInputError(f"rendering.opacity_unit_distance must be positive, got {unit}")
+    from dvr_perception import _vtk
+
     prop = _vtk.vtkVolumeProperty()
     prop.SetColor(ctf)
     prop.SetScalarOpacity(otf)

@@ -1,7 +1,11 @@
-"""Volumes: the container, readers and writers for common formats, and the built-in phantom."""
+"""Volumes: the container, readers and writers for common formats, and the built-in phantom.
 
-from dvr_perception.volume.convert import from_vtk_image, to_vtk_image
-from dvr_perception.volume.io import load_volume, save_volume
+The readers, writers and ``vtkImageData`` conversions are imported on first use (they need
+VTK; the container and the phantom do not, so the core runs without ``vtkmodules``).
+"""
+
+import importlib
+
 from dvr_perception.volume.phantom import make_phantom
 from dvr_perception.volume.volume import Volume
 
@@ -13,3 +17,17 @@ __all__ = [
     "save_volume",
     "to_vtk_image",
 ]
+
+_LAZY = {
+    "from_vtk_image": "convert",
+    "to_vtk_image": "convert",
+    "load_volume": "io",
+    "save_volume": "io",
+}
+
+
+def __getattr__(name: str):
+    """Import the VTK-backed readers, writers and conversions when first asked for."""
+    if name in _LAZY:
+        return getattr(importlib.import_module(f"dvr_perception.volume.{_LAZY[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

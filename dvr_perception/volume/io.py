@@ -32,7 +32,6 @@ from pathlib import Path
 
 import numpy as np
 
-from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.volume._headers import (
     Layout,
@@ -44,11 +43,48 @@ from dvr_perception.volume._headers import (
 )
 from dvr_perception.volume._limits import check_budget, check_size, parse_int
 from dvr_perception.volume._nrrd import nrrd_axes, nrrd_header, nrrd_space, read_nrrd, write_nrrd
-from dvr_perception.volume.convert import from_vtk_image, to_vtk_image, vtk_errors
 from dvr_perception.volume.orient import from_axes, ras_to_lps
 from dvr_perception.volume.volume import Volume
 
 __all__ = ["check_volume_file", "header_axes", "load_volume", "save_volume"]
+
+
+class _LazyVTK:
+    """:mod:`dvr_perception._vtk`, imported when a VTK class is first asked for.
+
+    NRRD, raw and the other formats we parse ourselves load without ``vtkmodules`` (a GPU
+    machine without VTK); the VTK readers and writers import it on use.
+    """
+
+    def __getattr__(self, name: str):
+        from dvr_perception import _vtk as module
+
+        return getattr(module, name)
+
+
+_vtk = _LazyVTK()
+
+
+def from_vtk_image(*args, **kwargs):
+    """:func:`dvr_perception.volume.convert.from_vtk_image` (imported on use: VTK)."""
+    from dvr_perception.volume.convert import from_vtk_image as convert
+
+    return convert(*args, **kwargs)
+
+
+def to_vtk_image(*args, **kwargs):
+    """:func:`dvr_perception.volume.convert.to_vtk_image` (imported on use: VTK)."""
+    from dvr_perception.volume.convert import to_vtk_image as convert
+
+    return convert(*args, **kwargs)
+
+
+def vtk_errors(*args, **kwargs):
+    """:func:`dvr_perception.volume.convert.vtk_errors` (imported on use: VTK)."""
+    from dvr_perception.volume.convert import vtk_errors as convert
+
+    return convert(*args, **kwargs)
+
 
 RAW_DTYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
 _RAW_NAME = re.compile(r"^(?P<name>.+)_(?P<x>\d+)x(?P<y>\d+)x(?P<z>\d+)_(?P<dtype>\w+)\.raw$")

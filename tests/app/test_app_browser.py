@@ -157,6 +157,16 @@ def _view_image(page) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.float64) / 255.0
 
 
+def _data_url_image(url: str) -> np.ndarray:
+    """A ``data:image/png`` URL (an ``<img>``'s src) as an RGB float image."""
+    import base64
+
+    from PIL import Image
+
+    raw = base64.b64decode(url.split(",", 1)[1])
+    return np.asarray(Image.open(io.BytesIO(raw)).convert("RGB"), dtype=np.float64) / 255.0
+
+
 def _middle(img: np.ndarray) -> np.ndarray:
     """The rows of the view between the overlays (legend and label above, buttons below)."""
     h = img.shape[0]
@@ -270,6 +280,12 @@ def test_optimise_opacity_lowers_visibility_error_and_changes_image(page):
     # before/after comparison and the error chart are shown
     page.wait_for_selector("#after-image")
     assert page.locator("#before-image").get_attribute("src").startswith("data:image/png")
+    # the after thumbnail shows the result: it differs from the before one (issue 30)
+    thumbs = [
+        _data_url_image(page.get_attribute(f"#{k}-image", "src")) for k in ("before", "after")
+    ]
+    assert thumbs[0].shape == thumbs[1].shape
+    assert np.abs(thumbs[1] - thumbs[0]).mean() > 1e-3, "the after thumbnail is the before image"
     assert page.locator("#error-history polyline").count() == 3  # E_v, E_s, E_t
     assert page.locator("#share-chart-live .share-value").count() == 6
     assert "optimise opacity" in page.inner_text("#history-list")
@@ -383,6 +399,8 @@ def test_drawn_lens_triggers_region_refinement(page):
     k = names.index("tumour") if "tumour" in names else len(names) - 1
     row = page.locator("#lens-table tr").nth(k + 1)
     row.locator(".lens-use_vis input").check()
+    # a ticked box alone is no target: the row asks for the slider (issue 30)
+    row.locator(".lens-unset-vis").wait_for()
     slider = row.locator("td:nth-child(2) .v-slider")
     page.wait_for_function(
         "(el) => !el.classList.contains('v-input--disabled')", arg=slider.element_handle()
@@ -391,18 +409,60 @@ def test_drawn_lens_triggers_region_refinement(page):
     page.mouse.click(track["x"] + 0.8 * track["width"], track["y"] + track["height"] / 2)
     page.wait_for_function(
         "(el) => el.innerText.trim() === '0.80'",
-        arg=row.locator("td:nth-child(2) .text-caption").element_handle(),
+        arg=row.locator("td:nth-child(2) span.text-caption").element_handle(),
     )
+    row.locator(".lens-unset-vis").wait_for(state="detached")
+    n_history = page.locator("#history-list > div").count()
     before = _view_image(page)
     _optimise(page, "#refine-lens")
     assert "in the lens" in page.inner_text("#progress-text")
     e0, e1 = _errors_in_progress(page)
     assert e1 < e0
-    after = _wait_image_change(page, before)
-    assert np.abs(after - before).mean() > 1e-4, "the refinement did not change the image"
+    # the result is shown inside the lens over the current rendering (focus + context)
+    page.wait_for_selector("#lens-result-overlay")
+    inside = _lens_pixels(page, (0.3, 0.3, 0.55, 0.6), margin=6)
+    after = _wait_image_change(page, before, part=lambda img: img[inside])
+    assert np.abs(after - before)[inside].mean() > 1e-3, "nothing changed inside the lens"
+    outside = ~_lens_pixels(page, (0.3, 0.3, 0.55, 0.6), margin=-6)
+    outside &= _middle_rows(after.shape)  # not the legend, label and buttons over the view
+    assert np.abs(after - before)[outside].mean() < 1e-3, "the view changed outside the lens"
+    assert "whole view" in page.inner_text("#lens-whole")
+    assert page.locator("#lens-whole-image").get_attribute("src").startswith("data:image/png")
+    _tab(page, "optimise")  # nothing applied yet
+    assert page.locator("#history-list > div").count() == n_history
+    _tab(page, "lens")
+    page.locator("#lens-apply").scroll_into_view_if_needed()  # the result's panel in the shot
     _shot(page, "lens")
+    # one click applies it to the whole view: the image changes outside the lens too
+    page.click("#lens-apply")
+    page.wait_for_selector("#lens-result", state="detached")
+    applied = _wait_image_change(page, after, part=lambda img: img[outside])
+    assert np.abs(applied - before)[outside].mean() > 1e-4, "applying left the rest unchanged"
     _tab(page, "optimise")
-    assert "optimise opacity in lens" in page.inner_text("#history-list")
+    assert "optimise opacity in lens, applied to the whole view" in page.inner_text("#history-list")
+
+
+def _lens_pixels(page, rect, *, margin: float) -> np.ndarray:
+    """Boolean mask of the view's screenshot pixels inside ``rect`` (view fractions x0, y0,
+    x1, y1), shrunk by ``margin`` pixels (the dashed outline), or grown for a negative one."""
+    shape = _view_image(page).shape
+    rows = np.arange(shape[0])[:, None] + 0.5
+    cols = np.arange(shape[1])[None, :] + 0.5
+    x0, y0, x1, y1 = rect
+    h, w = shape[:2]
+    return (
+        (cols > x0 * w + margin)
+        & (cols < x1 * w - margin)
+        & (rows > y0 * h + margin)
+        & (rows < y1 * h - margin)
+    )
+
+
+def _middle_rows(shape) -> np.ndarray:
+    """Boolean mask of the rows :func:`_middle` keeps, for an image of ``shape``."""
+    keep = np.zeros(shape[:2], bool)
+    keep[shape[0] // 4 : shape[0] * 17 // 20] = True
+    return keep
 
 
 def _now_key(page) -> str:
@@ -428,7 +488,7 @@ def _stale_right_after_change(page, old_key: str) -> list[str]:
     return found.json_value()["stale"]
 
 
-def test_lens_refinement_that_worsens_the_whole_view_asks_to_keep_or_undo(page):
+def test_lens_result_that_worsens_the_whole_view_warns_before_it_is_applied(page):
     # back to the phantom's own settings (before 'load poor.json'); the banner stays on its
     # screen
     _tab(page, "optimise")
@@ -471,6 +531,13 @@ def test_lens_refinement_that_worsens_the_whole_view_asks_to_keep_or_undo(page):
     assert page.get_attribute("#lens-whole", "data-key") == old
     assert page.get_attribute("#measured-for", "data-key") == old
     assert "for view" in page.inner_text("#measured-for")
+    # apply it anyway (a transfer-function change): no number of the old settings stays
+    page.click("#lens-apply")
+    assert _stale_right_after_change(page, old) == []
+    page.wait_for_selector("#lens-prompt", state="detached")
+    page.wait_for_selector("#measuring", state="hidden")
+    assert page.get_attribute("#value-E_v", "data-key") == _now_key(page)
+    old = _now_key(page)
     # rotate (drag across the view on another screen): no number of the old view stays
     _tab(page, "optimise")
     assert "for view" in page.inner_text("#opt-for")
@@ -486,15 +553,13 @@ def test_lens_refinement_that_worsens_the_whole_view_asks_to_keep_or_undo(page):
     assert _value(page, "E_v") >= 0.0
     assert page.inner_text("#opt-for").startswith("for an earlier view")
     assert page.inner_text("#before-text") == "before: -"
-    # undo the refinement (a transfer-function change): the same holds
-    _tab(page, "lens")
+    # undo the applied refinement (a transfer-function change): the same holds
+    assert page.locator("#history-list > div").count() == n_history + 1
     old = _now_key(page)
-    page.click("#lens-undo")
+    page.click("#undo")
     assert _stale_right_after_change(page, old) == []
-    page.wait_for_selector("#lens-prompt", state="detached")
     page.wait_for_selector("#measuring", state="hidden")
     assert page.get_attribute("#value-E_v", "data-key") == _now_key(page)
-    _tab(page, "optimise")
     assert page.locator("#history-list > div").count() == n_history
 
 

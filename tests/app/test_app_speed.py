@@ -244,6 +244,18 @@ def _steps(log: Path, key: str) -> str:
     return "; ".join(found) or "no timings in the server log"
 
 
+#: The dimensions of the volume vtk.js holds in the page's preview (``null``: none yet).
+PREVIEW_DIMS = """() => {
+  const rw = window.trame?.refs?.local?.$?.provides?.view?.renderWindow;
+  for (const ren of rw ? rw.getRenderers() : []) {
+    for (const vol of ren.getVolumes()) {
+      const data = vol.getMapper()?.getInputData();
+      if (data) return data.getDimensions();
+    }
+  }
+  return null;
+}"""
+
 #: Untimed drags at most before the timed one (until the preview paints).
 WARM_DRAGS = 3
 
@@ -295,6 +307,11 @@ def test_rotation_in_the_preview_counts_frames_at_512(cthead_page):
         if warm["n"] >= 3:  # the preview painted the moving camera
             break
     assert warm["n"] >= 3, warm
+    # the preview is the whole volume, not a reduced copy (issue 30), and the label says so
+    assert pg.evaluate(PREVIEW_DIMS) == [256, 256, 113]
+    assert (
+        pg.get_attribute("#view-mode", "data-detail") == "full volume, 256\u00d7256\u00d7113 voxels"
+    )
     key = pg.get_attribute("#now-key", "data-now")
     pg.mouse.move(cx, cy)
     pg.mouse.down()
@@ -303,6 +320,7 @@ def test_rotation_in_the_preview_counts_frames_at_512(cthead_page):
     # ... at half resolution, and the label says so
     assert frames["canvas"] == [VIEW_PX // 2, VIEW_PX // 2], frames
     assert "half resolution" in frames["label"], frames
+    assert "full volume, 256\u00d7256\u00d7113 voxels" in frames["label"], frames
     pg.mouse.move(frames["x"], frames["y"])
     pg.mouse.up()
     t_up = time.monotonic()

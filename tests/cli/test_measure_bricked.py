@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import os
 
 import numpy as np
 import pytest
@@ -26,8 +27,9 @@ def _measure(argv) -> dict:
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             code = main(argv)
-    finally:
+    finally:  # the CLI also sets the limit's variable for child processes: undo both
         memory.set_limit(None)
+        os.environ.pop(memory.ENV, None)
     assert code == 0, err.getvalue()
     return json.loads(out.getvalue())
 

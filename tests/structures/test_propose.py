@@ -41,14 +41,15 @@ def test_three_blobs_give_three_ranges(dtype, scale):
         assert a[1] == b[0]  # contiguous, touching
     assert ranges[-1][1] == pytest.approx(float(_three_blobs(dtype, scale=scale).data.max()))
     assert [s.importance for s in spec.structures] == [0.15, 0.5, 0.85]
-    assert [s.color for s in spec.structures] == list(PALETTE[:3])
+    assert [s.color for s in spec.structures] == [PALETTE[0], PALETTE[4], PALETTE[7]]
+    assert spec.structures[-1].color == (1.0, 0.96, 0.84)  # the densest class is ivory
 
 
 def test_names_and_round_trip():
     spec = propose_structures(_three_blobs())
-    assert spec.structures[0].name.startswith("layer 1 (")
+    assert spec.structures[0].name.startswith("class 1 (")
     lo, hi = spec.structures[0].range
-    assert spec.structures[0].name == f"layer 1 ({math.ceil(lo)}\u2013{math.ceil(hi) - 1})"
+    assert spec.structures[0].name == f"class 1 ({math.ceil(lo)}\u2013{math.ceil(hi) - 1})"
     assert spec_from_dict(spec_to_dict(spec)) == spec  # the proposal is a valid spec
 
 
