@@ -348,8 +348,6 @@ def analyze(
             )
         kind = "numba"
     need = _plan(volume, spec, camera, seg, lut, memb, has_curv, build_cache, memory_limit, brick)
-    if kind == "cuda" and need["mode"] == "bricks" and need["whole"] <= need["limit"]:
-        need["mode"] = "whole"  # the CPU bricks large volumes for speed; the GPU takes them whole
     if kind == "cuda" and need["mode"] == "bricks":
         if backend == "cuda":
             raise DVRInputError(
