@@ -11,95 +11,80 @@ from __future__ import annotations
 
 import os
 
-from vtkmodules.util.numpy_support import (
-    get_vtk_array_type,
-    numpy_to_vtk,
-    vtk_to_numpy,
-)
-from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
-from vtkmodules.vtkCommonCore import (
-    VTK_DOUBLE,
-    VTK_FLOAT,
-    vtkCommand,
-    vtkDoubleArray,
-    vtkFloatArray,
-    vtkIntArray,
-    vtkLogger,
-    vtkOutputWindow,
-    vtkStringArray,
-    vtkStringOutputWindow,
-)
-from vtkmodules.vtkCommonDataModel import (
-    vtkDataObject,
-    vtkImageData,
-    vtkPiecewiseFunction,
-    vtkTable,
-)
-from vtkmodules.vtkCommonExecutionModel import (
-    vtkAlgorithm,
-    vtkExtentTranslator,
-    vtkStreamingDemandDrivenPipeline,
-)
-from vtkmodules.vtkCommonMath import vtkMatrix4x4
-from vtkmodules.vtkIOImage import (
-    vtkDICOMImageReader,
-    vtkMetaImageReader,
-    vtkMetaImageWriter,
-    vtkNIFTIImageReader,
-    vtkNIFTIImageWriter,
-    vtkNrrdReader,
-    vtkPNGReader,
-    vtkPNGWriter,
-)
-from vtkmodules.vtkIOLegacy import vtkDataSetReader, vtkStructuredPointsWriter
-from vtkmodules.vtkIOXML import vtkXMLImageDataReader, vtkXMLImageDataWriter
-from vtkmodules.vtkRenderingCore import (
-    vtkCamera,
-    vtkColorTransferFunction,
-    vtkVolumeProperty,
-)
+#: Where each name of this module comes from (``vtkmodules`` sub-module).  They are imported on
+#: first use (:func:`__getattr__`): importing a VTK module costs time (all of them about 0.3 s)
+#: that a command which never touches VTK (``optimize`` on a NRRD volume) need not pay.
+_SOURCES = {
+    "vtkmodules.util.numpy_support": ("get_vtk_array_type", "numpy_to_vtk", "vtk_to_numpy"),
+    "vtkmodules.util.vtkAlgorithm": ("VTKPythonAlgorithmBase",),
+    "vtkmodules.vtkCommonCore": (
+        "VTK_DOUBLE",
+        "VTK_FLOAT",
+        "vtkCommand",
+        "vtkDoubleArray",
+        "vtkFloatArray",
+        "vtkIntArray",
+        "vtkLogger",
+        "vtkOutputWindow",
+        "vtkStringArray",
+        "vtkStringOutputWindow",
+    ),
+    "vtkmodules.vtkCommonDataModel": (
+        "vtkDataObject",
+        "vtkImageData",
+        "vtkPiecewiseFunction",
+        "vtkTable",
+    ),
+    "vtkmodules.vtkCommonExecutionModel": (
+        "vtkAlgorithm",
+        "vtkExtentTranslator",
+        "vtkStreamingDemandDrivenPipeline",
+    ),
+    "vtkmodules.vtkCommonMath": ("vtkMatrix4x4",),
+    "vtkmodules.vtkIOImage": (
+        "vtkDICOMImageReader",
+        "vtkMetaImageReader",
+        "vtkMetaImageWriter",
+        "vtkNIFTIImageReader",
+        "vtkNIFTIImageWriter",
+        "vtkNrrdReader",
+        "vtkPNGReader",
+        "vtkPNGWriter",
+    ),
+    "vtkmodules.vtkIOLegacy": ("vtkDataSetReader", "vtkStructuredPointsWriter"),
+    "vtkmodules.vtkIOXML": ("vtkXMLImageDataReader", "vtkXMLImageDataWriter"),
+    "vtkmodules.vtkRenderingCore": (
+        "vtkCamera",
+        "vtkColorTransferFunction",
+        "vtkVolumeProperty",
+    ),
+}
+_MODULE_OF = {name: module for module, names in _SOURCES.items() for name in names}
 
-__all__ = [
-    "VTK_DOUBLE",
-    "VTK_FLOAT",
-    "VTKPythonAlgorithmBase",
-    "can_render",
-    "get_vtk_array_type",
-    "numpy_to_vtk",
-    "rendering",
-    "vtkAlgorithm",
-    "vtkCamera",
-    "vtkColorTransferFunction",
-    "vtkCommand",
-    "vtkDICOMImageReader",
-    "vtkDataObject",
-    "vtkDataSetReader",
-    "vtkDoubleArray",
-    "vtkExtentTranslator",
-    "vtkFloatArray",
-    "vtkImageData",
-    "vtkIntArray",
-    "vtkLogger",
-    "vtkMatrix4x4",
-    "vtkMetaImageReader",
-    "vtkMetaImageWriter",
-    "vtkNIFTIImageReader",
-    "vtkNIFTIImageWriter",
-    "vtkNrrdReader",
-    "vtkOutputWindow",
-    "vtkPNGReader",
-    "vtkPNGWriter",
-    "vtkPiecewiseFunction",
-    "vtkStreamingDemandDrivenPipeline",
-    "vtkStringArray",
-    "vtkStringOutputWindow",
-    "vtkStructuredPointsWriter",
-    "vtkTable",
-    "vtkVolumeProperty",
-    "vtkXMLImageDataReader",
-    "vtkXMLImageDataWriter",
-    "vtk_to_numpy",
-]
+__all__ = ["can_render", "rendering", *sorted(_MODULE_OF)]
+
+
+def __getattr__(name: str):
+    """Import the VTK class (or function, constant) ``name`` on first use and keep it.
+
+    Examples
+    --------
+    >>> from dvr_perception import _vtk
+    >>> _vtk.vtkImageData().GetClassName()
+    'vtkImageData'
+    """
+    module = _MODULE_OF.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_MODULE_OF})
 
 
 def rendering():

@@ -46,6 +46,11 @@ Reported figures (seconds unless stated):
   ``curvature_s``; ``iteration_s`` – per stage, seconds per iteration; ``optimize_stages`` –
   per stage ``E`` and its lead term before and after, iterations, evaluations, seconds and
   whether it was kept; ``optimize_terms`` – the terms before and after (user's resolution).
+* ``bricked`` – whether any timed analysis was bricked (the memory plan,
+  :func:`~dvr_perception.rays.memory.plan`: the whole volume whenever it fits the limit);
+  ``bricks`` – per timed analysis (``frame``, ``render``, ``measure``) the bricks it walked,
+  0 for the whole volume.  ``samples`` – the ray samples of a full frame (inside the volume);
+  ``samples_walked`` – those its walk visited.
 """
 
 from __future__ import annotations
@@ -304,13 +309,22 @@ def run(args: argparse.Namespace) -> int:
 
     all_measures(warm, spec)  # compiles the measures' kernels
     del warm  # one analysis at a time: the peak memory is a frame's, not two frames'
+    bricks: dict[str, int] = {}  # per timed analysis: bricks walked (0: the whole volume)
+
+    def counted(name, analysis):
+        bricks[name] = int(analysis.stats.get("bricks", 0))
+        return analysis
+
     frames, vtk_frame_s, vtk_error, vtk_peak = _paired_frames(
         {
-            "frame": lambda: analyze(vol, spec, cam, curvature=curv),
-            "render": lambda: analyze(vol, spec, cam, build_cache=False, occlusion_free=False),
+            "frame": lambda: counted("frame", analyze(vol, spec, cam, curvature=curv)),
+            "render": lambda: counted(
+                "render", analyze(vol, spec, cam, build_cache=False, occlusion_free=False)
+            ),
             # what ``dvr-perception measure`` pays per view once the curvature volume exists
             "measure": lambda: all_measures(
-                analyze(vol, spec, cam, curvature=curv, build_cache=False), spec
+                counted("measure", analyze(vol, spec, cam, curvature=curv, build_cache=False)),
+                spec,
             ),
         },
         scene,
@@ -329,6 +343,7 @@ def run(args: argparse.Namespace) -> int:
     reeval(result.cache)  # compiles the re-evaluation kernels
     reeval_s = _median_time(functools.partial(reeval, result.cache), args.repeat)
     samples = _samples(result.stats)
+    walked = result.stats.get("samples_walked")
     backend = result.stats.get("backend", "auto")
     cache_mb = _nbytes(result.cache) / 2**20
     del result  # the optimisation below holds its own caches
@@ -362,6 +377,10 @@ def run(args: argparse.Namespace) -> int:
         "repeat": args.repeat,
         "resample": list(parse_factors(args.resample)) if args.resample is not None else None,
         "curvature_vtk_frames": curvature_s / vtk_frame_s if vtk_frame_s else None,
+        "bricked": any(bricks.values()),
+        "bricks": bricks,
+        "samples": int(samples) if samples is not None else None,
+        "samples_walked": int(walked) if walked is not None else None,
     }
     if vtk_error is not None:
         report["vtk_error"] = vtk_error

@@ -3,13 +3,23 @@
 The command loads the scene (as ``render`` does), runs
 :func:`~dvr_perception.optimize.optimize` (Eq. 12-15 of the paper; stages ``opacity``,
 ``lighting``, ``colour``) with a plain-text progress bar on stderr, then renders and measures
-the spec before and after at the user's resolution and writes into ``--out``:
+the spec before and after at the user's resolution and writes into ``--out``, in two steps:
 
-* ``before.png``, ``after.png`` and ``before_after.png`` (side by side, E values in the titles);
-* the measure figures of ``measure`` for both, prefixed ``before_`` and ``after_``;
-* ``convergence.png``: ``E_v``, ``E_s``, ``E_t`` and ``E`` per iteration across the stages;
-* ``optimized_spec.json`` (a spec for ``render``/``measure --structures``),
-  ``paraview_preset.json``, ``slicer.vp.json`` and ``result.json`` (what ``--json`` prints).
+1. the result, as soon as it is known, and then printed: ``before.png`` and ``after.png``,
+   ``optimized_spec.json`` (a spec for ``render``/``measure --structures``),
+   ``paraview_preset.json``, ``slicer.vp.json`` and ``result.json`` (what ``--json`` prints);
+2. the figures (:data:`FIGURES`; skipped with ``--no-figures``): ``before_after.png`` (side by
+   side, E values in the titles), the measure figures of ``measure`` for both, prefixed
+   ``before_`` and ``after_``, and ``convergence.png`` (``E_v``, ``E_s``, ``E_t`` and ``E`` per
+   iteration across the stages).  Drawing them (matplotlib, one core) takes longer than a
+   small volume's optimisation, so the result does not wait for them.
+
+Each step appears all at once (:meth:`~dvr_perception._files.StagedFolder.publish`); the
+first removes figures an earlier run left in the folder, and the second rewrites
+``result.json`` with the figures listed, so ``result.json`` always names exactly the files of
+this run in the folder.  The text summary is printed after step 1; ``--json`` prints the
+final ``result.json`` after step 2.  Ctrl-C or an error while the figures are drawn leaves
+the result without figures.  ``timings`` in the JSON splits the run's seconds.
 
 Ctrl-C stops the optimiser after the current iteration (the progress callback raises
 ``StopIteration``); the best parameters so far are written and the exit status is 0 (``status``
@@ -23,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import signal
 import sys
 import time
@@ -32,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from dvr_perception._files import output_folder, write_json, write_png
+from dvr_perception.cli import _plots
 from dvr_perception.cli._backend import add_backend_arg
 from dvr_perception.cli._common import (
     add_scene_args,
@@ -44,7 +56,15 @@ from dvr_perception.cli._common import (
 from dvr_perception.cli.measure import _positive_int
 from dvr_perception.errors import DVRInputError
 
-__all__ = ["VIEW_STEP", "add_parser", "optimize_scene", "run"]
+__all__ = [
+    "FIGURES",
+    "VIEW_STEP",
+    "add_parser",
+    "optimize_result",
+    "optimize_scene",
+    "run",
+    "write_figures",
+]
 
 EXAMPLE = """examples:
   dvr-perception optimize phantom --size 256 --out phantom_opt
@@ -60,6 +80,12 @@ MAX_VIEWS = 18
 MAX_RESOLUTION = 4096
 MAX_ITER = 1000
 TERMS = ("E_v", "E_s", "E_t")
+#: The figures of step 2 (see the module docstring), in the order they are written.
+FIGURES = (
+    "before_after.png",
+    *(f"{p}_{f}" for p in ("before", "after") for f in _plots.MEASURE_FIGURES),
+    "convergence.png",
+)
 
 
 def add_parser(subparsers, parents) -> None:
@@ -123,6 +149,13 @@ def add_parser(subparsers, parents) -> None:
         help="what each stage minimises and may never raise: the weighted image means E "
         "(mean) or Eq. 13's least squares over the per-pixel deviations S (least_squares); "
         "default: the optimiser's",
+    )
+    p.add_argument(
+        "--figures",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="after the result, draw the figures (before_after.png, the measure figures, "
+        "convergence.png; a few seconds); --no-figures writes the result only",
     )
     p.set_defaults(run=run)
 
@@ -313,11 +346,11 @@ def _terms(d: dict) -> dict:
     return {k: float(d[k]) for k in (*TERMS, "E", "S") if k in d}
 
 
-def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lighting", "colour"),
-                   weights=(1.0, 1.0, 1.0), region=None, views=1, seed=0, max_iter=10,
-                   resolution=None, coverage_keep=None, progress=None,
-                   objective=None, final_dir=None, backend="auto") -> dict:  # fmt: skip
-    """Optimise ``spec`` for ``camera``, write every output into ``out_dir``, return the report.
+def optimize_result(volume, spec, camera, out_dir, *, stages=("opacity", "lighting", "colour"),
+                    weights=(1.0, 1.0, 1.0), region=None, views=1, seed=0, max_iter=10,
+                    resolution=None, coverage_keep=None, progress=None, objective=None,
+                    final_dir=None, backend="auto") -> tuple[dict, dict]:  # fmt: skip
+    """Optimise ``spec`` for ``camera``, write the result (step 1) into ``out_dir``.
 
     ``region`` is ``(x0, y0, x1, y1)`` in pixels or ``None``; ``progress`` a :class:`Progress`
     (or any callback); ``objective`` ``"mean"`` or ``"least_squares"`` (``None``: the
@@ -325,8 +358,14 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
     a staging folder (the optimised spec's ``labels`` path is made relative to it).
     ``backend``: the ray analyses' (:func:`~dvr_perception.rays.engine.analyze`).  See the
     module docstring for the files and the report.
+
+    Returns
+    -------
+    report : dict
+        What ``result.json`` holds (written into ``out_dir``); ``figures`` is empty.
+    drawing : dict
+        What :func:`write_figures` draws the figures from.
     """
-    from dvr_perception.cli import _plots
     from dvr_perception.export import save_paraview_preset, save_slicer_vp
     from dvr_perception.optimize import optimize
     from dvr_perception.rays.curvature_field import curvature_source
@@ -354,29 +393,16 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
     )
     if isinstance(progress, Progress):
         progress.close()
+    t_optimised = time.perf_counter()
     log.info("measuring before and after")
     # the optimiser's renderings of the view (equal to fresh analyses), else analyse again
     first, last = res.analyses or (None, None)
     curvature = None if res.analyses else curvature_source(volume, spec)
     before, m_before, initial = _measure(volume, spec, camera, curvature, weights, first, backend)
     after, m_after, final = _measure(volume, res.spec, camera, curvature, weights, last, backend)
+    t_measured = time.perf_counter()
     d = Path(out_dir)
     files = [write_png(d / "before.png", before.image), write_png(d / "after.png", after.image)]
-    titles = [
-        f"{label}: E {t['E']:.4f} (E_v {t['E_v']:.3f}, E_s {t['E_s']:.3f}, E_t {t['E_t']:.3f})"
-        for label, t in (("before", initial), ("after", final))
-    ]
-    files.append(
-        _plots.save_side_by_side(d / "before_after.png", [before.image, after.image], titles)
-    )
-    files += _plots.save_measure_figures(d, "before", m_before)
-    files += _plots.save_measure_figures(d, "after", m_after)
-    records = [
-        {"name": s.name, "history": s.history, "before": s.terms_before, "after": s.terms_after}
-        for s in res.stages
-    ]
-    title = f"optimisation ({res.nit} iterations, {res.message})"
-    files.append(_plots.save_convergence(d / "convergence.png", records, title=title))
     save_spec(res.spec, d / "optimized_spec.json", relative_to=final_dir)
     files.append(d / "optimized_spec.json")
     notes = []
@@ -419,11 +445,89 @@ def optimize_scene(volume, spec, camera, out_dir, *, stages=("opacity", "lightin
         "notes": notes,
         "out_dir": str(d),
         "files": [str(f) for f in files],
+        "figures": [],
         "camera": camera.to_dict(),
     }
-    report["seconds"] = time.perf_counter() - t_start
+    t_end = time.perf_counter()
+    report["timings"] = {
+        "optimise": t_optimised - t_start,
+        "measure": t_measured - t_optimised,
+        "write": t_end - t_measured,
+    }
+    report["seconds"] = t_end - t_start
     write_json(d / "result.json", report)
+    titles = [
+        f"{label}: E {t['E']:.4f} (E_v {t['E_v']:.3f}, E_s {t['E_s']:.3f}, E_t {t['E_t']:.3f})"
+        for label, t in (("before", initial), ("after", final))
+    ]
+    records = [
+        {"name": s.name, "history": s.history, "before": s.terms_before, "after": s.terms_after}
+        for s in res.stages
+    ]
+    drawing = {
+        "images": [before.image, after.image],
+        "titles": titles,
+        "measures": {"before": m_before, "after": m_after},
+        "records": records,
+        "title": f"optimisation ({res.nit} iterations, {res.message})",
+    }
+    return report, drawing
+
+
+def write_figures(out_dir, drawing: dict) -> list[Path]:
+    """Draw the figures (step 2, :data:`FIGURES`) of :func:`optimize_result` into ``out_dir``.
+
+    Returns
+    -------
+    list of pathlib.Path
+        The written files, in the order of :data:`FIGURES`.
+    """
+    d = Path(out_dir)
+    files = [_plots.save_side_by_side(d / FIGURES[0], drawing["images"], drawing["titles"])]
+    for prefix in ("before", "after"):
+        files += _plots.save_measure_figures(d, prefix, drawing["measures"][prefix])
+    files.append(_plots.save_convergence(d / FIGURES[-1], drawing["records"],
+                                         title=drawing["title"]))  # fmt: skip
+    return files
+
+
+def _add_figures(report: dict, figures, seconds: float) -> dict:
+    """``report`` with the figures listed (before ``result.json``) and their seconds."""
+    names = [str(f) for f in figures]
+    files = list(report["files"])
+    at = len(files) - 1 if files and files[-1].endswith("result.json") else len(files)
+    timings = {**report.get("timings", {}), "figures": seconds}
+    return {**report, "files": [*files[:at], *names, *files[at:]], "figures": names,
+            "timings": timings, "seconds": report["seconds"] + seconds}  # fmt: skip
+
+
+def optimize_scene(volume, spec, camera, out_dir, *, figures=True, **kwargs) -> dict:
+    """Optimise ``spec`` for ``camera``, write every output into ``out_dir``, return the report.
+
+    :func:`optimize_result` (its keyword arguments) and, with ``figures``,
+    :func:`write_figures` in one step (``result.json`` lists the figures); see the module
+    docstring for the files and the report.
+    """
+    report, drawing = optimize_result(volume, spec, camera, out_dir, **kwargs)
+    if not figures:
+        return report
+    t0 = time.perf_counter()
+    written = write_figures(out_dir, drawing)
+    report = _add_figures(report, written, time.perf_counter() - t0)
+    write_json(Path(out_dir) / "result.json", report)
     return report
+
+
+def _since_start() -> float | None:
+    """Seconds since this process started (Linux's ``/proc``), or None where unknown."""
+    try:
+        stat = Path("/proc/self/stat").read_text()
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        ticks = os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, AttributeError):
+        return None
+    start = float(stat.rsplit(")", 1)[1].split()[19]) / ticks  # field 22: starttime
+    return max(0.0, uptime - start)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -444,31 +548,46 @@ def run(args: argparse.Namespace) -> int:
     ):
         if value is not None and value > top:
             raise DVRInputError(f"{option}: expected 1 to {top}, got {value}")
+    startup = _since_start()  # the interpreter and the imports before this call
+    t0 = time.perf_counter()
     scene = load_scene(args)
     cam = scene.camera
     region = None if args.region is None else parse_rect(args.region, cam.width, cam.height)
-    # checked and locked before the work; every file appears at the end, all or none
+    verbose = bool(getattr(args, "verbose", False))
+    loaded = time.perf_counter() - t0
+    # checked and locked before the work; the result appears all at once, then the figures
     with output_folder(args.out) as staged:
-        progress = Progress(
-            len(stages) * args.max_iter, verbose=bool(getattr(args, "verbose", False))
-        )
+        progress = Progress(len(stages) * args.max_iter, verbose=verbose)
         with stop_on_interrupt(progress):
-            report = optimize_scene(scene.volume, scene.spec, cam, staged.path, stages=stages,
-                                    weights=weights, region=region, views=args.views,
-                                    seed=args.seed, max_iter=args.max_iter,
-                                    resolution=args.resolution,
-                                    coverage_keep=args.coverage_keep, progress=progress,
-                                    objective=args.objective,
-                                    final_dir=staged.final,
-                                    backend=args.backend)  # fmt: skip
+            report, drawing = optimize_result(scene.volume, scene.spec, cam, staged.path,
+                                              stages=stages, weights=weights, region=region,
+                                              views=args.views, seed=args.seed,
+                                              max_iter=args.max_iter,
+                                              resolution=args.resolution,
+                                              coverage_keep=args.coverage_keep,
+                                              progress=progress, objective=args.objective,
+                                              final_dir=staged.final,
+                                              backend=args.backend)  # fmt: skip
         report = {"volume": scene.volume_source, "spec": scene.spec_source, **report}
         report["out_dir"] = str(staged.final)
         report["files"] = [str(staged.final_path(f)) for f in report["files"]]
+        report["timings"] = {"startup": startup, "load": loaded, **report["timings"]}
         write_json(staged.path / "result.json", report)
+        staged.publish(stale=FIGURES)  # the result is in the folder now
+        if not args.json:
+            print_summary(report, verbose=verbose, figures=args.figures)
+            sys.stdout.flush()
+        if args.figures:
+            log.info("drawing %d figures", len(FIGURES))
+            t0 = time.perf_counter()
+            written = write_figures(staged.path, drawing)
+            seconds = time.perf_counter() - t0
+            report = _add_figures(report, [staged.final_path(f) for f in written], seconds)
+            write_json(staged.path / "result.json", report)
     if args.json:
         emit_json(report)
-    else:
-        print_summary(report, verbose=bool(getattr(args, "verbose", False)))
+    elif args.figures:
+        print(f"  figures: wrote {len(report['figures'])} more files ({seconds:.1f} s)")
     return 0
 
 
@@ -500,7 +619,8 @@ def _plain_stage(s: dict) -> str:
     return f"{s['name']}: {what} ({s['iterations']} steps, {s['seconds']:.1f} s)"
 
 
-def print_summary(report: dict, *, indent: str = "  ", verbose: bool = False) -> None:
+def print_summary(report: dict, *, indent: str = "  ", verbose: bool = False,
+                  figures: bool = False) -> None:  # fmt: skip
     """Print the result on stdout: plain words by default, the measures with ``verbose``.
 
     The default text names no measure (``E_v``, ``E_s``, ``E_t``, Eq. 13's ``S``) and no
@@ -508,7 +628,8 @@ def print_summary(report: dict, *, indent: str = "  ", verbose: bool = False) ->
     did, one consistent reason per structure with its shading and colour changes
     (:func:`~dvr_perception.optimize.explain.explanation_lines`) and how the run ended.
     ``verbose`` (``-v``) prints the measures, the stages' ``E``, Eq. 13's ``S`` and the status
-    code as well.
+    code as well, and the split of the seconds (``timings``).  ``figures``: the figures are
+    still to be drawn (said on the last line).
     """
     from dvr_perception.structures.spec import printable
 
@@ -559,5 +680,9 @@ def print_summary(report: dict, *, indent: str = "  ", verbose: bool = False) ->
         print(f"{indent}{PLAIN_STATUS.get(report['status'], report['message'])}")
     for note in report["notes"]:
         print(f"{indent}note: {note}")
+    if verbose and report.get("timings"):
+        split = ", ".join(f"{k} {v:.2f}" for k, v in report["timings"].items() if v is not None)
+        print(f"{indent}seconds by step: {split}")
+    more = "; the figures follow (--no-figures skips them)" if figures else ""
     print(f"{indent}seconds {report['seconds']:.1f}; wrote {len(report['files'])} files into "
-          f"{printable(report['out_dir'])}/")  # fmt: skip
+          f"{printable(report['out_dir'])}/{more}")  # fmt: skip

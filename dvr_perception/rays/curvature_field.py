@@ -69,8 +69,9 @@ class CurvatureField:
 def curvature_source(volume, spec, *, sigma: float = 1.0, memory_limit=None, progress=None):
     """Return the ``curvature`` to give :func:`~dvr_perception.rays.engine.analyze`.
 
-    The float32 volume when the volume is analysed whole (:func:`~dvr_perception.rays.memory.
-    plan`: small enough) and the array takes at most an eighth of the memory limit, else a
+    The float32 volume when the volume, its derived volumes and this array fit the memory
+    limit (:func:`~dvr_perception.rays.memory.whole_fits`: the whole-volume analysis's share
+    of :func:`~dvr_perception.rays.memory.plan`, however many voxels), else a
     :class:`CurvatureField`.  ``progress``: as
     :func:`~dvr_perception.rays.curvature.curvature_volume`'s (a field reports 0.0 and 1.0
     at once: its pieces are computed, and reported, by the bricked analysis that walks them).
@@ -78,8 +79,7 @@ def curvature_source(volume, spec, *, sigma: float = 1.0, memory_limit=None, pro
     from dvr_perception.rays import memory
 
     report = reporter(progress)
-    voxels = int(volume.data.size)
-    if voxels <= memory.WHOLE_VOXELS and 4 * voxels <= memory.limit(memory_limit) / 8:
+    if memory.whole_fits(volume, memory_limit):
         return curvature_volume(volume, spec, sigma=sigma, progress=report)[0]
     report(0.0)
     report(1.0)

@@ -279,7 +279,7 @@ def analyze(
     brick : tuple of int, optional
         Analyse in bricks of this many cells ``(z, y, x)`` (:mod:`~dvr_perception.rays.
         bricks`; the same result).  By default the whole volume is analysed at once when it
-        is small and fits, else in bricks sized by the memory limit
+        fits the memory limit (however many voxels), else in bricks sized by the limit
         (:func:`~dvr_perception.rays.memory.plan`).
     memory_limit : int or str, optional
         Bytes (or ``"8G"``) the analysis may use; default
@@ -348,8 +348,6 @@ def analyze(
             )
         kind = "numba"
     need = _plan(volume, spec, camera, seg, lut, memb, has_curv, build_cache, memory_limit, brick)
-    if kind == "cuda" and need["mode"] == "bricks" and need["whole"] <= need["limit"]:
-        need["mode"] = "whole"  # the CPU bricks large volumes for speed; the GPU takes them whole
     if kind == "cuda" and need["mode"] == "bricks":
         if backend == "cuda":
             raise DVRInputError(

@@ -4,15 +4,21 @@
 (:func:`~dvr_perception.rays.engine.analyze`'s usual path) and a bricked one
 (:mod:`~dvr_perception.rays.bricks`) would hold at their peak: the derived volumes (table
 index, voxel records with the normal codes, cell map, compact index, label map), the cache of
-per-ray samples and the walk's scratch, and the per-ray buffers.  The whole volume is used
-when it is small (at most :data:`WHOLE_VOXELS` voxels) and fits; otherwise bricks whose
-derived volumes and scratch take a small share of the limit.  When even bricks do not fit,
+per-ray samples and the walk's scratch, and the per-ray buffers; the whole-volume estimate
+also holds the volume itself and the whole ``|H|`` curvature volume it reads, so it is the
+peak memory of the run (:func:`whole_volume_bytes`).  The whole volume is used whenever that
+estimate fits the limit, however many voxels it has; otherwise bricks whose derived volumes
+and scratch take a small share of the limit.  When even bricks do not fit,
 :func:`plan` raises one error naming ``--memory-limit`` instead of letting the operating system
 kill the process.
 
 The limit is, in order: the ``memory_limit`` argument, :func:`set_limit` (the command line's
 ``--memory-limit``), the environment variable ``DVR_PERCEPTION_MEMORY_LIMIT`` and
-:data:`DEFAULT_FRACTION` of the machine's memory.
+:data:`DEFAULT_FRACTION` of the machine's physical memory.  Sizes here are binary (GB =
+2**30 bytes).  A 512 x 512 x 452 uint16 CT at 512 x 512 pixels needs about 1.5 GB whole (2
+bytes a voxel for the volume, 11 for the derived volumes and ``|H|``, 348 a pixel), so it is
+analysed whole on any machine with 3 GB; a 1024 x 1024 x 904 one needs about 11.6 GB, whole
+from 23.2 GB of memory (11.8 GB is the default limit on a 23.5 GB machine), else in bricks.
 """
 
 from __future__ import annotations
@@ -27,7 +33,6 @@ from dvr_perception.errors import DVRInputError
 
 __all__ = [
     "DEFAULT_FRACTION",
-    "WHOLE_VOXELS",
     "Plan",
     "check_image",
     "limit",
@@ -35,12 +40,12 @@ __all__ = [
     "plan",
     "ray_bytes",
     "set_limit",
+    "whole_fits",
+    "whole_volume_bytes",
 ]
 
 #: Share of the machine's memory an analysis may use by default.
 DEFAULT_FRACTION = 0.5
-#: Volumes with more voxels than this (e.g. 512 x 512 x 256) are analysed in bricks.
-WHOLE_VOXELS = 64 * 2**20
 #: A brick's derived volumes and scratch may take this share of the limit.
 BRICK_SHARE = 0.125
 ENV = "DVR_PERCEPTION_MEMORY_LIMIT"
@@ -123,6 +128,47 @@ def check_image(width: int, height: int, k: int = 1, *, source: str = "--size",
         )
 
 
+def _voxel_bytes(volume, *, shade: bool, curvature: bool, compact: bool) -> int:
+    """Bytes per voxel of the derived volumes a whole-volume analysis builds (and reads).
+
+    The table index (2), the voxel records with their normal codes (4, shaded), the compact
+    index (1, tables of at most 256 entries), the cell map (1), the label map (1, with
+    labels) and the float32 ``|H|`` volume (4, with curvature).
+    """
+    n = 2 + (4 if shade else 0) + (1 if compact else 0) + 1
+    n += 1 if getattr(volume, "labels", None) is not None else 0
+    return n + (4 if curvature else 0)
+
+
+def whole_volume_bytes(volume, *, shade: bool = True, curvature: bool = True,
+                       compact: bool = True) -> int:  # fmt: skip
+    """Bytes a whole-volume analysis holds in proportion to the volume.
+
+    The volume itself and its derived volumes (:func:`plan` adds the per-ray buffers, the
+    samples and the scratch).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> vol = np.broadcast_to(np.uint16(0), (452, 512, 512))  # a CT's shape, no memory
+    >>> round(whole_volume_bytes(type("V", (), {"data": vol})()) / 2**30, 2)  # 2 + 11 B
+    1.54
+    """
+    data = volume.data
+    per = _voxel_bytes(volume, shade=shade, curvature=curvature, compact=compact)
+    return int(data.size) * (per + data.itemsize)
+
+
+def whole_fits(volume, memory_limit=None, **kwargs) -> bool:
+    """Whether the volume's share of a whole-volume analysis fits the limit.
+
+    :func:`whole_volume_bytes` (``kwargs``) against :func:`limit`: what
+    :func:`~dvr_perception.rays.curvature_field.curvature_source` decides by (the ``|H|``
+    volume whole, or a field computed per brick), before the image size is known.
+    """
+    return whole_volume_bytes(volume, **kwargs) <= limit(memory_limit)
+
+
 class Plan(dict):
     """What :func:`plan` decided.
 
@@ -153,8 +199,8 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     """
     cap = limit(memory_limit)
     voxels = int(volume.data.size)
-    per_voxel = 2 + (4 if shade else 0) + (1 if lut.size <= 256 else 0) + 1
-    per_voxel += 1 if volume.labels is not None else 0
+    compact = lut.size <= 256
+    per_voxel = _voxel_bytes(volume, shade=shade, curvature=False, compact=compact)
     entry = 2 + 4 + (4 if shade else 0) + (4 if curvature else 0)
     filled = _filled_fraction(volume, lut, membership) if build_cache else 0.0
     entries = samples * min(1.0, filled * 1.25 + 0.01)
@@ -162,7 +208,13 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     rays_bytes = nrays * per_ray
     cache = entries * entry if build_cache else 0.0
     scratch_whole = samples * entry if build_cache else 0.0
-    whole = voxels * per_voxel + scratch_whole + cache + rays_bytes
+    # the peak of the run: the volume, its derived volumes and |H|, samples, scratch, rays
+    whole = (
+        whole_volume_bytes(volume, shade=shade, curvature=curvature, compact=compact)
+        + scratch_whole
+        + cache
+        + rays_bytes
+    )
     if brick is None:
         budget = BRICK_SHARE * cap
         edge = 256
@@ -184,7 +236,7 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
         + rays_bytes
     )
     out = Plan(limit=cap, whole=whole, bricked=bricked, brick=cells, entries=entries)
-    if brick is None and voxels <= WHOLE_VOXELS and whole <= cap:
+    if brick is None and whole <= cap:  # whole whenever it fits, however many voxels
         out["mode"] = "whole"
         return out
     if bricked > cap:

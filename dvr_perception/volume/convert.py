@@ -16,14 +16,7 @@ import re
 
 import numpy as np
 
-from dvr_perception._vtk import (
-    numpy_to_vtk,
-    vtk_to_numpy,
-    vtkImageData,
-    vtkLogger,
-    vtkOutputWindow,
-    vtkStringOutputWindow,
-)
+from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError
 from dvr_perception.volume.volume import Volume
 
@@ -38,7 +31,7 @@ __all__ = [
 
 def to_vtk_image(
     volume: Volume, *, name: str = "scalars", with_direction: bool = False
-) -> vtkImageData:
+) -> _vtk.vtkImageData:
     """Return a ``vtkImageData`` with the volume's dims, spacing, origin and point scalars.
 
     Parameters
@@ -70,9 +63,9 @@ def to_vtk_image(
     if not isinstance(volume, Volume):
         raise DVRInputError(f"to_vtk_image: volume must be a Volume, got {type(volume).__name__}")
     flat = volume.data.reshape(-1)  # C-contiguous (Volume guarantees it): a view, no copy
-    arr = numpy_to_vtk(flat, deep=False)  # keeps `flat` alive via arr._numpy_reference
+    arr = _vtk.numpy_to_vtk(flat, deep=False)  # keeps `flat` alive via arr._numpy_reference
     arr.SetName(str(name))
-    image = vtkImageData()
+    image = _vtk.vtkImageData()
     image.SetDimensions(*volume.dims)
     image.SetSpacing(*volume.spacing)
     image.SetOrigin(*volume.origin)
@@ -121,7 +114,7 @@ def from_vtk_image(
     (True, dtype('int16'))
     """
     where = source or name
-    if not isinstance(image, vtkImageData):
+    if not isinstance(image, _vtk.vtkImageData):
         raise DVRInputError(
             f"{where}: expected vtkImageData, got "
             f"{image.GetClassName() if hasattr(image, 'GetClassName') else type(image).__name__}"
@@ -163,7 +156,7 @@ def from_vtk_image(
             f"{where}: empty or inconsistent image (extent {image.GetExtent()}, "
             f"{arr.GetNumberOfTuples()} values); expected a non-empty 3-D volume"
         )
-    data = np.array(vtk_to_numpy(arr), copy=True).reshape(shape)
+    data = np.array(_vtk.vtk_to_numpy(arr), copy=True).reshape(shape)
     spacing = np.asarray(image.GetSpacing(), float)
     direction = _direction(image)
     first = direction @ (np.array([x0, y0, z0], float) * spacing)
@@ -191,7 +184,7 @@ def has_identity_direction(image) -> bool:
 
     Examples
     --------
-    >>> img = vtkImageData()
+    >>> img = _vtk.vtkImageData()
     >>> has_identity_direction(img)
     True
     >>> img.SetDirectionMatrix(-1, 0, 0, 0, -1, 0, 0, 0, 1)
@@ -254,16 +247,16 @@ def vtk_errors(algorithm, what: str):
     if executive is not None:
         targets.append(executive)
     tags = [(t, t.AddObserver("ErrorEvent", on_error)) for t in targets]
-    previous = vtkOutputWindow.GetInstance()
-    capture = vtkStringOutputWindow()
-    vtkOutputWindow.SetInstance(capture)
-    verbosity = vtkLogger.GetCurrentVerbosityCutoff()  # = stderr verbosity without log files
-    vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_OFF)
+    previous = _vtk.vtkOutputWindow.GetInstance()
+    capture = _vtk.vtkStringOutputWindow()
+    _vtk.vtkOutputWindow.SetInstance(capture)
+    verbosity = _vtk.vtkLogger.GetCurrentVerbosityCutoff()  # = stderr verbosity without log files
+    _vtk.vtkLogger.SetStderrVerbosity(_vtk.vtkLogger.VERBOSITY_OFF)
     try:
         yield messages
     finally:
-        vtkLogger.SetStderrVerbosity(verbosity)
-        vtkOutputWindow.SetInstance(previous)
+        _vtk.vtkLogger.SetStderrVerbosity(verbosity)
+        _vtk.vtkOutputWindow.SetInstance(previous)
         for t, tag in tags:
             t.RemoveObserver(tag)
     printed = capture.GetOutput() or ""

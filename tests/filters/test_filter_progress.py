@@ -31,8 +31,13 @@ SIZE = 48
 
 @pytest.fixture
 def small_memory(monkeypatch):
-    """A memory limit that makes the 48^3 phantom go in 8 bricks (as a large CT would)."""
-    monkeypatch.setattr(memory, "WHOLE_VOXELS", 1000)
+    """A plan that puts the 48^3 phantom in 8 bricks of 32 cells (as a large CT would go)."""
+    real = memory.plan
+
+    def bricked(*args, **kwargs):
+        return real(*args, **{**kwargs, "brick": kwargs.get("brick") or (32, 32, 32)})
+
+    monkeypatch.setattr(memory, "plan", bricked)
     memory.set_limit("8M")
     yield
     memory.set_limit(None)

@@ -43,12 +43,12 @@ def test_limit_order(monkeypatch):
         memory.set_limit(None)
 
 
-def test_small_volume_is_whole_and_big_one_in_bricks(scene, monkeypatch):
-    vol, spec, cam = scene
+def test_small_volume_is_whole_and_big_one_in_bricks():
+    vol, spec = make_phantom(size=64)  # 2.4 MB whole (9 bytes a voxel) at a 16 x 16 image
+    cam = Camera.from_view(vol.bounds, width=16, height=16, azimuth=30.0)
     whole = analyze(vol, spec, cam)
     assert "bricks" not in whole.stats
-    monkeypatch.setattr(memory, "WHOLE_VOXELS", 1000)  # as if the volume were large
-    parts = analyze(vol, spec, cam)
+    parts = analyze(vol, spec, cam, memory_limit="2M")  # less than the whole run needs
     assert parts.stats["bricks"] >= 1
     assert np.array_equal(whole.rgba, parts.rgba)
     assert np.array_equal(whole.visible, parts.visible)
