@@ -27,7 +27,10 @@ data, else 1024 bins of a seeded sample) is split by optimal one-dimensional k-m
 programming over the bins, deterministic).  The number of classes is chosen by the data: the
 smallest that leaves at most :data:`UNEXPLAINED` of the variance left by the background /
 foreground split unexplained (at most 8 structures); ``n_structures`` asks for a count instead.
-The lowest class is taken as background (air, resin, empty space) and every other class becomes
+The lowest class is taken as background (air, resin, empty space); when the lowest value alone
+holds more than :data:`SPIKE` of the voxels (padding), it alone is the background and the
+classes above it are found again without it, whose weight would pull the values next to it
+into the background class.  Every other class becomes
 one range structure named by intensity order, ranges touching midway between the classes,
 importance rising with intensity, colours from a ramp by intensity rank (dark red to ivory).
 The lowest classes, each holding more voxels than all classes above it together and at least
@@ -36,9 +39,10 @@ transparent (opacity :data:`BULK_OPACITY`), as does a lowest class whose histogr
 away from the background (its tail: noise, partial volume at the surface).
 
 Limits: intensity alone cannot part tissues whose values overlap (in an MRI, grey and white
-matter are cut at the k-means boundary of one histogram hump, not by anatomy); a CT stored
-without its rescale (e.g. shifted to unsigned values) is treated as any data; thin contrast
-vessels under the 0.1 % floor are folded into bone.
+matter are cut at the k-means boundary of one histogram hump, not by anatomy); a broad class
+(two humps with a valley between, a long falling tail) can be split over several classes; a
+CT stored without its rescale (e.g. shifted to unsigned values) is treated as any data; thin
+contrast vessels under the 0.1 % floor are folded into bone.
 """
 
 from __future__ import annotations
@@ -71,6 +75,8 @@ PALETTE = (
 MAX_STRUCTURES = len(PALETTE)
 #: Share of the post-background variance the chosen number of data classes may leave.
 UNEXPLAINED = 0.08
+#: Share of the voxels above which the lowest value alone is the background (a spike: padding).
+SPIKE = 0.9
 #: Starting opacity of a data class with more voxels than all classes above it.
 BULK_OPACITY = 0.03
 #: Tissue windows of a CT in Hounsfield units: name, low, high, colour, importance.
@@ -182,6 +188,12 @@ def _data_classes(data: np.ndarray, n_structures, seed: int):
         first = starts[0]
         if min(counts[first - 1], counts[first]) >= 0.5 * counts[:first].max():
             starts = starts[1:]
+    if len(counts) > len(starts) + 1 and counts[0] > SPIKE * counts.sum():
+        # the lowest value alone holds most of the voxels (padding, clipped air): it is the
+        # background on its own, and the classes above it are found again without it, whose
+        # weight would drag the values next to it into the background class
+        _, fg_splits = _kmeans_1d(centres[1:], counts[1:], len(starts))
+        starts = [1] + [s + 1 for s in fg_splits[len(starts)]]
     cuts = [0.5 * (upper[s - 1] + lower[s]) for s in starts]
     vmax = float(data.max())
     edges = [c for c in cuts if c < vmax] + [vmax]
