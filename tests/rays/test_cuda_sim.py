@@ -404,6 +404,9 @@ class Host(np.ndarray):
     def copy_to_host(self):
         return np.asarray(self).copy()
 
+    def copy_to_device(self, a):
+        self[...] = a
+
 
 lowered = []
 
@@ -428,7 +431,8 @@ class Kernels:
 
 
 _cuda.kernels = lambda: Kernels
-_cuda.to_device = lambda a, keep=False: np.ascontiguousarray(a).view(Host)
+_cuda.to_device = lambda a, keep=False, pool="volume": np.ascontiguousarray(a).view(Host)
+_cuda.table = lambda a: np.ascontiguousarray(a).view(Host)
 _cuda.check_fits = lambda need: None
 cuda.device_array = lambda shape, dtype: np.zeros(shape, dtype).view(Host)
 engine._pick_backend = lambda backend: engine._numba_kernels()
