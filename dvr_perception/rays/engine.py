@@ -687,7 +687,8 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
     entry = 2 + 4 + (4 if shade else 0) + (4 if has_curv else 0)
     need = sum(a.nbytes for a in big) + nrays * 8 * (2 * k + 25) + (cap * entry if build else 0)
     _cuda.check_fits(int(need * 1.1) + (2 * cap * entry if build else 0))
-    dev = [_cuda.to_device(a, keep=True) for a in big]
+    # the placeholders of no curvature or labels are new arrays each time: kept by content
+    dev = [_cuda.table(a) if a.nbytes <= 1 << 16 else _cuda.to_device(a, keep=True) for a in big]
     small = [_cuda.table(a) for a in (rep, kmap, tids, t_alpha, t_bit)]
     if cached:
         rays = [_cuda.to_device(seg[q], keep=True, pool="rays") for q in ("a", "b", "t", "n")]
