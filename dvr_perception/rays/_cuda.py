@@ -38,11 +38,12 @@ _AUTO: list = []  # [bool] once looked up
 _DEVICE: dict = {"volume": {}, "rays": {}}
 #: Host arrays kept on the device between analyses, per pool: the derived volumes of the last
 #: volumes, and the rays of the last cameras (:func:`rays_for`).
-_KEEP = {"volume": 12, "rays": 12}
+_KEEP = {"volume": 12, "rays": 20}
 _TABLES: dict = {}  # (dtype, shape, bytes) -> device array: small read-only tables
 _KEEP_TABLES = 64
 _RAYS: dict = {}  # camera_pack bytes -> ray set (engine._segments' dict), least recent first
 _KEEP_RAYS = 4
+_KEEP_RAYS_BYTES = 1 << 29  # and at most 512 MiB of them (2048^2 rays are 280 MB)
 _SCRATCH: dict = {}  # name -> device array reused by the analysis holding WORK_LOCK
 #: Held by the analysis whose outputs live in :func:`scratch` arrays until they are copied back.
 WORK_LOCK = threading.Lock()
@@ -206,8 +207,8 @@ def rays_for(pack: np.ndarray, make):
     (camera, volume geometry, sample distance), so an analysis with the same camera (every
     evaluation of an optimisation, every frame of a benchmark) reuses the rays and their device
     copies (:func:`to_device` with ``pool="rays"``).  The arrays are shared: not to be written.
-    ``base`` is added: the exclusive sum of the sample counts (where each ray's cache entries
-    start on the device).
+    ``total`` is added (the sum of the sample counts), and the first analysis that builds a
+    cache adds ``base`` (their exclusive sum: where each ray's entries start on the device).
     """
     key = np.ascontiguousarray(pack, np.float64).tobytes()
     with _LOCK:
@@ -216,15 +217,13 @@ def rays_for(pack: np.ndarray, make):
             _RAYS[key] = hit
             return hit
     seg = make()
-    n = seg["n"]
-    base = np.zeros(len(n), np.int64)
-    if len(n):
-        np.cumsum(n[:-1], out=base[1:])
-    seg["base"] = base
-    seg["total"] = int(base[-1] + n[-1]) if len(n) else 0
+    seg["total"] = int(seg["n"].sum())
+    size = sum(seg[q].nbytes for q in ("a", "b", "t", "n"))
     with _LOCK:
-        while len(_RAYS) >= _KEEP_RAYS:
-            _RAYS.pop(next(iter(_RAYS)))
+        held = sum(v["a"].nbytes * 2 + v["t"].nbytes + v["n"].nbytes for v in _RAYS.values())
+        while _RAYS and (len(_RAYS) >= _KEEP_RAYS or held + size > _KEEP_RAYS_BYTES):
+            old = _RAYS.pop(next(iter(_RAYS)))
+            held -= old["a"].nbytes * 2 + old["t"].nbytes + old["n"].nbytes
         _RAYS[key] = seg
     return seg
 

@@ -680,7 +680,7 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
     blocks = _grid.block_map(volume, cells)
     rep = _plateau_entries(ids, memb, k)
     kmap, tids, t_alpha, t_bit = _tail_tables(ids, memb, alpha_w, rep, k)
-    cached = "base" in seg  # a ray set of _cuda.rays_for: kept on the device
+    cached = "total" in seg  # a ray set of _cuda.rays_for: kept on the device
     total = seg["total"] if cached else int(n.sum())
     cap = max(total, 1) if build else 1
     big = (vol, tix, cells, blocks, lab[0], cv)
@@ -695,12 +695,13 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
     else:
         rays = [_cuda.to_device(seg[q]) for q in ("a", "b", "t")] + [_cuda.to_device(n)]
     if build:
-        if cached:
-            base_d = _cuda.to_device(seg["base"], keep=True, pool="rays")
-        else:
+        base = seg.get("base")
+        if base is None:
             base = np.zeros(nrays, np.int64)
             np.cumsum(n[:-1], out=base[1:])
-            base_d = _cuda.to_device(base)
+            if cached:
+                seg["base"] = base  # the camera's next cache builds reuse it
+        base_d = _cuda.to_device(base, keep=cached, pool="rays")
     else:  # read by the walk only with build: any int64 array of nrays will do (below)
         base_d = None
     tables = [_cuda.table(a) for a in (ids, memb, alpha_r, alpha_w, cols, light, tab)]
