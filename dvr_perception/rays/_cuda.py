@@ -5,6 +5,11 @@ a device once per process).  ``backend="cuda"`` needs numba's CUDA target (the `
 ``numba-cuda``) and a CUDA device, or numba's CUDA simulator (``NUMBA_ENABLE_CUDASIM=1``,
 tests only: every thread runs in Python); ``auto`` takes it only with a real device, never
 under the simulator, and not with ``DVR_PERCEPTION_NO_CUDA`` set.
+
+What does not change between analyses stays on the device, so that an analysis pays for its
+walk and its outputs only: the derived volumes while the volume lives (:func:`to_device`),
+the rays of the last cameras (:func:`rays_for`), the small tables by content (:func:`table`)
+and the per-ray work arrays of the last analysis (:func:`scratch`).
 """
 
 from __future__ import annotations
