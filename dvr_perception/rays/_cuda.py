@@ -280,8 +280,14 @@ def free_bytes() -> int | None:
 
 
 def check_fits(need: int) -> None:
-    """Raise :class:`DVRInputError` when ``need`` bytes exceed the device's free memory."""
+    """Raise :class:`DVRInputError` when ``need`` bytes exceed the device's free memory.
+
+    The work arrays kept from the last analysis (:func:`scratch`) count as free: they are
+    reused or replaced.
+    """
     free = free_bytes()
+    if free is not None:
+        free += sum(int(getattr(a, "nbytes", 0)) for a in list(_SCRATCH.values()))
     if free is not None and need > free:
         raise DVRInputError(
             f"backend: the cuda analysis needs {need / 2**30:.2f} GiB on the GPU but "
