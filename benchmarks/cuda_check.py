@@ -15,8 +15,10 @@ It prints (and with ``--out`` writes) one JSON object:
   (buffers within 1e-5, E terms within 1e-6).
 * ``frames``: per volume, median seconds of ``--repeat`` analyses on each back end: ``frame``
   (with the cache, as the optimiser's first pass), ``measure`` (no cache, as ``measure``
-  pays) and ``render`` (no cache, rays stop at early termination); ``first`` is the first
-  cuda call (kernel compilation included).
+  pays), ``measure_new_camera`` (the same with the camera moved a hair every time: the rays
+  are made and uploaded, as when the user turns the view; ``measure`` reuses them) and
+  ``render`` (no cache, rays stop at early termination); ``first`` is the first call
+  (kernel compilation included).
 * with ``--big``: cthead up-sampled to 512 x 512 x 452 (``--resample 2,2,4``) and to
   1024 x 1024 x 904 (``4,4,8``; cuda only, one numba frame); with ``--optimize``: the whole
   default optimisation (three stages) of the 512 x 512 x 452 CT on each back end.
@@ -100,20 +102,34 @@ def _frames(scene, curv, repeat: int, backends=("cuda", "numba")) -> dict:
     out = {"dims": list(vol.dims), "size": [cam.width, cam.height]}
     for backend in backends:
 
-        def run(b=backend, **kw):
-            return analyze(vol, spec, cam, backend=b, **kw)
+        def run(b=backend, camera=cam, **kw):
+            return analyze(vol, spec, camera, backend=b, **kw)
 
         t0 = time.perf_counter()
         run(curvature=curv)  # compiles, uploads
         first = time.perf_counter() - t0
         run(build_cache=False, occlusion_free=False)
+        moved = iter(_nudged(cam, repeat))
         out[backend] = {
             "first": first,
             "frame": _median(lambda r=run: r(curvature=curv), repeat),
             "measure": _median(lambda r=run: r(curvature=curv, build_cache=False), repeat),
+            "measure_new_camera": _median(
+                lambda r=run, m=moved: r(camera=next(m), curvature=curv, build_cache=False),
+                repeat,
+            ),
             "render": _median(lambda r=run: r(build_cache=False, occlusion_free=False), repeat),
         }
     return out
+
+
+def _nudged(cam, count: int) -> list:
+    """``count`` cameras a hair beside ``cam``: every analysis makes (and uploads) its rays."""
+    from dataclasses import replace
+
+    pos, focal = np.asarray(cam.position, float), np.asarray(cam.focal_point, float)
+    step = 1e-4 * float(np.linalg.norm(pos - focal))
+    return [replace(cam, position=tuple(pos + (i + 1) * step)) for i in range(count)]
 
 
 def _optimize(scene, curv, backend: str) -> dict:

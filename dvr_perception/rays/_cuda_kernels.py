@@ -117,11 +117,14 @@ def walk(
 
 
 @cuda.jit
-def finish(rgba, vis, cimg, bg, rgba32, image, acc, vis32, cimg32):
+def finish(rgba, vis, cimg, asg, aimp, walked, bg, rgba32, image, acc, vis32, cimg32, asg32,
+           aimp32, total):  # fmt: skip
     """float32 outputs and the image over the background, one thread per ray.
 
     The per-ray body of :func:`_numba_kernels.finish` (the same float32 operations), so only
-    float32 buffers travel back to the host.
+    float32 buffers travel back to the host; also the assigned opacities (the first rows of
+    ``asg``) and ``aimp`` in float32 (as the host's ``astype``), and the walked samples summed
+    into ``total[0]`` (zeroed by the caller) instead of a per-ray array.
     """
     r = cuda.grid(1)
     if r >= rgba.shape[0]:
@@ -139,6 +142,12 @@ def finish(rgba, vis, cimg, bg, rgba32, image, acc, vis32, cimg32):
     cimg32[r] = np.float32(cimg[r])
     for s in range(vis.shape[0]):
         vis32[s, r] = np.float32(vis[s, r])
+    for s in range(asg32.shape[0]):
+        asg32[s, r] = np.float32(asg[s, r])
+    aimp32[r] = np.float32(aimp[r])
+    w = walked[r]
+    if w != 0:
+        cuda.atomic.add(total, 0, w)
 
 
 @cuda.jit

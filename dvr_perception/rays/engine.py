@@ -468,7 +468,14 @@ def _scene(volume: Volume, spec: StructureSpec, camera: Camera, backend: str) ->
     step, unit = _tables.step_and_unit(spec, volume)
     lut = build_lut(spec, scalar_range=_grid.scalar_range(volume), dtype=volume.data.dtype)
     labmap, ids, memb = _with_labels(volume, spec, lut)
-    return nk, step, unit, lut, labmap, ids, memb, _segments(nk, camera, volume, step)
+    if _kind(backend, nk) == "cuda":  # the rays of a camera are made (and uploaded) once
+        from dvr_perception.rays import _cuda
+
+        pack = _grid.camera_pack(camera, volume, step)
+        seg = _cuda.rays_for(pack, lambda: _segments(nk, camera, volume, step))
+    else:
+        seg = _segments(nk, camera, volume, step)
+    return nk, step, unit, lut, labmap, ids, memb, seg
 
 
 def _plan(volume, spec, camera, seg, lut, memb, has_curv, build_cache, memory_limit, brick):
@@ -649,11 +656,17 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
     """Run the walk on the GPU (:mod:`~dvr_perception.rays._cuda_kernels`); as :func:`_walk_numba`.
 
     One thread per ray.  The float32 outputs and the image over the background ``bg`` are
-    made on the device: ``rgba`` comes back as ``(rgba, image, accumulated)``, ``vis`` and
-    ``cimg`` as float32.  With ``build`` every ray packs its cache entries into a region of
-    its own (its sample count: an upper bound), then the entries are packed in row-major
-    pixel order on the device and copied back: the same cache as the CPU engine's.  The
-    derived volumes stay on the device while the volume lives (:func:`_cuda.to_device`).
+    made on the device: ``rgba`` comes back as ``(rgba, image, accumulated)``, ``vis``,
+    ``cimg``, ``asg`` and ``aimp`` as float32 (``asg`` and ``aimp`` not at all without
+    ``tail``: analyze() gives NaN there), the walked samples as their sum.  With ``build``
+    every ray packs its cache entries into a region of its own (its sample count: an upper
+    bound), then the entries are packed in row-major pixel order on the device and copied
+    back: the same cache as the CPU engine's.
+
+    What does not change between analyses stays on the device: the derived volumes while the
+    volume lives, the rays of the last cameras (:func:`_cuda.rays_for`), the small tables by
+    content (:func:`_cuda.table`) and the per-ray work arrays (:func:`_cuda.scratch`, while no
+    other analysis holds them).
     """
     from dvr_perception.rays import _cuda
 
@@ -667,98 +680,130 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
     blocks = _grid.block_map(volume, cells)
     rep = _plateau_entries(ids, memb, k)
     kmap, tids, t_alpha, t_bit = _tail_tables(ids, memb, alpha_w, rep, k)
-    base = np.zeros(nrays, np.int64)
-    if build:
-        np.cumsum(n[:-1], out=base[1:])
-    cap = max(int(n.sum()), 1) if build else 1
+    cached = "total" in seg  # a ray set of _cuda.rays_for: kept on the device
+    total = seg["total"] if cached else int(n.sum())
+    cap = max(total, 1) if build else 1
     big = (vol, tix, cells, blocks, lab[0], cv)
     entry = 2 + 4 + (4 if shade else 0) + (4 if has_curv else 0)
     need = sum(a.nbytes for a in big) + nrays * 8 * (2 * k + 25) + (cap * entry if build else 0)
     _cuda.check_fits(int(need * 1.1) + (2 * cap * entry if build else 0))
-    dev = [_cuda.to_device(a, keep=True) for a in big]
-    small = [_cuda.to_device(a) for a in (rep, kmap, tids, t_alpha, t_bit)]
-    rays = [_cuda.to_device(seg[q]) for q in ("a", "b", "t")] + [_cuda.to_device(n)]
-    base_d = _cuda.to_device(base)
-    tables = [_cuda.to_device(a) for a in (ids, memb, alpha_r, alpha_w, cols, light, tab)]
+    # the placeholders of no curvature or labels are new arrays each time: kept by content
+    dev = [_cuda.table(a) if a.nbytes <= 1 << 16 else _cuda.to_device(a, keep=True) for a in big]
+    small = [_cuda.table(a) for a in (rep, kmap, tids, t_alpha, t_bit)]
+    if cached:
+        rays = [_cuda.to_device(seg[q], keep=True, pool="rays") for q in ("a", "b", "t", "n")]
+    else:
+        rays = [_cuda.to_device(seg[q]) for q in ("a", "b", "t")] + [_cuda.to_device(n)]
+    if build:
+        base = seg.get("base")
+        if base is None:
+            base = np.zeros(nrays, np.int64)
+            np.cumsum(n[:-1], out=base[1:])
+            if cached:
+                seg["base"] = base  # the camera's next cache builds reuse it
+        base_d = _cuda.to_device(base, keep=cached, pool="rays")
+    else:  # read by the walk only with build: any int64 array of nrays will do (below)
+        base_d = None
+    tables = [_cuda.table(a) for a in (ids, memb, alpha_r, alpha_w, cols, light, tab)]
+    mine = _cuda.WORK_LOCK.acquire(blocking=False)
+    try:
+
+        def buf(name, shape, dtype):
+            return _cuda.scratch(name, shape, dtype, mine)
+
+        out = {
+            "rgba": buf("rgba", (nrays, 4), np.float64),
+            "vis": buf("vis", (k, nrays), np.float64),
+            "asg": buf("asg", (k + 1, nrays), np.float64),
+            "present": buf("present", nrays, np.uint32),
+            "cimg": buf("cimg", nrays, np.float64),
+            "count": buf("count", nrays, np.int64),
+            "walked": buf("walked", nrays, np.int64),
+            "aimp": buf("aimp", nrays, np.float64),
+            "state": buf("state", (nrays, 7), np.float64),
+        }
+        if base_d is None:
+            base_d = out["count"]  # never read without build (_walk_ray packs nothing)
+        src = (
+            buf("src_lut", cap, np.uint16),
+            buf("src_j", cap, np.int32),
+            buf("src_sh", (cap if build and shade else 1, 2), np.uint16),
+            buf("src_curv", cap if build and has_curv else 1, np.float32),
+        )
+        bx, by = ck.BLOCK
+        grid = (-(-w // bx), -(-h // by))
+        vol_d, tix_d, cells_d, blocks_d, lab_d, cv_d = dev
+        with _cuda.quiet_launch():  # small images: no low-occupancy warning per frame
+            ck.walk[grid, (bx, by)](
+                vol_d, tix_d, cells_d, blocks_d, small[0], lab_d, np.int64(lab[1]), *small[1:],
+                cv_d, *rays, base_d, float(step), *tables, bool(shade),
+                bool(has_curv), bool(build), bool(tail), float(ert), out["rgba"], out["vis"],
+                out["asg"], out["present"], out["cimg"], out["count"], out["walked"],
+                out["aimp"], out["state"], *src, np.int64(w), np.int64(h),
+            )  # fmt: skip
+        # float32 outputs and the image over the background made on the device (as _finish)
+        fin = {
+            "rgba": buf("f_rgba", (nrays, 4), np.float32),
+            "image": buf("f_image", (nrays, 3), np.float32),
+            "acc": buf("f_acc", nrays, np.float32),
+            "vis": buf("f_vis", (k, nrays), np.float32),
+            "cimg": buf("f_cimg", nrays, np.float32),
+            "asg": buf("f_asg", (k, nrays), np.float32),
+            "aimp": buf("f_aimp", nrays, np.float32),
+        }
+        walked_d = buf("walked_sum", 1, np.int64)
+        walked_d.copy_to_device(np.zeros(1, np.int64))
+        threads = 128
+        with _cuda.quiet_launch():
+            ck.finish[-(-nrays // threads), threads](
+                out["rgba"], out["vis"], out["cimg"], out["asg"], out["aimp"], out["walked"],
+                _cuda.table(bg), fin["rgba"], fin["image"], fin["acc"], fin["vis"],
+                fin["cimg"], fin["asg"], fin["aimp"], walked_d,
+            )  # fmt: skip
+        wanted = ("rgba", "image", "acc", "vis", "cimg") + (("asg", "aimp") if tail else ())
+        host = {q: fin[q].copy_to_host() for q in wanted}
+        host["present"] = out["present"].copy_to_host()
+        walked = int(walked_d.copy_to_host()[0])
+        if report:
+            report(0.9)
+        start, count, entries = None, None, None
+        if build:
+            count = out["count"].copy_to_host()
+            start = np.zeros(nrays, np.int64)
+            np.cumsum(count[:-1], out=start[1:])
+            e = int(start[-1] + count[-1]) if nrays else 0
+            m = max(e, 1)
+            dst = (
+                _cuda_array(m, np.uint16),
+                _cuda_array(m, np.int32),
+                _cuda_array((m if shade else 1, 2), np.uint16),
+                _cuda_array(m if has_curv else 1, np.float32),
+            )
+            with _cuda.quiet_launch():
+                ck.compact[-(-nrays // threads), threads](
+                    base_d, out["count"], _cuda.to_device(start), *src, *dst,
+                    bool(shade), bool(has_curv),
+                )  # fmt: skip
+            lut_h, j_h, sh_h, curv_h = (d.copy_to_host() for d in dst)
+            entries = {
+                "lut": lut_h[:e],
+                "steps": j_h[:e],
+                "shading": sh_h[: e if shade else 0],
+                "curvature": curv_h[: e if has_curv else 0],
+            }
+    finally:
+        if mine:
+            _cuda.WORK_LOCK.release()
+    rgba = (host["rgba"], host["image"], host["acc"])  # finished: see analyze()
+    return (rgba, host["vis"], host.get("asg"), host["present"], host["cimg"], start, count,
+            entries, walked, host.get("aimp"))  # fmt: skip
+
+
+def _cuda_array(shape, dtype):
+    """Return a new device array (``numba.cuda.device_array``)."""
     from numba import cuda
 
-    out = {
-        "rgba": cuda.device_array((nrays, 4), np.float64),
-        "vis": cuda.device_array((k, nrays), np.float64),
-        "asg": cuda.device_array((k + 1, nrays), np.float64),
-        "present": cuda.device_array(nrays, np.uint32),
-        "cimg": cuda.device_array(nrays, np.float64),
-        "count": cuda.device_array(nrays, np.int64),
-        "walked": cuda.device_array(nrays, np.int64),
-        "aimp": cuda.device_array(nrays, np.float64),
-        "state": cuda.device_array((nrays, 7), np.float64),
-    }
-    src = (
-        cuda.device_array(cap, np.uint16),
-        cuda.device_array(cap, np.int32),
-        cuda.device_array((cap if build and shade else 1, 2), np.uint16),
-        cuda.device_array(cap if build and has_curv else 1, np.float32),
-    )
-    bx, by = ck.BLOCK
-    grid = (-(-w // bx), -(-h // by))
-    vol_d, tix_d, cells_d, blocks_d, lab_d, cv_d = dev
-    with _cuda.quiet_launch():  # small images: no low-occupancy warning per frame
-        ck.walk[grid, (bx, by)](
-            vol_d, tix_d, cells_d, blocks_d, small[0], lab_d, np.int64(lab[1]), *small[1:],
-            cv_d, *rays, base_d, float(step), *tables, bool(shade),
-            bool(has_curv), bool(build), bool(tail), float(ert), out["rgba"], out["vis"],
-            out["asg"], out["present"], out["cimg"], out["count"], out["walked"], out["aimp"],
-            out["state"], *src, np.int64(w), np.int64(h),
-        )  # fmt: skip
-    # float32 outputs and the image over the background made on the device (as _finish)
-    fin = {
-        "rgba": cuda.device_array((nrays, 4), np.float32),
-        "image": cuda.device_array((nrays, 3), np.float32),
-        "acc": cuda.device_array(nrays, np.float32),
-        "vis": cuda.device_array((k, nrays), np.float32),
-        "cimg": cuda.device_array(nrays, np.float32),
-    }
-    threads = 128
-    with _cuda.quiet_launch():
-        ck.finish[-(-nrays // threads), threads](
-            out["rgba"], out["vis"], out["cimg"], _cuda.to_device(bg), fin["rgba"],
-            fin["image"], fin["acc"], fin["vis"], fin["cimg"],
-        )  # fmt: skip
-    host = {q: d.copy_to_host() for q, d in fin.items()}
-    host["present"] = out["present"].copy_to_host()
-    host["aimp"] = out["aimp"].copy_to_host()
-    host["asg"] = out["asg"][:k].copy_to_host()  # not the spare row of the walk behind ERT
-    walked = int(out["walked"].copy_to_host().sum())
-    if report:
-        report(0.9)
-    start, count, entries = None, None, None
-    if build:
-        count = out["count"].copy_to_host()
-        start = np.zeros(nrays, np.int64)
-        np.cumsum(count[:-1], out=start[1:])
-        e = int(start[-1] + count[-1]) if nrays else 0
-        m = max(e, 1)
-        dst = (
-            cuda.device_array(m, np.uint16),
-            cuda.device_array(m, np.int32),
-            cuda.device_array((m if shade else 1, 2), np.uint16),
-            cuda.device_array(m if has_curv else 1, np.float32),
-        )
-        with _cuda.quiet_launch():
-            ck.compact[-(-nrays // threads), threads](
-                base_d, out["count"], _cuda.to_device(start), *src, *dst,
-                bool(shade), bool(has_curv),
-            )  # fmt: skip
-        lut_h, j_h, sh_h, curv_h = (d.copy_to_host() for d in dst)
-        entries = {
-            "lut": lut_h[:e],
-            "steps": j_h[:e],
-            "shading": sh_h[: e if shade else 0],
-            "curvature": curv_h[: e if has_curv else 0],
-        }
-    rgba = (host["rgba"], host["image"], host["acc"])  # finished: see analyze()
-    return (rgba, host["vis"], host["asg"], host["present"], host["cimg"], start, count,
-            entries, walked, host["aimp"])  # fmt: skip
+    return cuda.device_array(shape, dtype)
 
 
 def _threads() -> int:

@@ -154,6 +154,26 @@ out["empty"] = {"warned": [str(w.message)[:40] for w in seen], "backend": e.stat
                 "reevaluated": bool(reevaluate(e.cache, opacities=[1.0] * len(spec.structures))
                                     .accumulated.any())}
 out["auto"] = analyze(vol, spec, cam, build_cache=False).stats["backend"]
+# the second analysis with the same camera and other opacities uploads only the table that
+# changed (the rays, volumes and other tables stay on the device) and reuses the work arrays
+from numba import cuda as ncuda
+
+from dvr_perception.rays import _cuda
+
+k = len(spec.structures)
+analyze(vol, spec, side, backend="cuda", build_cache=False, opacities=[0.3] * k)
+kept = dict(_cuda._SCRATCH)
+uploads = []
+upload = ncuda.to_device
+ncuda.to_device = lambda a, *x, **y: (uploads.append(list(np.shape(a))), upload(a, *x, **y))[1]
+b = analyze(vol, spec, side, backend="cuda", build_cache=False, opacities=[0.7] * k)
+ncuda.to_device = upload
+a = analyze(vol, spec, side, backend="numba", build_cache=False, opacities=[0.7] * k)
+ea, eb = e_terms(a, spec), e_terms(b, spec)
+out["reuse"] = {"uploads": uploads, "work": sorted(kept),
+                "same_work": sorted(q for q in kept if _cuda._SCRATCH[q] is kept[q]),
+                "buffers": diff(a, b), "E": {t: abs(ea[t] - eb[t]) for t in ea},
+                "hit": int(np.count_nonzero(a.accumulated > 0.05))}
 # a volume the CPU analyses in bricks (forced: the plan bricks only what does not fit the
 # limit, issue 31) is analysed whole on the GPU, with the same buffers
 a = analyze(vol, spec, side, backend="numba", brick=(8, 8, 8))
@@ -323,6 +343,20 @@ def test_a_camera_that_sees_nothing(sim):
     assert rec["image"] == pytest.approx(rec["bg"], abs=1e-6)  # the background
 
 
+def test_a_second_analysis_reuses_what_is_on_the_device(sim):
+    rec = sim["reuse"]
+    assert rec["hit"] >= 10
+    assert max(rec["buffers"].values()) <= 1e-5, rec["buffers"]
+    assert max(rec["E"].values()) <= 1e-6, rec["E"]
+    # only the render opacities' table changed: one small upload, no rays, no volume
+    assert len(rec["uploads"]) == 1, rec["uploads"]
+    assert len(rec["uploads"][0]) == 1, rec["uploads"]
+    assert rec["uploads"][0][0] < 1000, rec["uploads"]
+    assert "rgba" in rec["work"]
+    assert "state" in rec["work"]
+    assert rec["same_work"] == rec["work"]
+
+
 def test_auto_never_takes_the_simulator_and_bricks_are_refused(sim):
     assert sim["auto"] == "numba"
     assert sim["brick"].startswith("brick: the cuda back end")
@@ -404,6 +438,9 @@ class Host(np.ndarray):
     def copy_to_host(self):
         return np.asarray(self).copy()
 
+    def copy_to_device(self, a):
+        self[...] = a
+
 
 lowered = []
 
@@ -428,7 +465,8 @@ class Kernels:
 
 
 _cuda.kernels = lambda: Kernels
-_cuda.to_device = lambda a, keep=False: np.ascontiguousarray(a).view(Host)
+_cuda.to_device = lambda a, keep=False, pool="volume": np.ascontiguousarray(a).view(Host)
+_cuda.table = lambda a: np.ascontiguousarray(a).view(Host)
 _cuda.check_fits = lambda need: None
 cuda.device_array = lambda shape, dtype: np.zeros(shape, dtype).view(Host)
 engine._pick_backend = lambda backend: engine._numba_kernels()
