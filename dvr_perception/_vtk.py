@@ -76,11 +76,24 @@ def __getattr__(name: str):
     module = _MODULE_OF.get(name)
     if module is None:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(module), name)
+    value = getattr(_import(module), name)
     globals()[name] = value
     return value
+
+
+def _import(module: str):
+    """Import the VTK module ``module`` with Ctrl-C and SIGTERM held back until it is done.
+
+    A VTK extension module interrupted half-way through its import (a ``KeyboardInterrupt``
+    raised inside it) leaves VTK half-initialised, and the process then crashes (SIGSEGV)
+    while it cleans up; the signal is delivered once the import is complete.
+    """
+    import importlib
+
+    from dvr_perception._files import _deferred_sigint
+
+    with _deferred_sigint():
+        return importlib.import_module(module)
 
 
 def __dir__() -> list[str]:
@@ -97,25 +110,20 @@ def rendering():
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     import types
 
-    import vtkmodules.vtkRenderingOpenGL2  # noqa: F401  (registers OpenGL overrides)
-    from vtkmodules.vtkRenderingCore import (
-        vtkLight,
-        vtkRenderer,
-        vtkRenderWindow,
-        vtkVolume,
-        vtkWindowToImageFilter,
-    )
-    from vtkmodules.vtkRenderingVolume import vtkFixedPointVolumeRayCastMapper
-    from vtkmodules.vtkRenderingVolumeOpenGL2 import vtkOpenGLGPUVolumeRayCastMapper
-
+    _import("vtkmodules.vtkRenderingOpenGL2")  # registers the OpenGL overrides
+    core = _import("vtkmodules.vtkRenderingCore")
     return types.SimpleNamespace(
-        vtkFixedPointVolumeRayCastMapper=vtkFixedPointVolumeRayCastMapper,
-        vtkOpenGLGPUVolumeRayCastMapper=vtkOpenGLGPUVolumeRayCastMapper,
-        vtkLight=vtkLight,
-        vtkRenderWindow=vtkRenderWindow,
-        vtkRenderer=vtkRenderer,
-        vtkVolume=vtkVolume,
-        vtkWindowToImageFilter=vtkWindowToImageFilter,
+        vtkFixedPointVolumeRayCastMapper=_import(
+            "vtkmodules.vtkRenderingVolume"
+        ).vtkFixedPointVolumeRayCastMapper,
+        vtkOpenGLGPUVolumeRayCastMapper=_import(
+            "vtkmodules.vtkRenderingVolumeOpenGL2"
+        ).vtkOpenGLGPUVolumeRayCastMapper,
+        vtkLight=core.vtkLight,
+        vtkRenderWindow=core.vtkRenderWindow,
+        vtkRenderer=core.vtkRenderer,
+        vtkVolume=core.vtkVolume,
+        vtkWindowToImageFilter=core.vtkWindowToImageFilter,
     )
 
 
