@@ -2,10 +2,10 @@
 
 :func:`group_stats` gives, bit for bit, what the numpy reference
 :func:`dvr_perception.measures._scene._group_stats` gives: the sums run over the pixels in
-order, as ``numpy.bincount`` does.  :func:`correlate_columns` gives, bit for bit, what
-``scipy.ndimage.correlate1d(..., axis=0, mode="nearest")`` gives with a symmetric or
-antisymmetric kernel (scipy's symmetric loop, the same order of sums), vectorised along the
-rows and parallel over them.
+order, as ``numpy.bincount`` does.  :func:`correlate_columns` and :func:`correlate_rows`
+give, bit for bit, what ``scipy.ndimage.correlate1d(..., axis=0 or 1, mode="nearest")``
+gives with a symmetric or antisymmetric kernel (scipy's symmetric loop, the same order of
+sums), vectorised along the rows and parallel over them.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["correlate_columns", "group_stats", "visibility_core"]
+__all__ = ["correlate_columns", "correlate_rows", "group_stats", "visibility_core"]
 
 
 @njit(cache=True)
@@ -165,3 +165,37 @@ def correlate_columns(src, weights, signs, out):
             else:
                 for x in range(wd):
                     o[x] += (a[x] - b[x]) * wj
+
+
+@njit(cache=True, parallel=True)
+def correlate_rows(src, weights, signs, out):
+    """:func:`correlate_columns` along the images' second axis (their rows).
+
+    Each row is copied into a buffer extended by ``R`` edge values on both sides (scipy's
+    ``mode="nearest"``); the sums run in the same order, so the results are scipy's bits.
+    """
+    n, h, wd = src.shape
+    r = (weights.shape[1] - 1) // 2
+    for item in prange(n * h):
+        m = item // h
+        y = item - m * h
+        s = src[m, y]
+        o = out[m, y]
+        buf = np.empty(wd + 2 * r)
+        for i in range(wd + 2 * r):
+            buf[i] = s[min(max(i - r, 0), wd - 1)]
+        w0 = weights[m, r]
+        for x in range(wd):
+            o[x] = buf[x + r] * w0
+        sym = signs[m] > 0
+        for q in range(r):
+            j = r - q
+            wj = weights[m, r - j]
+            lo = buf[r - j : r - j + wd]
+            hi = buf[r + j : r + j + wd]
+            if sym:
+                for x in range(wd):
+                    o[x] += (lo[x] + hi[x]) * wj
+            else:
+                for x in range(wd):
+                    o[x] += (lo[x] - hi[x]) * wj

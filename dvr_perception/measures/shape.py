@@ -147,7 +147,7 @@ def _filters(values: np.ndarray, mask: np.ndarray, log_y: np.ndarray, sigma: flo
     ``scipy.ndimage.gaussian_gradient_magnitude``.
 
     With numba the eight one-dimensional passes run as two parallel kernel calls
-    (:func:`~._kernels.correlate_columns`: rows, then the transposed images) and give
+    (:func:`~._kernels.correlate_columns`, then :func:`~._kernels.correlate_rows`) and give
     scipy's bits; without, scipy's filters.
     """
     weight = mask.astype(np.float64)
@@ -163,10 +163,8 @@ def _filters(values: np.ndarray, mask: np.ndarray, log_y: np.ndarray, sigma: flo
     # component along axis 0, of its second along axis 1
     first = np.empty_like(stack)
     nk.correlate_columns(stack, np.stack([g0, g0, g1, g0]), np.array([1, 1, -1, 1]), first)
-    turned = np.ascontiguousarray(first.transpose(0, 2, 1))
-    second = np.empty_like(turned)
-    nk.correlate_columns(turned, np.stack([g0, g0, g0, g1]), np.array([1, 1, 1, -1]), second)
-    num, den, d0, d1 = (np.ascontiguousarray(a.T) for a in second)
+    num, den, d0, d1 = second = np.empty_like(first)
+    nk.correlate_rows(first, np.stack([g0, g0, g0, g1]), np.array([1, 1, 1, -1]), second)
     d0 *= d0
     d1 *= d1
     d0 += d1
