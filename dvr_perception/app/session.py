@@ -314,8 +314,8 @@ class Session:
         ``orientation`` (``dvr-perception app --orientation CODE``) declares where the file's
         index axes point, as the other commands' ``--orientation`` does.
         """
-        from dvr_perception.structures import check_spec_for_volume
-        from dvr_perception.volume import load_volume, make_phantom
+        from dvr_perception.structures import check_spec_for_volume, make_phantom
+        from dvr_perception.volume import load_volume
 
         if name == PHANTOM:
             volume, spec = make_phantom(size=self.phantom_size)

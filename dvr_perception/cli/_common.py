@@ -347,7 +347,7 @@ def _load_volume(text: str, *, paired: bool = True, series: str | None = None, c
     matches, else a proposal; ``classes`` asks for a proposal of that many structures).
     """
     if text == "phantom":
-        from dvr_perception.volume.phantom import make_phantom
+        from dvr_perception.structures.phantom import make_phantom
 
         volume, spec = make_phantom()
         return volume, spec, "phantom (built-in spec)", ""

@@ -94,7 +94,7 @@ def stage_render(state: DemoState) -> None:
     from dvr_perception.rays.camera import Camera
     from dvr_perception.rays.engine import analyze
     from dvr_perception.structures.io import save_spec
-    from dvr_perception.volume.phantom import make_phantom
+    from dvr_perception.structures.phantom import make_phantom
 
     t0 = time.perf_counter()
     state.volume, state.spec = make_phantom()

@@ -43,8 +43,9 @@ _REPO = Path(__file__).resolve().parents[2]
 
 def _scene(name: str, data: Path, size: int):
     from dvr_perception.rays.camera import Camera
+    from dvr_perception.structures import make_phantom
     from dvr_perception.structures.io import load_spec
-    from dvr_perception.volume import load_volume, make_phantom
+    from dvr_perception.volume import load_volume
 
     if name == "phantom":
         vol, spec = make_phantom()

@@ -259,7 +259,7 @@ def optimize(
 
     Examples
     --------
-    >>> from dvr_perception.volume import make_phantom
+    >>> from dvr_perception.structures import make_phantom
     >>> vol, spec = make_phantom(size=32)
     >>> cam = Camera.from_view(vol.bounds, width=32, height=32)
     >>> res = optimize(vol, spec, cam, stages=("opacity",), max_iter=2)

@@ -437,7 +437,7 @@ def add_structures(plotter, volume: Volume, spec: StructureSpec, *, opacities=No
     Examples
     --------
     >>> import pyvista as pv
-    >>> from dvr_perception.volume import make_phantom
+    >>> from dvr_perception.structures import make_phantom
     >>> vol, spec = make_phantom(size=32)
     >>> pl = pv.Plotter(off_screen=True)  # doctest: +SKIP
     >>> handle = add_structures(pl, vol, spec)  # doctest: +SKIP

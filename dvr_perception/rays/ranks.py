@@ -329,7 +329,7 @@ def warm_up(*, optimize: bool = False) -> None:
 
     from dvr_perception.measures import all_measures
     from dvr_perception.rays.camera import Camera
-    from dvr_perception.volume.phantom import make_phantom
+    from dvr_perception.structures.phantom import make_phantom
 
     vol, spec = make_phantom(size=16)
     cam = Camera.from_view(vol.bounds, width=8, height=8)

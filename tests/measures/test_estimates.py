@@ -15,7 +15,7 @@ from dvr_perception.measures.results import _image_luminance
 from dvr_perception.measures.transparency import transparency_table
 from dvr_perception.rays import Camera
 from dvr_perception.rays.engine import analyze
-from dvr_perception.volume.phantom import make_phantom
+from dvr_perception.structures.phantom import make_phantom
 
 
 @pytest.fixture(scope="module")

@@ -19,8 +19,8 @@ from dvr_perception.rays import memory
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature_field import CurvatureField, curvature_source
 from dvr_perception.rays.engine import analyze
+from dvr_perception.structures.phantom import make_phantom
 from dvr_perception.structures.transfer import build_lut
-from dvr_perception.volume.phantom import make_phantom
 
 pytest.importorskip("numba")
 

@@ -33,7 +33,7 @@ from dvr_perception.rays.ranks import (
     piece_curvature,
     piece_of,
 )
-from dvr_perception.volume.phantom import make_phantom
+from dvr_perception.structures.phantom import make_phantom
 
 
 def _run(n, function):
