@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from dvr_perception import _resources
+from dvr_perception._timing import median_time as _median_time
 from dvr_perception.benchmarks import checks
-from dvr_perception.cli.bench import _median_time
 from dvr_perception.measures import covered_transmittance, shape, transparency, visibility
 from dvr_perception.optimize import optimize
 from dvr_perception.optimize.core import OBJECTIVES

@@ -65,6 +65,7 @@ import time
 import numpy as np
 
 from dvr_perception._files import file_lock
+from dvr_perception._timing import median_time as _median_time
 from dvr_perception.cli._backend import add_backend_arg
 from dvr_perception.cli._common import (
     add_scene_args,
@@ -158,15 +159,6 @@ def _peak_rss_mb() -> float:
 
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / 2**20 if sys.platform == "darwin" else peak / 2**10
-
-
-def _median_time(fn, repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(statistics.median(times))
 
 
 def _paired_frames(ours: dict, scene, repeat: int) -> tuple:
