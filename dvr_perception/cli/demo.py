@@ -135,13 +135,13 @@ def stage_render(state: DemoState) -> None:
 
 def stage_optimize(state: DemoState) -> None:
     """Optimise the phantom's spec (``dvr-perception optimize``) and write its outputs."""
-    from dvr_perception.cli.optimize import Progress, optimize_scene, stop_on_interrupt
+    from dvr_perception.cli.optimize import Progress, optimize_and_report, stop_on_interrupt
 
     t0 = time.perf_counter()
     stages = ("opacity", "lighting", "colour")
     progress = Progress(len(stages) * 10)
     with stop_on_interrupt(progress):
-        report = optimize_scene(
+        report = optimize_and_report(
             state.volume, state.spec, state.camera, state.out_dir, stages=stages,
             progress=progress,
         )  # fmt: skip
