@@ -302,14 +302,14 @@ def _failure(returncode: int, stderr: str) -> Exception:
 
 
 def _warm_up(pvbatch: Path, env: dict, *, optimize: bool = False) -> None:
-    """Compile the ranks' kernels in one pvbatch process first (:func:`ranks.warm_up`)."""
+    """Compile the ranks' kernels in one pvbatch process first (``distributed.warm_up``)."""
     import tempfile
 
     log.info("compiling the ranks' kernels once (seconds when cached)")
     with tempfile.TemporaryDirectory(prefix="dvr-warm-") as tmp:
         script = Path(tmp) / "warm_up.py"
         script.write_text(
-            f"from dvr_perception.rays.ranks import warm_up\nwarm_up(optimize={optimize})\n",
+            f"from dvr_perception.distributed import warm_up\nwarm_up(optimize={optimize})\n",
             encoding="utf-8",
         )
         for _ in (1, 2):  # Debian's pvbatch may abort at start-up: one retry

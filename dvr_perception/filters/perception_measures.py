@@ -36,7 +36,7 @@ Several MPI ranks
     ``mpiexec -n N pvbatch`` / ``pvserver``), each rank asks its input for the extent of its
     piece (VTK's block split, :func:`piece_extent`) plus the ghost layers the normals and the
     curvature need, so no rank reads the whole volume; the ranks then compute the serial
-    result together (a :class:`~dvr_perception.rays.ranks.RankSession`, whose ranks keep
+    result together (a :class:`~dvr_perception.distributed.RankSession`, whose ranks keep
     their cache entries while rank 0 measures, so that the transparency measure re-composites
     the view without an enclosing layer as the serial filter does) and piece 0 holds the
     whole output image, the other pieces are empty.  Rank 0's field data adds the string
@@ -292,7 +292,7 @@ class PerceptionMeasures(DVRFilterBase):
 
     def execute_piece(self, image, output, comm, piece: int, whole) -> None:
         """Compute this rank's part of the output (collective; see *Several MPI ranks*)."""
-        from dvr_perception.rays.ranks import RankSession
+        from dvr_perception.distributed import RankSession
 
         part, spec, camera = self.piece_scene(image, comm, piece, whole)
         # a session (not a one-off walk): the ranks keep their cache entries while rank 0
