@@ -90,7 +90,7 @@ def transfer_function_points(spec, scalar_range=None):
     the nodes' span (``GPU_TABLE_SAMPLES``): ParaView's GPU ray caster then gets a lookup
     texture OpenGL supports, without VTK's "incorrect lookup table mapping" warning.
     """
-    from dvr_perception.structures.transfer import GPU_TABLE_SAMPLES, to_vtk_transfer_functions
+    from dvr_perception.export.vtk import GPU_TABLE_SAMPLES, to_vtk_transfer_functions
 
     ctf, otf = to_vtk_transfer_functions(spec, samples=GPU_TABLE_SAMPLES, scalar_range=scalar_range)
     rgb, node = [], [0.0] * 6

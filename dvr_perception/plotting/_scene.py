@@ -65,8 +65,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.export.vtk import to_vtk_transfer_functions
 from dvr_perception.structures.spec import Lighting, StructureSpec
-from dvr_perception.structures.transfer import to_vtk_transfer_functions
 from dvr_perception.volume.volume import Volume
 
 __all__ = ["MAX_MATERIALS", "StructureVolume", "add_structures", "apply", "material_groups"]

@@ -25,11 +25,11 @@ import numpy as np
 
 from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError
+from dvr_perception.export.vtk import to_vtk_property
 from dvr_perception.rays import _tables
 from dvr_perception.rays._grid import clipping_range
 from dvr_perception.rays.camera import Camera
 from dvr_perception.structures.spec import StructureSpec
-from dvr_perception.structures.transfer import to_vtk_property
 from dvr_perception.volume.convert import to_vtk_image
 from dvr_perception.volume.volume import Volume
 

@@ -6,18 +6,20 @@ import numpy as np
 import pytest
 
 from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.export.vtk import (
+    GPU_TABLE_SAMPLES,
+    spec_from_vtk,
+    to_vtk_property,
+    to_vtk_transfer_functions,
+)
 from dvr_perception.structures.spec import Lighting, RenderSettings, Structure, StructureSpec
 from dvr_perception.structures.transfer import (
-    GPU_TABLE_SAMPLES,
     build_lut,
     classify,
     color_table,
     lut_index,
     membership,
     opacity_table,
-    spec_from_vtk,
-    to_vtk_property,
-    to_vtk_transfer_functions,
 )
 from dvr_perception.volume.volume import Volume
 
@@ -230,3 +232,17 @@ def test_gpu_samples_keep_nodes_one_table_entry_apart():
     assert otf.GetValue(190.0) == 0.0
     with pytest.raises(DVRInputError, match="samples"):
         to_vtk_transfer_functions(spec, samples=1)
+
+
+@pytest.mark.parametrize(
+    "name", ["GPU_TABLE_SAMPLES", "spec_from_vtk", "to_vtk_property", "to_vtk_transfer_functions"]
+)
+def test_the_vtk_converters_old_path_warns_and_still_works(name):
+    from dvr_perception.export import vtk
+    from dvr_perception.structures import transfer
+
+    with pytest.warns(DeprecationWarning, match=rf"dvr_perception\.export\.{name}"):
+        old = getattr(transfer, name)
+    assert old is getattr(vtk, name)
+    with pytest.raises(AttributeError):
+        transfer.no_such_name  # noqa: B018
