@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dvr_perception._deprecation import deprecated_alias
 from dvr_perception.errors import DVRInputError
 from dvr_perception.structures.spec import Structure, StructureSpec
 
@@ -29,7 +30,7 @@ __all__ = [
     "TransferLUT",
     "build_lut",
     "classify",
-    "color_table",
+    "colour_table",
     "lut_index",
     "membership",
     "opacity_table",
@@ -270,17 +271,23 @@ def opacity_table(lut: TransferLUT, opacities) -> np.ndarray:
     return out
 
 
-def color_table(lut: TransferLUT, colors) -> np.ndarray:
+def colour_table(lut: TransferLUT, colours) -> np.ndarray:
     """Per-entry RGB colour of the entry's structure (black where id = -1), float32[N, 3]."""
-    cols = np.asarray(colors, dtype=np.float64).reshape(-1, 3)
+    cols = np.asarray(colours, dtype=np.float64).reshape(-1, 3)
     nmax = int(lut.ids.max(initial=-1)) + 1
     if cols.shape[0] < nmax or not np.all(np.isfinite(cols)):
-        raise DVRInputError(f"colors: expected at least {nmax} finite RGB triples")
+        raise DVRInputError(f"colours: expected at least {nmax} finite RGB triples")
     out = np.zeros((lut.size, 3), dtype=np.float32)
     hit = lut.ids >= 0
     out[hit] = cols[lut.ids[hit]]
     return out
 
+
+color_table = deprecated_alias(
+    colour_table,
+    "dvr_perception.structures.transfer.color_table",
+    "dvr_perception.structures.transfer.colour_table",
+)
 
 #: Names that moved to :mod:`dvr_perception.export.vtk` (deprecated aliases for one release).
 _MOVED = ("GPU_TABLE_SAMPLES", "spec_from_vtk", "to_vtk_property", "to_vtk_transfer_functions")
