@@ -1,4 +1,4 @@
-"""What the web app works on, without any web framework: scene, undo stack, files, measures.
+"""What the web app works on, without any web framework: volume, spec, undo stack, files, measures.
 
 :class:`Session` holds the volume, the structure spec shown, an undo stack of specs and the
 folders the app may touch.  The *data folder* is only read: its volumes and spec JSON files

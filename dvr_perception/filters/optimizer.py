@@ -262,7 +262,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
 
         self.UpdateProgress(0.0)
         self.result = None
-        part, spec, camera = self.piece_scene(image, comm, piece, whole)
+        part, spec, camera = self.piece_inputs(image, comm, piece, whole)
         self._spacing = tuple(image.GetSpacing())
         session = RankSession(comm, part, spec, sigma=1.0)  # the optimiser's curvature scale
         if comm.rank != 0:

@@ -263,7 +263,7 @@ class PerceptionMeasures(DVRFilterBase):
         with abort_on_error(comm, self.label):
             self.execute_piece(image, output, comm, piece, whole)
 
-    def piece_scene(self, image, comm, piece: int, whole) -> tuple:
+    def piece_inputs(self, image, comm, piece: int, whole) -> tuple:
         """Return this rank's ``(Piece, spec, camera)`` for the input piece ``image``."""
         from dvr_perception.rays import bricks
         from dvr_perception.rays.ranks import Piece
@@ -294,7 +294,7 @@ class PerceptionMeasures(DVRFilterBase):
         """Compute this rank's part of the output (collective; see *Several MPI ranks*)."""
         from dvr_perception.distributed import RankSession
 
-        part, spec, camera = self.piece_scene(image, comm, piece, whole)
+        part, spec, camera = self.piece_inputs(image, comm, piece, whole)
         # a session (not a one-off walk): the ranks keep their cache entries while rank 0
         # measures, so the transparency measure can re-composite the view without an
         # enclosing layer (decision D7) as the serial filter does from its cache

@@ -12,7 +12,7 @@ import functools
 import numpy as np
 
 from dvr_perception.errors import DVRInputError
-from dvr_perception.plotting._scene import add_structures
+from dvr_perception.plotting._structure_volume import add_structures
 from dvr_perception.plotting.camera import apply_camera, set_plotter_camera
 from dvr_perception.rays.camera import Camera
 

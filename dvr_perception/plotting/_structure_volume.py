@@ -35,7 +35,7 @@ unshaded and 0.948 shaded (0.932 with the uncoloured ambient); the 40^3 phantom 
 two-segment Slicer segmentation at 96x96, SSIM 0.986 unshaded and 0.951 shaded (0.913).  The
 fixed-point mapper reaches 0.97-0.99 on range structures; the ramp alone through this GPU
 path gives 0.948 shaded too, so the label mask itself costs nothing: the loss is the GPU
-mapper's shading.  Tried on the 24^3 scene (shaded, issue 21): the ambient kept (grey wash)
+mapper's shading.  Tried on the 24^3 phantom (shaded, issue 21): the ambient kept (grey wash)
 0.932, half of it folded 0.935, a *headlight*-type light (VTK's one-headlight shader colours
 the ambient, but takes the light direction per sample from the camera position and uses Phong
 reflection, not the half vector) 0.908, gradient opacity disabled and other specular powers no
