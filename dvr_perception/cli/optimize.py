@@ -622,7 +622,7 @@ def print_summary(report: dict, *, indent: str = "  ", verbose: bool = False,
 
     a, b = report["initial"], report["final"]
     w, h = report["size"]
-    volume = printable(report.get("volume", "scene"))
+    volume = printable(report.get("volume", "the volume"))
     if verbose:
         print(f"optimised {volume} ({w}x{h}, weights {report['weights']})")
         print(f"{indent}{'':8}{'E_v':>9}{'E_s':>9}{'E_t':>9}{'E':>9}")
