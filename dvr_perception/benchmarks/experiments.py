@@ -106,7 +106,7 @@ class Config:
         return self.image_sizes[1]
 
 
-# -- scenes -------------------------------------------------------------------------------------
+# -- datasets and cameras -----------------------------------------------------------------------
 def load(cfg: Config, name: str):
     """Return ``(volume, spec)`` of a shared dataset with its preset in ``state_files/``."""
     return load_volume(Path(cfg.data) / f"{name}.nhdr"), load_spec(STATE_FILES / f"{name}.json")
