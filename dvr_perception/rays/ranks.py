@@ -312,3 +312,23 @@ def analyze_in_threads(volume: Volume, spec, camera, n: int, *, sigma: float | N
             out[comm.rank] = exc
 
     return _run_threads(rank, group, block_split(volume.data.shape, n), out)
+
+
+#: The MPI driver's names, moved to :mod:`dvr_perception.distributed` (deprecated aliases).
+_MOVED = ("RankCache", "RankSession", "optimize_in_threads", "warm_up")
+
+
+def __getattr__(name: str):
+    if name in _MOVED:
+        import warnings
+
+        warnings.warn(
+            f"dvr_perception.rays.ranks.{name} is deprecated; use "
+            f"dvr_perception.distributed.{name}",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        from dvr_perception import distributed  # layering: deprecated alias
+
+        return getattr(distributed, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -294,3 +294,13 @@ def test_abort_on_error_ends_the_job_with_one_line_and_the_status(capsys):
         abort_on_error(SerialCommunicator(), "x", exit=leave),
     ):
         raise DVRInputError("bad")
+
+
+@pytest.mark.parametrize("name", ["RankCache", "RankSession", "optimize_in_threads", "warm_up"])
+def test_the_drivers_old_path_warns_and_still_works(name):
+    import dvr_perception.distributed as new
+    from dvr_perception.rays import ranks as old
+
+    with pytest.warns(DeprecationWarning, match=rf"dvr_perception\.distributed\.{name}"):
+        got = getattr(old, name)
+    assert got is getattr(new, name)
