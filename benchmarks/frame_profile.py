@@ -57,7 +57,7 @@ def main(argv=None) -> int:
     p.add_argument("--only", default="", help="comma list of stages to time (default all)")
     args = p.parse_args(argv)
 
-    from benchmarks.cuda_check import _median, _scene
+    from benchmarks.cuda_check import _load, _median
 
     out: dict = {"stages": {}}
 
@@ -70,7 +70,7 @@ def main(argv=None) -> int:
         print(name, json.dumps(out["stages"][name]), file=sys.stderr, flush=True)
 
     held = {}
-    stage("load", lambda: held.update(scene=_scene(Path(args.data) / args.volume, args.size,
+    stage("load", lambda: held.update(scene=_load(Path(args.data) / args.volume, args.size,
                                                    args.resample or None)))  # fmt: skip
     scene = held["scene"]
     vol, spec, cam = scene.volume, scene.spec, scene.camera

@@ -1,8 +1,8 @@
 """numba twins of the measures' per-pixel loops (numpy computes the same when numba is missing).
 
 :func:`group_stats` gives, bit for bit, what the numpy reference
-:func:`dvr_perception.measures._scene._group_stats` gives: the sums run over the pixels in
-order, as ``numpy.bincount`` does.  :func:`correlate_columns` and :func:`correlate_rows`
+:func:`dvr_perception.measures._layer_sets._group_stats` gives: the sums run over the pixels
+in order, as ``numpy.bincount`` does.  :func:`correlate_columns` and :func:`correlate_rows`
 give, bit for bit, what ``scipy.ndimage.correlate1d(..., axis=0 or 1, mode="nearest")``
 gives with a symmetric or antisymmetric kernel (scipy's symmetric loop, the same order of
 sums), vectorised along the rows and parallel over them.
