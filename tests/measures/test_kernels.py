@@ -122,3 +122,28 @@ def test_shape_gives_the_same_result_without_numba(monkeypatch):
     assert fast.E_s == slow.E_s
     assert 0 < fast.E_s < 1
     np.testing.assert_array_equal(fast.deviation, slow.deviation)
+
+
+def test_visibility_sums_do_not_depend_on_the_thread_count():
+    import numba
+
+    from dvr_perception.measures import _kernels
+
+    rng = np.random.default_rng(9)
+    k, n = 4, 300_000
+    assigned = rng.random((k, n)) * rng.choice([0.0, 0.01, 1.0], (k, n))
+    visible = rng.random((k, n)) * 0.3
+    args = (visible, assigned, rng.random(n), np.array([0.2, 0.5, 0.9, 0.4]), 0.05, False,
+            np.zeros(0, np.uint64), np.linspace(0.0, 1.0, 21))  # fmt: skip
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = _kernels.visibility_core(*args)
+        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+        two = _kernels.visibility_core(*args)
+    finally:
+        numba.set_num_threads(before)
+    assert one[3] == two[3]  # the sum of the deviations, to the last bit
+    for a, b in zip(one[4:], two[4:], strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert one[3] == pytest.approx(float(one[1].astype(np.float64).sum()), rel=1e-9)
