@@ -26,7 +26,9 @@ __all__ = [
     "BLOCK",
     "CELL_EMPTY",
     "CELL_MIXED",
+    "NO_CAP",
     "ZERO_CODE",
+    "SATURATION",
     "block_map",
     "camera_pack",
     "cell_map",
@@ -37,6 +39,8 @@ __all__ = [
     "normal_codes",
     "ray_segments",
     "scalar_range",
+    "skip_maps",
+    "structure_blocks",
     "voxel_records",
 ]
 
@@ -336,6 +340,93 @@ def block_map(volume, cells: np.ndarray) -> np.ndarray:
         memo.pop(k, None)  # (another thread may have dropped it)
     memo[key] = (weakref.ref(cells), out)
     return out
+
+
+#: Occlusion-free opacity at which a structure's presence on a ray has saturated (D8): the
+#: walk behind early ray termination that skips (``analyze(..., exact=False)``) stops adding
+#: to a structure's ``assigned`` there and stores ``min(assigned, SATURATION)``.  The presence
+#: weight ``1 - exp(-a / 0.05)`` is then within 2.1e-9 of its exact value (1e-6 for a
+#: ``presence_scale`` up to 0.072), and the transparency measure, which reads ``assigned``
+#: capped at 0.7 (D7), reads the same numbers.
+SATURATION = 1.0
+
+
+def structure_blocks(volume, index: np.ndarray, entry_bits: np.ndarray, labels=None,
+                     lab_base: int = -1) -> np.ndarray:  # fmt: skip
+    """Bitmask of the structures each block of ``BLOCK**3`` cells can reach (uint32 ``[z, y, x]``).
+
+    The blocks are :func:`block_map`'s.  A sample's table entry lies between the smallest and
+    largest index of its cell's corners (widened as :func:`cell_map` widens it), so a block
+    reaches the structures of the entries between the extremes of the voxels its cells touch
+    (``4 b .. 4 b + 4`` on each axis), plus, with ``labels`` (:func:`label_map`, entry
+    ``lab_base + v - 1`` for value ``v``), the label structures of those voxels.
+    ``entry_bits``: per table entry the bit of its structure (0 outside every structure), at
+    most 32 structures.  A superset is safe: the walk skips a block only when every structure
+    in its mask has saturated on the ray.  Memoised per ``(index, labels, entry_bits)``.
+    """
+    bits = np.ascontiguousarray(entry_bits, np.uint32)
+    key = ("sblocks", id(index), id(labels), bits.tobytes(), int(lab_base))
+    memo = _store(volume)
+    hit = memo.get(key)
+    if hit is not None and hit[0]() is index:
+        return hit[1]
+    n = len(bits)
+    last = (lab_base if lab_base >= 0 else n) - 1  # the interpolated entry is at most this
+    nz, ny, nx = index.shape
+    shape = tuple(-(-(max(v - 1, 1)) // BLOCK) for v in (nz, ny, nx))
+    # runs of entries with the same bits: a block ORs the runs between its extremes
+    change = np.flatnonzero(bits[1:] != bits[:-1]) + 1
+    run = np.zeros(n, np.int64)
+    run[change] = 1
+    run = np.cumsum(run)
+    run_bits = bits[np.concatenate([[0], change])] if n else np.zeros(0, np.uint32)
+    has = labels is not None
+    lab = labels if has else np.zeros((1, 1, 1), np.uint8)
+    fast = _fast()
+    out = np.zeros(shape, np.uint32)
+    if fast is not None:
+        fast.structure_blocks(index, run, run_bits, bits, lab, has, int(lab_base), last, out)
+    else:
+        _structure_blocks_numpy(index, run, run_bits, bits, lab, has, int(lab_base), last, out)
+    old = [k for k in list(memo) if isinstance(k, tuple) and k and k[0] == "sblocks"]
+    for k in old[: max(len(old) - _CELL_MAPS_KEPT + 1, 0)]:
+        memo.pop(k, None)  # (another thread may have dropped it)
+    memo[key] = (weakref.ref(index), out)
+    return out
+
+
+#: ``cap`` of the exact walk behind early ray termination (no structure ever saturates).
+NO_CAP = 1e300
+
+
+def skip_maps(volume, tix: np.ndarray, t_bit: np.ndarray, labels, lab_base: int, skip: bool):
+    """``(smask, cap)``, the walk's skipping behind early ray termination (``_numba_kernels._tail``).
+
+    ``skip``: :func:`structure_blocks` of ``tix`` (``t_bit``: per table entry its ``present``
+    bit, a spare last entry ignored) and :data:`SATURATION`; else a placeholder and
+    :data:`NO_CAP` (the exact walk).
+    """
+    if not skip:
+        return np.zeros((1, 1, 1), np.uint32), NO_CAP
+    bits = np.asarray(t_bit)[: len(t_bit) - 1]
+    return structure_blocks(volume, tix, bits, labels, lab_base), SATURATION
+
+
+def _structure_blocks_numpy(index, run, run_bits, bits, lab, has, lab_base, last, out):
+    """:func:`structure_blocks` block by block in numpy (the numba twin's reference)."""
+    b = BLOCK
+    for zb, yb, xb in np.ndindex(out.shape):
+        box = (slice(b * zb, b * zb + b + 1), slice(b * yb, b * yb + b + 1),
+               slice(b * xb, b * xb + b + 1))  # fmt: skip
+        v = index[box]
+        klo = min(max(int(math.floor(int(v.min()) * _W_SCALE + _W_BIAS)) - 2, 0), last)
+        khi = min(max(int(math.floor(int(v.max()) * _W_SCALE + _W_BIAS)) + 1, 0), last)
+        m = np.bitwise_or.reduce(run_bits[run[klo] : run[khi] + 1], initial=np.uint32(0))
+        if has:
+            lv = lab[box]
+            lv = lv[lv > 0].astype(np.int64)
+            m |= np.bitwise_or.reduce(bits[lab_base + lv - 1], initial=np.uint32(0))
+        out[zb, yb, xb] = m
 
 
 #: Code of a zero gradient in VTK's spherical direction encoding (``255 * 256``).
