@@ -27,8 +27,8 @@ __all__ = [
     "CELL_EMPTY",
     "CELL_MIXED",
     "NO_CAP",
-    "ZERO_CODE",
     "SATURATION",
+    "ZERO_CODE",
     "block_map",
     "camera_pack",
     "cell_map",
@@ -362,11 +362,12 @@ def structure_blocks(volume, index: np.ndarray, entry_bits: np.ndarray, labels=N
     ``lab_base + v - 1`` for value ``v``), the label structures of those voxels.
     ``entry_bits``: per table entry the bit of its structure (0 outside every structure), at
     most 32 structures.  A superset is safe: the walk skips a block only when every structure
-    in its mask has saturated on the ray.  Memoised per ``(index, labels, entry_bits)``.
+    in its mask has saturated on the ray.  Memoised per ``(index, labels, entry_bits)`` on
+    ``volume`` (``None``: in a small module-level store).
     """
     bits = np.ascontiguousarray(entry_bits, np.uint32)
     key = ("sblocks", id(index), id(labels), bits.tobytes(), int(lab_base))
-    memo = _store(volume)
+    memo = _store(volume) if volume is not None else _LOOSE
     hit = memo.get(key)
     if hit is not None and hit[0]() is index:
         return hit[1]
@@ -388,11 +389,18 @@ def structure_blocks(volume, index: np.ndarray, entry_bits: np.ndarray, labels=N
         fast.structure_blocks(index, run, run_bits, bits, lab, has, int(lab_base), last, out)
     else:
         _structure_blocks_numpy(index, run, run_bits, bits, lab, has, int(lab_base), last, out)
+    kept = _CELL_MAPS_KEPT if volume is not None else _LOOSE_KEPT
     old = [k for k in list(memo) if isinstance(k, tuple) and k and k[0] == "sblocks"]
-    for k in old[: max(len(old) - _CELL_MAPS_KEPT + 1, 0)]:
+    for k in old[: max(len(old) - kept + 1, 0)]:
         memo.pop(k, None)  # (another thread may have dropped it)
     memo[key] = (weakref.ref(index), out)
     return out
+
+
+#: :func:`structure_blocks` of index volumes without their volume (a bricked walk's derived
+#: volumes given without the piece): the newest few, checked by identity as above.
+_LOOSE: dict = {}
+_LOOSE_KEPT = 64
 
 
 #: ``cap`` of the exact walk behind early ray termination (no structure ever saturates).
@@ -400,7 +408,7 @@ NO_CAP = 1e300
 
 
 def skip_maps(volume, tix: np.ndarray, t_bit: np.ndarray, labels, lab_base: int, skip: bool):
-    """``(smask, cap)``, the walk's skipping behind early ray termination (``_numba_kernels._tail``).
+    """``(smask, cap)``: the skipping walk behind early ray termination (``_numba_kernels._tail``).
 
     ``skip``: :func:`structure_blocks` of ``tix`` (``t_bit``: per table entry its ``present``
     bit, a spare last entry ignored) and :data:`SATURATION`; else a placeholder and
@@ -419,8 +427,8 @@ def _structure_blocks_numpy(index, run, run_bits, bits, lab, has, lab_base, last
         box = (slice(b * zb, b * zb + b + 1), slice(b * yb, b * yb + b + 1),
                slice(b * xb, b * xb + b + 1))  # fmt: skip
         v = index[box]
-        klo = min(max(int(math.floor(int(v.min()) * _W_SCALE + _W_BIAS)) - 2, 0), last)
-        khi = min(max(int(math.floor(int(v.max()) * _W_SCALE + _W_BIAS)) + 1, 0), last)
+        klo = min(max(math.floor(int(v.min()) * _W_SCALE + _W_BIAS) - 2, 0), last)
+        khi = min(max(math.floor(int(v.max()) * _W_SCALE + _W_BIAS) + 1, 0), last)
         m = np.bitwise_or.reduce(run_bits[run[klo] : run[khi] + 1], initial=np.uint32(0))
         if has:
             lv = lab[box]

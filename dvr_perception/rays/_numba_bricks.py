@@ -96,8 +96,8 @@ def brick_ranges(a, b, t_first, nsteps, step, lo, hi, gdims, j0, j1):
 @njit(parallel=True, cache=True, fastmath=_FM)
 def walk_brick(
     vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, smask, cap, curv, a,
-    b, t_first, j0, j1, step, order, chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light, tab,
-    shade, has_curv, build, tail, chunk_base, ert, geo, st, bits, vis, asg, c_lut, c_j, c_sh,
+    b, t_first, j0, j1, step, order, chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light,
+    tab, shade, has_curv, build, tail, chunk_base, ert, geo, st, bits, vis, asg, c_lut, c_j, c_sh,
     c_curv, start, count, walked,
 ):  # fmt: skip
     """Walk every ray's run ``[j0, j1)`` in this brick, continuing the state ``st``/``bits``.

@@ -29,8 +29,6 @@ analysis composited from the cache equals one composited during the walk.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit, prange
 
@@ -245,7 +243,7 @@ def _block_exit(j, n, t_first, step, ax, ay, az, bx, by, bz, x0, y0, z0):
     f = (t_out - t_first) / step
     if f >= n:
         return n
-    return max(j + 1, int(math.floor(f)))
+    return max(j + 1, int(f))  # f < 0: below j + 1 anyway
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
