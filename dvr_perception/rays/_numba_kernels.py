@@ -227,8 +227,9 @@ def _block_exit(j, n, t_first, step, ax, ay, az, bx, by, bz, x0, y0, z0):
     """Return the sample to look at next after sample ``j``, in the block of cells from ``x0``.
 
     The ray leaves the box of cells ``[x0, x0 + 4)`` (likewise y, z) where it first crosses one
-    of its faces moved ``1e-6`` voxel inwards; every sample before the returned one lies
-    inside the box, so none of another block is passed over.  At least ``j + 1``, at most
+    of its faces moved ``1e-6`` voxel inwards (far more than the rounding of a position);
+    every sample up to that point lies inside the box, so the one after it is the first that
+    may not, and no sample of another block is passed over.  At least ``j + 1``, at most
     ``n``.
     """
     t_out = 1e300
@@ -243,7 +244,7 @@ def _block_exit(j, n, t_first, step, ax, ay, az, bx, by, bz, x0, y0, z0):
     f = (t_out - t_first) / step
     if f >= n:
         return n
-    return max(j + 1, int(f))  # f < 0: below j + 1 anyway
+    return max(j + 1, int(f) + 1)  # f < 0: below j + 1 anyway
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
