@@ -11,7 +11,11 @@ Kernels, parallel over chunks of image tiles (:func:`dvr_perception.rays.engine.
   sample's cell class in :func:`_grid.cell_map`: an empty cell is passed over, a plateau
   cell gives the table entry without interpolating the 8 corners.
   With ``build`` the walk packs one cache entry per sample with membership > 0 (table index,
-  sample index, shading and curvature) into its chunk's region.
+  sample index, shading and curvature) into its chunk's region.  Without it (and unless
+  ``exact``) :func:`_tail` skips what cannot change a result (DECISIONS D8): a structure whose
+  ``assigned`` has saturated, and, once the transmittance at the importances is below early
+  ray termination, blocks whose cells reach only saturated structures
+  (:func:`_grid.structure_blocks`).
 * Shading (:func:`_shade_at`) is VTK's: the shading-table entries of the 8 corners' normal codes
   are interpolated trilinearly (lit diffuse cosine and specular power term, stored per entry as
   uint16 ``round(x * 65534)``; materials, colours and opacities are applied at compositing).
