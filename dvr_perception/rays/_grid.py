@@ -41,6 +41,7 @@ __all__ = [
     "scalar_range",
     "skip_maps",
     "structure_blocks",
+    "structure_distances",
     "voxel_records",
 ]
 
@@ -407,17 +408,58 @@ _LOOSE_KEPT = 64
 NO_CAP = 1e300
 
 
-def skip_maps(volume, tix: np.ndarray, t_bit: np.ndarray, labels, lab_base: int, skip: bool):
-    """``(smask, cap)``: the skipping walk behind early ray termination (``_numba_kernels._tail``).
+def skip_maps(volume, tix: np.ndarray, t_bit: np.ndarray, labels, lab_base: int, skip: bool,
+              k: int):  # fmt: skip
+    """``(smask, sdist, cap)``: the skipping walk behind early ray termination (``_tail``).
 
     ``skip``: :func:`structure_blocks` of ``tix`` (``t_bit``: per table entry its ``present``
-    bit, a spare last entry ignored) and :data:`SATURATION`; else a placeholder and
-    :data:`NO_CAP` (the exact walk).
+    bit, a spare last entry ignored), their :func:`structure_distances` for the ``k``
+    structures and :data:`SATURATION`; else placeholders and :data:`NO_CAP` (the exact walk).
     """
     if not skip:
-        return np.zeros((1, 1, 1), np.uint32), NO_CAP
+        return np.zeros((1, 1, 1), np.uint32), np.zeros((1, 1, 1, 1), np.uint8), NO_CAP
     bits = np.asarray(t_bit)[: len(t_bit) - 1]
-    return structure_blocks(volume, tix, bits, labels, lab_base), SATURATION
+    smask = structure_blocks(volume, tix, bits, labels, lab_base)
+    return smask, structure_distances(smask, k), SATURATION
+
+
+#: :func:`structure_distances` are made only while they take at most this many bytes.
+DISTANCES_BYTES = 128 * 2**20
+_DIST: dict = {}
+_DIST_KEPT = 64
+
+
+def structure_distances(smask: np.ndarray, k: int) -> np.ndarray:
+    """Per structure, each block's chessboard distance to the nearest block reaching it.
+
+    uint8 ``(k, bz, by, bx)`` over :func:`structure_blocks`'s ``smask``: 0 for a block whose
+    mask holds structure ``s``, else the distance ``d`` in blocks (at most 255; 255 where no
+    block holds ``s``), so no block within ``d - 1`` blocks on each axis can reach ``s``.  A
+    ray whose unsaturated structures are ``U`` may jump as far as :func:`block_map`'s empty
+    space allows with ``min(d[s] for s in U)``.  Larger than :data:`DISTANCES_BYTES`: a
+    ``(k, 1, 1, 1)`` array of zeros (no such jumps).  Memoised per ``smask`` (the newest few).
+    """
+    key = (id(smask), int(k))
+    hit = _DIST.get(key)
+    if hit is not None and hit[0]() is smask:
+        return hit[1]
+    if k * smask.size > DISTANCES_BYTES:
+        return np.zeros((k, 1, 1, 1), np.uint8)
+    from scipy import ndimage
+
+    out = np.empty((k, *smask.shape), np.uint8)
+    for s in range(k):
+        far = (smask & np.uint32(1 << s)) == 0
+        if far.all():
+            out[s] = 255
+        else:
+            dist = ndimage.distance_transform_cdt(far, metric="chessboard")
+            np.minimum(dist, 255, out=dist)
+            out[s] = dist
+    while len(_DIST) >= _DIST_KEPT:
+        _DIST.pop(next(iter(_DIST)), None)
+    _DIST[key] = (weakref.ref(smask), out)
+    return out
 
 
 def _structure_blocks_numpy(index, run, run_bits, bits, lab, has, lab_base, last, out):

@@ -271,14 +271,16 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
     one costs less than jumping over the short runs that noisy data have (cthead: 25 %
     less time for whole rays, the same sums to the last bit).
 
-    ``tail_maps`` ends with ``smask`` and ``cap``.  ``cap`` finite (the skipping walk, never
-    with ``build``): a structure whose ``asg`` reaches ``cap`` has saturated on this ray and
-    keeps ``cap``; once ``ti < ert`` a block whose ``smask`` (:func:`_grid.structure_blocks`:
-    the structures its cells can reach) holds only saturated structures is jumped like an
-    empty one, and the ray stops when every structure has saturated.  Nothing the walk
+    ``tail_maps`` ends with ``smask``, ``sdist`` and ``cap``.  ``cap`` finite (the skipping
+    walk, never with ``build``): a structure whose ``asg`` reaches ``cap`` has saturated on
+    this ray and keeps ``cap``; once ``ti < ert`` a block whose ``smask``
+    (:func:`_grid.structure_blocks`: the structures its cells can reach) holds only saturated
+    structures is jumped like an empty one, as far as ``sdist``
+    (:func:`_grid.structure_distances`) says no block reaches a structure still unsaturated,
+    and the ray stops when every structure has saturated.  Nothing the walk
     returns changes but ``asg`` above ``cap`` (which is ``min(asg, cap)``) and ``walked``.
     """
-    kmap, tids, t_alpha, t_bit, smask, cap = tail_maps
+    kmap, tids, t_alpha, t_bit, smask, sdist, cap = tail_maps
     c_lut, c_j, c_sh, c_curv = out
     spare = asg.shape[0] - 1
     lab_end = (lab_base if lab_base >= 0 else len(tids) - 1) - 1
@@ -293,6 +295,10 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
     binv = _jump_scale(bx, by, bz, step) * _BLOCK
     skipping = cap < 1e299 and not build
     sf = smask.reshape(smask.size)
+    sd = sdist.reshape(sdist.size)
+    nblk = blocks.size
+    has_dist = (sdist.shape[1] == blocks.shape[0] and sdist.shape[2] == blocks.shape[1]
+                and sdist.shape[3] == blocks.shape[2])  # fmt: skip
     every = (np.uint64(1) << np.uint64(spare)) - np.uint64(1)
     sat = np.uint64(0)
     if skipping:
@@ -313,6 +319,14 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
             j += max(int((d - 1) * binv), 1)
             continue
         if skipping and ti < ert and (np.uint64(sf[ob]) & ~sat) == 0:
+            if has_dist:  # how far no block can reach a structure still unsaturated
+                dmin = 255
+                for q in range(spare):
+                    if (sat >> np.uint64(q)) & np.uint64(1) == 0:
+                        dmin = min(dmin, sd[q * nblk + ob])
+                if dmin > 1:
+                    j += max(int((dmin - 1) * binv), 1)
+                    continue
             j = _block_exit(j, n, t_first, step, ax, ay, az, bx, by, bz, ((lx >> 2) << 2) + ox,
                             ((ly >> 2) << 2) + oy, ((lz >> 2) << 2) + oz)  # fmt: skip
             continue
@@ -389,7 +403,7 @@ def _walk_ray(
     c_lut, c_j, c_sh, c_curv = out
     tix, cells, blocks, rep, lab, lab_base, tail_maps = maps
     lab_end = (lab_base if lab_base >= 0 else len(ids)) - 1
-    cap = tail_maps[5]
+    cap = tail_maps[6]
     gnx, gny, gnz, ox, oy, oz = geo
     ny, nx = vol.shape[1], vol.shape[2]
     volf = vol.reshape(vol.size)
@@ -590,7 +604,8 @@ def _composite_ray(
 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def walk(
-    vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, smask, cap, curv, a, b,
+    vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, smask, sdist, cap,
+    curv, a, b,
     t_first, nsteps, step, order, chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light, tab,
     shade, has_curv, build, tail, chunk_base, ert, rgba, vis, asg, present, cimg, c_lut, c_j,
     c_sh, c_curv, start, count, chunk_end, walked, aimp, state,
@@ -607,8 +622,8 @@ def walk(
     structure; ``lab``: :func:`_grid.label_map` whose value ``v > 0``
     means table entry ``lab_base + v - 1`` (``lab_base`` -1: no label structures);
     ``kmap``, ``tids``, ``t_alpha`` and ``t_bit``: what :func:`_tail` reads
-    (``asg`` has a spare last row for it, ``K + 1`` rows in all); ``smask``
-    (:func:`_grid.structure_blocks`) and ``cap`` (:data:`_grid.SATURATION`, or 1e300 for the
+    (``asg`` has a spare last row for it, ``K + 1`` rows in all); ``smask``, ``sdist``
+    (:func:`_grid.skip_maps`) and ``cap`` (:data:`_grid.SATURATION`, or 1e300 for the
     exact walk): the skipping walk behind early ray termination (:func:`_tail`).
 
     Chunk ``c`` (rays ``order[chunk_ptr[c]:chunk_ptr[c + 1]]``, whole tiles of pixels) packs
@@ -616,7 +631,15 @@ def walk(
     """
     for c in prange(nchunk):
         # built here: a tuple holding a tuple of arrays cannot enter a parallel loop
-        maps = (tix, cells, blocks, rep, lab, lab_base, (kmap, tids, t_alpha, t_bit, smask, cap))
+        maps = (
+            tix,
+            cells,
+            blocks,
+            rep,
+            lab,
+            lab_base,
+            (kmap, tids, t_alpha, t_bit, smask, sdist, cap),
+        )
         geo = (vol.shape[2], vol.shape[1], vol.shape[0], 0, 0, 0)
         e = chunk_base[c]
         for i in range(chunk_ptr[c], chunk_ptr[c + 1]):

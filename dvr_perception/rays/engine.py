@@ -667,7 +667,7 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     tail_tables = _tail_tables(ids, memb, alpha_w, rep, k)
     labels = lab[0] if lab[1] >= 0 else None
     maps = (tix, cells, _grid.block_map(volume, cells), rep, *lab, *tail_tables,
-            *_grid.skip_maps(volume, tix, tail_tables[3], labels, lab[1], skip))  # fmt: skip
+            *_grid.skip_maps(volume, tix, tail_tables[3], labels, lab[1], skip, k))  # fmt: skip
     layout = (order, chunk_ptr, h, w)
     out = _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args,
                         (build, tail), chunk_base, rgba, vis, asg_all, present, cimg, src_lut,
@@ -705,8 +705,8 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
     blocks = _grid.block_map(volume, cells)
     rep = _plateau_entries(ids, memb, k)
     kmap, tids, t_alpha, t_bit = _tail_tables(ids, memb, alpha_w, rep, k)
-    smask, cap_ = _grid.skip_maps(volume, tix, t_bit, lab[0] if lab[1] >= 0 else None, lab[1],
-                                  skip)  # fmt: skip
+    smask, sdist, cap_ = _grid.skip_maps(volume, tix, t_bit, lab[0] if lab[1] >= 0 else None,
+                                         lab[1], skip, k)  # fmt: skip
     cached = "total" in seg  # a ray set of _cuda.rays_for: kept on the device
     total = seg["total"] if cached else int(n.sum())
     cap = max(total, 1) if build else 1
@@ -717,7 +717,8 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
     # the placeholders of no curvature or labels are new arrays each time: kept by content
     dev = [_cuda.table(a) if a.nbytes <= 1 << 16 else _cuda.to_device(a, keep=True) for a in big]
     small = [_cuda.table(a) for a in (rep, kmap, tids, t_alpha, t_bit)]
-    smask_d = _cuda.table(smask) if smask.nbytes <= 1 << 16 else _cuda.to_device(smask, keep=True)
+    smask_d, sdist_d = (_cuda.table(a) if a.nbytes <= 1 << 16 else _cuda.to_device(a, keep=True)
+                        for a in (smask, sdist))  # fmt: skip
     if cached:
         rays = [_cuda.to_device(seg[q], keep=True, pool="rays") for q in ("a", "b", "t", "n")]
     else:
@@ -764,9 +765,9 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
         with _cuda.quiet_launch():  # small images: no low-occupancy warning per frame
             ck.walk[grid, (bx, by)](
                 vol_d, tix_d, cells_d, blocks_d, small[0], lab_d, np.int64(lab[1]), *small[1:],
-                smask_d, float(cap_), cv_d, *rays, base_d, float(step), *tables, bool(shade),
-                bool(has_curv), bool(build), bool(tail), float(ert), out["rgba"], out["vis"],
-                out["asg"], out["present"], out["cimg"], out["count"], out["walked"],
+                smask_d, sdist_d, float(cap_), cv_d, *rays, base_d, float(step), *tables,
+                bool(shade), bool(has_curv), bool(build), bool(tail), float(ert), out["rgba"],
+                out["vis"], out["asg"], out["present"], out["cimg"], out["count"], out["walked"],
                 out["aimp"], out["state"], *src, np.int64(w), np.int64(h),
             )  # fmt: skip
         # float32 outputs and the image over the background made on the device (as _finish)

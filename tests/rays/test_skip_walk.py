@@ -213,3 +213,37 @@ def test_shared_volumes_skip_equals_exact(shared_data, name):
         _assert_skip_equals_exact(skip, exact, spec)
         fewer += skip.stats["samples_walked"] < exact.stats["samples_walked"]
     assert fewer == 3
+
+
+def test_structure_distances_are_chessboard_distances_to_blocks_reaching_each_structure():
+    smask = np.zeros((3, 4, 5), np.uint32)
+    smask[0, 0, 0] = 1  # structure 0 in one corner block
+    smask[2, 3, 4] = 2 | 1  # structures 0 and 1 in the opposite corner
+    dist = _grid.structure_distances(smask, 3)
+    assert dist.shape == (3, 3, 4, 5)
+    for p in np.ndindex(smask.shape):
+        d0 = min(max(abs(np.subtract(p, (0, 0, 0)))), max(abs(np.subtract(p, (2, 3, 4)))))
+        assert dist[0][p] == d0
+        assert dist[1][p] == max(abs(np.subtract(p, (2, 3, 4))))
+    assert np.all(dist[2] == 255)  # structure 2: in no block
+    assert _grid.structure_distances(smask, 3) is dist  # memoised
+
+
+def test_long_jumps_over_blocks_far_from_unsaturated_structures():
+    """Behind a saturated slab a long run of its blocks is crossed in a few jumps: the walk
+    visits about as many samples as through a short slab, however deep the slab."""
+    walked = []
+    for depth in (40, 160):
+        data = np.zeros((depth + 12, 16, 16), np.uint8)
+        data[12:] = 220
+        data[3:5] = 100
+        vol = Volume(data)
+        spec = _spec(LAYER, SLAB)
+        cam = _top_camera(vol)
+        exact = analyze(vol, spec, cam, build_cache=False, exact=True)
+        skip = analyze(vol, spec, cam, build_cache=False)
+        _assert_skip_equals_exact(skip, exact, spec)
+        walked.append((skip.stats["samples_walked"], exact.stats["samples_walked"]))
+    (s40, e40), (s160, e160) = walked
+    assert e160 - e40 >= 100 * 64  # the exact walk visits every plane of the deeper slab
+    assert s160 - s40 <= 5 * 64  # the skipping walk: a few jumps more
