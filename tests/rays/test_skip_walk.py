@@ -247,3 +247,22 @@ def test_long_jumps_over_blocks_far_from_unsaturated_structures():
     (s40, e40), (s160, e160) = walked
     assert e160 - e40 >= 100 * 64  # the exact walk visits every plane of the deeper slab
     assert s160 - s40 <= 5 * 64  # the skipping walk: a few jumps more
+
+
+def test_the_thickness_readings_ask_for_the_exact_walk():
+    """The thickness composition reads ``assigned`` beyond saturation: refused on a skipping
+    analysis (its image-wide ``assigned_share`` is that of the capped opacities)."""
+    from dvr_perception.errors import DVRInputError
+    from dvr_perception.measures import visibility
+
+    vol = _slab_and_layer()
+    spec = _spec(LAYER, SLAB)
+    cam = _top_camera(vol)
+    skip = analyze(vol, spec, cam, build_cache=False)
+    exact = analyze(vol, spec, cam, build_cache=False, exact=True)
+    with pytest.raises(DVRInputError, match="exact=True"):
+        visibility(skip, spec, composition="thickness")
+    thick = visibility(exact, spec, composition="thickness")
+    assert thick.per_structure["slab"]["assigned_share"] > 0.8  # the slab's whole depth
+    capped = visibility(skip, spec).per_structure["slab"]["assigned_share"]
+    assert 0.5 < capped < thick.per_structure["slab"]["assigned_share"]
