@@ -31,3 +31,8 @@ def __getattr__(name: str):
     if name in _LAZY:
         return getattr(importlib.import_module(f"dvr_perception.volume.{_LAZY[name]}"), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    """List the module's names with the lazily imported ones (for ``dir()`` and autodoc)."""
+    return sorted({*globals(), *__all__})
