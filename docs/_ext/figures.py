@@ -90,7 +90,7 @@ def bench(files: list[Path]) -> Rows:
         rows.append([f"{p.stem} {_dims(r['dims'])}" if "dims" in r else p.stem,
                      _dims(size) if isinstance(size, list) else str(size),
                      *[_f(r.get(k)) for k in _BENCH_KEYS],
-                     str(r.get("volume", ""))])  # fmt: skip
+                     Path(str(r.get("volume", ""))).name])  # fmt: skip
     return head, rows
 
 

@@ -12,7 +12,9 @@ import matplotlib.pyplot as plt
 import dvr_perception as dp
 
 volume, spec = dp.make_phantom(size=64)
-camera = dp.Camera.from_view(volume.bounds, azimuth=30, elevation=20, width=128, height=128)
+camera = dp.Camera.from_view(
+    volume.bounds, azimuth=30, elevation=20, zoom=1.6, width=128, height=128
+)
 analysis = dp.analyze(volume, spec, camera)
 measures = dp.all_measures(analysis, spec)
 

@@ -12,7 +12,9 @@ import matplotlib.pyplot as plt
 import dvr_perception as dp
 
 volume, spec = dp.make_phantom(size=64)
-camera = dp.Camera.from_view(volume.bounds, azimuth=30, elevation=20, width=128, height=128)
+camera = dp.Camera.from_view(
+    volume.bounds, azimuth=30, elevation=20, zoom=1.6, width=128, height=128
+)
 result = dp.optimize(volume, spec, camera, seed=0)
 print(result.message)
 print(f"E {result.initial['E']:.3f} -> {result.final['E']:.3f}")
@@ -27,8 +29,8 @@ for name, why in result.structures.items():
 
 # %%
 # Before and after (rendered by the package's engine):
-before = dp.analyze(volume, spec, camera, occlusion_free=False).image
-after = dp.analyze(volume, result.spec, camera, occlusion_free=False).image
+before = dp.analyze(volume, spec, camera, occlusion_free=False, build_cache=False).image
+after = dp.analyze(volume, result.spec, camera, occlusion_free=False, build_cache=False).image
 fig, axes = plt.subplots(1, 2, figsize=(7, 3.6))
 for ax, image, title in zip(axes, (before, after), ("before", "after"), strict=True):
     ax.imshow(image)
