@@ -6,6 +6,7 @@
 #   make docs    the manual (Sphinx) into docs/_build/html, warnings as errors
 #   make optimiser-figures  benchmarks/optimizer_acceptance.json (the manual's optimiser table)
 #   make readme-image       docs/images/readme_before_after.png (the README's image)
+#   make renderer-figures   benchmarks/check_renderer.jsonl (the manual's image-agreement table)
 #   make report  regenerate benchmarks/REPORT.md (the paper's experiments; REPORT_ARGS=--quick)
 #   make scale   benchmarks/scale.json: time and memory against volume size, MPI ranks
 #   make paraview-setup   ParaView, Xvfb and .pvdeps/ for the plugin and `dvr-perception pvbatch`;
@@ -46,7 +47,7 @@ ifeq ($(strip $(DISPLAY)),)
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
 endif
 
-.PHONY: help setup system-deps browser-deps paraview-setup paraview-macros paraview-system test lint demo bench report scale clean docs readme-image optimiser-figures
+.PHONY: help setup system-deps browser-deps paraview-setup paraview-macros paraview-system test lint demo bench report scale clean docs readme-image optimiser-figures renderer-figures
 
 help:
 	@echo "targets: demo, test, docs, bench, report, setup, paraview-setup, lint, clean"
@@ -155,6 +156,20 @@ test: lint browser-deps paraview-setup
 docs: setup
 	$(BIN)/sphinx-build -W --keep-going -q -b html docs docs/_build/html
 	@echo "docs: docs/_build/html/index.html"
+
+# benchmarks/check_renderer.jsonl: the manual's image-agreement table (our engine against VTK's
+# CPU ray caster, unshaded and shaded, and against the PyVista display; 256x256, three views)
+renderer-figures: setup
+	@set -e; out=benchmarks/check_renderer.jsonl; : > $$out.tmp; \
+	for v in phantom $(DATA)/engine.nhdr $(DATA)/cthead.nhdr $(DATA)/tooth.nhdr; do \
+	  for view in 0,0 40,30 120,0; do \
+	    for mode in --no-shade --shade "--against plotter"; do \
+	      r=$$($(BIN)/dvr-perception check-renderer $$v --size 256 --view=$$view $$mode \
+	           --out-dir build/check_renderer --json); \
+	      echo "{\"view\": \"$$view\", \"mode\": \"$$mode\", \"result\": $$r}" >> $$out.tmp; \
+	    done; \
+	  done; \
+	done; mv $$out.tmp $$out; echo "renderer-figures: wrote $$out"
 
 # the README's before/after image, made by the command the README names beside it
 readme-image: setup

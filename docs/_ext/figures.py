@@ -157,6 +157,22 @@ def threads(files: list[Path]) -> Rows:
     return head, rows
 
 
+def renderer(files: list[Path]) -> Rows:
+    """``make renderer-figures``: SSIM of our image against VTK's and the PyVista display."""
+    runs = [json.loads(line) for line in files[0].read_text(encoding="utf-8").splitlines()
+            if line.strip()]  # fmt: skip
+    modes = {"--no-shade": "vs VTK CPU mapper, unshaded", "--shade": "shaded",
+             "--against plotter": "PyVista display (per-structure lighting)"}  # fmt: skip
+    table: dict[tuple[str, str], dict[str, str]] = {}
+    for run in runs:
+        r = run["result"]
+        key = (Path(str(r["volume"])).stem, f"{run['view'].replace(',', '/')}")
+        table.setdefault(key, {})[run["mode"]] = _f(r.get("ssim"), 3)
+    head = ["volume", "view az/el", *modes.values()]
+    rows = [[v, view, *[cells.get(m, "-") for m in modes]] for (v, view), cells in table.items()]
+    return head, rows
+
+
 def report_checks(files: list[Path]) -> Rows:
     """Tabulate the acceptance checks of ``dvr-perception report``'s ``summary.json``."""
     data = json.loads(files[0].read_text(encoding="utf-8"))
@@ -173,6 +189,7 @@ RENDERERS: dict[str, Callable[[list[Path]], Rows]] = {
     "cuda": cuda,
     "threads": threads,
     "report-checks": report_checks,
+    "renderer": renderer,
 }
 
 
