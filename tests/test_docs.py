@@ -94,3 +94,38 @@ def test_the_readme_image_command_runs(shared_data, tmp_path):
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     width, height = int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
     assert width > 1.5 * height  # two panels side by side
+
+
+#: The sections of the README before it became a front page (issue 33), and the manual page
+#: that holds each now.
+FORMER_README_SECTIONS = {
+    "Quick start": "getting_started.md",
+    "Install and Python API": "getting_started.md",
+    "Running against the shared data": "getting_started.md",
+    "Command line": "cli.md",
+    "Structure spec": "spec.md",
+    "Presets and proposed structures": "spec.md",
+    "3D Slicer segmentations (`.seg.nrrd`)": "spec.md",
+    "Volume formats and patient orientation": "volumes.md",
+    "Conventions": "volumes.md",
+    "Large volumes: bricks and `--memory-limit`": "large_volumes.md",
+    'GPU back end (`backend="cuda"`)': "gpu.md",
+    "Measures": "measures.md",
+    "Optimisation": "optimisation.md",
+    "PyVista display": "pyvista.md",
+    "ParaView plugin": "paraview.md",
+    "The DVR Perception toolbar: Apply changes the volume you see": "paraview.md",
+    "Web app": "webapp.md",
+    "Security": "security.md",
+    "Files and limits": "security.md",
+    "What works, and what is not done": "status.md",
+    "Measured figures": "figures.md",
+    "Benchmark report": "benchmarks.md",
+}
+
+
+def test_the_former_readme_sections_are_in_the_manual():
+    guide = REPO / "docs" / "guide"
+    for heading, page in FORMER_README_SECTIONS.items():
+        headings = re.findall(r"^#+ (.*)$", (guide / page).read_text(encoding="utf-8"), re.M)
+        assert heading in headings, (heading, page)
