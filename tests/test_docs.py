@@ -129,3 +129,45 @@ def test_the_former_readme_sections_are_in_the_manual():
     for heading, page in FORMER_README_SECTIONS.items():
         headings = re.findall(r"^#+ (.*)$", (guide / page).read_text(encoding="utf-8"), re.M)
         assert heading in headings, (heading, page)
+
+
+def figures_extension():
+    """The manual's ``dvr-figures`` extension (``docs/_ext/figures.py``; needs the docs extra)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("figures", REPO / "docs" / "_ext" / "figures.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_figure_tables_are_read_from_the_measured_json(tmp_path):
+    import json
+
+    figures = figures_extension()
+    acceptance = {
+        "engine": {
+            "initial": {"E": 1.0, "E_v": 0.5, "E_s": 0.4, "E_t": 0.1, "coverage": 0.9},
+            "final": {"E": 0.75, "E_v": 0.25, "E_s": 0.4, "E_t": 0.1, "coverage": 0.8},
+            "seconds": 12.0,
+            "vtk_frames": 30.0,
+            "status": "converged",
+            "structures": {},
+        }
+    }
+    path = tmp_path / "acceptance.json"
+    path.write_text(json.dumps(acceptance), encoding="utf-8")
+    head, rows = figures.optimiser([path])
+    assert head[:3] == ["volume", "E", "E_v"]
+    assert rows == [["engine", "1.000 → 0.750", "0.500 → 0.250 (-50 %)", "0.400 → 0.400",
+                     "0.100 → 0.100", "0.900 → 0.800", "12.0", "30.0", "converged"]]  # fmt: skip
+    # every table of the manual reads its committed file, one row per measured item at least
+    page = (REPO / "docs" / "guide" / "figures.md").read_text(encoding="utf-8")
+    uses = re.findall(r"```\{dvr-figures\} (\S+)\n:file: (\S+)", page)
+    assert {kind for kind, _ in uses} == set(figures.RENDERERS)
+    for kind, pattern in uses:
+        files = sorted(REPO.glob(pattern))
+        assert files, pattern
+        head, rows = figures.RENDERERS[kind](files)
+        assert rows, kind
+        assert all(len(r) == len(head) for r in rows), kind
