@@ -18,9 +18,9 @@ from dvr_perception.measures import all_measures
 from dvr_perception.rays import _grid
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.engine import analyze, analyze_views
+from dvr_perception.structures.phantom import make_phantom
 from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
 from dvr_perception.structures.transfer import build_lut
-from dvr_perception.volume.phantom import make_phantom
 from dvr_perception.volume.volume import Volume
 
 pytest.importorskip("numba")
