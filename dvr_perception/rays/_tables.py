@@ -25,6 +25,7 @@ __all__ = [
     "min_step",
     "shading_key",
     "shading_table",
+    "stale_structures",
     "step_and_unit",
 ]
 
@@ -217,3 +218,31 @@ def shading_table(light: np.ndarray, k: int) -> np.ndarray:
 def shading_key(light: np.ndarray, k: int) -> bytes:
     """Return what :func:`shading_table` depends on (light, half vector, view, powers)."""
     return np.concatenate([[k], light[3, :k], light[4:7, :3].ravel()]).tobytes()
+
+
+def stale_structures(old: bytes, new: bytes) -> np.ndarray | None:
+    """Structures whose rows of :func:`shading_table` differ between two :func:`shading_key`.
+
+    ``None`` when the light, half vector or view changed (every row differs), else a (K,)
+    bool array: the structures whose specular power changed.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> light = np.zeros((7, 3))
+    >>> light[3], light[4:7, 2] = (8.0, 16.0, 32.0), 1.0
+    >>> other = light.copy()
+    >>> other[3, 1] = 20.0
+    >>> stale_structures(shading_key(light, 3), shading_key(other, 3)).tolist()
+    [False, True, False]
+    >>> other[4, :] = (0.6, 0.0, 0.8)
+    >>> stale_structures(shading_key(light, 3), shading_key(other, 3)) is None
+    True
+    """
+    a, b = np.frombuffer(old, np.float64), np.frombuffer(new, np.float64)
+    if a.size != b.size or a.size == 0 or a[0] != b[0]:
+        return None
+    k = int(a[0])
+    if not np.array_equal(a[1 + k :], b[1 + k :]):
+        return None
+    return a[1 : 1 + k] != b[1 : 1 + k]

@@ -1048,7 +1048,12 @@ def reevaluate(
                 cache.ids[cache.lut], tab, shade,
             )  # fmt: skip
         else:
-            nk.invalidate(cache.shading)
+            # specular powers alone changed: only those structures' entries are recomputed
+            stale = None if z.get("refill") else _tables.stale_structures(z["shading_key"], key)
+            if stale is None:
+                nk.invalidate(cache.shading)
+            else:
+                nk.invalidate_structures(cache.shading, cache.lut, cache.ids, stale)
             if z.get("refill") is not None:  # a bricked cache: no whole volume to fill from
                 z["refill"](cache, tab)
         z["shading_key"] = key

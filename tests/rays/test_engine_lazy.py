@@ -8,7 +8,7 @@ import pytest
 from dvr_perception.errors import DVRInputError
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.engine import analyze, reevaluate
-from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
+from dvr_perception.structures.spec import Lighting, RenderSettings, Structure, StructureSpec
 from dvr_perception.volume.volume import Volume
 
 
@@ -84,3 +84,26 @@ def test_reevaluating_rays_outside_the_image_is_one_clear_error():
     cache = analyze(vol, spec, cam, curvature=curv).cache
     with pytest.raises(DVRInputError, match="rays"):
         reevaluate(cache, rays=[0, cam.width * cam.height])
+
+
+def test_a_change_of_specular_powers_alone_recomputes_only_those_structures(monkeypatch):
+    from dvr_perception.rays import _numba_kernels as nk
+
+    vol, spec, cam, curv = _case()
+    mats = [Lighting(0.2, 0.7, 0.5, 10.0), Lighting(0.3, 0.6, 0.4, 40.0)]
+    shiny = [mats[0], Lighting(0.3, 0.6, 0.4, 3.0)]  # the inner structure's power only
+    cache = analyze(vol, spec, cam, curvature=curv).cache
+    reevaluate(cache, lighting=mats, opacities=[0.3, 0.9])
+    calls = []
+    for name in ("invalidate", "invalidate_structures"):
+        real = getattr(nk, name)
+        monkeypatch.setattr(nk, name, lambda *a, _r=real, _n=name: calls.append(_n) or _r(*a))
+    got = reevaluate(cache, lighting=shiny, opacities=[0.3, 0.9])
+    assert calls == ["invalidate_structures"]
+    fresh = reevaluate(analyze(vol, spec, cam, curvature=curv).cache, lighting=shiny,
+                       opacities=[0.3, 0.9])  # fmt: skip
+    for field in ("rgba", "image", "visible", "curvature"):
+        assert np.array_equal(np.asarray(getattr(got, field)), np.asarray(getattr(fresh, field)))
+    assert not np.array_equal(np.asarray(got.rgba), np.asarray(reevaluate(cache).rgba))
+    reevaluate(cache, lighting=shiny, light_direction=(0.3, 0.2, 1.0))  # a new light: all
+    assert calls[-1] == "invalidate"
