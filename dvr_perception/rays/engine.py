@@ -942,9 +942,11 @@ def _subset_order(rays, n: int) -> tuple[np.ndarray, np.ndarray]:
     (as :func:`ray_order`'s ``(order, chunk_ptr)``).
     """
     try:
-        order = np.unique(np.asarray(rays, np.int64).ravel())
+        order = np.array(rays, np.int64).ravel()  # a copy: made read-only below
     except (TypeError, ValueError):
         raise DVRInputError("rays: expected flat pixel indices") from None
+    if order.size > 1 and not np.all(order[1:] > order[:-1]):  # flatnonzero's already are
+        order = np.unique(order)
     if order.size and (order[0] < 0 or order[-1] >= n):
         raise DVRInputError(f"rays: expected flat pixel indices in [0, {n}), got {rays!r}")
     nchunk = max(min(order.size // 16, _CHUNKS), 1)

@@ -74,6 +74,9 @@ def test_reevaluating_some_rays_equals_the_whole_image_there(light):
     assert not np.asarray(part.rgba)[~mask].any()  # nothing composited elsewhere
     bg = np.asarray(spec.background, np.float32)
     assert np.array_equal(np.asarray(part.image)[~mask], np.broadcast_to(bg, ((~mask).sum(), 3)))
+    shuffled = np.flatnonzero(mask)[::-1].repeat(2)  # any order, repeats: the same rays
+    again = reevaluate(cache, opacities=ops, light_direction=light, rays=shuffled)
+    assert np.array_equal(np.asarray(again.rgba), np.asarray(part.rgba))
     # the whole image afterwards (entries partly filled by the subset) is unchanged
     again = reevaluate(cache, opacities=ops, light_direction=light)
     assert np.array_equal(np.asarray(again.rgba), np.asarray(whole.rgba))
