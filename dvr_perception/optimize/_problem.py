@@ -216,7 +216,7 @@ class Problem:
         """Return the ray analysis of ``params`` in ``view`` (re-composited from the cache).
 
         A cache with a ``reevaluate`` method of its own (the MPI ranks' :class:`~dvr_perception.
-        rays.ranks.RankCache`) re-composites itself.  The latest rendering of each view is
+        distributed.RankCache`) re-composites itself.  The latest rendering of each view is
         kept: the same parameters again (e.g. the final rendering after the re-check at the
         user's resolution) return it without compositing.
         """

@@ -2,7 +2,7 @@
 
 Load it with *Tools > Manage Plugins > Load New...*, ``LoadPlugin(path, ns=globals())`` in
 pvpython, or put this folder on ``PV_PLUGIN_PATH``.  ParaView 5.11 with Python >= 3.11 also
-needs ``dvr_perception/paraview/pvsite`` on ``PYTHONPATH`` (see ``paraview/README.md``).
+needs ``dvr_perception/paraview/pvsite`` on ``PYTHONPATH`` (see ``docs/guide/paraview.md``).
 
 The three proxies are shells: they declare the properties ParaView shows and hand every pipeline
 pass to the library's VTK filter (:mod:`dvr_perception.filters`), which is imported only when
@@ -12,7 +12,7 @@ runs, so a bad value (e.g. a negative sigma typed in Python) becomes an error me
 read the whole volume on every rank and compute on piece 0 (rank 0); *Perception Measures*
 and *Optimize Transfer Function* with *Distributed* on (what ``dvr-perception pvbatch --ranks
 N`` sets) read one piece (plus ghost layers) per rank and the ranks compute the serial result
-together (``dvr_perception.rays.ranks``; every rank must execute the filter together, so it is
+together (``dvr_perception.distributed``; every rank must execute the filter together, so it is
 off by default in the GUI).  Either way piece 0 holds the whole output and the other pieces
 are empty.
 """
