@@ -616,4 +616,4 @@ def test_volume_package_still_offers_the_vtk_readers():
     assert callable(v.to_vtk_image)
     with pytest.raises(AttributeError, match="no attribute 'nothing'"):
         _ = v.nothing
-    assert v.make_phantom(size=16)[0].data.shape == (16, 16, 16)
+    assert v.phantom_volume(size=16).data.shape == (16, 16, 16)
