@@ -174,7 +174,7 @@ def test_optimize_keeps_names_and_colours_in_outputs_and_slicer_export(files, tm
     report = json.loads(stdout)
     assert list(report["final"]["structures"]) == NAMES
     spec = json.loads((out / "optimized_spec.json").read_text(encoding="utf-8"))
-    assert [(s["name"], s["label"], s["color"]) for s in spec["structures"]] == [
+    assert [(s["name"], s["label"], s["colour"]) for s in spec["structures"]] == [
         (s["name"], s["label"], list(s["color"])) for s in SEGMENTS
     ]
     assert load_spec(out / "optimized_spec.json").names == tuple(NAMES)  # labels path resolves
