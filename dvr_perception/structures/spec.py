@@ -207,7 +207,7 @@ _STRUCTURE_KEYS = (
     "label",
     "importance",
     "colour",
-    "color",  # read as "colour" (files written before 0.2 spell it so)
+    "color",  # read as "colour" (files written by 0.1 spell it so)
     "lighting",
     "expected_opacity",
     "opacity",
