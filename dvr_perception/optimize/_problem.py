@@ -252,7 +252,7 @@ class Problem:
             out = cache.reevaluate(**kwargs)
         else:
             out = reevaluate(cache, **kwargs)
-        fields = ("opacities", "lighting", "colors", "light")
+        fields = ("opacities", "lighting", "colours", "light")
         self._last[view] = (Params(*(np.array(getattr(params, f)) for f in fields)), out)
         return out
 
