@@ -42,6 +42,7 @@ import weakref
 
 import numpy as np
 
+from dvr_perception._deprecation import renamed_keyword
 from dvr_perception._numba import kernels
 from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError, DVRWarning
@@ -989,18 +990,19 @@ def _params(ops, cols, mats, direction) -> dict:
     """Return an analysis's rendering parameters as :func:`reevaluate` takes them (``stats``)."""
     return {
         "opacities": tuple(float(o) for o in ops),
-        "colors": tuple(tuple(float(c) for c in row) for row in np.asarray(cols)),
+        "colours": tuple(tuple(float(c) for c in row) for row in np.asarray(cols)),
         "lighting": tuple(mats),
         "light_direction": tuple(float(d) for d in np.asarray(direction, np.float64).ravel()),
     }
 
 
+@renamed_keyword("colors", "colours")
 def reevaluate(
     cache: RayCache,
     *,
     opacities=None,
     lighting=None,
-    colors=None,
+    colours=None,
     light_direction=None,
     background=None,
     rays=None,
@@ -1025,8 +1027,8 @@ def reevaluate(
         ``K`` rendering opacities in [0, 1].
     lighting : sequence of Lighting, optional
         ``K`` per-structure materials.
-    colors : array_like, optional
-        ``(K, 3)`` RGB in [0, 1].
+    colours : array_like, optional
+        ``(K, 3)`` RGB in [0, 1] (``colors=`` is a deprecated alias).
     light_direction : array_like, optional
         Light direction in camera coordinates (``(0, 0, 1)`` = headlight).
     background : array_like, optional
@@ -1053,7 +1055,7 @@ def reevaluate(
     ops = _tables.check_opacities(
         [s.render_opacity for s in spec.structures] if opacities is None else opacities, k
     )
-    cols, mats = _tables.material(spec, colors=colors, lighting=lighting)
+    cols, mats = _tables.material(spec, colours=colours, lighting=lighting)
     rs = spec.rendering
     direction = rs.light_direction if light_direction is None else light_direction
     light = _tables.light_array(camera, mats, direction, rs.light_intensity)

@@ -139,7 +139,8 @@ def test_reevaluate_colours_lighting_light_and_background():
     cols = [(0.0, 0.0, 1.0), (1.0, 1.0, 0.0)]
     mats = [Lighting(0.5, 0.4, 0.6, 8.0), Lighting(0.1, 0.9, 0.0, 30.0)]
     new_structs = tuple(
-        replace(s, color=c, lighting=m) for s, c, m in zip(spec.structures, cols, mats, strict=True)
+        replace(s, colour=c, lighting=m)
+        for s, c, m in zip(spec.structures, cols, mats, strict=True)
     )
     light = (0.6, 0.3, 0.7)
     fresh_spec = replace(
@@ -150,7 +151,7 @@ def test_reevaluate_colours_lighting_light_and_background():
     )
     fresh = analyze(vol, fresh_spec, cam)
     again = reevaluate(
-        base.cache, colors=cols, lighting=mats, light_direction=light, background=(0.1, 0.2, 0.3)
+        base.cache, colours=cols, lighting=mats, light_direction=light, background=(0.1, 0.2, 0.3)
     )
     _assert_same(again, fresh)
     assert np.abs(again.image - base.image).max() > 0.1
@@ -243,8 +244,8 @@ def test_bad_inputs_raise_one_clear_error():
     cache = analyze(vol, spec, cam).cache
     with pytest.raises(DVRInputError, match="opacities"):
         reevaluate(cache, opacities=[0.1, 0.2, 0.3])
-    with pytest.raises(DVRInputError, match="colors"):
-        reevaluate(cache, colors=[(2, 0, 0), (0, 0, 0)])
+    with pytest.raises(DVRInputError, match="colours"):
+        reevaluate(cache, colours=[(2, 0, 0), (0, 0, 0)])
     with pytest.raises(DVRInputError, match="light_direction"):
         reevaluate(cache, light_direction=(0, 0, 0))
     with pytest.raises(DVRInputError, match="lighting"):
