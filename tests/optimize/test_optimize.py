@@ -116,6 +116,34 @@ def test_exact_opacity_model_matches_the_problem(phantom):
         assert g_v[k] == pytest.approx((ev_u - ev_d) / (2 * h), rel=0.15, abs=5e-3)
 
 
+def test_exact_opacity_model_is_the_same_serial_and_parallel(phantom, monkeypatch):
+    """From PARALLEL_RAYS rays on the rays are composited in parallel: the same numbers."""
+    from dvr_perception.optimize import _exact
+
+    vol, spec, cam = phantom
+    problem = Problem([analyze(vol, spec, cam).cache], [None], spec, np.ones(3), {}, None)
+    model = OpacityModel(problem, Params.from_spec(spec))
+    ops = np.array([0.2, 0.5, 0.35, 0.6, 0.45, 0.8])
+    serial = model.evaluate(ops, shares=True)
+    monkeypatch.setattr(_exact, "PARALLEL_RAYS", 1)
+    parallel = model.evaluate(ops, shares=True)
+    for a, b in zip(serial, parallel, strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_the_latest_rendering_is_reused_for_the_same_parameters(phantom):
+    vol, spec, cam = phantom
+    problem = Problem([analyze(vol, spec, cam).cache], [None], spec, np.ones(3), {}, None)
+    params = Params.from_spec(spec)
+    first = problem.render(params)
+    assert problem.render(params.replace(opacities=params.opacities.copy())) is first
+    other = problem.render(params.replace(opacities=params.opacities * 0.5))
+    assert other is not first
+    assert not np.array_equal(other.rgba, first.rgba)
+    assert problem.render(params) is not first  # only the latest is kept
+    assert np.array_equal(problem.render(params).rgba, first.rgba)
+
+
 def test_no_fading_holds_at_the_user_resolution(phantom):
     """Optimised on 24 px rays, the 48 px image keeps its coverage when the user asks for it
     (``coverage_keep=1``, checked exactly there)."""
@@ -212,8 +240,8 @@ def test_colour_stage_keeps_hue_and_does_not_raise_E_t(phantom, stage1):
     assert r.final["E_t"] <= r.initial["E_t"] + 1e-12
     assert r.final["E"] <= r.initial["E"] + 1e-12
     for before, after in zip(stage1.spec.structures, r.spec.structures, strict=True):
-        h0, s0, v0 = colorsys.rgb_to_hsv(*before.color)
-        h1, s1, v1 = colorsys.rgb_to_hsv(*after.color)
+        h0, s0, v0 = colorsys.rgb_to_hsv(*before.colour)
+        h1, s1, v1 = colorsys.rgb_to_hsv(*after.colour)
         assert s1 >= 0.8 * s0 - 1e-6  # keeps its colour identity: not washed out ...
         assert s1 <= s0 + 0.2 + 1e-6  # ... nor garish
         assert h1 == pytest.approx(h0, abs=1e-6)
@@ -364,7 +392,7 @@ def test_colour_stage_changes_colours_and_lowers_E_t(phantom, stage1):
     r = optimize(vol, stage1.spec, cam, stages=("colour",), max_iter=3, seed=2)
     assert r.stages[0].message == "improved"
     assert r.final["E_t"] < r.initial["E_t"] - 5e-4
-    moved = [np.abs(np.subtract(a.color, b.color)).max()
+    moved = [np.abs(np.subtract(a.colour, b.colour)).max()
              for a, b in zip(stage1.spec.structures, r.spec.structures, strict=True)]  # fmt: skip
     assert max(moved) > 0.01
 
