@@ -31,12 +31,12 @@ def main(argv=None) -> int:
 
     import numba
 
-    from benchmarks.cuda_check import _median, _scene
+    from benchmarks.cuda_check import _load, _median
     from dvr_perception.rays.curvature_field import curvature_source
     from dvr_perception.rays.engine import analyze
 
     t0 = time.perf_counter()
-    scene = _scene(Path(args.data) / "cthead.nhdr", args.size, args.resample or None)
+    scene = _load(Path(args.data) / "cthead.nhdr", args.size, args.resample or None)
     curv = curvature_source(scene.volume, scene.spec)
     vol, spec, cam = scene.volume, scene.spec, scene.camera
     out = {"dims": list(vol.dims), "size": [cam.width, cam.height],

@@ -50,9 +50,12 @@ on its pixel count.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy import ndimage
 
+from dvr_perception._numba import kernels
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures.results import (
     ShapeResult,
@@ -104,14 +107,68 @@ def _robust_normalise(
     return np.clip(values / scale, 0.0, 1.0)
 
 
-def _smoothed_over(values: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
-    """Gaussian mean of ``values`` over the pixels of ``mask`` (0 outside it)."""
-    weight = mask.astype(np.float64)
-    num = ndimage.gaussian_filter(values * weight, sigma, mode="nearest")
-    den = ndimage.gaussian_filter(weight, sigma, mode="nearest")
+def _smoothed_over(values: np.ndarray, mask: np.ndarray, sigma: float, filtered=None):
+    """Gaussian mean of ``values`` over the pixels of ``mask`` (0 outside it).
+
+    ``filtered``: the two Gaussians ``(num, den)`` already made (:func:`_filters`).
+    """
+    if filtered is None:
+        weight = mask.astype(np.float64)
+        num = ndimage.gaussian_filter(values * weight, sigma, mode="nearest")
+        den = ndimage.gaussian_filter(weight, sigma, mode="nearest")
+    else:
+        num, den = filtered
     out = np.divide(num, den, out=np.zeros_like(num), where=mask & (den > 0))
     out[out < CURVATURE_FLOOR] = 0.0
     return out
+
+
+@functools.lru_cache(maxsize=16)
+def _weights(sigma: float, order: int) -> np.ndarray:
+    """Return scipy's correlation weights of ``gaussian_filter1d(sigma, order)`` (read-only).
+
+    The filter's response to a unit impulse, read backwards: exactly the weights scipy
+    correlates with (truncated at 4 sigma), whatever its version computes them as.
+    """
+    r = int(4.0 * float(sigma) + 0.5)
+    impulse = np.zeros(4 * r + 3)
+    c = 2 * r + 1
+    impulse[c] = 1.0
+    out = ndimage.gaussian_filter1d(impulse, sigma, order=order, mode="constant")
+    w = np.ascontiguousarray(out[c - r : c + r + 1][::-1])
+    w.flags.writeable = False
+    return w
+
+
+def _filters(values: np.ndarray, mask: np.ndarray, log_y: np.ndarray, sigma: float):
+    """Return the shape measure's Gaussians: ``(num, den)`` and ``|grad log_y|``.
+
+    ``(num, den)`` as :func:`_smoothed_over` makes them, the gradient magnitude as
+    ``scipy.ndimage.gaussian_gradient_magnitude``.
+
+    With numba the eight one-dimensional passes run as two parallel kernel calls
+    (:func:`~._kernels.correlate_columns`, then :func:`~._kernels.correlate_rows`) and give
+    scipy's bits; without, scipy's filters.
+    """
+    weight = mask.astype(np.float64)
+    nk = kernels("dvr_perception.measures._kernels")
+    if nk is None:
+        num = ndimage.gaussian_filter(values * weight, sigma, mode="nearest")
+        den = ndimage.gaussian_filter(weight, sigma, mode="nearest")
+        grad = ndimage.gaussian_gradient_magnitude(log_y, sigma, mode="nearest")
+        return num, den, grad
+    g0, g1 = _weights(sigma, 0), _weights(sigma, 1)
+    stack = np.stack([values * weight, weight, log_y, log_y])
+    # scipy filters axis 0 first, then axis 1: the derivative of the gradient's first
+    # component along axis 0, of its second along axis 1
+    first = np.empty_like(stack)
+    nk.correlate_columns(stack, np.stack([g0, g0, g1, g0]), np.array([1, 1, -1, 1]), first)
+    num, den, d0, d1 = second = np.empty_like(first)
+    nk.correlate_rows(first, np.stack([g0, g0, g0, g1]), np.array([1, 1, 1, -1]), second)
+    d0 *= d0
+    d1 *= d1
+    d0 += d1
+    return num, den, np.sqrt(d0, out=d0)
 
 
 def image_scale(shape) -> float:
@@ -192,10 +249,11 @@ def shape(
     nonempty = accumulated > NONEMPTY_OPACITY
     sigma = image_scale(accumulated.shape)
     curvature = np.where(curvature < CURVATURE_FLOOR, 0.0, curvature)
-    curvature = _smoothed_over(curvature, nonempty, sigma)
-    v_s = _robust_normalise(curvature, nonempty, p, "curvature", notes)
     log_y = np.log(np.asarray(y, np.float64) + DARK_LUMINANCE)
-    gradient = ndimage.gaussian_gradient_magnitude(log_y, sigma, mode="nearest") * sigma
+    num, den, gradient = _filters(curvature, nonempty, log_y, sigma)
+    curvature = _smoothed_over(curvature, nonempty, sigma, (num, den))
+    v_s = _robust_normalise(curvature, nonempty, p, "curvature", notes)
+    gradient *= sigma
     gradient[gradient < GRADIENT_FLOOR] = 0.0
     v_i = _robust_normalise(gradient, nonempty, p, "image gradient", notes)
     delta = np.where(nonempty, -np.expm1(-((v_s - v_i) ** 2) / s), 0.0)

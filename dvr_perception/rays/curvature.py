@@ -229,6 +229,8 @@ def _curvature_kernels():
 #: Voxels of a y band's ring of y-pass slices (6 planes of float32 each): about 1M fits the
 #: processor's cache.
 _BAND_VOXELS = 1 << 18
+#: Fewest rows of a y band cut to give many threads work (each band filters its ghost rows).
+_MIN_ROWS = 16
 
 
 def _check_sigma(sigma, where: str = "curvature_volume") -> float:
@@ -500,7 +502,9 @@ def curvature_volume(
     _, (ey0, ey1), (ex0, ex1) = ext
     # y bands (the ring of a band stays in the processor's cache), run by a pool of threads
     rows = max(_BAND_VOXELS // ((ex1 - ex0) * (2 * geo.radii[0] + 1)), 8)
-    bands = max(1, round((ey1 - ey0) / rows))
+    # a band for every thread (of 16 rows or more): a 512-row extent made 9 bands, idling 7
+    # of 16 threads (the same bits however it is cut)
+    bands = max(1, round((ey1 - ey0) / rows), min(_threads(), (ey1 - ey0) // _MIN_ROWS))
     cuts = [ey0 + ((ey1 - ey0) * i) // bands for i in range(bands + 1)]
     chunks = [(ext[0], (a, b), ext[2]) for a, b in itertools.pairwise(cuts)]
 

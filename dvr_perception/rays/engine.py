@@ -574,8 +574,13 @@ def analyze_views(
 #: The walk casts rays in tiles of this many pixels (rows, columns): neighbouring rays meet
 #: the same voxels, so they stay in the processor's cache.
 TILE = (16, 16)
-#: Tiles are dealt round-robin to this many chunks (parallel work items, balanced load).
+#: Tiles are dealt to this many chunks (parallel work items, balanced load).
 _CHUNKS = 64
+#: With more threads than this, tile ``i`` goes to chunk ``floor(frac(i * _GOLDEN) *
+#: chunks)`` (the golden ratio's fractional part: a low-discrepancy sequence), else to chunk
+#: ``i % chunks`` (:func:`ray_order`).
+_GOLDEN = (5.0**0.5 - 1.0) / 2.0
+_SPREAD_THREADS = 4
 _ORDERS: dict = {}
 _ORDERS_LOCK = threading.Lock()
 
@@ -583,11 +588,22 @@ _ORDERS_LOCK = threading.Lock()
 def ray_order(height: int, width: int, *, tile=TILE) -> tuple[np.ndarray, np.ndarray]:
     """Return the order in which the numba kernels visit the rays (memoised, read-only).
 
-    Tiles of ``tile = (rows, columns)`` pixels, row by row inside a tile, are dealt
-    round-robin to at most 64 chunks; chunk ``c`` visits ``order[chunk_ptr[c]:chunk_ptr[c +
-    1]]`` (flat pixel indices, every pixel exactly once).  The walk uses square tiles
-    (:data:`TILE`); compositing from the cache uses whole image rows (``tile=(1, width)``),
-    the order in which the cache entries are stored.
+    Tiles of ``tile = (rows, columns)`` pixels, row by row inside a tile, are dealt to at
+    most 64 chunks; chunk ``c`` visits ``order[chunk_ptr[c]:chunk_ptr[c + 1]]`` (flat pixel
+    indices, every pixel exactly once).  The walk uses square tiles (:data:`TILE`);
+    compositing from the cache uses whole image rows (``tile=(1, width)``), the order in
+    which the cache entries are stored.
+
+    With more than :data:`_SPREAD_THREADS` numba threads, tile ``i`` (row-major) goes to
+    chunk ``floor(frac(i g) n)`` with ``g`` the golden ratio's fractional part: every chunk,
+    and every run of consecutive chunks (what one thread gets from numba's static schedule
+    of a parallel loop), takes tiles spread evenly over the image, so the threads get equal
+    work however many there are.  Dealt round-robin (the default on fewer threads: its
+    chunks sweep down tile columns, 3-4 % less work for the walk than spread tiles), a
+    512-pixel image's 32 tile columns make each of the 64 chunks one column, and runs of
+    adjacent columns go to one thread: 8 threads got no more done than 4 on the 512 x 512 x
+    452 CT (issue 31; ``benchmarks/thread_balance.py``).  The order does not change any
+    result: every ray is computed on its own.
 
     Examples
     --------
@@ -600,7 +616,8 @@ def ray_order(height: int, width: int, *, tile=TILE) -> tuple[np.ndarray, np.nda
     [0, 1, 2, 3]
     """
     th, tw = (max(int(v), 1) for v in tile)
-    key = (int(height), int(width), th, tw)
+    spread = _threads() > _SPREAD_THREADS
+    key = (int(height), int(width), th, tw, spread)
     with _ORDERS_LOCK:
         hit = _ORDERS.get(key)
     if hit is not None:
@@ -610,7 +627,11 @@ def ray_order(height: int, width: int, *, tile=TILE) -> tuple[np.ndarray, np.nda
     tiles = [rows[y * th : (y + 1) * th, x * tw : (x + 1) * tw].ravel()
              for y in range(ty) for x in range(tx)]  # fmt: skip
     nchunk = max(min(len(tiles), _CHUNKS), 1)
-    parts = [np.concatenate(tiles[c::nchunk]) for c in range(nchunk)]
+    deal = np.arange(len(tiles)) % nchunk
+    if spread:
+        deal = np.floor(np.mod(np.arange(len(tiles)) * _GOLDEN, 1.0) * nchunk).astype(np.int64)
+    parts = [np.concatenate([tiles[i] for i in np.flatnonzero(deal == c)])
+             for c in range(nchunk) if np.any(deal == c)]  # fmt: skip
     order = np.ascontiguousarray(np.concatenate(parts))
     chunk_ptr = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
     order.flags.writeable = False
@@ -851,10 +872,11 @@ def _group() -> int:
 def _interleaved(order, chunk_ptr, per: int):
     """Reorder the chunks so that every ``per`` consecutive ones are spread over the image.
 
-    Chunk ``c`` of :func:`ray_order` holds neighbouring tiles of ``c + 1``; a kernel call over
-    ``per`` consecutive chunks would hand its threads unequal shares of a region (a brick's
-    footprint).  Here run ``g`` takes chunks ``g, g + G, g + 2G, ...`` (``G`` runs), as the
-    threads of one call over all the chunks do.  Every ray is still visited once.
+    A kernel call over ``per`` consecutive chunks of :func:`ray_order` would take tiles from
+    one stretch of its dealing sequence only, so its threads could get unequal shares of a
+    region (a brick's footprint).  Here run ``g`` takes chunks ``g, g + G, g + 2G, ...``
+    (``G`` runs), as the threads of one call over all the chunks do.  Every ray is still
+    visited once.
     """
     nchunk = len(chunk_ptr) - 1
     runs = -(-nchunk // per)

@@ -25,6 +25,8 @@ from 23.2 GB of memory (11.8 GB is the default limit on a 23.5 GB machine), else
 from __future__ import annotations
 
 import math
+import threading
+import weakref
 
 import numpy as np
 
@@ -137,8 +139,35 @@ class Plan(dict):
     """
 
 
+#: :func:`_filled_fraction` per volume and table (dropped with the volume).
+_FILLED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_FILLED_LOCK = threading.Lock()
+
+
 def _filled_fraction(volume, lut, memb, stride: int = 4) -> float:
-    """Share of voxels whose table entry belongs to a structure (every ``stride``-th voxel)."""
+    """Share of voxels whose table entry belongs to a structure (every ``stride``-th voxel).
+
+    Remembered per volume object and table (a volume's data are not changed in place, as
+    everywhere in the engine): a frame of a large volume spent tens of ms on it.
+    """
+    key = (float(lut.lo), float(lut.scale), int(lut.size), np.asarray(memb).tobytes(),
+           id(volume.labels), int(stride))  # fmt: skip
+    with _FILLED_LOCK:
+        try:
+            memo = _FILLED.setdefault(volume, {})
+        except TypeError:  # not weak-referenceable: computed every time
+            memo = {}
+        hit = memo.get(key)
+    if hit is None:
+        hit = _filled_fraction_of(volume, lut, memb, stride)
+        with _FILLED_LOCK:
+            while len(memo) >= 4:
+                memo.pop(next(iter(memo)))
+            memo[key] = hit
+    return hit
+
+
+def _filled_fraction_of(volume, lut, memb, stride: int) -> float:
     d = volume.data[::stride, ::stride, ::stride].astype(np.float64)
     idx = np.clip(np.floor((d - lut.lo) * lut.scale), 0, lut.size - 1).astype(np.int64)
     inside = np.asarray(memb[: lut.size]) > 0

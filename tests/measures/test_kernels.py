@@ -85,3 +85,65 @@ def test_visibility_uses_the_numpy_core_without_numba(monkeypatch):
     monkeypatch.setenv("DVR_PERCEPTION_NO_NUMBA", "1")
     assert vis_mod.visibility(ray).E_v == pytest.approx(0.9)
     assert calls == [1]
+
+
+@pytest.mark.parametrize("shape", [(3, 5), (40, 70), (96, 96)])
+@pytest.mark.parametrize("sigma", [0.5, 2.0, 10.666666666666666])
+def test_shape_filters_equal_scipy_bit_for_bit(shape, sigma):
+    from scipy import ndimage
+
+    shape_module = importlib.import_module("dvr_perception.measures.shape")
+    rng = np.random.default_rng(5)
+    values = rng.random(shape) * rng.choice([0.0, 1e-3, 1.0], shape)
+    mask = rng.random(shape) > 0.3
+    log_y = np.log(rng.random(shape) + 0.01)
+    num, den, grad = shape_module._filters(values, mask, log_y, sigma)
+    weight = mask.astype(np.float64)
+    want = ndimage.gaussian_filter(values * weight, sigma, mode="nearest")
+    np.testing.assert_array_equal(num, want)
+    np.testing.assert_array_equal(den, ndimage.gaussian_filter(weight, sigma, mode="nearest"))
+    want = ndimage.gaussian_gradient_magnitude(log_y, sigma, mode="nearest")
+    np.testing.assert_array_equal(grad, want)
+    assert grad.max() > 0  # not trivially equal
+
+
+def test_shape_gives_the_same_result_without_numba(monkeypatch):
+    from types import SimpleNamespace
+
+    from dvr_perception.measures.shape import shape
+
+    rng = np.random.default_rng(6)
+    acc = np.where(rng.random((64, 80)) > 0.2, rng.random((64, 80)), 0.0)
+    scene = SimpleNamespace(curvature=rng.random((64, 80)) * 0.3, accumulated=acc,
+                            image=rng.random((64, 80, 3)))  # fmt: skip
+    fast = shape(scene)
+    monkeypatch.setenv("DVR_PERCEPTION_NO_NUMBA", "1")
+    slow = shape(scene)
+    assert fast.E_s == slow.E_s
+    assert 0 < fast.E_s < 1
+    np.testing.assert_array_equal(fast.deviation, slow.deviation)
+
+
+def test_visibility_sums_do_not_depend_on_the_thread_count():
+    import numba
+
+    from dvr_perception.measures import _kernels
+
+    rng = np.random.default_rng(9)
+    k, n = 4, 300_000
+    assigned = rng.random((k, n)) * rng.choice([0.0, 0.01, 1.0], (k, n))
+    visible = rng.random((k, n)) * 0.3
+    args = (visible, assigned, rng.random(n), np.array([0.2, 0.5, 0.9, 0.4]), 0.05, False,
+            np.zeros(0, np.uint64), np.linspace(0.0, 1.0, 21))  # fmt: skip
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = _kernels.visibility_core(*args)
+        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+        two = _kernels.visibility_core(*args)
+    finally:
+        numba.set_num_threads(before)
+    assert one[3] == two[3]  # the sum of the deviations, to the last bit
+    for a, b in zip(one[4:], two[4:], strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert one[3] == pytest.approx(float(one[1].astype(np.float64).sum()), rel=1e-9)

@@ -253,3 +253,21 @@ def test_bad_arguments(kwargs, message):
     vol = Volume(np.zeros((4, 5, 6), np.uint8))
     with pytest.raises(DVRInputError, match=message):
         curvature_volume(vol, _spec((1, 2)), **kwargs)
+
+
+def test_many_threads_cut_more_bands_with_the_same_bits(backend, monkeypatch):
+    from dvr_perception.rays import curvature as curvature_module
+
+    vol = _blobs(shape=(18, 70, 26))
+    spec = _spec((500, 1500), (1500, 4000))
+    monkeypatch.setattr(curvature_module, "_threads", lambda: 1)
+    one, one_bnd = curvature_volume(vol, spec)
+    cuts = []
+    real = curvature_module._chunk
+    monkeypatch.setattr(curvature_module, "_threads", lambda: 16)
+    monkeypatch.setattr(curvature_module, "_chunk", lambda *a: cuts.append(a[2]) or real(*a))
+    many, many_bnd = curvature_volume(vol, spec)
+    assert len(cuts) == 70 // curvature_module._MIN_ROWS  # 4 bands of 16 or more rows
+    np.testing.assert_array_equal(many_bnd, one_bnd)
+    np.testing.assert_array_equal(many, one)
+    assert one_bnd.sum() > 500

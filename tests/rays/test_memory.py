@@ -71,3 +71,19 @@ def _lut(vol, spec):
     from dvr_perception.structures.transfer import build_lut
 
     return build_lut(spec, scalar_range=vol.scalar_range, dtype=vol.data.dtype)
+
+
+def test_the_filled_share_is_remembered_per_volume_and_table(monkeypatch):
+    from dvr_perception.rays import _grid
+    from dvr_perception.structures.transfer import build_lut
+
+    vol, spec = make_phantom(size=24)
+    lut = build_lut(spec, scalar_range=_grid.scalar_range(vol), dtype=vol.data.dtype)
+    first = memory._filled_fraction(vol, lut, lut.membership)
+    assert 0.0 < first < 1.0  # the phantom's structures fill part of it
+    calls = []
+    monkeypatch.setattr(memory, "_filled_fraction_of", lambda *a: calls.append(a) or 0.5)
+    assert memory._filled_fraction(vol, lut, lut.membership) == first  # remembered
+    other = np.where(lut.membership > 0, 0.0, 1.0)  # another table: computed
+    assert memory._filled_fraction(vol, lut, other) == 0.5
+    assert len(calls) == 1
