@@ -37,6 +37,18 @@ from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError
 from dvr_perception.rays import _grid, _tables
 from dvr_perception.rays._results import RayAnalysis, RayCache
+from dvr_perception.rays._walk_setup import (
+    _check_curvature,
+    _check_inputs,
+    _finish,
+    _group,
+    _interleaved,
+    _params,
+    _plateau_entries,
+    _segments,
+    _tail_tables,
+    ray_order,
+)
 from dvr_perception.rays.camera import Camera
 from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.structures.transfer import build_lut
@@ -227,18 +239,18 @@ class RayState:
     stats: dict = field(default_factory=dict)
 
     @classmethod
-    def start(cls, geometry, spec, camera, *, scalar_range, opacities=None, occlusion_free=True):
+    def start(cls, geometry, spec, camera, *, scalar_range, opacities=None, occlusion_free=True,
+              segments=None):  # fmt: skip
         """Fresh rays for ``camera`` through the whole volume ``geometry``.
 
         ``scalar_range`` must be the whole volume's ``(min, max)`` (the transfer table spans
-        it).
+        it).  ``segments``: the camera's rays when already made (``_walk_setup._segments``
+        of the same camera, volume and sample distance; read only).
         """
-        from dvr_perception.rays import engine
-
         if not isinstance(geometry, Geometry):
             raise DVRInputError(f"geometry: expected a Geometry, got {type(geometry).__name__}")
         probe = Volume(np.zeros((2, 2, 2), geometry.dtype), geometry.spacing, geometry.origin)
-        engine._check_inputs(probe, spec, camera, "numba")
+        _check_inputs(probe, spec, camera, "numba")
         nk, _ = _kernels()
         k = len(spec.structures)
         imp = _tables.check_opacities([s.importance for s in spec.structures], k, "importance")
@@ -272,10 +284,10 @@ class RayState:
             "light": light,
             "tab": _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16),
             "shade": shade,
-            "rep": engine._plateau_entries(ids, memb, k),
+            "rep": _plateau_entries(ids, memb, k),
         }
-        tables["tail"] = engine._tail_tables(ids, memb, alpha_w, tables["rep"], k)
-        seg = engine._segments(nk, camera, geometry, step)
+        tables["tail"] = _tail_tables(ids, memb, alpha_w, tables["rep"], k)
+        seg = _segments(nk, camera, geometry, step) if segments is None else segments
         nrays = camera.width * camera.height
         st = np.zeros((nrays, 7))
         st[:, 3:5] = 1.0
@@ -446,8 +458,6 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     vol, maps, cv = _piece_arrays(piece, state, curvature, derived)
     has_curv = curvature is not None
     shade = t["shade"]
-    from dvr_perception.rays.engine import _group, _interleaved, ray_order
-
     order, chunk_ptr = ray_order(cam.height, cam.width)
     if report:
         order, chunk_ptr = _interleaved(order, chunk_ptr, _group())
@@ -534,8 +544,6 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
     result's :class:`RayCache`.  ``refill(cache, tab)``: recomputes shading after a change of
     light (:func:`analyze_bricked` passes one that re-reads the bricks).
     """
-    from dvr_perception.rays import engine
-
     spec, cam = state.spec, state.camera
     k = len(spec.structures)
     st = state.st
@@ -561,9 +569,7 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
         "bricks": state.stats["bricks"],
     }
     t = state.tables
-    stats["params"] = engine._params(
-        state.opacities, t["cols"], t["mats"], spec.rendering.light_direction
-    )
+    stats["params"] = _params(state.opacities, t["cols"], t["mats"], spec.rendering.light_direction)
     if not state.occlusion_free:
         asg = np.full((k, len(st)), np.nan, np.float32)
         aimp = np.full(len(st), np.nan, np.float32)
@@ -594,7 +600,7 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
         stats["cache_entries"] = len(m["lut"])
         stats["cache_bytes"] = cache.nbytes
     vis = np.ascontiguousarray(state.vis)
-    return engine._finish(rgba, vis, asg, state.bits.copy(), cimg, spec, cam, stats, cache, aimp)
+    return _finish(rgba, vis, asg, state.bits.copy(), cimg, spec, cam, stats, cache, aimp)
 
 
 def _pieces(volume: Volume, bricks, curvature, skip=(), skip_curvature=()):
@@ -710,8 +716,8 @@ KEEP_CODES_SHARE = 0.25
 
 def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, brick=(64, 64, 64),
                     opacities=None, curvature=None, build_cache: bool = True,
-                    occlusion_free: bool = True, memory_limit=None,
-                    progress=None) -> RayAnalysis:  # fmt: skip
+                    occlusion_free: bool = True, memory_limit=None, progress=None,
+                    segments=None) -> RayAnalysis:  # fmt: skip
     """:func:`~dvr_perception.rays.engine.analyze`, walking the volume brick by brick.
 
     Parameters
@@ -727,6 +733,8 @@ def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, bric
         are merged; at most about 100 calls, non-decreasing.  A callback that raises
         :class:`StopIteration` cancels the analysis with
         :class:`~dvr_perception.errors.DVRCancelled`.
+    segments : dict, optional
+        The camera's rays when the caller has made them (:meth:`RayState.start`).
 
     Examples
     --------
@@ -742,21 +750,21 @@ def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, bric
     return analyze_bricked_views(
         volume, spec, [camera], brick=brick, opacities=opacities, curvature=curvature,
         build_cache=build_cache, occlusion_free=occlusion_free, memory_limit=memory_limit,
-        progress=progress,
+        progress=progress, segments=None if segments is None else [segments],
     )[0]  # fmt: skip
 
 
 def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick=(64, 64, 64),
                           opacities=None, curvature=None, build_cache: bool = True,
-                          occlusion_free: bool = True, memory_limit=None,
-                          progress=None) -> list[RayAnalysis]:  # fmt: skip
+                          occlusion_free: bool = True, memory_limit=None, progress=None,
+                          segments=None) -> list[RayAnalysis]:  # fmt: skip
     """:func:`analyze_bricked` for several cameras, deriving each brick once for all of them.
 
     Cameras that meet the bricks in the same order (e.g. one view at several resolutions, as
     the optimiser uses) share one pass over the volume: each brick's derived volumes and
     curvature are computed once and every camera's rays walk it.  The results equal one
     :func:`analyze_bricked` per camera.  ``progress``: as :func:`analyze_bricked`, over all
-    the cameras.
+    the cameras; ``segments``: per camera its rays, when already made.
 
     Examples
     --------
@@ -769,14 +777,14 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
     >>> bool(np.array_equal(both[1].rgba, one.rgba))
     True
     """
-    from dvr_perception.rays import engine, memory
+    from dvr_perception.rays import memory
 
     t0 = time.perf_counter()
     cameras = list(cameras)
     for cam in cameras:
-        engine._check_inputs(volume, spec, cam, "numba")
+        _check_inputs(volume, spec, cam, "numba")
     report = reporter(progress)
-    curv = engine._check_curvature(curvature, volume)
+    curv = _check_curvature(curvature, volume)
     every = split(volume.data.shape, brick)
     rng = _grid.scalar_range(volume)
     states = [
@@ -787,8 +795,9 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
             scalar_range=rng,
             opacities=opacities,
             occlusion_free=occlusion_free,
+            segments=None if segments is None else segments[n],
         )
-        for cam in cameras
+        for n, cam in enumerate(cameras)
     ]
     groups: dict = {}  # one pass over the volume per order of the bricks
     for n, st in enumerate(states):
