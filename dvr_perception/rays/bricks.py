@@ -26,6 +26,7 @@ The pieces are public so that ParaView's MPI ranks can each walk their own piece
 from __future__ import annotations
 
 import math
+import threading
 import time
 import weakref
 from dataclasses import dataclass, field
@@ -385,18 +386,31 @@ def _check_piece(piece, brick, offset, state, curvature):
     return off
 
 
-#: Keep the bricks' sample runs (for re-shading after a change of light) up to this many bytes.
+#: Keep the bricks' sample runs (for re-shading after a change of light, and for the next
+#: analyses of the same camera and bricks) up to this many bytes.
 RUNS_BYTES = 256 * 2**20
+#: Runs of recent analyses: (camera pack, volume shape, brick) -> (j0, j1), oldest first.
+_RUNS: dict = {}
+_RUNS_LOCK = threading.Lock()
 
 
 def _runs(state: RayState, brick: Brick) -> tuple[np.ndarray, np.ndarray]:
-    """Every ray's run ``[j0, j1)`` of samples in ``brick`` (kept while small enough)."""
-    runs = state.stats.setdefault("runs", {})
-    hit = runs.get(brick)
-    if hit is not None:
-        return hit
-    _, nb = _kernels()
+    """Every ray's run ``[j0, j1)`` of samples in ``brick`` (not to be changed; kept while small).
+
+    The runs depend on the rays and the brick only: analyses of the same camera and bricks
+    (a measure per view, the optimiser's analyses) find them here.
+    """
     seg = state.seg
+    key = state.stats.get("rays_key")
+    if key is None:
+        pack = _grid.camera_pack(state.camera, state.geometry, state.tables["step"])
+        key = state.stats["rays_key"] = (pack.tobytes(), state.geometry.shape)
+    with _RUNS_LOCK:
+        hit = _RUNS.pop((key, brick), None)
+        if hit is not None:
+            _RUNS[(key, brick)] = hit  # the most recent last
+            return hit
+    _, nb = _kernels()
     gz, gy, gx = state.geometry.shape
     lo = np.array([c[0] for c in brick.cells[::-1]], np.int64)
     hi = np.array([c[1] for c in brick.cells[::-1]], np.int64)
@@ -405,8 +419,11 @@ def _runs(state: RayState, brick: Brick) -> tuple[np.ndarray, np.ndarray]:
     j1 = np.empty(nrays, np.int64)
     nb.brick_ranges(seg["a"], seg["b"], seg["t"], seg["n"], state.tables["step"], lo, hi,
                     np.array([gx, gy, gz], np.int64), j0, j1)  # fmt: skip
-    if (len(runs) + 1) * 16 * nrays <= RUNS_BYTES:
-        runs[brick] = (j0, j1)
+    if 16 * nrays <= RUNS_BYTES:
+        with _RUNS_LOCK:
+            _RUNS[(key, brick)] = (j0, j1)
+            while sum(a.nbytes + b.nbytes for a, b in _RUNS.values()) > RUNS_BYTES:
+                del _RUNS[next(iter(_RUNS))]
     return j0, j1
 
 
@@ -603,19 +620,34 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
     return _finish(rgba, vis, asg, state.bits.copy(), cimg, spec, cam, stats, cache, aimp)
 
 
-def _pieces(volume: Volume, bricks, curvature, skip=(), skip_curvature=()):
+def _pieces(volume: Volume, bricks, curvature, skip=(), skip_curvature=(), scratch=None,
+            wanted=None):  # fmt: skip
     """Each brick's piece of ``volume`` (a view), its offset and curvature piece.
 
     The piece is ``None`` for bricks in ``skip`` and the curvature piece for bricks in
     ``skip_curvature`` (both known from the memo).  ``curvature``: a whole-volume array or
     a :class:`~dvr_perception.rays.curvature_field.CurvatureField` (its piece computed here).
+    ``scratch``: a dict in which a whole-volume array's pieces are copied into one reused
+    buffer (valid until the next piece; fresh memory costs page faults), else fresh arrays.
+    ``wanted(brick)`` False (asked when the brick's turn comes): neither piece is made and
+    the offset is ``None``.
     """
     for br in bricks:
         ranges = br.voxels(volume.data.shape)
         (z0, z1), (y0, y1), (x0, x1) = ranges
         sl = (slice(z0, z1), slice(y0, y1), slice(x0, x1))
         piece = cv = None
-        if isinstance(curvature, np.ndarray):
+        if wanted is not None and not wanted(br):
+            yield br, None, None, None  # no offset: skipped
+            continue
+        if isinstance(curvature, np.ndarray) and scratch is not None:
+            shape = (z1 - z0, y1 - y0, x1 - x0)
+            buf = scratch.get("curvature")
+            if buf is None or buf.size < math.prod(shape):
+                buf = scratch["curvature"] = np.empty(math.prod(shape), np.float32)
+            cv = buf[: math.prod(shape)].reshape(shape)
+            np.copyto(cv, curvature[sl], casting="unsafe")
+        elif isinstance(curvature, np.ndarray):
             cv = np.ascontiguousarray(curvature[sl], np.float32)
         elif curvature is not None and br not in skip_curvature:
             cv = curvature.piece(ranges)
@@ -628,9 +660,12 @@ def _pieces(volume: Volume, bricks, curvature, skip=(), skip_curvature=()):
 #: Derived volumes of recent bricked analyses, per volume (while the memory limit allows).
 _MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 #: The bricks' derived volumes (about 7 bytes a voxel) are kept between analyses of a volume
-#: while they take at most this share of the memory limit; their curvature pieces (4 bytes a
-#: voxel) too while both fit.
-MEMO_SHARE = 0.0625
+#: while they take at most this share of the room the bricked analysis leaves under the
+#: memory limit (:func:`~dvr_perception.rays.memory.plan`'s estimate of its peak); their
+#: curvature pieces (4 bytes a voxel) too while both fit.  A volume bricked only because it
+#: is a little too large for the whole-volume analysis then costs what the whole volume costs
+#: from its second analysis on.
+MEMO_SHARE = 0.5
 
 
 def _curvature_key(curvature):
@@ -644,9 +679,10 @@ def _curvature_key(curvature):
     return (curvature.sigma, structures)
 
 
-def _memo(volume, state, bricks, cap, curvature=None) -> tuple[dict | None, dict | None]:
+def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dict | None]:
     """Return the memos of ``volume``'s brick-derived volumes and curvature pieces, or None.
 
+    ``room``: bytes the memos may take (:data:`MEMO_SHARE` of what the analysis leaves free).
     The derived volumes depend on the tables only, the curvature pieces on the field only:
     analyses with and without curvature share the derived volumes.
     """
@@ -657,7 +693,7 @@ def _memo(volume, state, bricks, cap, curvature=None) -> tuple[dict | None, dict
         t["labels"], t["shade"], tuple(br.cells for br in bricks),
     )  # fmt: skip
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
-    if 7 * held > MEMO_SHARE * cap:
+    if 7 * held > room:
         _MEMO.pop(volume, None)
         return None, None
     hit = _MEMO.get(volume)
@@ -665,7 +701,7 @@ def _memo(volume, state, bricks, cap, curvature=None) -> tuple[dict | None, dict
         hit = {"key": key, "bricks": {}, "curvature_key": None, "curvature": {}}
         _MEMO[volume] = hit  # the newest tables only
     field = curvature is not None and not isinstance(curvature, np.ndarray)
-    if not field or 11 * held > MEMO_SHARE * cap:
+    if not field or 11 * held > room:
         if field:
             hit["curvature"], hit["curvature_key"] = {}, None
         return hit["bricks"], None
@@ -803,6 +839,8 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
     for n, st in enumerate(states):
         groups.setdefault(tuple(view_order(every, st)), []).append(n)
     cap = memory.limit(memory_limit)
+    room = MEMO_SHARE * max(cap - sum(_peak(volume, st, brick, curv, build_cache, cap)
+                                      for st in states), 0)  # fmt: skip
     out = [None] * len(cameras)
     report(0.0)
     walked = 0  # cameras whose pass is done: each pass's share of the bar is its cameras'
@@ -810,7 +848,8 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
         bricks = [every[i] for i in order]
         share = report.sub(0.95 * walked / len(cameras),
                            0.95 * (walked + len(members)) / len(cameras))  # fmt: skip
-        got = _pass(volume, [states[n] for n in members], bricks, curv, cap, build_cache, share)
+        got = _pass(volume, [states[n] for n in members], bricks, curv, cap, build_cache, share,
+                    room)  # fmt: skip
         walked += len(members)
         for n, res in zip(members, got, strict=True):
             out[n] = res
@@ -830,20 +869,72 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
 INNER_PROGRESS_BRICKS = 16
 
 
-def _pass(volume, states, bricks, curv, cap, build_cache, report=None) -> list:
+def _peak(volume, state, brick, curv, build_cache, cap) -> float:
+    """Bytes the bricked analysis of ``state``'s camera holds at its peak (the memos aside)."""
+    from dvr_perception.rays import memory
+
+    t = state.tables
+    try:
+        return memory.plan(
+            volume, len(state.st), int(state.seg["n"].sum()), k=len(state.spec.structures),
+            shade=t["shade"], curvature=curv is not None, build_cache=build_cache, lut=t["lut"],
+            membership=t["memb"], memory_limit=max(int(cap), 2**20), brick=brick,
+        )["bricked"]  # fmt: skip
+    except DVRInputError:  # more than the limit even in bricks: no room for memos
+        return float(cap)
+
+
+def _alive(states, brick) -> bool:
+    """Whether a ray of ``states`` that meets ``brick`` is still short of early termination."""
+    for st in states:
+        if st.occlusion_free:
+            return True  # every sample counts (assigned opacities)
+        j0, j1 = _runs(st, brick)
+        if np.any(st.st[j1 > j0, 3] >= _tables.ERT):
+            return True
+    return False
+
+
+def _pass(volume, states, bricks, curv, cap, build_cache, report=None, room=0.0) -> list:
     """Walk ``bricks`` (in the states' common view order) for every state; caches and refill.
 
     Each brick is read and derived once (or taken from the memo) for all the states;
-    ``report(fraction)`` follows after each brick.
+    ``report(fraction)`` follows after each brick.  Rendering only (no occlusion-free
+    shares), a brick behind every ray's early termination is neither read nor walked.
+    ``room``: bytes the memos may take.
     """
-    memo, cmemo = _memo(volume, states[0], bricks, cap, curv)
+    memo, cmemo = _memo(volume, states[0], bricks, room, curv)
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
     keep = build_cache and memo is None and 2 * held <= KEEP_CODES_SHARE * cap
     known = set(memo) if memo is not None else set()
+    locked = _CURV_SCRATCH_LOCK.acquire(blocking=False)
+    try:
+        return _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo, keep,
+                            known, locked)  # fmt: skip
+    finally:
+        if locked:
+            _CURV_SCRATCH_LOCK.release()
+
+
+#: The reused buffer of whole-volume curvature pieces (:func:`_pieces`) and its lock.
+_CURV_SCRATCH: dict = {}
+_CURV_SCRATCH_LOCK = threading.Lock()
+
+
+def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo, keep, known,
+                 locked) -> list:  # fmt: skip
+    """:func:`_pass` once its memos are known (``locked``: the curvature scratch is ours)."""
     caches = [[] if build_cache else None for _ in states]
     kept = [[] for _ in states]
-    pieces = _pieces(volume, bricks, curv, skip=known, skip_curvature=set(cmemo or ()))
+    # rendering only: a brick behind every ray's termination is not read (nor its piece made)
+    wanted = None if any(st.occlusion_free for st in states) else (lambda br: _alive(states, br))
+    pieces = _pieces(volume, bricks, curv, skip=known, skip_curvature=set(cmemo or ()),
+                     scratch=_CURV_SCRATCH if locked else None, wanted=wanted)  # fmt: skip
     for done, (br, piece, off, cv) in enumerate(pieces, 1):
+        if off is None:  # not wanted
+            if report:
+                report(done / len(bricks))
+            continue
         if cmemo is not None:
             cv = cmemo.setdefault(br, cv)
         derived = memo.get(br) if memo is not None else None

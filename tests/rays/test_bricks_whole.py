@@ -163,3 +163,5 @@ def test_bricked_equals_whole_at_three_brick_sizes(scene, view):
         got = analyze(vol, spec, cam, build_cache=False, occlusion_free=False, brick=size)
         assert np.abs(got.rgba - render.rgba).max() <= 1e-6
         assert np.abs(got.visible - render.visible).max() <= 1e-6
+        if size == SIZES[0]:  # bricks behind every ray's termination are not walked
+            assert 0 < got.stats["bricks"] < len(bricks.split(vol.data.shape, size))
