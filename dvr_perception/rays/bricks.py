@@ -662,19 +662,24 @@ _MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 #: The bricks' derived volumes (about 7 bytes a voxel) are kept between analyses of a volume
 #: while they take at most this share of the room the bricked analysis leaves under the
 #: memory limit (:func:`~dvr_perception.rays.memory.plan`'s estimate of its peak); their
-#: curvature pieces (4 bytes a voxel) too while both fit.  A volume bricked only because it
+#: curvature pieces (4 bytes a voxel; of a field, or of a whole-volume array while it lives)
+#: too while both fit.  A volume bricked only because it
 #: is a little too large for the whole-volume analysis then costs what the whole volume costs
 #: from its second analysis on.
 MEMO_SHARE = 0.5
 
 
 def _curvature_key(curvature):
-    """Return what identifies the curvature pieces a memo holds (arrays are sliced, not kept).
+    """Return what identifies the curvature pieces a memo holds.
 
-    A field of the same volume, sigma and structure ranges/labels gives the same pieces.
+    A field of the same volume, sigma and structure ranges/labels gives the same pieces; a
+    whole-volume array gives them while it lives (its identity; like the checked curvature,
+    an array is assumed not to change in place).
     """
-    if curvature is None or isinstance(curvature, np.ndarray):
+    if curvature is None:
         return None
+    if isinstance(curvature, np.ndarray):
+        return ("array", id(curvature), curvature.ctypes.data, curvature.shape)
     structures = tuple((s.range, s.label) for s in curvature.spec.structures)
     return (curvature.sigma, structures)
 
@@ -698,16 +703,25 @@ def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dic
         return None, None
     hit = _MEMO.get(volume)
     if hit is None or hit["key"] != key:
-        hit = {"key": key, "bricks": {}, "curvature_key": None, "curvature": {}}
+        hit = {
+            "key": key,
+            "bricks": {},
+            "curvature_key": None,
+            "curvature": {},
+            "curvature_ref": None,
+        }
         _MEMO[volume] = hit  # the newest tables only
-    field = curvature is not None and not isinstance(curvature, np.ndarray)
-    if not field or 11 * held > room:
-        if field:
-            hit["curvature"], hit["curvature_key"] = {}, None
+    if curvature is None:
+        return hit["bricks"], None
+    if 11 * held > room:
+        hit["curvature"], hit["curvature_key"] = {}, None
         return hit["bricks"], None
     ckey = (_curvature_key(curvature), tuple(br.cells for br in bricks))
-    if hit["curvature_key"] != ckey:
+    array = isinstance(curvature, np.ndarray)
+    same = hit["curvature_key"] == ckey and (not array or hit["curvature_ref"]() is curvature)
+    if not same:  # (an array of the same id and address is a new one once the old died)
         hit["curvature"], hit["curvature_key"] = {}, ckey
+        hit["curvature_ref"] = weakref.ref(curvature) if array else None
     return hit["bricks"], hit["curvature"]
 
 
@@ -928,8 +942,9 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
     kept = [[] for _ in states]
     # rendering only: a brick behind every ray's termination is not read (nor its piece made)
     wanted = None if any(st.occlusion_free for st in states) else (lambda br: _alive(states, br))
+    scratch = _CURV_SCRATCH if locked and cmemo is None else None  # memo pieces: their own
     pieces = _pieces(volume, bricks, curv, skip=known, skip_curvature=set(cmemo or ()),
-                     scratch=_CURV_SCRATCH if locked else None, wanted=wanted)  # fmt: skip
+                     scratch=scratch, wanted=wanted)  # fmt: skip
     for done, (br, piece, off, cv) in enumerate(pieces, 1):
         if off is None:  # not wanted
             if report:

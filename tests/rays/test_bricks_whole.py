@@ -165,3 +165,18 @@ def test_bricked_equals_whole_at_three_brick_sizes(scene, view):
         assert np.abs(got.visible - render.visible).max() <= 1e-6
         if size == SIZES[0]:  # bricks behind every ray's termination are not walked
             assert 0 < got.stats["bricks"] < len(bricks.split(vol.data.shape, size))
+
+
+def test_kept_curvature_pieces_follow_their_array(scene):
+    """A whole-volume curvature array's pieces are kept between analyses, for that array only."""
+    vol, spec, curv = scene
+    cam = Camera.from_view(vol.bounds, width=32, height=32, azimuth=60.0, elevation=15.0)
+    bricks._MEMO.pop(vol, None)
+    first = analyze(vol, spec, cam, curvature=curv, build_cache=False, brick=SIZES[1])
+    assert len(bricks._MEMO[vol]["curvature"]) == len(bricks.split(vol.data.shape, SIZES[1]))
+    other = (curv * 2.0).astype(np.float32)  # another array: its own pieces
+    got = analyze(vol, spec, cam, curvature=other, build_cache=False, brick=SIZES[1])
+    want = analyze(vol, spec, cam, curvature=other, build_cache=False)
+    assert np.abs(got.curvature - want.curvature).max() <= 1e-6
+    assert got.curvature.max() > 1.5 * first.curvature.max() > 0.0
+    bricks._MEMO.pop(vol, None)
