@@ -429,7 +429,7 @@ def _runs(state: RayState, brick: Brick) -> tuple[np.ndarray, np.ndarray]:
 
 def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curvature=None,
          build_cache: bool = True, keep_codes: bool = False, derived=None,
-         progress=None) -> BrickCache | None:  # fmt: skip
+         progress=None, shade_all: bool = True) -> BrickCache | None:  # fmt: skip
     """Walk ``brick``'s samples of every ray, continuing ``state`` (changed in place).
 
     Parameters
@@ -458,6 +458,10 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
         after each group of ray tiles: the rays then go to the kernel in groups of chunks, one
         call each, with the same result.  :class:`StopIteration` from it raises
         :class:`~dvr_perception.errors.DVRCancelled` (the state is then partly walked).
+    shade_all : bool
+        Shade every cache entry (default).  False: only the entries composited here; the
+        others stay unset for a lazily shaded cache (:func:`_filler`), which must shade
+        whatever compositing can reach before it composites.
 
     Returns
     -------
@@ -520,9 +524,10 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     rows, row_ptr = ray_order(cam.height, cam.width, tile=(1, cam.width))
     nk.compact(rows, row_ptr, len(row_ptr) - 1, start, count, dest, *src, *out, shade, has_curv)
     del src
-    if shade or has_curv:  # behind early ray termination: not composited yet, no volume later
+    fill_shade = shade and shade_all
+    if fill_shade or has_curv:  # behind early ray termination: not composited yet
         nb.fill_range(dest, count, out[0], out[1], out[2], out[3], seg["a"], seg["b"], seg["t"],
-                      t["step"], j0, j1, vol, cv, geo, t["ids"], t["tab"], shade, has_curv,
+                      t["step"], j0, j1, vol, cv, geo, t["ids"], t["tab"], fill_shade, has_curv,
                       np.uint32(16))  # fmt: skip
     codes = (vol >> np.uint32(16)).astype(np.uint16) if keep_codes and shade else None
     return BrickCache(brick, dest, count, *out, codes=codes, offset=off)
@@ -554,12 +559,14 @@ def _merge(caches, state) -> dict:
     return {"start": dest, "count": total, **m}
 
 
-def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAnalysis:
+def finish(state: RayState, caches=None, *, refill=None, seconds=None, fill=None) -> RayAnalysis:
     """Return the analysis of the walked rays (every brick walked once, in view order).
 
     ``caches``: the bricks' :class:`BrickCache` in view order (consumed); merged into the
     result's :class:`RayCache`.  ``refill(cache, tab)``: recomputes shading after a change of
-    light (:func:`analyze_bricked` passes one that re-reads the bricks).
+    light (:func:`analyze_bricked` passes one that re-reads the bricks).  ``fill(cache,
+    alpha, tab)``: shades the entries compositing at opacities ``alpha`` can reach, for a
+    cache whose bricks were walked with ``shade_all=False`` (:func:`_filler`).
     """
     spec, cam = state.spec, state.camera
     k = len(spec.structures)
@@ -605,6 +612,8 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
             "curvature_volume": np.zeros((2, 2, 2), np.float32),
             "shading_key": _tables.shading_key(t["light"], k) if t["shade"] else b"",
             "refill": refill,
+            "fill": fill,
+            "filled": None,  # the opacities whose reach is shaded (None: only the walk's)
         }
         cache = RayCache(
             spec=spec.with_opacities(state.opacities), camera=cam, ids=t["ids"],
@@ -869,9 +878,9 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
             out[n] = res
     seconds = time.perf_counter() - t0
     results = [
-        finish(st, caches, refill=refill, seconds=seconds) for st, (caches, refill) in
-        zip(states, out, strict=True)
-    ]  # fmt: skip
+        finish(st, caches, refill=refill, fill=fill, seconds=seconds)
+        for st, (caches, refill, fill) in zip(states, out, strict=True)
+    ]
     report(1.0)
     return results
 
@@ -940,6 +949,9 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
     """:func:`_pass` once its memos are known (``locked``: the curvature scratch is ours)."""
     caches = [[] if build_cache else None for _ in states]
     kept = [[] for _ in states]
+    # with every brick's normal codes kept (memo or codes), entries behind early ray
+    # termination are shaded only when a re-evaluation can reach them (_filler)
+    lazy = build_cache and states[0].tables["shade"] and (memo is not None or keep)
     # rendering only: a brick behind every ray's termination is not read (nor its piece made)
     wanted = None if any(st.occlusion_free for st in states) else (lambda br: _alive(states, br))
     scratch = _CURV_SCRATCH if locked and cmemo is None else None  # memo pieces: their own
@@ -965,7 +977,7 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
                                   (done - 1 + (n + 1) / len(states)) / len(bricks))  # fmt: skip
             c = walk(st, piece, br, offset=off, curvature=cv, build_cache=build_cache,
                      keep_codes=keep and codes is None, derived=derived,
-                     progress=part)  # fmt: skip
+                     progress=part, shade_all=not lazy)  # fmt: skip
             if not build_cache or c is None:
                 continue
             caches[n].append(c)
@@ -980,9 +992,46 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
             report(done / len(bricks))
     out = []
     for st, cs, kp in zip(states, caches, kept, strict=True):
-        refill = None
+        refill = fill = None
         if build_cache and st.tables["shade"]:
             kp = None if any(k is None for k in kp) else kp
             refill = _refiller(weakref.ref(volume), bricks, kp, st)
-        out.append((cs, refill))
+            if lazy:
+                fill = _filler(bricks, kp, st)
+        out.append((cs, refill, fill))
     return out
+
+
+def _filler(bricks, kept, state):
+    """Shade the entries of a lazily shaded bricked cache that compositing can reach.
+
+    ``kept``: per brick its normal codes (or voxel records), their shift and offset.  A call
+    ``fill(cache, alpha, tab)`` before compositing at opacities ``alpha`` (per table entry)
+    shades, brick by brick, every unset entry up to :func:`_numba_bricks.reach` at the
+    entry-wise minimum of ``alpha`` and the opacities already served (lower opacities reach
+    at least as far), with the shading table ``tab``; when ``alpha`` is nowhere below those,
+    nothing is left to shade and it returns at once.  ``cache.lazy["filled"]`` is ``None``
+    after a change of light (nothing shaded).
+    """
+    t, seg = state.tables, state.seg
+    gz, gy, gx = state.geometry.shape
+
+    def fill(cache, alpha, tab):
+        z = cache.lazy
+        done = z["filled"]
+        if done is not None and np.all(alpha >= done):
+            return
+        lo = np.asarray(alpha, np.float64) if done is None else np.minimum(alpha, done)
+        _, nb = _kernels()
+        upto = np.empty(len(cache.start), np.int64)
+        nb.reach(cache.start, cache.count, cache.lut, lo, _tables.ERT, upto)
+        none = np.zeros((2, 2, 2), np.float32)
+        for br, (vol, shift, off) in zip(bricks, kept, strict=True):
+            j0, j1 = _runs(state, br)
+            geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
+            nb.fill_range(cache.start, upto, cache.lut, z["steps"], cache.shading,
+                          cache.curvature, seg["a"], seg["b"], seg["t"], t["step"], j0, j1, vol,
+                          none, geo, cache.ids, tab, True, False, np.uint32(shift))  # fmt: skip
+        z["filled"] = lo
+
+    return fill

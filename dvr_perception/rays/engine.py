@@ -792,9 +792,13 @@ def reevaluate(
             )  # fmt: skip
         else:
             nk.invalidate(cache.shading)
-            if z.get("refill") is not None:  # a bricked cache: no whole volume to fill from
+            if z.get("fill") is not None:  # a lazily shaded bricked cache: shaded below
+                z["filled"] = None
+            elif z.get("refill") is not None:  # a bricked cache: no whole volume to fill from
                 z["refill"](cache, tab)
         z["shading_key"] = key
+    if nk is not None and z.get("fill") is not None:  # what compositing can reach is shaded
+        z["fill"](cache, alpha_r, tab)
     if nk is None:
         rgba, vis, cimg = _npk.composite(
             cache.start, cache.count, cache.lut, cache.shading, cache.curvature, *args, k

@@ -180,3 +180,29 @@ def test_kept_curvature_pieces_follow_their_array(scene):
     assert np.abs(got.curvature - want.curvature).max() <= 1e-6
     assert got.curvature.max() > 1.5 * first.curvature.max() > 0.0
     bricks._MEMO.pop(vol, None)
+
+
+def test_a_lazily_shaded_bricked_cache_reevaluates_as_the_whole_one(scene):
+    """Entries behind termination are shaded when compositing can first reach them."""
+    from dvr_perception.rays._numba_kernels import _UNSET
+
+    vol, spec, curv = scene
+    cam = Camera.from_view(vol.bounds, width=36, height=36, azimuth=-70.0, elevation=30.0)
+    whole = analyze(vol, spec, cam, curvature=curv)
+    parts = analyze(vol, spec, cam, curvature=curv, brick=SIZES[0])
+    z = parts.cache.lazy
+    assert z["fill"] is not None  # the codes are kept: shaded lazily
+    unset = int(np.count_nonzero(parts.cache.shading[:, 0] == _UNSET))
+    assert 0 < unset < len(parts.cache.lut)  # the walk shaded what it composited, only that
+    steps = [
+        {"opacities": (1.0, 1.0, 1.0)},  # reaches less: nothing new to shade
+        {"opacities": (0.05, 0.3, 0.02)},  # reaches further back
+        {"light_direction": (0.5, -0.4, 0.75)},  # every entry's shading anew, lazily
+        {"opacities": (0.01, 0.01, 0.01), "light_direction": (0.5, -0.4, 0.75)},
+    ]
+    for kw in steps:
+        a, b = reevaluate(whole.cache, **kw), reevaluate(parts.cache, **kw)
+        assert _max_diff(a, b) <= 1e-6, kw
+        assert b.visible.sum() > 0.0
+    left = int(np.count_nonzero(parts.cache.shading[:, 0] == _UNSET))
+    assert left < unset  # the low opacities reached entries the walk had not shaded
