@@ -429,7 +429,8 @@ def _runs(state: RayState, brick: Brick) -> tuple[np.ndarray, np.ndarray]:
 
 def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curvature=None,
          build_cache: bool = True, keep_codes: bool = False, derived=None,
-         progress=None, shade_all: bool = True) -> BrickCache | None:  # fmt: skip
+         progress=None, shade_all: bool = True,
+         curvature_all: bool = True) -> BrickCache | None:  # fmt: skip
     """Walk ``brick``'s samples of every ray, continuing ``state`` (changed in place).
 
     Parameters
@@ -462,6 +463,9 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
         Shade every cache entry (default).  False: only the entries composited here; the
         others stay unset for a lazily shaded cache (:func:`_filler`), which must shade
         whatever compositing can reach before it composites.
+    curvature_all : bool
+        The same for the entries' curvature (False only with ``shade_all`` False: the
+        shading's marker is the one compositing tests).
 
     Returns
     -------
@@ -525,9 +529,10 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     nk.compact(rows, row_ptr, len(row_ptr) - 1, start, count, dest, *src, *out, shade, has_curv)
     del src
     fill_shade = shade and shade_all
-    if fill_shade or has_curv:  # behind early ray termination: not composited yet
+    fill_curv = has_curv and (curvature_all or not shade)
+    if fill_shade or fill_curv:  # behind early ray termination: not composited yet
         nb.fill_range(dest, count, out[0], out[1], out[2], out[3], seg["a"], seg["b"], seg["t"],
-                      t["step"], j0, j1, vol, cv, geo, t["ids"], t["tab"], fill_shade, has_curv,
+                      t["step"], j0, j1, vol, cv, geo, t["ids"], t["tab"], fill_shade, fill_curv,
                       np.uint32(16))  # fmt: skip
     codes = (vol >> np.uint32(16)).astype(np.uint16) if keep_codes and shade else None
     return BrickCache(brick, dest, count, *out, codes=codes, offset=off)
@@ -649,7 +654,9 @@ def _pieces(volume: Volume, bricks, curvature, skip=(), skip_curvature=(), scrat
         if wanted is not None and not wanted(br):
             yield br, None, None, None  # no offset: skipped
             continue
-        if isinstance(curvature, np.ndarray) and scratch is not None:
+        if curvature is None or br in skip_curvature:
+            pass
+        elif isinstance(curvature, np.ndarray) and scratch is not None:
             shape = (z1 - z0, y1 - y0, x1 - x0)
             buf = scratch.get("curvature")
             if buf is None or buf.size < math.prod(shape):
@@ -658,7 +665,7 @@ def _pieces(volume: Volume, bricks, curvature, skip=(), skip_curvature=(), scrat
             np.copyto(cv, curvature[sl], casting="unsafe")
         elif isinstance(curvature, np.ndarray):
             cv = np.ascontiguousarray(curvature[sl], np.float32)
-        elif curvature is not None and br not in skip_curvature:
+        else:
             cv = curvature.piece(ranges)
         if br not in skip:
             labels = None if volume.labels is None else volume.labels[sl]
@@ -952,6 +959,9 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
     # with every brick's normal codes kept (memo or codes), entries behind early ray
     # termination are shaded only when a re-evaluation can reach them (_filler)
     lazy = build_cache and states[0].tables["shade"] and (memo is not None or keep)
+    # and their curvature too while the memo keeps the bricks' curvature pieces
+    lazy_curv = lazy and curv is not None and cmemo is not None
+    pieces_kept = []
     # rendering only: a brick behind every ray's termination is not read (nor its piece made)
     wanted = None if any(st.occlusion_free for st in states) else (lambda br: _alive(states, br))
     scratch = _CURV_SCRATCH if locked and cmemo is None else None  # memo pieces: their own
@@ -964,6 +974,7 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
             continue
         if cmemo is not None:
             cv = cmemo.setdefault(br, cv)
+        pieces_kept.append(cv if lazy_curv else None)
         derived = memo.get(br) if memo is not None else None
         if memo is not None and derived is None:
             derived = memo[br] = derive(piece, states[0])
@@ -977,7 +988,8 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
                                   (done - 1 + (n + 1) / len(states)) / len(bricks))  # fmt: skip
             c = walk(st, piece, br, offset=off, curvature=cv, build_cache=build_cache,
                      keep_codes=keep and codes is None, derived=derived,
-                     progress=part, shade_all=not lazy)  # fmt: skip
+                     progress=part, shade_all=not lazy,
+                     curvature_all=not lazy_curv)  # fmt: skip
             if not build_cache or c is None:
                 continue
             caches[n].append(c)
@@ -997,15 +1009,17 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
             kp = None if any(k is None for k in kp) else kp
             refill = _refiller(weakref.ref(volume), bricks, kp, st)
             if lazy:
-                fill = _filler(bricks, kp, st)
+                fill = _filler(bricks, kp, st, pieces_kept if lazy_curv else None)
         out.append((cs, refill, fill))
     return out
 
 
-def _filler(bricks, kept, state):
+def _filler(bricks, kept, state, curvature=None):
     """Shade the entries of a lazily shaded bricked cache that compositing can reach.
 
-    ``kept``: per brick its normal codes (or voxel records), their shift and offset.  A call
+    ``kept``: per brick its normal codes (or voxel records), their shift and offset;
+    ``curvature``: per brick its curvature piece when the entries' curvature is lazy too
+    (else every entry's curvature is set).  A call
     ``fill(cache, alpha, tab)`` before compositing at opacities ``alpha`` (per table entry)
     shades, brick by brick, every unset entry up to :func:`_numba_bricks.reach` at the
     entry-wise minimum of ``alpha`` and the opacities already served (lower opacities reach
@@ -1026,12 +1040,14 @@ def _filler(bricks, kept, state):
         upto = np.empty(len(cache.start), np.int64)
         nb.reach(cache.start, cache.count, cache.lut, lo, _tables.ERT, upto)
         none = np.zeros((2, 2, 2), np.float32)
-        for br, (vol, shift, off) in zip(bricks, kept, strict=True):
+        pieces = [None] * len(bricks) if curvature is None else curvature
+        for br, (vol, shift, off), cv in zip(bricks, kept, pieces, strict=True):
             j0, j1 = _runs(state, br)
             geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
             nb.fill_range(cache.start, upto, cache.lut, z["steps"], cache.shading,
                           cache.curvature, seg["a"], seg["b"], seg["t"], t["step"], j0, j1, vol,
-                          none, geo, cache.ids, tab, True, False, np.uint32(shift))  # fmt: skip
+                          none if cv is None else cv, geo, cache.ids, tab, True, cv is not None,
+                          np.uint32(shift))  # fmt: skip
         z["filled"] = lo
 
     return fill

@@ -194,6 +194,8 @@ def test_a_lazily_shaded_bricked_cache_reevaluates_as_the_whole_one(scene):
     assert z["fill"] is not None  # the codes are kept: shaded lazily
     unset = int(np.count_nonzero(parts.cache.shading[:, 0] == _UNSET))
     assert 0 < unset < len(parts.cache.lut)  # the walk shaded what it composited, only that
+    no_curv = int(np.count_nonzero(parts.cache.curvature < 0.0))
+    assert 0 < no_curv <= unset  # the curvature pieces are kept: their lookups lazy too
     steps = [
         {"opacities": (1.0, 1.0, 1.0)},  # reaches less: nothing new to shade
         {"opacities": (0.05, 0.3, 0.02)},  # reaches further back
@@ -206,3 +208,4 @@ def test_a_lazily_shaded_bricked_cache_reevaluates_as_the_whole_one(scene):
         assert b.visible.sum() > 0.0
     left = int(np.count_nonzero(parts.cache.shading[:, 0] == _UNSET))
     assert left < unset  # the low opacities reached entries the walk had not shaded
+    assert int(np.count_nonzero(parts.cache.curvature < 0.0)) < no_curv
