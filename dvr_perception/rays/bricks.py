@@ -471,18 +471,14 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     -------
     BrickCache or None
     """
-    nk, nb = _kernels()
+    _kernels()  # one clear error without numba
     report = reporter(progress)
     off = _check_piece(piece, brick, offset, state, curvature)
     if build_cache and not state.occlusion_free:
         raise DVRInputError("build_cache: needs an occlusion-free state (occlusion_free=True)")
-    t, seg, cam = state.tables, state.seg, state.camera
-    gz, gy, gx = state.geometry.shape
-    nrays = cam.width * cam.height
+    cam = state.camera
     j0, j1 = _runs(state, brick)
     vol, maps, cv = _piece_arrays(piece, state, curvature, derived)
-    has_curv = curvature is not None
-    shade = t["shade"]
     order, chunk_ptr = ray_order(cam.height, cam.width)
     if report:
         order, chunk_ptr = _interleaved(order, chunk_ptr, _group())
@@ -491,11 +487,49 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     per_chunk = np.add.reduceat(runs, chunk_ptr[:-1]) if build_cache else np.zeros(nchunk, int)
     chunk_base = np.ascontiguousarray(np.concatenate([[0], np.cumsum(per_chunk)])[:-1])
     cap = max(int(per_chunk.sum()), 1)
+    mine = build_cache and _SRC_LOCK.acquire(blocking=False)
+    try:
+        return _walk_src(state, brick, vol, maps, cv if curvature is not None else None, j0, j1,
+                         order, chunk_ptr, chunk_base, cap, off, report, build_cache, keep_codes,
+                         shade_all, curvature_all, mine)  # fmt: skip
+    finally:
+        if mine:
+            _SRC_LOCK.release()
+
+
+#: The walk's entries before compaction, reused from brick to brick (fresh memory costs page
+#: faults), and their lock (an analysis in another thread uses fresh arrays).
+_SRC: dict = {}
+_SRC_LOCK = threading.Lock()
+
+
+def _src(name, n, tail, dtype, shared):
+    """``n`` rows of the reused scratch ``name`` (``shared``), else a fresh array."""
+    if not shared:
+        return np.empty((n, *tail), dtype)
+    a = _SRC.get(name)
+    if a is None or len(a) < n:
+        a = np.empty((max(n, int(1.25 * len(a)) if a is not None else n), *tail), dtype)
+        _SRC[name] = a
+    return a[:n]
+
+
+def _walk_src(state, brick, vol, maps, cv, j0, j1, order, chunk_ptr, chunk_base, cap, off,
+              report, build_cache, keep_codes, shade_all, curvature_all, shared):  # fmt: skip
+    """:func:`walk` once the runs and chunks are known (``shared``: the scratch is ours)."""
+    nk, nb = _kernels()
+    t, seg, cam = state.tables, state.seg, state.camera
+    gz, gy, gx = state.geometry.shape
+    nrays = cam.width * cam.height
+    nchunk = len(chunk_ptr) - 1
+    has_curv = cv is not None
+    shade = t["shade"]
+    cv = np.zeros((2, 2, 2), np.float32) if cv is None else cv
     src = (
-        np.empty(cap, np.uint16),
-        np.empty(cap, np.int32),
-        np.empty((cap if shade else 1, 2), np.uint16),
-        np.empty(cap if has_curv else 1, np.float32),
+        _src("lut", cap, (), np.uint16, shared),
+        _src("j", cap, (), np.int32, shared),
+        _src("sh", cap if shade else 1, (2,), np.uint16, shared),
+        _src("curv", cap if has_curv else 1, (), np.float32, shared),
     )
     start = np.empty(nrays, np.int64)
     count = np.empty(nrays, np.int64)

@@ -6,7 +6,10 @@ and returns a :class:`RayAnalysis`: the image plus, per structure and pixel, its
 and the visibility-weighted boundary curvature.  With ``build_cache=True`` it keeps, per ray,
 the compact list of samples with non-zero membership (:class:`RayCache`) so that
 :func:`reevaluate` can apply new opacities, colours, materials or light direction without
-touching the volume again.
+touching the volume again.  :func:`analyze` checks its inputs, plans the memory
+(:func:`~dvr_perception.rays.memory.plan`) and hands over to the whole-volume walk here or to
+the bricked one (:mod:`~dvr_perception.rays.bricks`, imported when needed); what both walks
+share lives below them in :mod:`~dvr_perception.rays._walk_setup`.
 
 Conventions matched to ``vtkFixedPointVolumeRayCastMapper`` (``docs/vtk_conventions.md``):
 
