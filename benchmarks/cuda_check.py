@@ -39,14 +39,14 @@ FIELDS = ("rgba", "image", "accumulated", "visible", "assigned", "present", "cur
           "importance_accumulated")  # fmt: skip
 
 
-def _scene(path: Path, size: int, resample: str | None = None):
+def _load(path: Path, size: int, resample: str | None = None):
     from dvr_perception.cli import build_parser
-    from dvr_perception.cli._common import load_scene
+    from dvr_perception.inputs import load_inputs
 
     argv = ["bench", str(path), "--size", str(size)]
     if resample:
         argv += ["--resample", resample]
-    return load_scene(build_parser().parse_args(argv))
+    return load_inputs(build_parser().parse_args(argv))
 
 
 def _diff(a, b) -> dict:
@@ -74,10 +74,10 @@ def _median(fn, repeat: int) -> float:
     return float(statistics.median(times))
 
 
-def _equal(scene, curv) -> dict:
+def _equal(inputs, curv) -> dict:
     from dvr_perception.rays.engine import analyze
 
-    vol, spec, cam = scene.volume, scene.spec, scene.camera
+    vol, spec, cam = inputs.volume, inputs.spec, inputs.camera
     a = analyze(vol, spec, cam, curvature=curv, backend="numba")
     b = analyze(vol, spec, cam, curvature=curv, backend="cuda")
     buffers = _diff(a, b)
@@ -95,10 +95,10 @@ def _equal(scene, curv) -> dict:
     }
 
 
-def _frames(scene, curv, repeat: int, backends=("cuda", "numba")) -> dict:
+def _frames(inputs, curv, repeat: int, backends=("cuda", "numba")) -> dict:
     from dvr_perception.rays.engine import analyze
 
-    vol, spec, cam = scene.volume, scene.spec, scene.camera
+    vol, spec, cam = inputs.volume, inputs.spec, inputs.camera
     out = {"dims": list(vol.dims), "size": [cam.width, cam.height]}
     for backend in backends:
 
@@ -132,11 +132,11 @@ def _nudged(cam, count: int) -> list:
     return [replace(cam, position=tuple(pos + (i + 1) * step)) for i in range(count)]
 
 
-def _optimize(scene, curv, backend: str) -> dict:
+def _optimize(inputs, curv, backend: str) -> dict:
     from dvr_perception.optimize import optimize
 
     t0 = time.perf_counter()
-    res = optimize(scene.volume, scene.spec, scene.camera, curvature=curv, backend=backend)
+    res = optimize(inputs.volume, inputs.spec, inputs.camera, curvature=curv, backend=backend)
     return {"seconds": time.perf_counter() - t0, "E_initial": res.initial["E"],
             "E_final": res.final["E"], "nfev": res.nfev}  # fmt: skip
 
@@ -177,26 +177,26 @@ def main(argv=None) -> int:
     }
     data = Path(args.data)
     for name in filter(None, args.volumes.split(",")):
-        scene = _scene(data / f"{name}.nhdr", args.size)
-        curv = curvature_source(scene.volume, scene.spec)
-        report["equal"][name] = _equal(scene, curv)
-        report["frames"][name] = _frames(scene, curv, args.repeat)
+        inputs = _load(data / f"{name}.nhdr", args.size)
+        curv = curvature_source(inputs.volume, inputs.spec)
+        report["equal"][name] = _equal(inputs, curv)
+        report["frames"][name] = _frames(inputs, curv, args.repeat)
         print(name, json.dumps(report["equal"][name]["passed"]), file=sys.stderr)
     if args.big or args.optimize:
-        scene = _scene(data / "cthead.nhdr", args.size, "2,2,4")
-        curv = curvature_source(scene.volume, scene.spec)
+        inputs = _load(data / "cthead.nhdr", args.size, "2,2,4")
+        curv = curvature_source(inputs.volume, inputs.spec)
         if args.big:
-            report["equal"]["cthead_512x512x452"] = _equal(scene, curv)
-            report["frames"]["cthead_512x512x452"] = _frames(scene, curv, args.repeat)
+            report["equal"]["cthead_512x512x452"] = _equal(inputs, curv)
+            report["frames"]["cthead_512x512x452"] = _frames(inputs, curv, args.repeat)
         if args.optimize:
             report["optimize_cthead_512x512x452"] = {
-                b: _optimize(scene, curv, b) for b in ("cuda", "numba")
+                b: _optimize(inputs, curv, b) for b in ("cuda", "numba")
             }
-        del scene, curv
+        del inputs, curv
     if args.big:
-        scene = _scene(data / "cthead.nhdr", args.size, "4,4,8")
-        curv = curvature_source(scene.volume, scene.spec)
-        report["frames"]["cthead_1024x1024x904"] = _frames(scene, curv, args.repeat, ("cuda",))
+        inputs = _load(data / "cthead.nhdr", args.size, "4,4,8")
+        curv = curvature_source(inputs.volume, inputs.spec)
+        report["frames"]["cthead_1024x1024x904"] = _frames(inputs, curv, args.repeat, ("cuda",))
     report["passed"] = all(e["passed"] for e in report["equal"].values())
     text = json.dumps(report, indent=1)
     if args.out:

@@ -1,9 +1,10 @@
 """dvr_perception: perception-based transparency optimisation for direct volume rendering.
 
-The pipeline reads as the sub-packages: :mod:`~dvr_perception.volume` (I/O, phantom) →
-:mod:`~dvr_perception.structures` (spec, transfer functions) → :mod:`~dvr_perception.rays`
-(camera, ray-analysis engine) → :mod:`~dvr_perception.measures` → optimisation → front ends
-(:mod:`~dvr_perception.cli`, plotting, web app, ParaView plugin).
+The pipeline reads as the sub-packages: :mod:`~dvr_perception.volume` (I/O) →
+:mod:`~dvr_perception.structures` (spec, transfer functions, the phantom and presets) →
+:mod:`~dvr_perception.rays` (camera, ray-analysis engine) → :mod:`~dvr_perception.measures` →
+optimisation → front ends (:mod:`~dvr_perception.cli`, plotting, web app, ParaView plugin);
+``tests/test_layering.py`` checks that no package imports one above it.
 
 The main entry points are importable from the package root (loaded on first use, so
 ``import dvr_perception`` stays light: no VTK, no numba):
@@ -36,7 +37,7 @@ _API = {
     "Volume": "dvr_perception.volume",
     "load_volume": "dvr_perception.volume",
     "save_volume": "dvr_perception.volume",
-    "make_phantom": "dvr_perception.volume",
+    "make_phantom": "dvr_perception.structures",
     "StructureSpec": "dvr_perception.structures",
     "Structure": "dvr_perception.structures",
     "Lighting": "dvr_perception.structures",

@@ -78,15 +78,15 @@ def build(pvs, name, data_dir):
 
     from batch_measure import set_camera, set_transfer_functions
 
-    from dvr_perception.cli._common import load_scene
+    from dvr_perception.inputs import load_inputs
 
     nhdr = os.path.join(data_dir, f"{name}.nhdr")
     spec_path = os.path.join(STATE_DIR, f"{name}.json")
     args = argparse.Namespace(
         volume=nhdr, structures=spec_path, view=None, camera=None, size=str(IMAGE_SIZE), shade=None
     )
-    scene = load_scene(args)
-    spec, camera = scene.spec, scene.camera
+    inputs = load_inputs(args)
+    spec, camera = inputs.spec, inputs.camera
     with open(spec_path, encoding="utf-8") as f:
         spec_json = json.dumps(json.load(f), separators=(",", ":"))
 
@@ -115,7 +115,7 @@ def build(pvs, name, data_dir):
     set_transfer_functions(pvs, display, array, spec)
     display.VolumeRenderingMode = "Ray Cast Only"
     unit = spec.rendering.opacity_unit_distance
-    display.ScalarOpacityUnitDistance = float(min(scene.volume.spacing) if unit is None else unit)
+    display.ScalarOpacityUnitDistance = float(min(inputs.volume.spacing) if unit is None else unit)
     display.Shade = int(bool(spec.rendering.shade))
     light = spec.structures[0].lighting
     display.Ambient, display.Diffuse = light.ambient, light.diffuse

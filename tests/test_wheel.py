@@ -215,7 +215,7 @@ import json, sys
 from paraview.simple import *
 LoadPlugin({str(plugin)!r}, ns=globals())
 import dvr_perception, numpy
-from dvr_perception.volume import make_phantom
+from dvr_perception.structures import make_phantom
 vol, spec = make_phantom()
 files = {{name: getattr(m, "__file__", None) or "" for name, m in list(sys.modules.items())}}
 leaked = sorted(name for name, f in files.items() if f.startswith({str(site)!r})

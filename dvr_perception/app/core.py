@@ -29,7 +29,7 @@ from dvr_perception.app._guard import guard
 from dvr_perception.app.lens import LensHandlers, lens_region
 from dvr_perception.app.optimise_handlers import MAX_ITER, STAGE_SETS, OptimiseHandlers
 from dvr_perception.app.page_input import PageInputGuard
-from dvr_perception.app.scene import new_plotter, show_spec
+from dvr_perception.app.plotter import new_plotter, show_spec
 from dvr_perception.app.security import (
     FRAME_BYTES,
     ConnectionGuard,

@@ -3,7 +3,7 @@
 The volume at full resolution, reduced to every n-th voxel only above a memory budget of
 :data:`PREVIEW_VOXELS` (256\u00b3) voxels, with the current transfer function (range
 structures, one colour and opacity function as
-:func:`~dvr_perception.structures.transfer.to_vtk_transfer_functions` builds them for the
+:func:`~dvr_perception.export.vtk.to_vtk_transfer_functions` builds them for the
 server's VTK image, with the same opacity unit distance), sits in a render window of its own
 that the server never renders: trame-vtk sends its scene to the page, where vtk.js's GPU ray
 caster draws it at interactive rate, with a sample every :data:`RAY_STEP_VOXELS` voxels along
@@ -153,7 +153,7 @@ class Preview:
 
     def set_spec(self, spec) -> None:
         """Show ``spec``'s range structures (label structures are left out of the preview)."""
-        from dvr_perception.structures.transfer import to_vtk_transfer_functions
+        from dvr_perception.export.vtk import to_vtk_transfer_functions
 
         ranged = tuple(s for s in spec.structures if s.range is not None)
         self.actor.SetVisibility(bool(ranged))

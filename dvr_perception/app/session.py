@@ -1,4 +1,4 @@
-"""What the web app works on, without any web framework: scene, undo stack, files, measures.
+"""What the web app works on, without any web framework: volume, spec, undo stack, files, measures.
 
 :class:`Session` holds the volume, the structure spec shown, an undo stack of specs and the
 folders the app may touch.  The *data folder* is only read: its volumes and spec JSON files
@@ -314,8 +314,7 @@ class Session:
         ``orientation`` (``dvr-perception app --orientation CODE``) declares where the file's
         index axes point, as the other commands' ``--orientation`` does.
         """
-        from dvr_perception.structures import check_spec_for_volume
-        from dvr_perception.volume import load_volume, make_phantom
+        from dvr_perception.structures import check_spec_for_volume, make_phantom
 
         if name == PHANTOM:
             volume, spec = make_phantom(size=self.phantom_size)
@@ -324,12 +323,12 @@ class Session:
             path = self._chosen(
                 name, self.volume_choices()[1:], "volumes", UPLOADED, self.upload_dir
             )
-            volume = load_volume(path)
-            from dvr_perception.structures.presets import choose_spec
+            from dvr_perception.inputs import load_volume_and_spec
 
-            choice = choose_spec(volume)  # a preset by the data's checksum, else a proposal
-            line = choice.line.removeprefix("structures: ").removeprefix("structures ")
-            spec, source = choice.spec, line  # "preset 'x' (...)" / "proposed from the data (...)"
+            # the command line's loader: a preset by the data's checksum, else a proposal
+            volume, spec, _, line = load_volume_and_spec(str(path))
+            source = line.removeprefix("structures: ").removeprefix("structures ")
+            # "preset 'x' (...)" / "proposed from the data (...)"
         read, orientation = volume, _code(orientation)
         base = volume = _oriented(read, orientation)
         labels_file = None

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from dvr_perception import _resources
+from dvr_perception._timing import median_time as _median_time
 from dvr_perception.benchmarks import checks
-from dvr_perception.cli.bench import _median_time
 from dvr_perception.measures import covered_transmittance, shape, transparency, visibility
 from dvr_perception.optimize import optimize
 from dvr_perception.optimize.core import OBJECTIVES
@@ -106,7 +106,7 @@ class Config:
         return self.image_sizes[1]
 
 
-# -- scenes -------------------------------------------------------------------------------------
+# -- datasets and cameras -----------------------------------------------------------------------
 def load(cfg: Config, name: str):
     """Return ``(volume, spec)`` of a shared dataset with its preset in ``state_files/``."""
     return load_volume(Path(cfg.data) / f"{name}.nhdr"), load_spec(STATE_FILES / f"{name}.json")

@@ -7,8 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dvr_perception.cli._plots import DPI, _figure, _save
-from dvr_perception.cli._plots import EMPTY_COLOUR as EMPTY
+from dvr_perception._figures import DPI
+from dvr_perception._figures import EMPTY_COLOUR as EMPTY
+from dvr_perception._figures import new_figure as _figure
+from dvr_perception._figures import save_png as _save
 
 __all__ = [
     "equalisation_figure",

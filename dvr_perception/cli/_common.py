@@ -1,8 +1,9 @@
 """Options and helpers shared by the ``dvr-perception`` sub-commands.
 
-A *scene* is what every command starts from: a volume, its structure spec and a camera.
-:func:`add_scene_args` declares the options that choose them and :func:`load_scene` resolves
-them with the documented defaults (the spec paired with the volume, the spec's view, 512²).
+What every command starts from, a volume, its structure spec and a camera, is declared and
+loaded by the library's :mod:`dvr_perception.inputs` (shared with the ParaView plugin's batch
+scripts); this module adds the command line's glue: the common options, the notes printed after
+a command succeeded, JSON output and progress logging.
 """
 
 from __future__ import annotations
@@ -10,46 +11,50 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
-import re
-import stat
 import sys
-import time
-import warnings
-from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from dvr_perception._files import json_ready, write_npz
-from dvr_perception.errors import DVRInputError, DVRWarning
-from dvr_perception.rays.camera import (
-    MAX_IMAGE,
-    Camera,
-    default_camera,
-    parse_patient_view,
-    patient_view,
+from dvr_perception.inputs import (
+    DEFAULT_SIZE,
+    ORIENTATION_HELP,
+    OptionParser,
+    RenderInputs,
+    add_input_args,
+    check_output_file,
+    check_resample,
+    make_output_dir,
+    parse_factors,
+    parse_rect,
+    parse_size,
+    read_json_file,
 )
+from dvr_perception.inputs import load_inputs as _load_inputs
 
 __all__ = [
+    "DEFAULT_SIZE",
+    "ORIENTATION_HELP",
     "PROG",
     "CLIParser",
-    "Scene",
-    "add_scene_args",
+    "RenderInputs",
+    "add_input_args",
     "check_output_file",
     "check_resample",
     "common_parent",
     "emit_json",
-    "load_scene",
+    "load_inputs",
     "log_progress",
+    "make_output_dir",
     "parse_factors",
+    "parse_rect",
     "parse_size",
     "read_json_file",
     "save_buffers",
 ]
 
 PROG = "dvr-perception"
-DEFAULT_SIZE = 512
 #: One-line notes for the user (e.g. which spec was chosen and why), printed on stderr by
 #: :func:`dvr_perception.cli.main` after the command has succeeded.
 NOTES: list[str] = []
@@ -74,11 +79,8 @@ def log_progress(what: str):
     return progress
 
 
-class CLIParser(argparse.ArgumentParser):
-    """An :class:`argparse.ArgumentParser` whose usage errors are one-line DVRInputErrors."""
-
-    def error(self, message):
-        raise DVRInputError(f"{message} (see '{self.prog} --help')")
+#: The parser of every sub-command: usage errors are one-line DVRInputErrors.
+CLIParser = OptionParser
 
 
 def common_parent() -> argparse.ArgumentParser:
@@ -94,414 +96,12 @@ def common_parent() -> argparse.ArgumentParser:
     return parent
 
 
-#: Help of ``--orientation`` (every command that reads a volume, and ``app``).
-ORIENTATION_HELP = (
-    "where the volume's index axes x, y, z point, for a file that records no orientation: "
-    "three letters from L/R, P/A, S/I (e.g. LPI: slice 0 is the top of the head); the data "
-    "are re-ordered into patient LPS (default: as the file says, else LPS)"
-)
-
-
-def add_scene_args(
-    parser: argparse.ArgumentParser, *, volume_optional: bool = False, save_spec: bool = True
-) -> None:
-    """Declare VOLUME, ``--structures``, ``--view``/``--camera``, ``--size``, ``--shade``.
-
-    With ``save_spec`` also ``--save-spec`` (written by :func:`load_scene`).
-    """
-    help_volume = "volume file (.nhdr, .nrrd, .mha, .vti, ...) or the word 'phantom'"
-    if volume_optional:
-        parser.add_argument(
-            "volume", nargs="?", default="phantom", metavar="VOLUME", help=help_volume
-        )
-    else:
-        parser.add_argument("volume", metavar="VOLUME", help=help_volume)
-    spec_group = parser.add_mutually_exclusive_group()
-    spec_group.add_argument(
-        "--structures",
-        metavar="SPEC.json",
-        help="structure spec, or a 3D Slicer segmentation (.seg.nrrd: one label structure per "
-        "segment) (default: the preset whose recorded data checksum matches the volume's, else "
-        "a proposal)",
-    )
-    spec_group.add_argument(
-        "--preset",
-        metavar="NAME",
-        help="use the preset NAME of the repository's state_files/ (e.g. cthead) whatever the data",
-    )
-    spec_group.add_argument(
-        "--classes",
-        metavar="N",
-        type=_classes,
-        help="propose structures from the data even when a preset matches: 'auto' (the number "
-        "the data choose) or N (1 to 8)",
-    )
-    if save_spec:
-        parser.add_argument(
-            "--save-spec",
-            metavar="OUT.json",
-            help="also write the structure spec used (e.g. the one made from a .seg.nrrd or "
-            "proposed) as an editable spec JSON",
-        )
-    cam = parser.add_mutually_exclusive_group()
-    cam.add_argument(
-        "--view",
-        metavar="[NAME,]A,E[,Z]",
-        help="azimuth, elevation (degrees) and zoom, relative to the down -z, +y up view or to a "
-        "patient view NAME: anterior, posterior, left, right, superior, inferior (patient LPS, "
-        "e.g. --view anterior shows the face); use --view=-30,10 for negative angles (default: "
-        "the spec's view, else anterior for a scan that records its orientation, else down -z)",
-    )
-    cam.add_argument("--camera", metavar="CAM.json", help="camera JSON (Camera.to_dict format)")
-    parser.add_argument("--orientation", metavar="CODE", help=ORIENTATION_HELP)
-    parser.add_argument(
-        "--series",
-        metavar="UID",
-        help="DICOM folder holding several series: the SeriesInstanceUID to read (without it, "
-        "such a folder is refused with the list of its series)",
-    )
-    parser.add_argument(
-        "--size", metavar="N|WxH", help=f"image size in pixels (default {DEFAULT_SIZE})"
-    )
-    parser.add_argument(
-        "--shade",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="Phong shading on/off (default: the spec's rendering.shade)",
-    )
-    parser.add_argument(
-        "--memory-limit",
-        metavar="SIZE",
-        help="memory the analysis may use, e.g. 8G or 512M (default: half the machine's "
-        "memory); larger volumes are analysed in bricks, and a run that cannot fit stops "
-        "before it starts",
-    )
-    parser.add_argument(
-        "--allow-data-root",
-        metavar="DIR",
-        action="append",
-        help="also accept a volume header's detached data file inside DIR (default: only "
-        "inside the header's own folder); repeatable",
-    )
-
-
-_SIZE = re.compile(r"^\s*(\d{1,9})\s*(?:[xX]\s*(\d{1,9}))?\s*$")
-#: Largest camera or spec JSON file read (bytes).
-MAX_JSON_BYTES = 16 * 2**20
-
-
-def parse_size(text) -> tuple[int, int]:
-    """Parse ``--size``: ``"N"`` (square) or ``"WxH"``, each between 1 and 16384.
-
-    Examples
-    --------
-    >>> parse_size("64"), parse_size("320x200")
-    ((64, 64), (320, 200))
-    """
-    m = _SIZE.match(str(text))
-    if m is None:
-        raise DVRInputError(f"--size: expected N or WxH (positive integers), got {_cut(text)}")
-    w = int(m.group(1))
-    h = int(m.group(2)) if m.group(2) is not None else w
-    if not (1 <= w <= MAX_IMAGE and 1 <= h <= MAX_IMAGE):
-        raise DVRInputError(f"--size: width and height must be in 1..{MAX_IMAGE}, got {text!r}")
-    return w, h
-
-
-def _cut(text, limit: int = 40) -> str:
-    text = str(text)
-    return repr(text) if len(text) <= limit else f"{text[:30]!r}... ({len(text)} characters)"
-
-
-def read_json_file(path, what: str):
-    """Read a small JSON file (a regular file of at most :data:`MAX_JSON_BYTES`).
-
-    ``what`` starts every error message (e.g. ``"--camera cam.json"``).  Devices, FIFOs and
-    folders are refused before anything is read.
-    """
-    p = Path(path)
-    try:
-        st = p.stat()
-    except FileNotFoundError:
-        raise DVRInputError(f"{what}: file not found") from None
-    except OSError as exc:
-        raise DVRInputError(f"{what}: cannot read ({exc.strerror})") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise DVRInputError(f"{what}: not a regular file")
-    if st.st_size > MAX_JSON_BYTES:
-        raise DVRInputError(
-            f"{what}: the file has {st.st_size} bytes, more than the {MAX_JSON_BYTES} allowed"
-        )
-    try:
-        with open(p, encoding="utf-8") as fh:
-            text = fh.read(MAX_JSON_BYTES + 1)
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DVRInputError(f"{what}: cannot read ({exc})") from None
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise DVRInputError(
-            f"{what}: not valid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
-        ) from None
-    except RecursionError:
-        raise DVRInputError(f"{what}: JSON nested too deeply") from None
-    except ValueError as exc:  # e.g. an integer of more than 4300 digits
-        raise DVRInputError(f"{what}: not valid JSON ({str(exc)[:80]})") from None
-
-
-_FACTORS = re.compile(r"^\s*(\d{1,9})\s*(?:,\s*(\d{1,9})\s*,\s*(\d{1,9})\s*)?$")
-
-
-def parse_factors(text) -> tuple[int, int, int]:
-    """Parse ``--resample``: ``"F"`` (all axes) or ``"FX,FY,FZ"``, each between 1 and 64.
-
-    Examples
-    --------
-    >>> parse_factors("2,2,4"), parse_factors("3")
-    ((2, 2, 4), (3, 3, 3))
-    """
-    m = _FACTORS.match(str(text))
-    if m is None:
-        raise DVRInputError(
-            f"--resample: expected F or FX,FY,FZ (positive integers along x, y, z), got "
-            f"{_cut(text)}"
-        )
-    f = tuple(int(g) for g in m.groups()) if m.group(2) is not None else (int(m.group(1)),) * 3
-    if not all(1 <= k <= 64 for k in f):
-        raise DVRInputError(f"--resample: factors must be in 1..64, got {text!r}")
-    return f  # type: ignore[return-value]
-
-
-def check_resample(volume, factors, text=None) -> None:
-    """Refuse ``--resample`` factors whose up-sampled volume exceeds the memory limit.
-
-    Counted before anything is allocated: the up-sampled voxels (and labels) next to the
-    volume itself, against :func:`dvr_perception.rays.memory.limit` (``--memory-limit``).
-
-    Examples
-    --------
-    >>> from dvr_perception.volume import Volume
-    >>> vol = Volume(np.zeros((64, 64, 64), np.uint16))
-    >>> check_resample(vol, (2, 2, 2), "2")  # 4 MiB
-    >>> check_resample(vol, (64, 64, 64), "64")  # doctest: +ELLIPSIS
-    Traceback (most recent call last):
-    ...
-    dvr_perception.errors.DVRInputError: --resample 64: the up-sampled volume of 4096x4096x4096 voxels needs about 128.00 GB, more than the memory limit of ... GB; use smaller factors or raise --memory-limit (or DVR_PERCEPTION_MEMORY_LIMIT)
-    """  # noqa: E501
-    from dvr_perception.rays import memory
-
-    data = volume.data
-    scale = int(np.prod(factors, dtype=np.int64))
-    per_voxel = data.itemsize + (volume.labels.itemsize if volume.labels is not None else 0)
-    need = data.size * scale * per_voxel + data.size * per_voxel
-    cap = memory.limit()
-    if need > cap:
-        dims = "x".join(str(n * f) for n, f in zip(data.shape[::-1], factors, strict=True))
-        shown = ",".join(map(str, factors)) if text is None else str(text).strip()
-        raise DVRInputError(
-            f"--resample {shown}: the up-sampled volume of {dims} voxels needs about "
-            f"{memory._human(need)}, more than the memory limit of {memory._human(cap)}; use "
-            f"smaller factors or raise --memory-limit (or {memory.ENV})"
-        )
-
-
-@dataclass
-class Scene:
-    """A resolved volume, spec and camera, with where they came from."""
-
-    volume: object
-    spec: object
-    camera: Camera
-    volume_source: str
-    spec_source: str
-    load_s: float
-    spec_line: str = ""
-
-
-def state_files_dir() -> Path:
-    """Return the repository's ``state_files`` folder (the presets of the shared volumes)."""
-    from dvr_perception.structures.presets import presets_dir
-
-    return presets_dir()
-
-
-def _classes(text) -> int | str:
-    """Parse ``--classes``: ``auto`` or an integer from 1 to 8."""
-    if str(text).strip().lower() == "auto":
-        return "auto"
-    try:
-        n = int(str(text))
-    except ValueError:
-        msg = f"expected 'auto' or an integer from 1 to 8, got {_cut(text)}"
-        raise argparse.ArgumentTypeError(msg) from None
-    if not 1 <= n <= 8:
-        raise argparse.ArgumentTypeError(f"expected 'auto' or an integer from 1 to 8, got {n}")
-    return n
-
-
-def _load_volume(text: str, *, paired: bool = True, series: str | None = None, classes=None):
-    """Return ``(volume, spec_or_None, spec_source, line)`` for a VOLUME argument.
-
-    With ``paired`` the spec is chosen by
-    :func:`~dvr_perception.structures.presets.choose_spec` (a preset whose data checksum
-    matches, else a proposal; ``classes`` asks for a proposal of that many structures).
-    """
-    if text == "phantom":
-        from dvr_perception.volume.phantom import make_phantom
-
-        volume, spec = make_phantom()
-        return volume, spec, "phantom (built-in spec)", ""
-    from dvr_perception.volume.io import load_volume
-
-    path = Path(text)
-    volume = load_volume(path, series=series) if series is not None else load_volume(path)
-    if paired:
-        from dvr_perception.structures.presets import choose_spec
-
-        auto = classes == "auto"
-        choice = choose_spec(volume, n_structures=None if auto else classes, propose=auto)
-        return volume, choice.spec, choice.source, choice.line
-    return volume, None, "", ""
-
-
-def _read_camera(path_text: str, size: tuple[int, int] | None) -> Camera:
-    path = Path(path_text)
-    d = read_json_file(path, f"--camera {path}")
-    cam = Camera.from_dict(d, source=f"--camera {path}")
-    return cam.with_size(*size) if size is not None else cam
-
-
-def load_scene(args: argparse.Namespace) -> Scene:
-    """Resolve the scene options of :func:`add_scene_args` into a :class:`Scene`.
-
-    Cheap checks (size, view, camera file) run before the volume is loaded, so bad options
-    fail fast.  A command that declares ``--resample`` gets the volume (and labels) up-sampled
-    (:func:`dvr_perception.volume.resample.upsample`) before the camera is fitted to it.
-    """
-    from dvr_perception.rays import memory
-
-    size = parse_size(args.size) if args.size is not None else None
-    if getattr(args, "memory_limit", None) is not None:
-        memory.set_limit(args.memory_limit)  # checked here, before the volume is read
-        os.environ[memory.ENV] = str(args.memory_limit)  # and for child processes
-    if getattr(args, "allow_data_root", None):
-        from dvr_perception.volume._limits import DATA_ROOTS_ENV
-
-        for root in args.allow_data_root:
-            if not Path(root).is_dir():
-                raise DVRInputError(f"--allow-data-root {root}: not a folder")
-        os.environ[DATA_ROOTS_ENV] = os.pathsep.join(args.allow_data_root)
-    resample = getattr(args, "resample", None)  # only commands that declare --resample
-    factors = parse_factors(resample) if resample is not None else None
-    view = parse_patient_view(args.view) if args.view is not None else None
-    if getattr(args, "orientation", None) is not None:
-        from dvr_perception.volume.orient import parse_orientation
-
-        parse_orientation(args.orientation)  # before the volume is read
-    camera = _read_camera(args.camera, size) if args.camera is not None else None
-    save_to = getattr(args, "save_spec", None)
-    if save_to is not None:
-        save_to = check_output_file(save_to)
-    from dvr_perception.structures.io import attach_labels, check_spec_for_volume, load_spec
-
-    given, given_source, given_line = None, "", ""
-    if args.structures is not None:  # the user's own spec: nothing to explain
-        given, given_source = load_spec(args.structures), str(args.structures)
-    elif getattr(args, "preset", None) is not None:
-        from dvr_perception.structures.presets import load_preset
-
-        given, path = load_preset(args.preset)
-        given_source = str(path)
-        given_line = f"structures: preset {args.preset!r} (given with --preset)"
-    k = len(given.structures) if given is not None else 1
-    if camera is not None:  # before the volume is read: the image must fit the limit
-        memory.check_image(camera.width, camera.height, k, source=f"--camera {args.camera}")
-    elif size is not None:
-        memory.check_image(*size, k)
-    t0 = time.perf_counter()
-    log.info("loading volume %s", args.volume)
-    volume, spec, spec_source, spec_line = _load_volume(
-        args.volume,
-        paired=given is None,
-        series=getattr(args, "series", None),
-        classes=getattr(args, "classes", None),
-    )
-    load_s = time.perf_counter() - t0
-    if given is not None:
-        spec, spec_source, spec_line = given, given_source, given_line
-    if spec_line:  # said once the command has succeeded (an error stays one line)
-        NOTES.append(spec_line)
-    volume = attach_labels(volume, spec)
-    if getattr(args, "orientation", None) is not None:
-        from dvr_perception.volume.orient import reorient
-
-        volume = reorient(volume, args.orientation)
-    if factors is not None and factors != (1, 1, 1):
-        from dvr_perception.volume.resample import upsample
-
-        check_resample(volume, factors, resample)
-        log.info("up-sampling by %s (x, y, z)", factors)
-        t0 = time.perf_counter()
-        volume = upsample(volume, factors)
-        load_s += time.perf_counter() - t0
-    check_spec_for_volume(spec, volume)
-    if args.shade is not None:
-        spec = replace(spec, rendering=replace(spec.rendering, shade=bool(args.shade)))
-    if save_to is not None:
-        from dvr_perception.structures.io import save_spec
-
-        save_spec(spec, save_to)
-        log.info("wrote the structure spec to %s", save_to)
-    if camera is None:
-        w, h = size if size is not None else (DEFAULT_SIZE, DEFAULT_SIZE)
-        if view is None:  # the spec's view, else anterior for an oriented scan
-            camera = default_camera(volume, spec.view, width=w, height=h)
-        elif view[0] is not None:
-            name, az, el, zoom = view
-            _warn_unoriented(volume)
-            camera = patient_view(
-                volume, name, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
-            )
-        else:
-            _, az, el, zoom = view
-            camera = Camera.from_view(
-                volume.bounds, azimuth=az, elevation=el, zoom=zoom, width=w, height=h
-            )
-    return Scene(volume, spec, camera, args.volume, spec_source, load_s, spec_line)
-
-
-def _warn_unoriented(volume) -> None:
-    """Warn (one line) that a patient view of a file without orientation is a guess.
-
-    Silent for a file that records its orientation and after ``--orientation`` (which makes
-    the volume ``oriented``).
-    """
-    from dvr_perception.volume.orient import orientation_note
-
-    note = orientation_note(volume)
-    if note is not None:
-        warnings.warn(note, DVRWarning, stacklevel=3)
-
-
-def check_output_file(path) -> Path:
-    """Fail early (before any rendering) when an output file cannot be created.
-
-    The folder must exist and be writable, and an existing target must be a regular file.
-    """
-    from dvr_perception._files import check_target, check_writable
-
-    p = check_target(path)
-    check_writable(p.parent)
-    return p
-
-
-def make_output_dir(path) -> Path:
-    """Create an output directory (and parents) if needed."""
-    p = Path(path)
-    if p.exists() and not p.is_dir():
-        raise DVRInputError(f"output directory {p}: exists and is not a directory")
-    p.mkdir(parents=True, exist_ok=True)
-    return p
+def load_inputs(args: argparse.Namespace) -> RenderInputs:
+    """:func:`dvr_perception.inputs.load_inputs`, noting the chosen spec for :data:`NOTES`."""
+    inputs = _load_inputs(args)
+    if inputs.spec_line:  # said once the command has succeeded (an error stays one line)
+        NOTES.append(inputs.spec_line)
+    return inputs
 
 
 def save_buffers(path, result) -> Path:

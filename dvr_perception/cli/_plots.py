@@ -12,7 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dvr_perception._files import atomic_path
+from dvr_perception._figures import DPI as DPI  # re-export
+from dvr_perception._figures import EMPTY_COLOUR
+from dvr_perception._figures import new_figure as _figure
+from dvr_perception._figures import save_png as _save
 
 __all__ = [
     "MEASURE_FIGURES",
@@ -29,10 +32,6 @@ __all__ = [
 PLOT_NAME_LENGTH = 32
 #: Most layer sets the region map's legend lists (the rest are counted in one entry).
 MAX_LEGEND = 24
-
-#: Colour of pixels outside the measured area (empty rays) in the deviation maps.
-EMPTY_COLOUR = "#d0d0d0"
-DPI = 100
 
 
 def plot_text(name, limit: int = PLOT_NAME_LENGTH) -> str:
@@ -52,27 +51,6 @@ def plot_text(name, limit: int = PLOT_NAME_LENGTH) -> str:
     from dvr_perception.structures.spec import printable
 
     return printable(name, limit).replace("$", r"\$")
-
-
-def _figure(width: float, height: float, *, layout: str | None = "constrained"):
-    """Return a figure attached to an Agg canvas (constrained layout unless ``layout=None``).
-
-    Constrained layout doubles the time of a simple figure: the image maps and the
-    histograms place their axes themselves.
-    """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(width, height), layout=layout)
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _save(fig, path) -> Path:
-    """Write ``fig`` as a PNG (atomically) and return the path."""
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=DPI)
-    return Path(path)
 
 
 def _image_size(shape) -> tuple[float, float]:

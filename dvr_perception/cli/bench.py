@@ -65,12 +65,13 @@ import time
 import numpy as np
 
 from dvr_perception._files import file_lock
+from dvr_perception._timing import median_time as _median_time
 from dvr_perception.cli._backend import add_backend_arg
 from dvr_perception.cli._common import (
-    add_scene_args,
+    add_input_args,
     check_output_file,
     emit_json,
-    load_scene,
+    load_inputs,
     log,
     parse_factors,
 )
@@ -98,7 +99,7 @@ def add_parser(subparsers, parents) -> None:
         epilog=EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_scene_args(p, volume_optional=True)
+    add_input_args(p, volume_optional=True)
     add_backend_arg(p)
     p.add_argument(
         "--repeat",
@@ -160,16 +161,7 @@ def _peak_rss_mb() -> float:
     return peak / 2**20 if sys.platform == "darwin" else peak / 2**10
 
 
-def _median_time(fn, repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(statistics.median(times))
-
-
-def _paired_frames(ours: dict, scene, repeat: int) -> tuple:
+def _paired_frames(ours: dict, inputs, repeat: int) -> tuple:
     """Median seconds of each of our frames and of VTK's, timed in turn on the same machine.
 
     ``ours`` maps a name to a function rendering one frame.  Returns ``(ours, vtk_s, error,
@@ -188,7 +180,7 @@ def _paired_frames(ours: dict, scene, repeat: int) -> tuple:
 
     try:
         # VTK renders in a child process: its memory apart from ours
-        with vtk_frame_process(scene.volume, scene.spec, scene.camera) as vtk_frame:
+        with vtk_frame_process(inputs.volume, inputs.spec, inputs.camera) as vtk_frame:
             for _ in range(repeat):
                 theirs.append(vtk_frame())
                 ours_once()
@@ -285,8 +277,8 @@ def run(args: argparse.Namespace) -> int:
         if args.save_volume is not None:
             check_output_file(args.save_volume)
             held.enter_context(file_lock(args.save_volume))  # a second run is refused
-        scene = load_scene(args)
-        vol, spec, cam = scene.volume, scene.spec, scene.camera
+        inputs = load_inputs(args)
+        vol, spec, cam = inputs.volume, inputs.spec, inputs.camera
         if args.save_volume is not None:
             from dvr_perception.volume.io import save_volume
 
@@ -327,7 +319,7 @@ def run(args: argparse.Namespace) -> int:
                 spec,
             ),
         },
-        scene,
+        inputs,
         args.repeat,
     )
     frame_s, render_s, measure_total_s = frames["frame"], frames["render"], frames["measure"]
@@ -352,14 +344,14 @@ def run(args: argparse.Namespace) -> int:
     )
 
     report = {
-        "volume": scene.volume_source,
-        "spec": scene.spec_source,
+        "volume": inputs.volume_source,
+        "spec": inputs.spec_source,
         "dims": list(vol.dims),
         "size": [cam.width, cam.height],
         "structures": len(spec.structures),
         "backend": backend,
         "numba_threads": int(numba.get_num_threads()),
-        "load_s": scene.load_s,
+        "load_s": inputs.load_s,
         "curvature_s": curvature_s,
         "compile_s": compile_s,
         "frame_s": frame_s,

@@ -21,9 +21,9 @@ import numpy as np
 
 from dvr_perception._files import output_folder, write_png
 from dvr_perception.cli._common import (
-    add_scene_args,
+    add_input_args,
     emit_json,
-    load_scene,
+    load_inputs,
     log,
 )
 
@@ -49,7 +49,7 @@ def add_parser(subparsers, parents) -> None:
         epilog=EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_scene_args(p)
+    add_input_args(p)
     p.add_argument(
         "--mapper",
         choices=(*MAPPERS, "all"),
@@ -75,23 +75,23 @@ def _stem(source: str) -> str:
     return "phantom" if source == "phantom" else Path(source).name.split(".")[0]
 
 
-def _render_plotter(scene):
+def _render_plotter(inputs):
     from dvr_perception.plotting import render_plotter
 
     t0 = time.perf_counter()
-    image = render_plotter(scene.volume, scene.spec, scene.camera)
+    image = render_plotter(inputs.volume, inputs.spec, inputs.camera)
     return image, "plotter", time.perf_counter() - t0
 
 
-def _compare_one(scene, ours_image, mapper: str, out_dir: Path, stem: str) -> dict:
+def _compare_one(inputs, ours_image, mapper: str, out_dir: Path, stem: str) -> dict:
     from dvr_perception.rays.vtk_reference import compare_images, render_vtk
 
     if mapper == "plotter":
         log.info("rendering through the PyVista plotter")
-        image, name, seconds = _render_plotter(scene)
+        image, name, seconds = _render_plotter(inputs)
     else:
         log.info("rendering with VTK (%s)", mapper)
-        ref = render_vtk(scene.volume, scene.spec, scene.camera, mapper=mapper)
+        ref = render_vtk(inputs.volume, inputs.spec, inputs.camera, mapper=mapper)
         image, name, seconds = ref.image, ref.mapper, ref.seconds
     scores = compare_images(ours_image, image)
     vtk_png = write_png(out_dir / f"{stem}_vtk_{mapper}.png", image)
@@ -109,9 +109,9 @@ def _compare_one(scene, ours_image, mapper: str, out_dir: Path, stem: str) -> di
 
 def run(args: argparse.Namespace) -> int:
     """Execute ``check-renderer``."""
-    scene = load_scene(args)
+    inputs = load_inputs(args)
     with output_folder(args.out_dir) as staged:  # checked and locked before the work
-        report = _check(args, scene, staged.path)
+        report = _check(args, inputs, staged.path)
         report = staged.relocate(report)
     ours_png, seconds_ours = report["ours_png"], report["seconds_ours"]
     if args.json:
@@ -129,33 +129,33 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check(args, scene, out_dir: Path) -> dict:
+def _check(args, inputs, out_dir: Path) -> dict:
     from dvr_perception.rays.engine import analyze
 
     t0 = time.perf_counter()
-    result = analyze(scene.volume, scene.spec, scene.camera, build_cache=False)
+    result = analyze(inputs.volume, inputs.spec, inputs.camera, build_cache=False)
     seconds_ours = time.perf_counter() - t0
-    stem = _stem(scene.volume_source)
+    stem = _stem(inputs.volume_source)
     ours_png = write_png(out_dir / f"{stem}_ours.png", result.image)
     base = {
-        "volume": scene.volume_source,
-        "spec": scene.spec_source,
-        "size": [scene.camera.width, scene.camera.height],
+        "volume": inputs.volume_source,
+        "spec": inputs.spec_source,
+        "size": [inputs.camera.width, inputs.camera.height],
         "ours_png": str(ours_png),
         "seconds_ours": seconds_ours,
     }
     if args.against == "plotter":
-        report = {**base, **_compare_one(scene, result.image, "plotter", out_dir, stem)}
+        report = {**base, **_compare_one(inputs, result.image, "plotter", out_dir, stem)}
     elif args.mapper == "all":
         entries = []
         for mapper in MAPPERS:
             try:
-                entries.append(_compare_one(scene, result.image, mapper, out_dir, stem))
+                entries.append(_compare_one(inputs, result.image, mapper, out_dir, stem))
             except Exception as exc:  # a broken mapper is a finding, not a crash
                 msg = " ".join(f"{type(exc).__name__}: {exc}".split())
                 log.warning("VTK %s mapper failed: %s", mapper, msg)
                 entries.append({"mapper": mapper, "error": msg})
         report = {**base, "mapper": "all", "mappers": entries}
     else:
-        report = {**base, **_compare_one(scene, result.image, args.mapper, out_dir, stem)}
+        report = {**base, **_compare_one(inputs, result.image, args.mapper, out_dir, stem)}
     return report

@@ -94,7 +94,7 @@ def stage_render(state: DemoState) -> None:
     from dvr_perception.rays.camera import Camera
     from dvr_perception.rays.engine import analyze
     from dvr_perception.structures.io import save_spec
-    from dvr_perception.volume.phantom import make_phantom
+    from dvr_perception.structures.phantom import make_phantom
 
     t0 = time.perf_counter()
     state.volume, state.spec = make_phantom()
@@ -135,13 +135,13 @@ def stage_render(state: DemoState) -> None:
 
 def stage_optimize(state: DemoState) -> None:
     """Optimise the phantom's spec (``dvr-perception optimize``) and write its outputs."""
-    from dvr_perception.cli.optimize import Progress, optimize_scene, stop_on_interrupt
+    from dvr_perception.cli.optimize import Progress, optimize_and_report, stop_on_interrupt
 
     t0 = time.perf_counter()
     stages = ("opacity", "lighting", "colour")
     progress = Progress(len(stages) * 10)
     with stop_on_interrupt(progress):
-        report = optimize_scene(
+        report = optimize_and_report(
             state.volume, state.spec, state.camera, state.out_dir, stages=stages,
             progress=progress,
         )  # fmt: skip

@@ -1,6 +1,6 @@
 """``dvr-perception measure``: the paper's three perceptual measures of one rendering.
 
-The command loads the scene (as ``render`` does), computes the curvature volume (``|H|`` on the
+The command loads its inputs (as ``render`` does), computes the curvature volume (``|H|`` on the
 structure boundaries, the structural shape ``v_s``), runs the ray analysis and then the
 visibility (Sec. 4.1), shape (Sec. 4.2) and transparency (Sec. 4.3) measures.  It reports
 ``E_v``, ``E_s`` and ``E_t``, the per-structure shares and perceived transparencies, the layer
@@ -21,10 +21,10 @@ import numpy as np
 from dvr_perception._files import output_folder, write_json, write_png
 from dvr_perception.cli._backend import add_backend_arg
 from dvr_perception.cli._common import (
-    add_scene_args,
+    add_input_args,
     coverage,
     emit_json,
-    load_scene,
+    load_inputs,
     log,
     log_progress,
 )
@@ -78,7 +78,7 @@ def add_parser(subparsers, parents) -> None:
         epilog=EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_scene_args(p)
+    add_input_args(p)
     add_backend_arg(p)
     p.add_argument(
         "--out-dir",
@@ -221,15 +221,15 @@ def run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     if args.bins > MAX_BINS:
         raise DVRInputError(f"--bins: expected 1 to {MAX_BINS}, got {args.bins}")
-    scene = load_scene(args)  # validates the options and the spec before anything is written
+    inputs = load_inputs(args)  # validates the options and the spec before anything is written
     if not args.out_dir:
-        return _run(args, scene, t_start, None)
+        return _run(args, inputs, t_start, None)
     # the folder is checked and locked before the work; the files appear together at the end
     with output_folder(args.out_dir) as staged:
-        return _run(args, scene, t_start, staged)
+        return _run(args, inputs, t_start, staged)
 
 
-def _run(args, scene, t_start: float, staged) -> int:
+def _run(args, inputs, t_start: float, staged) -> int:
     out_dir = None if staged is None else staged.path
     from dvr_perception.measures import all_measures
     from dvr_perception.rays.curvature_field import curvature_source
@@ -237,21 +237,22 @@ def _run(args, scene, t_start: float, staged) -> int:
 
     log.info("computing the curvature volume")
     t0 = time.perf_counter()
-    curvature = curvature_source(scene.volume, scene.spec, progress=log_progress("curvature"))
+    curvature = curvature_source(inputs.volume, inputs.spec, progress=log_progress("curvature"))
     t_curv = time.perf_counter() - t0
-    log.info("analysing %dx%d rays", scene.camera.width, scene.camera.height)
+    log.info("analysing %dx%d rays", inputs.camera.width, inputs.camera.height)
     t0 = time.perf_counter()
-    result = analyze(scene.volume, scene.spec, scene.camera, curvature=curvature, build_cache=True,
-                     progress=log_progress("rays"), backend=args.backend)  # fmt: skip
+    result = analyze(inputs.volume, inputs.spec, inputs.camera, curvature=curvature,
+                     build_cache=True, progress=log_progress("rays"),
+                     backend=args.backend)  # fmt: skip
     t_analysis = time.perf_counter() - t0
     log.info("computing the measures")
     t0 = time.perf_counter()
-    vis, shp, trans = all_measures(result, scene.spec, bins=args.bins)
+    vis, shp, trans = all_measures(result, inputs.spec, bins=args.bins)
     t_measures = time.perf_counter() - t0
     report = {
-        "volume": scene.volume_source,
-        "spec": scene.spec_source,
-        "size": [scene.camera.width, scene.camera.height],
+        "volume": inputs.volume_source,
+        "spec": inputs.spec_source,
+        "size": [inputs.camera.width, inputs.camera.height],
         "E_v": float(vis.E_v),
         "E_s": float(shp.E_s),
         "E_t": float(trans.E_t),
@@ -262,14 +263,14 @@ def _run(args, scene, t_start: float, staged) -> int:
         "undetermined": list(trans.undetermined),
         "notes": _notes(curvature, result.curvature, vis, shp, trans),
         "seconds": None,
-        "seconds_load": scene.load_s,
+        "seconds_load": inputs.load_s,
         "seconds_curvature": t_curv,
         "seconds_analysis": t_analysis,
         "seconds_measures": t_measures,
         "seconds_figures": None,
         "out_dir": None,
         "files": [],
-        "camera": scene.camera.to_dict(),
+        "camera": inputs.camera.to_dict(),
     }
     _check_defined(report)
     if out_dir is not None:

@@ -1,6 +1,6 @@
 """``dvr-perception optimize``: optimise opacity, lighting and colour for a readable rendering.
 
-The command loads the scene (as ``render`` does), runs
+The command loads its inputs (as ``render`` does), runs
 :func:`~dvr_perception.optimize.optimize` (Eq. 12-15 of the paper; stages ``opacity``,
 ``lighting``, ``colour``) with a plain-text progress bar on stderr, then renders and measures
 the spec before and after at the user's resolution and writes into ``--out``, in two steps:
@@ -46,12 +46,13 @@ from dvr_perception._files import output_folder, write_json, write_png
 from dvr_perception.cli import _plots
 from dvr_perception.cli._backend import add_backend_arg
 from dvr_perception.cli._common import (
-    add_scene_args,
+    add_input_args,
     coverage,
     emit_json,
-    load_scene,
+    load_inputs,
     log,
     log_progress,
+    parse_rect,
 )
 from dvr_perception.cli.measure import _positive_int
 from dvr_perception.errors import DVRInputError
@@ -60,8 +61,8 @@ __all__ = [
     "FIGURES",
     "VIEW_STEP",
     "add_parser",
+    "optimize_and_report",
     "optimize_result",
-    "optimize_scene",
     "run",
     "write_figures",
 ]
@@ -100,7 +101,7 @@ def add_parser(subparsers, parents) -> None:
         epilog=EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_scene_args(p)
+    add_input_args(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     add_backend_arg(p)
     p.add_argument(
@@ -192,20 +193,6 @@ def parse_weights(text: str) -> tuple[float, float, float]:
     if min(w) < 0 or max(w) <= 0:
         raise DVRInputError(f"--weights: expected numbers >= 0, not all zero, got {text!r}")
     return w[0], w[1], w[2]
-
-
-def parse_rect(text: str, width: int, height: int) -> tuple[float, float, float, float]:
-    """Parse ``--region`` and check that it holds pixels of the ``width x height`` image."""
-    x0, y0, x1, y1 = _numbers(text, "--region", 4, "four numbers x0,y0,x1,y1")
-    if not (x0 < x1 and y0 < y1):
-        raise DVRInputError(f"--region: expected x0 < x1 and y0 < y1, got {text!r}")
-    cols = np.arange(width) + 0.5
-    rows = np.arange(height) + 0.5
-    if not (np.any((cols > x0) & (cols < x1)) and np.any((rows > y0) & (rows < y1))):
-        raise DVRInputError(
-            f"--region: {text!r} holds no pixel (centre) of the {width}x{height} image"
-        )
-    return x0, y0, x1, y1
 
 
 def orbit(camera, degrees: float):
@@ -501,7 +488,7 @@ def _add_figures(report: dict, figures, seconds: float) -> dict:
             "timings": timings, "seconds": report["seconds"] + seconds}  # fmt: skip
 
 
-def optimize_scene(volume, spec, camera, out_dir, *, figures=True, **kwargs) -> dict:
+def optimize_and_report(volume, spec, camera, out_dir, *, figures=True, **kwargs) -> dict:
     """Optimise ``spec`` for ``camera``, write every output into ``out_dir``, return the report.
 
     :func:`optimize_result` (its keyword arguments) and, with ``figures``,
@@ -550,8 +537,8 @@ def run(args: argparse.Namespace) -> int:
             raise DVRInputError(f"{option}: expected 1 to {top}, got {value}")
     startup = _since_start()  # the interpreter and the imports before this call
     t0 = time.perf_counter()
-    scene = load_scene(args)
-    cam = scene.camera
+    inputs = load_inputs(args)
+    cam = inputs.camera
     region = None if args.region is None else parse_rect(args.region, cam.width, cam.height)
     verbose = bool(getattr(args, "verbose", False))
     loaded = time.perf_counter() - t0
@@ -559,7 +546,7 @@ def run(args: argparse.Namespace) -> int:
     with output_folder(args.out) as staged:
         progress = Progress(len(stages) * args.max_iter, verbose=verbose)
         with stop_on_interrupt(progress):
-            report, drawing = optimize_result(scene.volume, scene.spec, cam, staged.path,
+            report, drawing = optimize_result(inputs.volume, inputs.spec, cam, staged.path,
                                               stages=stages, weights=weights, region=region,
                                               views=args.views, seed=args.seed,
                                               max_iter=args.max_iter,
@@ -568,7 +555,7 @@ def run(args: argparse.Namespace) -> int:
                                               progress=progress, objective=args.objective,
                                               final_dir=staged.final,
                                               backend=args.backend)  # fmt: skip
-        report = {"volume": scene.volume_source, "spec": scene.spec_source, **report}
+        report = {"volume": inputs.volume_source, "spec": inputs.spec_source, **report}
         report["out_dir"] = str(staged.final)
         report["files"] = [str(staged.final_path(f)) for f in report["files"]]
         report["timings"] = {"startup": startup, "load": loaded, **report["timings"]}
@@ -635,7 +622,7 @@ def print_summary(report: dict, *, indent: str = "  ", verbose: bool = False,
 
     a, b = report["initial"], report["final"]
     w, h = report["size"]
-    volume = printable(report.get("volume", "scene"))
+    volume = printable(report.get("volume", "the volume"))
     if verbose:
         print(f"optimised {volume} ({w}x{h}, weights {report['weights']})")
         print(f"{indent}{'':8}{'E_v':>9}{'E_s':>9}{'E_t':>9}{'E':>9}")

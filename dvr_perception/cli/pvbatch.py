@@ -5,7 +5,7 @@ Runs ``paraview/batch_measure.py`` (in the package) under the installed ParaView
 through the plugin's *Perception Measures* filter (``paraview.simple``) and ParaView renders it
 with the spec's transfer functions.  The output directory receives ``screenshot.png`` (ParaView's
 rendering), ``image.png`` and the three deviation maps, and ``result.json`` (``E_v``, ``E_s``,
-``E_t``, per-structure values, camera).  The scene options mean what they mean for ``render``
+``E_t``, per-structure values, camera).  The input options mean what they mean for ``render``
 and ``measure``.
 
 ParaView's Python must never see this environment's packages (a second VTK crashes it), so the
@@ -42,7 +42,7 @@ import numpy as np
 
 from dvr_perception import _paraview_compat, _resources
 from dvr_perception._files import output_folder
-from dvr_perception.cli._common import PROG, add_scene_args, emit_json, log, parse_size
+from dvr_perception.cli._common import PROG, add_input_args, emit_json, log, parse_size
 from dvr_perception.cli.xdisplay import display_answers, virtual_display
 from dvr_perception.errors import DVRInputError
 from dvr_perception.rays.camera import parse_patient_view
@@ -87,7 +87,7 @@ def add_parser(subparsers, parents) -> None:
         epilog=EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_scene_args(p, save_spec=False)
+    add_input_args(p, save_spec=False)
     p.add_argument(
         "--sigma",
         type=float,
@@ -302,14 +302,14 @@ def _failure(returncode: int, stderr: str) -> Exception:
 
 
 def _warm_up(pvbatch: Path, env: dict, *, optimize: bool = False) -> None:
-    """Compile the ranks' kernels in one pvbatch process first (:func:`ranks.warm_up`)."""
+    """Compile the ranks' kernels in one pvbatch process first (``distributed.warm_up``)."""
     import tempfile
 
     log.info("compiling the ranks' kernels once (seconds when cached)")
     with tempfile.TemporaryDirectory(prefix="dvr-warm-") as tmp:
         script = Path(tmp) / "warm_up.py"
         script.write_text(
-            f"from dvr_perception.rays.ranks import warm_up\nwarm_up(optimize={optimize})\n",
+            f"from dvr_perception.distributed import warm_up\nwarm_up(optimize={optimize})\n",
             encoding="utf-8",
         )
         for _ in (1, 2):  # Debian's pvbatch may abort at start-up: one retry

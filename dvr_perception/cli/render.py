@@ -8,11 +8,11 @@ import time
 from dvr_perception._files import check_distinct, staged_files, write_png
 from dvr_perception.cli._backend import add_backend_arg
 from dvr_perception.cli._common import (
-    add_scene_args,
+    add_input_args,
     check_output_file,
     coverage,
     emit_json,
-    load_scene,
+    load_inputs,
     log,
     save_buffers,
 )
@@ -36,7 +36,7 @@ def add_parser(subparsers, parents) -> None:
         epilog=EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_scene_args(p)
+    add_input_args(p)
     p.add_argument("--out", required=True, metavar="IMG.png", help="output image")
     add_backend_arg(p)
     p.add_argument(
@@ -53,20 +53,20 @@ def run(args: argparse.Namespace) -> int:
     check_distinct({"--out": args.out, "--buffers": args.buffers})
     out = check_output_file(args.out)
     buffers = check_output_file(args.buffers) if args.buffers else None
-    scene = load_scene(args)
+    inputs = load_inputs(args)
     from dvr_perception.rays.engine import analyze
 
-    log.info("rendering %dx%d", scene.camera.width, scene.camera.height)
+    log.info("rendering %dx%d", inputs.camera.width, inputs.camera.height)
     t0 = time.perf_counter()
     curvature = None
     if buffers is not None:  # the curvature buffer needs the curvature volume (~2 s at 256^3)
         from dvr_perception.rays.curvature_field import curvature_source
 
-        curvature = curvature_source(scene.volume, scene.spec)
+        curvature = curvature_source(inputs.volume, inputs.spec)
     # the image alone needs no sample behind early ray termination; the buffers' assigned
     # (occlusion-free) opacities need every sample of every ray
     result = analyze(
-        scene.volume, scene.spec, scene.camera, curvature=curvature, build_cache=False,
+        inputs.volume, inputs.spec, inputs.camera, curvature=curvature, build_cache=False,
         occlusion_free=buffers is not None, backend=args.backend,
     )  # fmt: skip
     seconds = time.perf_counter() - t0
@@ -77,18 +77,18 @@ def run(args: argparse.Namespace) -> int:
     summary = {
         "out": str(out),
         "buffers": str(buffers) if buffers is not None else None,
-        "volume": scene.volume_source,
-        "spec": scene.spec_source,
-        "size": [scene.camera.width, scene.camera.height],
+        "volume": inputs.volume_source,
+        "spec": inputs.spec_source,
+        "size": [inputs.camera.width, inputs.camera.height],
         "structures": list(result.names),
         "coverage": coverage(result),
         "seconds": seconds,
-        "camera": scene.camera.to_dict(),
+        "camera": inputs.camera.to_dict(),
     }
     if args.json:
         emit_json(summary)
     else:
-        print(f"wrote {out} ({scene.camera.width}x{scene.camera.height}, {seconds:.2f} s)")
+        print(f"wrote {out} ({inputs.camera.width}x{inputs.camera.height}, {seconds:.2f} s)")
         if buffers is not None:
             print(f"wrote {buffers}")
     return 0

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from dvr_perception.errors import DVRInputError
+from dvr_perception.export.vtk import to_vtk_transfer_functions
 from dvr_perception.structures.spec import StructureSpec
-from dvr_perception.structures.transfer import to_vtk_transfer_functions
 
 
 def check_intensity_spec(spec, what: str) -> None:

@@ -9,7 +9,7 @@ A ParaView preset file is a JSON list of preset objects.  Each object used here 
   (ParaView's ``PiecewiseFunction`` node layout; its presence marks a preset with opacities);
 * ``"Creator"``: ``"dvr_perception"`` (informational).
 
-The points are the nodes of :func:`dvr_perception.structures.transfer.to_vtk_transfer_functions`
+The points are the nodes of :func:`dvr_perception.export.vtk.to_vtk_transfer_functions`
 for the same spec with ``samples=GPU_TABLE_SAMPLES`` (no two nodes closer than 1/4096 of their
 span, so ParaView's GPU lookup texture fits OpenGL's limit without a VTK warning), so ParaView
 reproduces its trapezoids to within that spacing.  ParaView rescales a preset
@@ -24,7 +24,7 @@ from pathlib import Path
 from dvr_perception._files import write_json
 from dvr_perception.errors import DVRInputError
 from dvr_perception.export._common import check_intensity_spec, transfer_nodes
-from dvr_perception.structures.transfer import GPU_TABLE_SAMPLES
+from dvr_perception.export.vtk import GPU_TABLE_SAMPLES
 
 __all__ = ["paraview_preset", "save_paraview_preset"]
 

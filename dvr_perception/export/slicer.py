@@ -20,7 +20,7 @@ Layout written (the keys Slicer's ``vtkMRMLVolumePropertyJsonStorageNode`` reads
      "dvr_perception": {"structures": [...], "notes": [...]}}
 
 The transfer-function points are the nodes of
-:func:`dvr_perception.structures.transfer.to_vtk_transfer_functions`.  Gradient opacity is
+:func:`dvr_perception.export.vtk.to_vtk_transfer_functions`.  Gradient opacity is
 disabled (the project's renderer has none).  Slicer has one material per component, so the
 first structure's lighting is written; when structures' lighting differ a
 :class:`~dvr_perception.errors.DVRWarning` is emitted and a note is added.  The extra top-level

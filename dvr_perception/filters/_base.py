@@ -21,7 +21,7 @@ that do not depend on the computation:
 * The filters need the **whole input** (curvature and rays are not local), so the update extent
   requested upstream is always the input's whole extent; they do not stream.  Under several
   MPI ranks *Perception Measures* and the optimiser can instead have each rank hold its piece
-  (their ``distributed`` parameter; :mod:`dvr_perception.rays.ranks`).
+  (their ``distributed`` parameter; :mod:`dvr_perception.distributed`).
 """
 
 from __future__ import annotations

@@ -251,18 +251,18 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         """Optimise over the MPI ranks, each holding its piece (collective).
 
         Every rank keeps its brick's cache entries
-        (:class:`~dvr_perception.rays.ranks.RankSession`); rank 0 runs the optimiser, whose
+        (:class:`~dvr_perception.distributed.RankSession`); rank 0 runs the optimiser, whose
         every evaluation broadcasts the parameters and composites the ranks' re-evaluations in
         view order; the others serve until rank 0 stops them.  The optimised spec's image is
         the user view's re-evaluation.  Piece 0 holds the output, whose field data adds
-        ``ranks`` (:meth:`~dvr_perception.rays.ranks.RankSession.stop`'s records).
+        ``ranks`` (:meth:`~dvr_perception.distributed.RankSession.stop`'s records).
         """
+        from dvr_perception.distributed import RankSession
         from dvr_perception.optimize._problem import Params
-        from dvr_perception.rays.ranks import RankSession
 
         self.UpdateProgress(0.0)
         self.result = None
-        part, spec, camera = self.piece_scene(image, comm, piece, whole)
+        part, spec, camera = self.piece_inputs(image, comm, piece, whole)
         self._spacing = tuple(image.GetSpacing())
         session = RankSession(comm, part, spec, sigma=1.0)  # the optimiser's curvature scale
         if comm.rank != 0:

@@ -36,7 +36,7 @@ Several MPI ranks
     ``mpiexec -n N pvbatch`` / ``pvserver``), each rank asks its input for the extent of its
     piece (VTK's block split, :func:`piece_extent`) plus the ghost layers the normals and the
     curvature need, so no rank reads the whole volume; the ranks then compute the serial
-    result together (a :class:`~dvr_perception.rays.ranks.RankSession`, whose ranks keep
+    result together (a :class:`~dvr_perception.distributed.RankSession`, whose ranks keep
     their cache entries while rank 0 measures, so that the transparency measure re-composites
     the view without an enclosing layer as the serial filter does) and piece 0 holds the
     whole output image, the other pieces are empty.  Rank 0's field data adds the string
@@ -263,7 +263,7 @@ class PerceptionMeasures(DVRFilterBase):
         with abort_on_error(comm, self.label):
             self.execute_piece(image, output, comm, piece, whole)
 
-    def piece_scene(self, image, comm, piece: int, whole) -> tuple:
+    def piece_inputs(self, image, comm, piece: int, whole) -> tuple:
         """Return this rank's ``(Piece, spec, camera)`` for the input piece ``image``."""
         from dvr_perception.rays import bricks
         from dvr_perception.rays.ranks import Piece
@@ -292,9 +292,9 @@ class PerceptionMeasures(DVRFilterBase):
 
     def execute_piece(self, image, output, comm, piece: int, whole) -> None:
         """Compute this rank's part of the output (collective; see *Several MPI ranks*)."""
-        from dvr_perception.rays.ranks import RankSession
+        from dvr_perception.distributed import RankSession
 
-        part, spec, camera = self.piece_scene(image, comm, piece, whole)
+        part, spec, camera = self.piece_inputs(image, comm, piece, whole)
         # a session (not a one-off walk): the ranks keep their cache entries while rank 0
         # measures, so the transparency measure can re-composite the view without an
         # enclosing layer (decision D7) as the serial filter does from its cache

@@ -57,7 +57,8 @@ class StructuralLayers(DVRFilterBase):
     --------
     >>> import json
     >>> from dvr_perception.structures.io import spec_to_dict
-    >>> from dvr_perception.volume import make_phantom, to_vtk_image
+    >>> from dvr_perception.structures import make_phantom
+    >>> from dvr_perception.volume import to_vtk_image
     >>> vol, spec = make_phantom(size=16)
     >>> f = StructuralLayers()
     >>> f.spec_json = json.dumps(spec_to_dict(spec))

@@ -1,8 +1,8 @@
 """Transmittance estimates of every sub-region, worked out once per layer set (``transparency``).
 
 Which rule of Sec. 4.3.2 applies to a layer, and every Metelli and TAP term, depend only on the
-layer set of the region (:meth:`._scene._Scene.template`); only the Eq. 8 weight ``h = 1 - C``
-depends on the region (``C`` the contrast of its robust luminance range, Eq. 7).
+layer set of the region (:meth:`._layer_sets._LayerSets.template`); only the Eq. 8 weight
+``h = 1 - C`` depends on the region (``C`` the contrast of its robust luminance range, Eq. 7).
 :func:`region_estimates` therefore evaluates each layer set once and the regions of a set
 together, as arrays; :func:`region_table` gives the result as one (regions x layers) table for
 callers that need numbers, not per-region records (the optimiser evaluates E_t this way many
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dvr_perception.measures._scene import _group_stats
+from dvr_perception.measures._layer_sets import _group_stats
 from dvr_perception.measures.psychophysics import calibrate
 
 
@@ -56,7 +56,7 @@ class RegionEstimates:
 
 
 def _contrasts(lo: np.ndarray, hi: np.ndarray, kind: str) -> np.ndarray:
-    """Contrast ``C`` of many regions from their robust ranges, as ``_scene._contrast``."""
+    """Contrast ``C`` of many regions from their robust ranges, as ``_layer_sets._contrast``."""
     if kind == "range":
         return hi - lo
     total = hi + lo
@@ -64,7 +64,7 @@ def _contrasts(lo: np.ndarray, hi: np.ndarray, kind: str) -> np.ndarray:
 
 
 def _blend_many(met: float, tap: float, c: np.ndarray):
-    """Eq. 8 for many regions: ``h = 1 - C`` (as ``_scene._blended``, elementwise)."""
+    """Eq. 8 for many regions: ``h = 1 - C`` (as ``_layer_sets._blended``, elementwise)."""
     if math.isnan(met):
         alpha = np.full(c.shape, tap)
     elif math.isnan(tap):
@@ -78,14 +78,14 @@ def _blend_many(met: float, tap: float, c: np.ndarray):
     return alpha, method.tolist()
 
 
-def region_estimates(scene, rmap, y, expected, calibration, notes: list) -> RegionEstimates:
+def region_estimates(layer_sets, rmap, y, expected, calibration, notes: list) -> RegionEstimates:
     """Evaluate every region of ``rmap`` (see the module docstring); notes go to ``notes``."""
     n = len(rmap.regions)
     _, mean, std = _group_stats(y.ravel(), rmap.region_id.ravel(), n)
     # mu -/+ 2 sigma clipped to [0, 1]: the robust range of Eq. 6-7 of every region
     lo = np.maximum(mean - 2.0 * std, 0.0)
     hi = np.minimum(mean + 2.0 * std, 1.0)
-    contrast = _contrasts(lo, hi, scene.contrast)  # C of Eq. 7: Eq. 8's h = 1 - C
+    contrast = _contrasts(lo, hi, layer_sets.contrast)  # C of Eq. 7: Eq. 8's h = 1 - C
     groups: dict[frozenset, list[int]] = {}  # layer set -> its regions, by first region
     for region in rmap.regions:
         groups.setdefault(region.layers, []).append(region.id)
@@ -97,7 +97,7 @@ def region_estimates(scene, rmap, y, expected, calibration, notes: list) -> Regi
     for layer_set, members in groups.items():
         ids = np.asarray(members, np.int64)
         position[ids] = np.arange(ids.size)
-        items, set_notes = scene.template(layer_set)
+        items, set_notes = layer_sets.template(layer_set)
         notes.extend(set_notes)
         out = []
         for k, fixed, met, tap in items:

@@ -1,7 +1,7 @@
 """numba twins of the measures' per-pixel loops (numpy computes the same when numba is missing).
 
 :func:`group_stats` gives, bit for bit, what the numpy reference
-:func:`dvr_perception.measures._scene._group_stats` gives: the sums run over the pixels in
+:func:`dvr_perception.measures._layer_sets._group_stats` gives: the sums run over the pixels in
 order, as ``numpy.bincount`` does.
 """
 

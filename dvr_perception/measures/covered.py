@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dvr_perception.errors import DVRInputError
-from dvr_perception.measures._scene import DENOMINATOR_EPS, transmitted_tap
+from dvr_perception.measures._layer_sets import DENOMINATOR_EPS, transmitted_tap
 from dvr_perception.measures.psychophysics import luminance_range
 from dvr_perception.measures.regions import layer_footprints
 from dvr_perception.measures.results import _accumulated, _image_luminance, _names, _visible

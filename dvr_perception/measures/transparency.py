@@ -38,7 +38,7 @@ Pipeline (all luminances are linear CIE Y of ``rgba`` composited over ``spec.bac
      analysis's own opacities, colours and light), as :func:`~.covered.covered_transmittance`
      (the Fig. 9 reading) does, and only the contrast ``e`` transmits counts (``P'``
      regressed on ``A``: ``e``'s own shading texture is not transmitted contrast;
-     :func:`~._scene.transmitted_tap`).  A brighter or more opaque enclosing layer lowers the
+     :func:`~._layer_sets.transmitted_tap`).  A brighter or more opaque enclosing layer lowers the
      Michelson contrast of what it covers and reads as less transparent (tested against the
      closed form ``T mu / (T mu + c)``).  ``enclosure="plain"`` is the paper's Case 2: the
      plain view of ``e`` (layer set ``{e}`` plus the layers enclosing ``e``), which saturates
@@ -88,8 +88,8 @@ import numpy as np
 
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures._estimates import region_estimates, region_table
-from dvr_perception.measures._scene import DENOMINATOR_EPS as DENOMINATOR_EPS  # re-export
-from dvr_perception.measures._scene import PRESENCE_CAP, _Scene
+from dvr_perception.measures._layer_sets import DENOMINATOR_EPS as DENOMINATOR_EPS  # re-export
+from dvr_perception.measures._layer_sets import PRESENCE_CAP, _LayerSets
 from dvr_perception.measures.covered import _without as _luminance_without
 from dvr_perception.measures.covered import has_cache
 from dvr_perception.measures.psychophysics import calibrate
@@ -141,21 +141,21 @@ def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure
         footprints |= assigned > threshold * importance[:, None, None]
     rmap = subregions(footprints, geometry=False)  # no bounding boxes: not reported
     relations = _relations(rmap.layer_set, len(names), tolerance)  # = layer_relations
-    scene = _Scene(y, rmap, relations, names, contrast)
+    layer_sets = _LayerSets(y, rmap, relations, names, contrast)
     if assigned is not None:
-        scene.visible, scene.carry = visible, _carried(analysis, spec, assigned)
+        layer_sets.visible, layer_sets.carry = visible, _carried(analysis, spec, assigned)
     if enclosure == "unoccluded":
         enclosers = sorted({r.encloser for r in relations.values() if r.kind == "enclose"})
-        scene.without = {e: _luminance_without(analysis, spec, e) for e in enclosers}
+        layer_sets.without = {e: _luminance_without(analysis, spec, e) for e in enclosers}
     elif has_cache(analysis):
-        scene.recomposite = partial(_luminance_without, analysis, spec)
-        scene.prefer_recomposite = enclosure == "auto"
+        layer_sets.recomposite = partial(_luminance_without, analysis, spec)
+        layer_sets.prefer_recomposite = enclosure == "auto"
     elif enclosure == "auto" and any(r.kind == "enclose" for r in relations.values()):
         notes.append(
             "the analysis has no re-evaluation cache: enclosing layers are read against their "
             "plain view (analyze(..., build_cache=True) reads them against the view without them)"
         )
-    est = region_estimates(scene, rmap, y, expected, calibration, notes)
+    est = region_estimates(layer_sets, rmap, y, expected, calibration, notes)
     return names, expected, rmap, relations, est, notes
 
 
@@ -163,10 +163,10 @@ def _carried(analysis, spec, assigned: np.ndarray) -> np.ndarray:
     """(K, H, W) opacity each structure carries on each pixel, occlusion ignored (D7).
 
     The occlusion-free opacity ``assigned`` (at the importance opacities) capped at
-    :data:`~._scene.PRESENCE_CAP`, where presence saturates (D8: the skipping walk is exact
+    :data:`~._layer_sets.PRESENCE_CAP`, where presence saturates (D8: the skipping walk is exact
     below it), and scaled by the structure's rendering opacity over its importance, so a
     structure the rendering fades is not taken for a hidden one.  A covered structure whose
-    visible opacity is at most :data:`~._scene.HIDDEN_FRACTION` of this is hidden there.
+    visible opacity is at most :data:`~._layer_sets.HIDDEN_FRACTION` of this is hidden there.
     """
     importance = np.array([float(s.importance) for s in spec.structures])
     params = getattr(analysis, "stats", None)

@@ -215,7 +215,7 @@ class Problem:
         """Return the ray analysis of ``params`` in ``view`` (re-composited from the cache).
 
         A cache with a ``reevaluate`` method of its own (the MPI ranks' :class:`~dvr_perception.
-        rays.ranks.RankCache`) re-composites itself.
+        distributed.RankCache`) re-composites itself.
         """
         cache = self.caches[view]
         kwargs = {

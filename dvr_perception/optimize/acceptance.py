@@ -38,19 +38,20 @@ DATASETS = ("engine", "cthead", "lidc_chest", "tooth", "neghip", "bonsai")
 #: The datasets whose E_v must fall by at least 25 % (issue 16).
 E_V_DATASETS = ("engine", "cthead", "lidc_chest")
 _KEYS = ("E_v", "E_s", "E_t", "E", "coverage")
-_REPO = Path(__file__).resolve().parents[2]
 
 
-def _scene(name: str, data: Path, size: int):
+def _case(name: str, data: Path, size: int):
+    """Return the volume, preset spec and camera of the dataset ``name`` (or the phantom)."""
     from dvr_perception.rays.camera import Camera
-    from dvr_perception.structures.io import load_spec
-    from dvr_perception.volume import load_volume, make_phantom
+    from dvr_perception.structures import make_phantom
+    from dvr_perception.structures.presets import load_preset
+    from dvr_perception.volume import load_volume
 
     if name == "phantom":
         vol, spec = make_phantom()
     else:
         vol = load_volume(data / f"{name}.nhdr")
-        spec = load_spec(_REPO / "state_files" / f"{name}.json")
+        spec, _ = load_preset(name)
     az, el, zoom = spec.view or (0.0, 0.0, 1.0)
     cam = Camera.from_view(vol.bounds, azimuth=az, elevation=el, zoom=zoom, width=size,
                            height=size)  # fmt: skip
@@ -104,7 +105,7 @@ def run_dataset(name: str, data: Path, size: int, out: Path, floors: bool = Fals
     from dvr_perception.rays.engine import analyze
     from dvr_perception.rays.vtk_reference import time_vtk_frames
 
-    vol, spec, cam = _scene(name, data, size)
+    vol, spec, cam = _case(name, data, size)
     curvature, _ = curvature_volume(vol, spec)
     vtk0 = time_vtk_frames(vol, spec, cam, frames=3)
     t0 = time.perf_counter()

@@ -237,7 +237,7 @@ def optimize(
     analyzer : callable, optional
         ``analyzer(camera) -> RayAnalysis`` with a re-evaluation cache, instead of analysing
         ``volume`` (then ``None``) with ``curvature``: the MPI ranks' analysis, whose cache
-        re-evaluates over the ranks (:meth:`~dvr_perception.rays.ranks.RankSession.analyze`).
+        re-evaluates over the ranks (:meth:`~dvr_perception.distributed.RankSession.analyze`).
     progress : callable, optional
         The preparation's progress before the first iteration (the curvature volume and the
         views' ray analyses; :func:`~dvr_perception.rays.engine.analyze`'s ``progress``): a
@@ -259,7 +259,7 @@ def optimize(
 
     Examples
     --------
-    >>> from dvr_perception.volume import make_phantom
+    >>> from dvr_perception.structures import make_phantom
     >>> vol, spec = make_phantom(size=32)
     >>> cam = Camera.from_view(vol.bounds, width=32, height=32)
     >>> res = optimize(vol, spec, cam, stages=("opacity",), max_iter=2)

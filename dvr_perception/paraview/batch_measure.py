@@ -7,7 +7,7 @@ Usage (``dvr-perception pvbatch`` runs this with the right environment and Xvfb)
         [--size N|WxH] [--shade|--no-shade] [--sigma S] --out DIR
 
 VOLUME, the spec and the camera are resolved exactly as the ``dvr-perception`` commands do
-(``dvr_perception.cli._common.load_scene``: the preset of ``state_files/`` whose recorded data
+(``dvr_perception.inputs.load_inputs``: the preset of ``state_files/`` whose recorded data
 checksum matches the volume's, else a proposal; the spec's view, 512 x 512).  The volume goes
 into ParaView through a ``TrivialProducer``; the *Perception Measures* filter of
 ``dvr_perception_plugin.py`` runs on it through ``paraview.simple``.  Written into DIR:
@@ -70,10 +70,10 @@ def parse_args(argv):
         setup()
     except RuntimeError as exc:
         raise BatchError(str(exc)) from None
-    from dvr_perception.cli._common import CLIParser, add_scene_args
+    from dvr_perception.inputs import OptionParser, add_input_args
 
-    parser = CLIParser(prog=f"{PROG} pvbatch", description=__doc__.split("\n")[0])
-    add_scene_args(parser)
+    parser = OptionParser(prog=f"{PROG} pvbatch", description=__doc__.split("\n")[0])
+    add_input_args(parser)
     parser.add_argument("--sigma", type=float, default=1.0, help="curvature scale (default 1)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     parser.add_argument(
@@ -90,7 +90,7 @@ def transfer_function_points(spec, scalar_range=None):
     the nodes' span (``GPU_TABLE_SAMPLES``): ParaView's GPU ray caster then gets a lookup
     texture OpenGL supports, without VTK's "incorrect lookup table mapping" warning.
     """
-    from dvr_perception.structures.transfer import GPU_TABLE_SAMPLES, to_vtk_transfer_functions
+    from dvr_perception.export.vtk import GPU_TABLE_SAMPLES, to_vtk_transfer_functions
 
     ctf, otf = to_vtk_transfer_functions(spec, samples=GPU_TABLE_SAMPLES, scalar_range=scalar_range)
     rgb, node = [], [0.0] * 6
@@ -114,11 +114,11 @@ def set_camera(view, camera):
     view.CameraParallelScale = camera.parallel_scale
 
 
-def show_volume(pvs, source, array, scene):
+def show_volume(pvs, source, array, inputs):
     """A render view with ``source`` as a ray-cast volume coloured by ``array``, seen by the
-    scene's camera, with the spec's background, opacity unit distance and shading; returns
+    inputs' camera, with the spec's background, opacity unit distance and shading; returns
     ``(view, display)`` (the transfer functions and the material are still ParaView's)."""
-    spec, camera = scene.spec, scene.camera
+    spec, camera = inputs.spec, inputs.camera
     view = pvs.CreateView("RenderView")
     view.OrientationAxesVisibility = 0
     view.UseColorPaletteForBackground = 0
@@ -129,7 +129,7 @@ def show_volume(pvs, source, array, scene):
     display.VolumeRenderingMode = "Ray Cast Only"
     rs = spec.rendering
     unit = rs.opacity_unit_distance
-    display.ScalarOpacityUnitDistance = float(min(scene.volume.spacing) if unit is None else unit)
+    display.ScalarOpacityUnitDistance = float(min(inputs.volume.spacing) if unit is None else unit)
     display.Shade = int(bool(rs.shade))
     set_camera(view, camera)
     return view, display
@@ -164,15 +164,15 @@ def data_range(display, array):
     return None if info is None else tuple(info.GetRange())
 
 
-def screenshot(pvs, source, array, scene, path):
+def screenshot(pvs, source, array, inputs, path):
     """Volume-render ``source`` with the spec's transfer functions and save ``path``."""
-    spec = scene.spec
-    view, display = show_volume(pvs, source, array, scene)
+    spec = inputs.spec
+    view, display = show_volume(pvs, source, array, inputs)
     set_transfer_functions(pvs, display, array, spec)
     light = spec.structures[0].lighting
     display.Ambient, display.Diffuse = light.ambient, light.diffuse
     display.Specular, display.SpecularPower = light.specular, light.specular_power
-    save_screenshot(pvs, view, scene.camera, path)
+    save_screenshot(pvs, view, inputs.camera, path)
 
 
 def measure_images(pvs, output, background, out_dir):
@@ -229,25 +229,25 @@ def run(args):
     from paraview import simple as pvs
 
     from dvr_perception._files import write_json
-    from dvr_perception.cli._common import load_scene, make_output_dir
+    from dvr_perception.inputs import load_inputs, make_output_dir
     from dvr_perception.structures.io import spec_to_dict
 
     ranks = check_ranks(args.ranks)
     if ranks > 1:
-        source, scene = reader_scene(pvs, args)
+        source, inputs = reader_inputs(pvs, args)
     else:
-        scene = load_scene(args)
+        inputs = load_inputs(args)
     out_dir = str(make_output_dir(args.out))
     pvs.LoadPlugin(PLUGIN)  # adds the filters to paraview.simple
     if ranks == 1:
-        source, array = volume_source(pvs, scene.volume, args.volume)
+        source, array = volume_source(pvs, inputs.volume, args.volume)
     else:
         array = ""  # the reader's active scalars
     measures = pvs.PerceptionMeasures(
         Input=source,
         ScalarArray=array,
-        SpecJSON=json.dumps(spec_to_dict(scene.spec)),
-        CameraJSON=json.dumps(scene.camera.to_dict()),
+        SpecJSON=json.dumps(spec_to_dict(inputs.spec)),
+        CameraJSON=json.dumps(inputs.camera.to_dict()),
         Sigma=args.sigma,
         Distributed=int(ranks > 1),
     )
@@ -257,8 +257,8 @@ def run(args):
     if ranks > 1:
         array = source.PointData.keys()[0]
         result["ranks"] = rank_records(output, ranks)
-    files = measure_images(pvs, output, scene.spec.background, out_dir)
-    labelled = any(s.label is not None for s in scene.spec.structures)
+    files = measure_images(pvs, output, inputs.spec.background, out_dir)
+    labelled = any(s.label is not None for s in inputs.spec.structures)
     if labelled and not args.no_screenshot:  # e.g. a .seg.nrrd: no intensity transfer function
         print(
             "batch_measure: no screenshot.png: ParaView's volume mapper cannot colour label "
@@ -267,14 +267,14 @@ def run(args):
         )
     if not args.no_screenshot and not labelled:
         shot = os.path.join(out_dir, "screenshot.png")
-        screenshot(pvs, source, array, scene, shot)
+        screenshot(pvs, source, array, inputs, shot)
         files.insert(0, shot)
     from paraview import servermanager
 
     result.update(
-        volume=str(scene.volume_source),
-        spec=scene.spec_source,
-        camera=scene.camera.to_dict(),
+        volume=str(inputs.volume_source),
+        spec=inputs.spec_source,
+        camera=inputs.camera.to_dict(),
         sigma=args.sigma,
         paraview_version=servermanager.vtkSMProxyManager.GetParaViewSourceVersion(),
         seconds=round(time.perf_counter() - t0, 3),
@@ -298,18 +298,18 @@ def check_ranks(ranks):
     return ranks
 
 
-def reader_scene(pvs, args):
-    """ParaView's reader of ``args.volume`` and the scene, from the reader's header only."""
+def reader_inputs(pvs, args):
+    """ParaView's reader of ``args.volume`` and the inputs, from the reader's header only."""
     from types import SimpleNamespace
 
-    from dvr_perception.cli._common import DEFAULT_SIZE, Scene, _read_camera, parse_size
+    from dvr_perception.inputs import DEFAULT_SIZE, RenderInputs, parse_size, read_camera
     from dvr_perception.rays.camera import Camera, parse_view
     from dvr_perception.structures.io import load_spec
     from dvr_perception.structures.presets import load_preset
 
     size = parse_size(args.size) if args.size is not None else None
     view = parse_view(args.view) if args.view is not None else None
-    camera = _read_camera(args.camera, size) if args.camera is not None else None
+    camera = read_camera(args.camera, size) if args.camera is not None else None
     path = os.path.abspath(args.volume)
     if not os.path.isfile(path):
         raise BatchError(f"{args.volume}: file not found")
@@ -356,7 +356,7 @@ def reader_scene(pvs, args):
         camera = Camera.from_view(
             tuple(bounds), azimuth=az, elevation=el, zoom=zoom, width=w, height=h
         )
-    return reader, Scene(grid, spec, camera, path, str(spec_source), 0.0)
+    return reader, RenderInputs(grid, spec, camera, path, str(spec_source), 0.0)
 
 
 def rank_records(output, ranks):

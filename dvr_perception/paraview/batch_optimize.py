@@ -8,7 +8,7 @@ repository root and ``.pvdeps``, and an X display)::
             [--size N|WxH] [--shade|--no-shade] [--stages S] [--weights WV,WS,WT] [--seed N]
             [--max-iter N] [--resolution N] [--region X0,Y0,X1,Y1] [--ranks N] --out DIR
 
-``dvr-perception pvbatch VOLUME --optimize`` runs it.  The scene options are resolved as in
+``dvr-perception pvbatch VOLUME --optimize`` runs it.  The input options are resolved as in
 ``batch_measure.py`` (under ``mpiexec -n N pvbatch ... --ranks N`` the volume is opened with
 ParaView's reader, each rank reads its piece, and the filter optimises over the ranks: see
 ``TransferFunctionOptimizer.execute_piece``).  The plugin's *Optimize Transfer Function*
@@ -57,10 +57,10 @@ def parse_args(argv):
         setup()
     except RuntimeError as exc:
         raise bm.BatchError(str(exc)) from None
-    from dvr_perception.cli._common import CLIParser, add_scene_args
+    from dvr_perception.inputs import OptionParser, add_input_args
 
-    parser = CLIParser(prog=f"{bm.PROG} pvbatch-optimize", description=__doc__.split("\n")[0])
-    add_scene_args(parser)
+    parser = OptionParser(prog=f"{bm.PROG} pvbatch-optimize", description=__doc__.split("\n")[0])
+    add_input_args(parser)
     parser.add_argument("--stages", default="opacity,lighting,colour", help="stages in order")
     parser.add_argument("--weights", default="1,1,1", metavar="WV,WS,WT", help="w_v, w_s, w_t")
     parser.add_argument("--seed", type=int, default=0, help="seed of the annealing (default 0)")
@@ -109,25 +109,25 @@ def run(args):
     from paraview import simple as pvs
 
     from dvr_perception._files import write_json
-    from dvr_perception.cli._common import load_scene, make_output_dir
+    from dvr_perception.inputs import load_inputs, make_output_dir
     from dvr_perception.structures.io import spec_to_dict
 
     ranks = bm.check_ranks(args.ranks)
     if ranks > 1:
-        source, scene = bm.reader_scene(pvs, args)
+        source, inputs = bm.reader_inputs(pvs, args)
     else:
-        scene = load_scene(args)
+        inputs = load_inputs(args)
     out_dir = str(make_output_dir(args.out))
     pvs.LoadPlugin(bm.PLUGIN)
     if ranks == 1:
-        source, array = bm.volume_source(pvs, scene.volume, args.volume)
+        source, array = bm.volume_source(pvs, inputs.volume, args.volume)
     else:
         array = ""  # the reader's active scalars
     region = ""
     if args.region:
-        from dvr_perception.cli.optimize import parse_rect
+        from dvr_perception.inputs import parse_rect
 
-        x0, y0, x1, y1 = parse_rect(args.region, scene.camera.width, scene.camera.height)
+        x0, y0, x1, y1 = parse_rect(args.region, inputs.camera.width, inputs.camera.height)
         region = f"rect,{x0},{y0},{x1},{y1}"
     before = os.path.join(out_dir, "before.png")
     shots = ()
@@ -135,13 +135,13 @@ def run(args):
         # ParaView's rendering before the optimisation, first: the X connection is opened
         # here, so a start-up failure of Debian's pvbatch (see dvr_perception.cli.pvbatch)
         # costs seconds, not the optimisation
-        bm.screenshot(pvs, source, array, scene, before)
+        bm.screenshot(pvs, source, array, inputs, before)
         shots = (before,)
     opt = pvs.OptimizeTransferFunction(
         Input=source,
         ScalarArray=array,
-        SpecJSON=json.dumps(spec_to_dict(scene.spec)),
-        CameraJSON=json.dumps(scene.camera.to_dict()),
+        SpecJSON=json.dumps(spec_to_dict(inputs.spec)),
+        CameraJSON=json.dumps(inputs.camera.to_dict()),
         Stages=args.stages,
         Weights=args.weights,
         Seed=args.seed,
@@ -158,7 +158,7 @@ def run(args):
         result["ranks"] = bm.rank_records(output, ranks)
     spec_path = os.path.join(out_dir, "optimized_spec.json")
     write_json(spec_path, result["optimized_spec"])
-    images = bm.measure_images(pvs, output, scene.spec.background, out_dir)
+    images = bm.measure_images(pvs, output, inputs.spec.background, out_dir)
     preset = os.path.join(out_dir, "optimized_preset.json")
     if args.no_screenshot:
         from dvr_perception.export import save_paraview_preset
@@ -167,17 +167,17 @@ def run(args):
         save_paraview_preset(spec_from_dict(result["optimized_spec"]), preset)
     else:
         if not shots:  # several ranks: the reader's array is known now
-            bm.screenshot(pvs, source, array, scene, before)
+            bm.screenshot(pvs, source, array, inputs, before)
             shots = (before,)
         after = os.path.join(out_dir, "after.png")
-        view, display = bm.show_volume(pvs, source, array, scene)
+        view, display = bm.show_volume(pvs, source, array, inputs)
         apply_optimized(output, display, preset_path=preset)
-        bm.save_screenshot(pvs, view, scene.camera, after)
+        bm.save_screenshot(pvs, view, inputs.camera, after)
         shots = (*shots, after)
     result.update(
-        volume=str(scene.volume_source),
-        spec=scene.spec_source,
-        camera=scene.camera.to_dict(),
+        volume=str(inputs.volume_source),
+        spec=inputs.spec_source,
+        camera=inputs.camera.to_dict(),
         stages=args.stages,
         weights=args.weights,
         seed=args.seed,

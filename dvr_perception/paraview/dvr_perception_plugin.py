@@ -12,7 +12,7 @@ runs, so a bad value (e.g. a negative sigma typed in Python) becomes an error me
 read the whole volume on every rank and compute on piece 0 (rank 0); *Perception Measures*
 and *Optimize Transfer Function* with *Distributed* on (what ``dvr-perception pvbatch --ranks
 N`` sets) read one piece (plus ghost layers) per rank and the ranks compute the serial result
-together (``dvr_perception.rays.ranks``; every rank must execute the filter together, so it is
+together (``dvr_perception.distributed``; every rank must execute the filter together, so it is
 off by default in the GUI).  Either way piece 0 holds the whole output and the other pieces
 are empty.
 """

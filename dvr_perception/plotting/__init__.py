@@ -12,7 +12,7 @@ This package is a front end: unlike the core it imports ``pyvista`` and ``vtkmod
 directly (lazily, inside the functions, except for type-free helpers).
 """
 
-from dvr_perception.plotting._scene import (
+from dvr_perception.plotting._structure_volume import (
     MAX_MATERIALS,
     StructureVolume,
     add_structures,

@@ -14,9 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dvr_perception._deprecation import deprecated_alias
 from dvr_perception.errors import DVRInputError
 
-__all__ = ["QualityOverlay", "add_quality_map", "colorize"]
+__all__ = ["QualityOverlay", "add_quality_map", "colourize"]
 
 
 @dataclass(eq=False)
@@ -55,12 +56,12 @@ def _check_clim(clim, arr) -> tuple[float, float]:
     return lo, hi
 
 
-def colorize(measure_image, *, clim, cmap="viridis", opacity=0.6) -> np.ndarray:
+def colourize(measure_image, *, clim, cmap="viridis", opacity=0.6) -> np.ndarray:
     """Map a measure image to ``uint8`` RGBA (alpha ``opacity`` where finite, 0 where NaN).
 
     Examples
     --------
-    >>> rgba = colorize(np.array([[0.0, np.nan], [0.5, 1.0]]), clim=(0, 1))
+    >>> rgba = colourize(np.array([[0.0, np.nan], [0.5, 1.0]]), clim=(0, 1))
     >>> rgba.shape, rgba[0, 1, 3], rgba[0, 0, 3]
     ((2, 2, 4), np.uint8(0), np.uint8(153))
     """
@@ -78,6 +79,13 @@ def colorize(measure_image, *, clim, cmap="viridis", opacity=0.6) -> np.ndarray:
     rgba = (np.asarray(cm(norm)) * 255.0 + 0.5).astype(np.uint8)
     rgba[..., 3] = np.where(np.isfinite(arr), round(255 * float(opacity)), 0)
     return rgba
+
+
+colorize = deprecated_alias(
+    colourize,
+    "dvr_perception.plotting.overlay.colorize",
+    "dvr_perception.plotting.overlay.colourize",
+)
 
 
 def _resize_nearest(rgba: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -135,7 +143,7 @@ def add_quality_map(
     arr = _measure_array(measure_image)
     lo, hi = _check_clim(clim, arr)
     width, height = (int(v) for v in plotter.window_size)
-    rgba = _resize_nearest(colorize(arr, clim=(lo, hi), cmap=cmap, opacity=opacity), height, width)
+    rgba = _resize_nearest(colourize(arr, clim=(lo, hi), cmap=cmap, opacity=opacity), height, width)
     img = _vtk.vtkImageData()
     img.SetDimensions(width, height, 1)
     scalars = _vtk.numpy_to_vtk(np.ascontiguousarray(rgba[::-1]).reshape(-1, 4), deep=True)

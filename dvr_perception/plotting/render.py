@@ -12,7 +12,7 @@ import functools
 import numpy as np
 
 from dvr_perception.errors import DVRInputError
-from dvr_perception.plotting._scene import add_structures
+from dvr_perception.plotting._structure_volume import add_structures
 from dvr_perception.plotting.camera import apply_camera, set_plotter_camera
 from dvr_perception.rays.camera import Camera
 
@@ -68,7 +68,7 @@ def render_plotter(volume, spec, camera: Camera, *, opacities=None) -> np.ndarra
 
     Examples
     --------
-    >>> from dvr_perception.volume import make_phantom
+    >>> from dvr_perception.structures import make_phantom
     >>> vol, spec = make_phantom(size=32)
     >>> cam = Camera.from_view(vol.bounds, width=64, height=48)
     >>> render_plotter(vol, spec, cam).shape  # doctest: +SKIP
@@ -106,7 +106,7 @@ def before_after(volume, spec_before, spec_after, camera: Camera, *, off_screen=
 
     Examples
     --------
-    >>> from dvr_perception.volume import make_phantom
+    >>> from dvr_perception.structures import make_phantom
     >>> vol, spec = make_phantom(size=32)
     >>> cam = Camera.from_view(vol.bounds, width=48, height=48)
     >>> before_after(vol, spec, spec, cam).shape  # doctest: +SKIP

@@ -11,7 +11,7 @@ front; :func:`fill_range` computes the shading and curvature of cache entries in
 runs (the bricked cache has no whole volume to fill them from later); :func:`place` copies a
 brick's cache entries behind the entries of the bricks in front of it; :func:`composite_part`
 re-composites a brick's cache entries, continuing the rays' state from the bricks in front
-(the re-evaluation over MPI ranks, :class:`~dvr_perception.rays.ranks.RankSession`).
+(the re-evaluation over MPI ranks, :class:`~dvr_perception.distributed.RankSession`).
 """
 
 from __future__ import annotations

@@ -839,7 +839,7 @@ def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, bric
     Examples
     --------
     >>> from dvr_perception.rays.engine import analyze
-    >>> from dvr_perception.volume.phantom import make_phantom
+    >>> from dvr_perception.structures.phantom import make_phantom
     >>> vol, spec = make_phantom(size=24)
     >>> cam = Camera.from_view(vol.bounds, width=16, height=16)
     >>> whole = analyze(vol, spec, cam)
@@ -868,7 +868,7 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
 
     Examples
     --------
-    >>> from dvr_perception.volume.phantom import make_phantom
+    >>> from dvr_perception.structures.phantom import make_phantom
     >>> vol, spec = make_phantom(size=24)
     >>> big = Camera.from_view(vol.bounds, width=16, height=16)
     >>> small = Camera.from_view(vol.bounds, width=8, height=8)

@@ -27,7 +27,7 @@ class CurvatureField:
 
     Examples
     --------
-    >>> from dvr_perception.volume.phantom import make_phantom
+    >>> from dvr_perception.structures.phantom import make_phantom
     >>> vol, spec = make_phantom(size=24)
     >>> field = CurvatureField(vol, spec)
     >>> whole = curvature_volume(vol, spec)[0]

@@ -412,7 +412,7 @@ def analyze_views(
 
     Examples
     --------
-    >>> from dvr_perception.volume.phantom import make_phantom
+    >>> from dvr_perception.structures.phantom import make_phantom
     >>> vol, spec = make_phantom(size=24)
     >>> cams = [Camera.from_view(vol.bounds, width=n, height=n) for n in (16, 8)]
     >>> [a.image.shape for a in analyze_views(vol, spec, cams)]

@@ -12,7 +12,8 @@ and scratch take a small share of the limit.  When even bricks do not fit,
 :func:`plan` raises one error naming ``--memory-limit`` instead of letting the operating system
 kill the process.
 
-The limit is, in order: the ``memory_limit`` argument, :func:`set_limit` (the command line's
+The limit (:mod:`dvr_perception._memory`, read by the volume readers too) is, in order: the
+``memory_limit`` argument, :func:`set_limit` (the command line's
 ``--memory-limit``), the environment variable ``DVR_PERCEPTION_MEMORY_LIMIT`` and
 :data:`DEFAULT_FRACTION` of the machine's physical memory.  Sizes here are binary (GB =
 2**30 bytes).  A 512 x 512 x 452 uint16 CT at 512 x 512 pixels needs about 1.5 GB whole (2
@@ -24,18 +25,27 @@ from 23.2 GB of memory (11.8 GB is the default limit on a 23.5 GB machine), else
 from __future__ import annotations
 
 import math
-import os
-import re
 
 import numpy as np
 
+from dvr_perception._memory import (
+    DEFAULT_FRACTION,
+    ENV,
+    human_bytes,
+    limit,
+    machine_memory,
+    parse_size,
+    set_limit,
+)
 from dvr_perception.errors import DVRInputError
 
 __all__ = [
     "DEFAULT_FRACTION",
+    "ENV",
     "Plan",
     "check_image",
     "limit",
+    "machine_memory",
     "parse_size",
     "plan",
     "ray_bytes",
@@ -44,61 +54,11 @@ __all__ = [
     "whole_volume_bytes",
 ]
 
-#: Share of the machine's memory an analysis may use by default.
-DEFAULT_FRACTION = 0.5
 #: A brick's derived volumes and scratch may take this share of the limit.
 BRICK_SHARE = 0.125
-ENV = "DVR_PERCEPTION_MEMORY_LIMIT"
-_LIMIT: list[int | None] = [None]
-_UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
-
-
-def parse_size(text, name: str = "--memory-limit") -> int:
-    """Bytes of ``"8G"``, ``"512M"``, ``"1.5GB"`` or a plain number of bytes.
-
-    Examples
-    --------
-    >>> parse_size("1.5G"), parse_size("512MiB"), parse_size(2097152)
-    (1610612736, 536870912, 2097152)
-    """
-    text = str(text)
-    m = re.fullmatch(r"\s*([0-9]{1,15}(?:\.[0-9]{0,15})?)\s*([KMGT]?)(?:I?B)?\s*", text, re.I)
-    value = float(m.group(1)) * _UNITS[m.group(2).upper()] if m else math.nan
-    if not (math.isfinite(value) and value >= 2**20):
-        shown = repr(text) if len(text) <= 40 else f"{text[:30]!r}... ({len(text)} characters)"
-        raise DVRInputError(
-            f"{name}: expected a memory size of at least 1M such as 8G or 512M, got {shown}"
-        )
-    return int(value)
-
-
-def machine_memory() -> int:
-    """Bytes of physical memory."""
-    try:
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):  # pragma: no cover - not POSIX
-        return 8 * 2**30
-
-
-def set_limit(value) -> None:
-    """Set this process's limit (bytes, or a size text); ``None`` restores the default."""
-    _LIMIT[0] = None if value is None else parse_size(value)
-
-
-def limit(value=None) -> int:
-    """Return the memory limit in bytes (see the module docstring for the order)."""
-    if value is not None:
-        return parse_size(value, "memory_limit")
-    if _LIMIT[0] is not None:
-        return _LIMIT[0]
-    env = os.environ.get(ENV, "").strip()
-    if env:
-        return parse_size(env, ENV)
-    return int(DEFAULT_FRACTION * machine_memory())
-
-
-def _human(n: float) -> str:
-    return f"{n / 2**30:.2f} GB" if n >= 2**30 else f"{n / 2**20:.0f} MB"
+# the limit itself (default, --memory-limit, environment) is read on the ground floor, where the
+# volume readers use it too
+_human = human_bytes
 
 
 def ray_bytes(k: int) -> int:

@@ -111,7 +111,7 @@ def vtk_frame_process(volume: Volume, spec: StructureSpec, camera: Camera):
     """
     with tempfile.TemporaryDirectory(prefix="dvr-perception-vtk-") as tmp:
         folder = Path(tmp)
-        _write_scene(folder, volume, spec, camera)
+        _write_inputs(folder, volume, spec, camera)
         cmd = [sys.executable, "-m", "dvr_perception.rays.vtk_process", str(folder)]
         proc = subprocess.Popen(
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
@@ -125,8 +125,8 @@ def vtk_frame_process(volume: Volume, spec: StructureSpec, camera: Camera):
             frames.close()
 
 
-def _write_scene(folder: Path, volume: Volume, spec: StructureSpec, camera: Camera) -> None:
-    """Write what the child renders into ``folder`` (:func:`_read_scene` reads it back)."""
+def _write_inputs(folder: Path, volume: Volume, spec: StructureSpec, camera: Camera) -> None:
+    """Write what the child renders into ``folder`` (:func:`_read_inputs` reads it back)."""
     from dvr_perception.structures.io import save_spec
     from dvr_perception.volume.io import save_volume
 
@@ -137,7 +137,7 @@ def _write_scene(folder: Path, volume: Volume, spec: StructureSpec, camera: Came
     (folder / "camera.json").write_text(json.dumps(camera.to_dict()))
 
 
-def _read_scene(folder: Path) -> tuple[Volume, StructureSpec, Camera]:
+def _read_inputs(folder: Path) -> tuple[Volume, StructureSpec, Camera]:
     from dvr_perception.structures.io import load_spec
     from dvr_perception.volume.io import load_volume
 
@@ -167,7 +167,7 @@ def _serve(folder: Path) -> None:
         sys.stdout.flush()
 
     try:
-        with vtk_frame_timer(*_read_scene(folder)) as frame:
+        with vtk_frame_timer(*_read_inputs(folder)) as frame:
             say({"ready": True})
             for line in sys.stdin:
                 if line.strip() == "frame":

@@ -25,11 +25,11 @@ import numpy as np
 
 from dvr_perception import _vtk
 from dvr_perception.errors import DVRInputError
+from dvr_perception.export.vtk import to_vtk_property
 from dvr_perception.rays import _tables
 from dvr_perception.rays._grid import clipping_range
 from dvr_perception.rays.camera import Camera
 from dvr_perception.structures.spec import StructureSpec
-from dvr_perception.structures.transfer import to_vtk_property
 from dvr_perception.volume.convert import to_vtk_image
 from dvr_perception.volume.volume import Volume
 
@@ -119,7 +119,7 @@ def _probe(kind: str) -> tuple[bool, str]:
     return False, f"GPU volume mapper check failed (exit code {proc.returncode})"
 
 
-class _Scene:
+class _VTKPipeline:
     """A VTK off-screen window with one volume, our camera and one camera light."""
 
     def __init__(self, volume, spec, camera, mapper, opacities, shade):
@@ -243,16 +243,16 @@ def render_vtk(
     VTKRender
     """
     _prepare(volume, spec, camera, mapper)
-    scene = _Scene(volume, spec, camera, mapper, opacities, shade)
+    pipeline = _VTKPipeline(volume, spec, camera, mapper, opacities, shade)
     try:
-        scene.render((0.0, 0.0, 0.0))  # first frame: gradients, tables, shaders
-        scene.render((0.0, 0.0, 0.0))
-        black = scene.read()
-        seconds = scene.render((1.0, 1.0, 1.0))
-        white = scene.read()
-        clip = tuple(float(c) for c in scene.cam.GetClippingRange())
+        pipeline.render((0.0, 0.0, 0.0))  # first frame: gradients, tables, shaders
+        pipeline.render((0.0, 0.0, 0.0))
+        black = pipeline.read()
+        seconds = pipeline.render((1.0, 1.0, 1.0))
+        white = pipeline.read()
+        clip = tuple(float(c) for c in pipeline.cam.GetClippingRange())
     finally:
-        scene.close()
+        pipeline.close()
     diff = np.clip(white - black, 0.0, 1.0)
     bg = np.asarray(spec.background, dtype=np.float32)
     image = np.clip(black + diff * bg, 0.0, 1.0).astype(np.float32)
@@ -300,17 +300,17 @@ def vtk_frame_timer(volume: Volume, spec: StructureSpec, camera: Camera):
     True
     """
     _prepare(volume, spec, camera, "fixed_point")
-    scene = _Scene(volume, spec, camera, "fixed_point", None, None)
+    pipeline = _VTKPipeline(volume, spec, camera, "fixed_point", None, None)
     try:
-        scene.render(spec.background)  # first render: set-up, not timed
+        pipeline.render(spec.background)  # first render: set-up, not timed
 
         def frame() -> float:
-            scene.cam.Modified()
-            return scene.render(spec.background)
+            pipeline.cam.Modified()
+            return pipeline.render(spec.background)
 
         yield frame
     finally:
-        scene.close()
+        pipeline.close()
 
 
 def compare_images(a, b) -> dict:

@@ -177,7 +177,7 @@ def legacy_layout(path: Path, *, limit: int | None = None, hint: str | None = No
             return out
 
     else:
-        from dvr_perception.rays import memory
+        from dvr_perception import _memory as memory
 
         cap = memory.limit() if limit is None else int(limit)
         if size - start > min(26 * count, 2 * cap) + 4096:  # 26: a float64 in full, a space

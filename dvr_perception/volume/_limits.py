@@ -10,7 +10,7 @@ field, before a byte of data is read or decompressed:
   numbers in ``1..MAX_AXIS`` and their product is computed exactly (Python integers, no
   overflow);
 * spacings must be finite, positive and at most :data:`MAX_SPACING`;
-* the data must fit the memory limit (:func:`dvr_perception.rays.memory.limit`);
+* the data must fit the memory limit (:func:`dvr_perception._memory.limit`);
 * a gzip stream cannot expand more than :data:`MAX_GZIP_RATIO` times, so a header claiming more
   bytes than that from the compressed size is refused before decompressing, and decompression
   (gzip, bzip2) stops as soon as the stream gives more than the header's byte count.
@@ -181,7 +181,7 @@ def check_budget(
     ...
     dvr_perception.errors.DVRInputError: up.mha: field 'DimSize': sizes 64 64 64 of uint8 need 0.2 MB, more than the limit of 0.0 MB; raise it with --max-volume-mb
     """  # noqa: E501
-    from dvr_perception.rays import memory
+    from dvr_perception import _memory as memory
 
     if nbytes is None:
         nbytes = math.prod(int(d) for d in dims) * np.dtype(dtype).itemsize

@@ -175,7 +175,7 @@ def vti_layout(path: Path, *, limit: int | None = None, hint: str | None = None)
     ...
     dvr_perception.errors.DVRInputError: ...field 'WholeExtent': sizes 100000 100000 100000 ...
     """
-    from dvr_perception.rays import memory
+    from dvr_perception import _memory as memory
 
     cap = memory.limit() if limit is None else int(limit)
     xml, data_start, encoding = _xml_part(path, cap)

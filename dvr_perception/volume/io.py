@@ -305,7 +305,7 @@ def _check_dicom_folder_size(path: Path) -> None:
     VTK's reader decodes only uncompressed pixel data, so the folder's regular files hold at
     least as many bytes as the volume it makes; their total must fit the memory limit.
     """
-    from dvr_perception.rays import memory
+    from dvr_perception import _memory as memory
 
     total = 0
     with os.scandir(path) as entries:

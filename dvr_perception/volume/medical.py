@@ -157,7 +157,7 @@ def _walk(root: Path) -> list[Path]:
 
 def _check_series_bytes(path: Path, files) -> None:
     """Refuse a series whose files (read whole) hold more bytes than the memory limit."""
-    from dvr_perception.rays import memory
+    from dvr_perception import _memory as memory
 
     total = sum(f.stat().st_size for f in files)
     cap = memory.limit()

@@ -1,4 +1,8 @@
-"""A generated, layered head-like phantom with a matching structure spec.
+"""The voxels of a generated, layered head-like phantom (its structure spec is in structures).
+
+:func:`phantom_volume` generates the volume; the spec that goes with it, and
+:func:`~dvr_perception.structures.phantom.make_phantom` (volume and spec together), are in
+:mod:`dvr_perception.structures.phantom`, beside the other built-in data (the presets).
 
 Geometry (``size = 128``; everything scales with ``size``): an ellipsoidal head (semi-axes
 46, 56, 50 voxels along x, y, z) made of a **skin** shell, a **skull** shell and a filled
@@ -30,10 +34,9 @@ import numbers
 import numpy as np
 
 from dvr_perception.errors import DVRInputError
-from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
 from dvr_perception.volume.volume import Volume
 
-__all__ = ["PHANTOM_MATERIALS", "make_phantom"]
+__all__ = ["PHANTOM_MATERIALS", "phantom_volume"]
 
 #: name, intensity, structure range, importance, colour -- in label order (label = index + 1)
 PHANTOM_MATERIALS: tuple[tuple[str, int, tuple[float, float], float, tuple], ...] = (
@@ -55,10 +58,8 @@ _OBJECTS = (
 )
 
 
-def make_phantom(
-    *, size: int = 128, seed: int = 0, noise: float = 0.02
-) -> tuple[Volume, StructureSpec]:
-    """Generate the layered head phantom and its structure spec.
+def phantom_volume(*, size: int = 128, seed: int = 0, noise: float = 0.02) -> Volume:
+    """Generate the layered head phantom's voxels.
 
     Parameters
     ----------
@@ -71,17 +72,15 @@ def make_phantom(
 
     Returns
     -------
-    volume : Volume
-        ``uint8`` volume named ``"phantom"`` with ground-truth ``labels``.
-    spec : StructureSpec
-        Six range structures (skin, skull, brain, tumour, ventricle, calcification) with
-        importance rising inward, distinct colours, default lighting, black background.
+    Volume
+        ``uint8`` volume named ``"phantom"`` with ground-truth ``labels`` (label ``i + 1`` is
+        material ``i`` of :data:`PHANTOM_MATERIALS`).
 
     Examples
     --------
-    >>> vol, spec = make_phantom(size=32)
-    >>> vol.dims, vol.data.dtype, spec.names[0], len(spec.structures)
-    ((32, 32, 32), dtype('uint8'), 'skin', 6)
+    >>> vol = phantom_volume(size=32)
+    >>> vol.dims, vol.data.dtype, int(vol.labels.max())
+    ((32, 32, 32), dtype('uint8'), 6)
     """
     size, seed, noise = _check(size, seed, noise)
     labels = _labels(size)
@@ -94,8 +93,7 @@ def make_phantom(
         rng = np.random.default_rng(seed)
         data += rng.standard_normal(data.shape, dtype=np.float32) * np.float32(noise * 255.0)
     data = np.rint(np.clip(data, 0.0, 255.0)).astype(np.uint8)
-    volume = Volume(data, name="phantom", source="phantom", labels=labels)
-    return volume, _spec()
+    return Volume(data, name="phantom", source="phantom", labels=labels)
 
 
 def _check(size, seed, noise) -> tuple[int, int, float]:
@@ -130,17 +128,18 @@ def _labels(size: int) -> np.ndarray:
     return labels
 
 
-def _spec() -> StructureSpec:
-    structures = tuple(
-        Structure(name=name, importance=imp, color=color, range=rng)
-        for name, _value, rng, imp, color in PHANTOM_MATERIALS
-    )
-    # Opacity per 8 voxels of ray length: thin shells stay see-through while the filled brain
-    # still hides most of the inner objects -- the poorly perceived starting point the
-    # optimiser is meant to fix.  Zoom 1.6 fills the frame with the head in the default view.
-    return StructureSpec(
-        structures=structures,
-        background=(0.0, 0.0, 0.0),
-        rendering=RenderSettings(opacity_unit_distance=8.0),
-        view=(0.0, 0.0, 1.6),
-    )
+def __getattr__(name: str):
+    # deprecated alias (one release): the phantom with its spec is in structures.phantom
+    if name == "make_phantom":
+        import warnings
+
+        warnings.warn(
+            "dvr_perception.volume.phantom.make_phantom is deprecated; use "
+            "dvr_perception.structures.phantom.make_phantom (or dvr_perception.make_phantom)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        from dvr_perception.structures.phantom import make_phantom  # layering: deprecated alias
+
+        return make_phantom
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

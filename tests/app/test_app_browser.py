@@ -54,8 +54,7 @@ def server(tmp_path_factory, vtk_can_render, app_server):
     root = tmp_path_factory.mktemp("app")
     data, exports = root / "data", root / "exports"
     data.mkdir()
-    from dvr_perception.structures import save_spec
-    from dvr_perception.volume import make_phantom
+    from dvr_perception.structures import make_phantom, save_spec
 
     _, spec = make_phantom(size=16)
     # a poor spec: the outer layers too opaque, the inner ones too faint

@@ -42,8 +42,7 @@ GIB = 2**30
 # -- the server ----------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def server(tmp_path_factory, vtk_can_render, app_server):
-    from dvr_perception.structures import save_spec
-    from dvr_perception.volume import make_phantom
+    from dvr_perception.structures import make_phantom, save_spec
 
     root = tmp_path_factory.mktemp("hostile")
     data, outside = root / "data", root / "outside"

@@ -44,7 +44,7 @@ def test_settings_are_saved_under_plain_names_only(session, name):
 def test_read_only_data_folder_and_writes_into_the_state_folder(tmp_path):
     import os
 
-    from dvr_perception.volume import make_phantom
+    from dvr_perception.structures import make_phantom
     from dvr_perception.volume.io import save_volume
 
     data = tmp_path / "data"

@@ -135,7 +135,7 @@ def test_history_undo_to_any_step(session):
 
 
 def test_upload_checks_type_size_and_content(session, tmp_path):
-    from dvr_perception.volume import make_phantom
+    from dvr_perception.structures import make_phantom
     from dvr_perception.volume.io import save_volume
 
     good = tmp_path / "small.nrrd"

@@ -76,7 +76,7 @@ def test_render_non_square_and_text_output(capsys, tmp_path):
 
 
 def test_camera_looking_away_warns_and_renders_black(capsys, tmp_path):
-    from dvr_perception.volume.phantom import make_phantom
+    from dvr_perception.structures.phantom import make_phantom
 
     volume, _ = make_phantom()
     c = volume.center

@@ -94,7 +94,7 @@ def _check_report(report: dict, names) -> None:
 
 
 def test_measure_phantom_json(phantom_run):
-    from dvr_perception.volume.phantom import make_phantom
+    from dvr_perception.structures.phantom import make_phantom
 
     report, _ = phantom_run
     _, spec = make_phantom()

@@ -18,8 +18,8 @@ import pytest
 from dvr_perception.cli import main
 from dvr_perception.rays import bricks, memory
 from dvr_perception.structures.io import save_spec
+from dvr_perception.structures.phantom import make_phantom
 from dvr_perception.volume import Volume, save_volume
-from dvr_perception.volume.phantom import make_phantom
 
 
 def _measure(argv) -> dict:

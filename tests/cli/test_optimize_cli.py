@@ -206,7 +206,7 @@ def test_ctrl_c_saves_best_so_far(capsys, tmp_path, monkeypatch):
     ],
 )
 def test_bad_input_exits_2(capsys, tmp_path, option, message, monkeypatch):
-    from dvr_perception.rays import memory
+    from dvr_perception import _memory as memory
 
     monkeypatch.setattr(memory, "_LIMIT", [None])  # --memory-limit's settings are undone
     monkeypatch.setenv(memory.ENV, "")  # after the test

@@ -23,8 +23,8 @@ from dvr_perception._files import LOCK_NAME, Terminated, png_bytes, read_png, wr
 from dvr_perception.cli import main
 from dvr_perception.cli import optimize as optimize_cmd
 from dvr_perception.structures.io import save_spec
+from dvr_perception.structures.phantom import make_phantom
 from dvr_perception.volume import save_volume
-from dvr_perception.volume.phantom import make_phantom
 
 #: The files of step 1 (the result).
 RESULT = {

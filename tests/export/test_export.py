@@ -12,18 +12,16 @@ from vtkmodules.vtkRenderingCore import vtkColorTransferFunction
 
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.export import (
+    GPU_TABLE_SAMPLES,
     paraview_preset,
     save_paraview_preset,
     save_slicer_vp,
     slicer_volume_property,
+    to_vtk_transfer_functions,
 )
 from dvr_perception.export.slicer import SLICER_VP_SCHEMA
 from dvr_perception.structures.spec import Lighting, RenderSettings, Structure, StructureSpec
-from dvr_perception.structures.transfer import (
-    GPU_TABLE_SAMPLES,
-    membership,
-    to_vtk_transfer_functions,
-)
+from dvr_perception.structures.transfer import membership
 from dvr_perception.volume.volume import Volume
 
 RED, GREEN, BLUE = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)

@@ -17,9 +17,10 @@ from dvr_perception.measures.luminance import LUMA_WEIGHTS
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import classify_structures, curvature_volume
 from dvr_perception.rays.engine import analyze
+from dvr_perception.structures import make_phantom
 from dvr_perception.structures.io import spec_to_dict
 from dvr_perception.structures.spec import Lighting
-from dvr_perception.volume import from_vtk_image, make_phantom, to_vtk_image
+from dvr_perception.volume import from_vtk_image, to_vtk_image
 
 SIZE = 48
 

@@ -12,8 +12,9 @@ from dvr_perception.errors import DVRInputError
 from dvr_perception.filters import TransferFunctionOptimizer
 from dvr_perception.optimize import optimize
 from dvr_perception.rays.camera import Camera
+from dvr_perception.structures import make_phantom
 from dvr_perception.structures.io import spec_from_dict, spec_to_dict
-from dvr_perception.volume import from_vtk_image, make_phantom, to_vtk_image
+from dvr_perception.volume import from_vtk_image, to_vtk_image
 
 SIZE = 32
 STAGES = ("opacity", "lighting")

@@ -9,13 +9,13 @@ import pytest
 
 from dvr_perception.measures import transparency
 from dvr_perception.measures._estimates import region_estimates, region_table
-from dvr_perception.measures._scene import _group_stats, _robust, _Scene
+from dvr_perception.measures._layer_sets import _group_stats, _LayerSets, _robust
 from dvr_perception.measures.regions import layer_footprints, layer_relations, subregions
 from dvr_perception.measures.results import _image_luminance
 from dvr_perception.measures.transparency import transparency_table
 from dvr_perception.rays import Camera
 from dvr_perception.rays.engine import analyze
-from dvr_perception.volume.phantom import make_phantom
+from dvr_perception.structures.phantom import make_phantom
 
 
 @pytest.fixture(scope="module")
@@ -26,24 +26,24 @@ def phantom_view():
     return analyze(vol, spec, cam, build_cache=False), spec
 
 
-def _scene(analysis, spec):
+def _layer_sets(analysis, spec):
     y, _ = _image_luminance(analysis, spec, analysis.accumulated.shape)
     fp = layer_footprints(np.asarray(analysis.visible, np.float64), threshold=0.05)
     rmap = subregions(fp)
-    scene = _Scene(y, rmap, layer_relations(fp), analysis.names, "michelson")
-    return y, rmap, scene
+    layer_sets = _LayerSets(y, rmap, layer_relations(fp), analysis.names, "michelson")
+    return y, rmap, layer_sets
 
 
 @pytest.mark.parametrize("calibration", [None, ([0.0, 0.4, 1.0], [0.0, 0.6, 1.0])])
 def test_layer_set_estimates_equal_the_rules_region_by_region(phantom_view, calibration):
     analysis, spec = phantom_view
-    y, rmap, scene = _scene(analysis, spec)
+    y, rmap, layer_sets = _layer_sets(analysis, spec)
     expected = [s.target_opacity for s in spec.structures]
-    est = region_estimates(scene, rmap, y, expected, calibration, [])
+    est = region_estimates(layer_sets, rmap, y, expected, calibration, [])
     _, mean, std = _group_stats(y.ravel(), rmap.region_id.ravel(), len(rmap.regions))
     kinds, methods = set(), set()
     for region in rmap.regions:
-        ref = scene.evaluate(region.layers, _robust(mean[region.id], std[region.id]), [])
+        ref = layer_sets.evaluate(region.layers, _robust(mean[region.id], std[region.id]), [])
         lays = est.layers[region.id]
         assert [lay.k for lay in lays] == list(ref)
         p = est.position[region.id]
@@ -97,8 +97,8 @@ def test_table_holds_what_the_records_say(phantom_view):
 def test_region_table_of_an_empty_image_is_all_empty():
     fp = np.zeros((2, 5, 6), bool)
     rmap = subregions(fp)
-    scene = _Scene(np.zeros((5, 6)), rmap, layer_relations(fp), ("a", "b"), "michelson")
-    est = region_estimates(scene, rmap, np.zeros((5, 6)), [0.5, 0.5], None, [])
+    layer_sets = _LayerSets(np.zeros((5, 6)), rmap, layer_relations(fp), ("a", "b"), "michelson")
+    est = region_estimates(layer_sets, rmap, np.zeros((5, 6)), [0.5, 0.5], None, [])
     alpha, empty = region_table(est, rmap, 2)
     assert alpha.shape == (1, 2)
     assert np.all(np.isnan(alpha))

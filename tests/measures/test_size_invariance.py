@@ -18,7 +18,7 @@ from dvr_perception.measures import shape, transparency
 from dvr_perception.rays import Camera
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
-from dvr_perception.volume.phantom import make_phantom
+from dvr_perception.structures.phantom import make_phantom
 from tests.measures.test_layer_reading import shell_scene, slab_scene
 
 SIZES = (64, 96, 128)

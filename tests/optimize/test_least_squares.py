@@ -12,7 +12,7 @@ from dvr_perception.optimize._problem import Params, Problem, residue
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
-from dvr_perception.volume import make_phantom
+from dvr_perception.structures import make_phantom
 
 PX = 24
 

@@ -20,8 +20,8 @@ from dvr_perception.optimize._problem import Params, Problem
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
+from dvr_perception.structures import make_phantom
 from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
-from dvr_perception.volume import make_phantom
 from dvr_perception.volume.volume import Volume
 
 PX = 48

@@ -11,7 +11,7 @@ import json, sys
 sys.modules["numba"] = None  # any "import numba" now raises ImportError
 from dvr_perception.optimize import optimize
 from dvr_perception.rays.camera import Camera
-from dvr_perception.volume import make_phantom
+from dvr_perception.structures import make_phantom
 vol, spec = make_phantom(size=24)
 cam = Camera.from_view(vol.bounds, width=16, height=16)
 res = optimize(vol, spec, cam, stages=("opacity",), max_iter=1, resolution=16)

@@ -7,8 +7,8 @@ from dataclasses import replace
 import pytest
 
 from dvr_perception.rays.camera import Camera
+from dvr_perception.structures.phantom import make_phantom
 from dvr_perception.structures.spec import Lighting
-from dvr_perception.volume.phantom import make_phantom
 
 #: Distinct materials; structure i gets MATERIALS[i % n].
 MATERIALS = (

@@ -17,8 +17,8 @@ from dvr_perception.plotting import material_groups, render_plotter
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.engine import analyze
 from dvr_perception.rays.vtk_reference import compare_images
-from dvr_perception.structures import load_spec
-from dvr_perception.volume import load_volume, make_phantom
+from dvr_perception.structures import load_spec, make_phantom
+from dvr_perception.volume import load_volume
 
 STATE_FILES = Path(__file__).resolve().parents[2] / "state_files"
 SSIM_MIN = 0.93

@@ -18,7 +18,7 @@ from dvr_perception.volume.volume import Volume
 
 #: Unshaded, VTK's label-map path agrees with the engine as its fixed-point mapper does
 #: (0.967 here); shaded 0.948 (the GPU mapper's lighting is not quite the fixed-point mapper's
-#: that the engine reproduces; see dvr_perception/plotting/_scene.py).
+#: that the engine reproduces; see dvr_perception/plotting/_structure_volume.py).
 SSIM_MIN = {False: 0.95, True: 0.93}
 
 

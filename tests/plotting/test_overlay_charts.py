@@ -14,7 +14,7 @@ from dvr_perception.plotting import (
     plot_visibility_histograms,
     set_plotter_camera,
 )
-from dvr_perception.plotting.overlay import colorize
+from dvr_perception.plotting.overlay import colourize
 from dvr_perception.rays.engine import analyze
 
 
@@ -43,7 +43,7 @@ def test_quality_map_overlays_only_defined_pixels(vtk_can_render, phantom):
         pl.close()
     half = cam.width // 2
     assert np.abs(shown[:, half + 1 :] - plain[:, half + 1 :]).max() < 1e-6
-    expected = colorize(measure, clim=(0.0, 2.0))[0, 0, :3] / 255.0
+    expected = colourize(measure, clim=(0.0, 2.0))[0, 0, :3] / 255.0
     blend = 0.6 * expected + 0.4 * plain[:, :half]
     assert np.abs(shown[:, :half] - blend).max() < 0.02
 
@@ -90,3 +90,12 @@ def test_convergence_from_stage_records():
         plot_convergence([])
     with pytest.raises(DVRInputError, match="history"):
         plot_convergence([1, 2])
+
+
+def test_colorize_old_spelling_warns_and_still_works():
+    from dvr_perception.plotting import overlay
+
+    img = np.array([[0.0, np.nan], [0.5, 1.0]])
+    with pytest.warns(DeprecationWarning, match=r"colorize is deprecated; use .*colourize"):
+        old = overlay.colorize(img, clim=(0, 1))
+    np.testing.assert_array_equal(old, colourize(img, clim=(0, 1)))

@@ -2,7 +2,7 @@
 
 With several ranks every rank keeps the cache entries of its piece, rank 0 runs the optimiser
 and every evaluation broadcasts the parameters and composites the ranks' re-evaluations in view
-order (``dvr_perception.rays.ranks.RankSession``).  The initial E terms equal those of
+order (``dvr_perception.distributed.RankSession``).  The initial E terms equal those of
 ``dvr-perception optimize`` on the same view within 1e-5 and the final E is within 2 % of it
 (issues 17 and 19); no rank holds the whole volume.
 """

@@ -14,8 +14,8 @@ import pytest
 
 from dvr_perception._files import read_png
 from dvr_perception.cli.pvbatch import virtual_display
+from dvr_perception.export.vtk import GPU_TABLE_SAMPLES, to_vtk_transfer_functions
 from dvr_perception.structures.io import spec_from_dict
-from dvr_perception.structures.transfer import GPU_TABLE_SAMPLES, to_vtk_transfer_functions
 from tests.plugin.conftest import assert_no_vtk_messages
 
 REPO = Path(__file__).resolve().parents[2]

@@ -14,8 +14,8 @@ from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze, reevaluate
 from dvr_perception.structures.io import load_spec
+from dvr_perception.structures.phantom import make_phantom
 from dvr_perception.volume.io import load_volume
-from dvr_perception.volume.phantom import make_phantom
 
 pytest.importorskip("numba")
 

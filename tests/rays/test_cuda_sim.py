@@ -35,7 +35,8 @@ from dvr_perception.optimize import optimize
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.engine import analyze, analyze_views, reevaluate
 from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
-from dvr_perception.volume import Volume, make_phantom
+from dvr_perception.structures import make_phantom
+from dvr_perception.volume import Volume
 
 FIELDS = ("rgba", "image", "accumulated", "visible", "assigned", "present", "curvature",
           "importance_accumulated")
@@ -370,7 +371,7 @@ def test_cuda_without_a_device_is_one_clear_error(monkeypatch):
 
     from dvr_perception.rays.camera import Camera
     from dvr_perception.rays.engine import analyze
-    from dvr_perception.volume import make_phantom
+    from dvr_perception.structures import make_phantom
 
     monkeypatch.setattr(cuda, "is_available", lambda: False)
     vol, spec = make_phantom(size=16)
@@ -422,7 +423,7 @@ from numba.cuda.compiler import compile_cuda
 import numba.cuda.dispatcher as dispatcher
 from dvr_perception.rays import _cuda_kernels as ck
 from dvr_perception.rays.camera import Camera
-from dvr_perception.volume import make_phantom
+from dvr_perception.structures import make_phantom
 
 assert cuda.implementation == "NVIDIA", cuda.implementation
 
@@ -540,7 +541,7 @@ import dvr_perception.rays
 from dvr_perception.measures import all_measures
 from dvr_perception.optimize import optimize
 from dvr_perception.rays import Camera, analyze
-from dvr_perception.volume import make_phantom
+from dvr_perception.structures import make_phantom
 
 import os
 import tempfile

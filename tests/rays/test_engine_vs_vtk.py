@@ -9,9 +9,9 @@ import pytest
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.engine import analyze
 from dvr_perception.rays.vtk_reference import compare_images, render_vtk
+from dvr_perception.structures.phantom import make_phantom
 from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
 from dvr_perception.volume.io import load_volume
-from dvr_perception.volume.phantom import make_phantom
 
 pytestmark = [pytest.mark.vtk_render, pytest.mark.slow]
 

@@ -7,9 +7,9 @@ import pytest
 
 from dvr_perception.rays import _grid, engine
 from dvr_perception.structures.io import load_spec
+from dvr_perception.structures.phantom import make_phantom
 from dvr_perception.structures.transfer import build_lut
 from dvr_perception.volume.io import load_volume
-from dvr_perception.volume.phantom import make_phantom
 from dvr_perception.volume.volume import Volume
 
 pytest.importorskip("numba")

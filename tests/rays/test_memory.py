@@ -9,7 +9,7 @@ from dvr_perception.errors import DVRInputError
 from dvr_perception.rays import memory
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.engine import analyze
-from dvr_perception.volume.phantom import make_phantom
+from dvr_perception.structures.phantom import make_phantom
 
 pytest.importorskip("numba")
 

@@ -14,12 +14,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from dvr_perception import _memory
 from dvr_perception.rays import memory
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature_field import CurvatureField, curvature_source
 from dvr_perception.rays.engine import analyze
+from dvr_perception.structures.phantom import make_phantom
 from dvr_perception.structures.transfer import build_lut
-from dvr_perception.volume.phantom import make_phantom
 
 pytest.importorskip("numba")
 
@@ -72,10 +73,10 @@ def test_the_default_limit_is_half_the_machine(monkeypatch):
     big, spec, lut, memb = _ct((904, 1024, 1024))  # the 1024 x 1024 x 904 CT
     whole = int(_plan(big, spec, lut, memb, "64G")["whole"])
     assert 11 * 2**30 < whole < 12 * 2**30
-    monkeypatch.setattr(memory, "machine_memory", lambda: 2 * whole)
+    monkeypatch.setattr(_memory, "machine_memory", lambda: 2 * whole)
     assert memory.limit() == whole
     assert _plan(big, spec, lut, memb, None)["mode"] == "whole"
-    monkeypatch.setattr(memory, "machine_memory", lambda: 2 * whole - 2)
+    monkeypatch.setattr(_memory, "machine_memory", lambda: 2 * whole - 2)
     assert _plan(big, spec, lut, memb, None)["mode"] == "bricks"
 
 

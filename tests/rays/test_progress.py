@@ -19,7 +19,7 @@ from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.curvature_field import CurvatureField
 from dvr_perception.rays.engine import analyze, analyze_views
-from dvr_perception.volume.phantom import make_phantom
+from dvr_perception.structures.phantom import make_phantom
 
 pytest.importorskip("numba")
 

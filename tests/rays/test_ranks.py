@@ -33,7 +33,7 @@ from dvr_perception.rays.ranks import (
     piece_curvature,
     piece_of,
 )
-from dvr_perception.volume.phantom import make_phantom
+from dvr_perception.structures.phantom import make_phantom
 
 
 def _run(n, function):
@@ -183,7 +183,7 @@ def test_ranks_in_threads_equal_the_serial_measures_on_neghip(shared_data, n):
 # -- the optimiser over ranks (RankSession / RankCache) -------------------------------------------
 def _session_reevaluations(vol, spec, cam, n, params):
     """Rank 0's re-evaluations of ``params`` (a list of kwargs) over ``n`` thread ranks."""
-    from dvr_perception.rays.ranks import RankSession
+    from dvr_perception.distributed import RankSession
 
     ghost = ghost_levels(vol.spacing, 1.0)
     bricks = block_split(vol.data.shape, n)
@@ -228,8 +228,8 @@ def test_rank_cache_reevaluates_new_opacities_colours_and_light_as_the_whole_cac
 
 @pytest.mark.parametrize("n", [2, 4])
 def test_optimize_over_ranks_in_threads_equals_the_serial_optimisation(n):
+    from dvr_perception.distributed import optimize_in_threads
     from dvr_perception.optimize import optimize
-    from dvr_perception.rays.ranks import optimize_in_threads
 
     vol, spec = make_phantom(size=24)
     cam = Camera.from_view(vol.bounds, azimuth=30, elevation=20, width=40, height=32)
@@ -255,7 +255,7 @@ def test_optimize_over_ranks_in_threads_equals_the_serial_optimisation(n):
 
 
 def test_rank_session_refuses_commands_from_other_ranks():
-    from dvr_perception.rays.ranks import RankSession
+    from dvr_perception.distributed import RankSession
 
     vol, spec = make_phantom(size=16)
     cam = Camera.from_view(vol.bounds, width=8, height=8)
@@ -294,3 +294,13 @@ def test_abort_on_error_ends_the_job_with_one_line_and_the_status(capsys):
         abort_on_error(SerialCommunicator(), "x", exit=leave),
     ):
         raise DVRInputError("bad")
+
+
+@pytest.mark.parametrize("name", ["RankCache", "RankSession", "optimize_in_threads", "warm_up"])
+def test_the_drivers_old_path_warns_and_still_works(name):
+    import dvr_perception.distributed as new
+    from dvr_perception.rays import ranks as old
+
+    with pytest.warns(DeprecationWarning, match=rf"dvr_perception\.distributed\.{name}"):
+        got = getattr(old, name)
+    assert got is getattr(new, name)

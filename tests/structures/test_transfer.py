@@ -6,18 +6,20 @@ import numpy as np
 import pytest
 
 from dvr_perception.errors import DVRInputError, DVRWarning
-from dvr_perception.structures.spec import Lighting, RenderSettings, Structure, StructureSpec
-from dvr_perception.structures.transfer import (
+from dvr_perception.export.vtk import (
     GPU_TABLE_SAMPLES,
-    build_lut,
-    classify,
-    color_table,
-    lut_index,
-    membership,
-    opacity_table,
     spec_from_vtk,
     to_vtk_property,
     to_vtk_transfer_functions,
+)
+from dvr_perception.structures.spec import Lighting, RenderSettings, Structure, StructureSpec
+from dvr_perception.structures.transfer import (
+    build_lut,
+    classify,
+    colour_table,
+    lut_index,
+    membership,
+    opacity_table,
 )
 from dvr_perception.volume.volume import Volume
 
@@ -130,7 +132,7 @@ def test_opacity_and_color_tables(spec2):
     assert op.dtype == np.float32
     assert op.shape == (256,)
     assert op[[0, 5, 50, 110, 150, 250]].tolist() == pytest.approx([0, 0.25, 0.5, 0.125, 0.25, 0])
-    col = color_table(lut, [RED, BLUE])
+    col = colour_table(lut, [RED, BLUE])
     assert col.shape == (256, 3)
     assert col[50].tolist() == list(RED)
     assert col[150].tolist() == list(BLUE)
@@ -230,3 +232,28 @@ def test_gpu_samples_keep_nodes_one_table_entry_apart():
     assert otf.GetValue(190.0) == 0.0
     with pytest.raises(DVRInputError, match="samples"):
         to_vtk_transfer_functions(spec, samples=1)
+
+
+@pytest.mark.parametrize(
+    "name", ["GPU_TABLE_SAMPLES", "spec_from_vtk", "to_vtk_property", "to_vtk_transfer_functions"]
+)
+def test_the_vtk_converters_old_path_warns_and_still_works(name):
+    from dvr_perception.export import vtk
+    from dvr_perception.structures import transfer
+
+    with pytest.warns(DeprecationWarning, match=rf"dvr_perception\.export\.{name}"):
+        old = getattr(transfer, name)
+    assert old is getattr(vtk, name)
+    with pytest.raises(AttributeError):
+        transfer.no_such_name  # noqa: B018
+
+
+def test_colour_table_old_spelling_warns_and_still_works():
+    from dvr_perception.structures import transfer
+
+    spec = StructureSpec((Structure("a", 0.5, RED, range=(10.0, 20.0)),))
+    lut = build_lut(spec, scalar_range=(0, 40), dtype=np.uint8)
+    with pytest.warns(DeprecationWarning, match=r"color_table is deprecated; use .*colour_table"):
+        old = transfer.color_table(lut, [RED])
+    np.testing.assert_array_equal(old, colour_table(lut, [RED]))
+    assert old[15].tolist() == list(RED)

@@ -108,9 +108,9 @@ def test_dicom_series_vtk_fallback(tmp_path, dicom_writer, monkeypatch):
     with pytest.raises(DVRInputError, match=r"dvr-perception\[medical\]"):
         load_volume(tmp_path / "series" / "slice000.dcm")
     # the files' bytes bound what VTK reads: over the memory limit it never starts
-    from dvr_perception.rays import memory
+    from dvr_perception import _memory
 
-    monkeypatch.setattr(memory, "limit", lambda value=None: 1024)  # bytes
+    monkeypatch.setattr(_memory, "limit", lambda value=None: 1024)  # bytes
     from dvr_perception import _vtk as vtk_module
 
     monkeypatch.setattr(vtk_module, "vtkDICOMImageReader", None)  # fails if VTK is asked

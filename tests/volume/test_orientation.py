@@ -421,7 +421,7 @@ def test_mpi_pieces_refuse_a_direction_matrix():
     image = to_vtk_image(flipped, with_direction=True)
     comm = SimpleNamespace(rank=0, size=2)
     with pytest.raises(DVRInputError, match="direction matrix cannot be split across MPI"):
-        PerceptionMeasures().piece_scene(image, comm, 0, image.GetExtent())
+        PerceptionMeasures().piece_inputs(image, comm, 0, image.GetExtent())
 
 
 def test_pvbatch_forwards_series_and_checks_named_views(tmp_path):

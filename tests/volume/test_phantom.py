@@ -10,8 +10,8 @@ import pytest
 from scipy import ndimage
 
 from dvr_perception.errors import DVRInputError
+from dvr_perception.structures import make_phantom
 from dvr_perception.structures.spec import Lighting, StructureSpec
-from dvr_perception.volume import make_phantom
 
 
 @pytest.fixture(scope="module")
@@ -158,3 +158,27 @@ def test_speed_at_default_size():
 def test_bad_parameters(kwargs, pattern):
     with pytest.raises(DVRInputError, match=pattern):
         make_phantom(**kwargs)
+
+
+def test_the_voxels_alone_come_from_volume_and_equal_make_phantoms():
+    from dvr_perception.volume import phantom_volume
+    from dvr_perception.volume.phantom import PHANTOM_MATERIALS
+
+    vol = phantom_volume(size=24, seed=3)
+    ref, spec = make_phantom(size=24, seed=3)
+    np.testing.assert_array_equal(vol.data, ref.data)
+    np.testing.assert_array_equal(vol.labels, ref.labels)
+    assert spec.names == tuple(m[0] for m in PHANTOM_MATERIALS)
+
+
+@pytest.mark.parametrize("where", ["dvr_perception.volume", "dvr_perception.volume.phantom"])
+def test_the_old_make_phantom_paths_warn_and_still_work(where):
+    import importlib
+
+    module = importlib.import_module(where)
+    with pytest.warns(DeprecationWarning, match=r"dvr_perception\.make_phantom"):
+        old = module.make_phantom
+    assert old is make_phantom
+    vol, spec = old(size=16)
+    assert vol.dims == (16, 16, 16)
+    assert len(spec.structures) == 6

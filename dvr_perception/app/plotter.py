@@ -1,4 +1,4 @@
-"""The app's 3D scene: an off-screen PyVista plotter the browser can rotate, and spec updates."""
+"""The app's 3D view: an off-screen PyVista plotter the browser can rotate, and spec updates."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Layer sets of one image and the transmittance rules of Sec. 4.3.2 (used by ``transparency``).
 
-:class:`_Scene` caches, per exact layer set, the pixel count, mean and standard deviation of the
+:class:`_LayerSets` caches, per exact layer set, the pixel count, mean and standard deviation of the
 luminance, so every Metelli (Eq. 5, 9) and TAP (Eq. 6-7) term is computed once per layer set
 (or layer pair), not once per sub-region; only the Eq. 8 weight ``h = 1 - C`` depends on the
 region (``C`` its contrast, Eq. 7).
@@ -120,7 +120,7 @@ def _bits(layers) -> int:
     return out
 
 
-class _Scene:
+class _LayerSets:
     """Luminance, layer sets and relations of one image, with cached reference lookups."""
 
     def __init__(self, y, rmap, relations, names, contrast):

@@ -35,7 +35,7 @@ unshaded and 0.948 shaded (0.932 with the uncoloured ambient); the 40^3 phantom 
 two-segment Slicer segmentation at 96x96, SSIM 0.986 unshaded and 0.951 shaded (0.913).  The
 fixed-point mapper reaches 0.97-0.99 on range structures; the ramp alone through this GPU
 path gives 0.948 shaded too, so the label mask itself costs nothing: the loss is the GPU
-mapper's shading.  Tried on the 24^3 scene (shaded, issue 21): the ambient kept (grey wash)
+mapper's shading.  Tried on the 24^3 phantom (shaded, issue 21): the ambient kept (grey wash)
 0.932, half of it folded 0.935, a *headlight*-type light (VTK's one-headlight shader colours
 the ambient, but takes the light direction per sample from the camera position and uses Phong
 reflection, not the half vector) 0.908, gradient opacity disabled and other specular powers no
@@ -65,8 +65,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from dvr_perception.errors import DVRInputError, DVRWarning
+from dvr_perception.export.vtk import to_vtk_transfer_functions
 from dvr_perception.structures.spec import Lighting, StructureSpec
-from dvr_perception.structures.transfer import to_vtk_transfer_functions
 from dvr_perception.volume.volume import Volume
 
 __all__ = ["MAX_MATERIALS", "StructureVolume", "add_structures", "apply", "material_groups"]
@@ -437,7 +437,7 @@ def add_structures(plotter, volume: Volume, spec: StructureSpec, *, opacities=No
     Examples
     --------
     >>> import pyvista as pv
-    >>> from dvr_perception.volume import make_phantom
+    >>> from dvr_perception.structures import make_phantom
     >>> vol, spec = make_phantom(size=32)
     >>> pl = pv.Plotter(off_screen=True)  # doctest: +SKIP
     >>> handle = add_structures(pl, vol, spec)  # doctest: +SKIP
