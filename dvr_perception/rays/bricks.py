@@ -429,8 +429,8 @@ def _runs(state: RayState, brick: Brick) -> tuple[np.ndarray, np.ndarray]:
 
 def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curvature=None,
          build_cache: bool = True, keep_codes: bool = False, derived=None,
-         progress=None, shade_all: bool = True,
-         curvature_all: bool = True) -> BrickCache | None:  # fmt: skip
+         progress=None, shade_all: bool = True, curvature_all: bool = True,
+         arena=None) -> BrickCache | None:  # fmt: skip
     """Walk ``brick``'s samples of every ray, continuing ``state`` (changed in place).
 
     Parameters
@@ -466,6 +466,9 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     curvature_all : bool
         The same for the entries' curvature (False only with ``shade_all`` False: the
         shading's marker is the one compositing tests).
+    arena : _Arena, optional
+        Where the brick's cache entries go (until the bricks' caches are merged); default
+        fresh arrays.
 
     Returns
     -------
@@ -491,7 +494,7 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     try:
         return _walk_src(state, brick, vol, maps, cv if curvature is not None else None, j0, j1,
                          order, chunk_ptr, chunk_base, cap, off, report, build_cache, keep_codes,
-                         shade_all, curvature_all, mine)  # fmt: skip
+                         shade_all, curvature_all, mine, arena)  # fmt: skip
     finally:
         if mine:
             _SRC_LOCK.release()
@@ -515,7 +518,8 @@ def _src(name, n, tail, dtype, shared):
 
 
 def _walk_src(state, brick, vol, maps, cv, j0, j1, order, chunk_ptr, chunk_base, cap, off,
-              report, build_cache, keep_codes, shade_all, curvature_all, shared):  # fmt: skip
+              report, build_cache, keep_codes, shade_all, curvature_all, shared,
+              arena=None):  # fmt: skip
     """:func:`walk` once the runs and chunks are known (``shared``: the scratch is ours)."""
     nk, nb = _kernels()
     t, seg, cam = state.tables, state.seg, state.camera
@@ -553,11 +557,12 @@ def _walk_src(state, brick, vol, maps, cv, j0, j1, order, chunk_ptr, chunk_base,
     dest = np.zeros(nrays, np.int64)
     np.cumsum(count[:-1], out=dest[1:])
     e = int(dest[-1] + count[-1])
+    take = _Arena.fresh if arena is None else arena.take
     out = (
-        np.empty(e, np.uint16),
-        np.empty(e, np.int32),
-        np.empty((e if shade else 0, 2), np.uint16),
-        np.empty(e if has_curv else 0, np.float32),
+        take("lut", e, (), np.uint16),
+        take("j", e, (), np.int32),
+        take("sh", e if shade else 0, (2,), np.uint16),
+        take("curv", e if has_curv else 0, (), np.float32),
     )
     rows, row_ptr = ray_order(cam.height, cam.width, tile=(1, cam.width))
     nk.compact(rows, row_ptr, len(row_ptr) - 1, start, count, dest, *src, *out, shade, has_curv)
@@ -570,6 +575,52 @@ def _walk_src(state, brick, vol, maps, cv, j0, j1, order, chunk_ptr, chunk_base,
                       np.uint32(16))  # fmt: skip
     codes = (vol >> np.uint32(16)).astype(np.uint16) if keep_codes and shade else None
     return BrickCache(brick, dest, count, *out, codes=codes, offset=off)
+
+
+class _Arena:
+    """Reused memory for the bricks' cache entries of one analysis, until they are merged.
+
+    Fresh memory costs page faults (as much as the copy into it); the entries of every brick
+    are taken one after another from buffers kept for the next analysis, grown to what the
+    last one needed.  One analysis at a time holds the arena (:data:`_ARENA_LOCK`); others
+    take fresh arrays.
+    """
+
+    def __init__(self) -> None:
+        self.used: dict = {}
+        self.need: dict = {}
+
+    @staticmethod
+    def fresh(name, n, tail, dtype):
+        """Return a fresh array of ``n`` rows."""
+        return np.empty((n, *tail), dtype)
+
+    def take(self, name, n, tail, dtype):
+        """Return the next ``n`` rows of buffer ``name`` (fresh ones when it is full)."""
+        if n == 0:
+            return np.empty((0, *tail), dtype)
+        used = self.used.get(name, 0)
+        self.used[name] = used + n
+        self.need[name] = used + n
+        buf = _ARENA_BUFFERS.get(name)
+        if buf is None or len(buf) < used + n:
+            return np.empty((n, *tail), dtype)
+        return buf[used : used + n]
+
+    def release(self) -> None:
+        """Grow the buffers that were short to what this analysis needed (for the next)."""
+        for name, need in self.need.items():
+            buf = _ARENA_BUFFERS.get(name)
+            if buf is None or len(buf) < need:
+                tail, dtype = _ARENA_KINDS[name]
+                _ARENA_BUFFERS.pop(name, None)
+                _ARENA_BUFFERS[name] = np.empty((int(need * 1.1) + 1, *tail), dtype)
+
+
+_ARENA_KINDS = {"lut": ((), np.uint16), "j": ((), np.int32), "sh": ((2,), np.uint16),
+                "curv": ((), np.float32)}  # fmt: skip
+_ARENA_LOCK = threading.Lock()
+_ARENA_BUFFERS: dict = {}
 
 
 def _merge(caches, state) -> dict:
@@ -905,15 +956,29 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
     cap = memory.limit(memory_limit)
     room = MEMO_SHARE * max(cap - sum(_peak(volume, st, brick, curv, build_cache, cap)
                                       for st in states), 0)  # fmt: skip
-    out = [None] * len(cameras)
     report(0.0)
+    arena = _Arena() if build_cache and _ARENA_LOCK.acquire(blocking=False) else None
+    try:
+        results = _views(volume, states, every, groups, curv, cap, build_cache, report, room,
+                         arena, t0)  # fmt: skip
+    finally:
+        if arena is not None:
+            arena.release()
+            _ARENA_LOCK.release()
+    report(1.0)
+    return results
+
+
+def _views(volume, states, every, groups, curv, cap, build_cache, report, room, arena, t0):
+    """Walk the passes of :func:`analyze_bricked_views`; return the finished analyses."""
+    out = [None] * len(states)
+    ncam = len(states)
     walked = 0  # cameras whose pass is done: each pass's share of the bar is its cameras'
     for order, members in groups.items():
         bricks = [every[i] for i in order]
-        share = report.sub(0.95 * walked / len(cameras),
-                           0.95 * (walked + len(members)) / len(cameras))  # fmt: skip
+        share = report.sub(0.95 * walked / ncam, 0.95 * (walked + len(members)) / ncam)
         got = _pass(volume, [states[n] for n in members], bricks, curv, cap, build_cache, share,
-                    room)  # fmt: skip
+                    room, arena)  # fmt: skip
         walked += len(members)
         for n, res in zip(members, got, strict=True):
             out[n] = res
@@ -922,7 +987,6 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
         finish(st, caches, refill=refill, fill=fill, seconds=seconds)
         for st, (caches, refill, fill) in zip(states, out, strict=True)
     ]
-    report(1.0)
     return results
 
 
@@ -959,13 +1023,14 @@ def _alive(states, brick) -> bool:
     return False
 
 
-def _pass(volume, states, bricks, curv, cap, build_cache, report=None, room=0.0) -> list:
+def _pass(volume, states, bricks, curv, cap, build_cache, report=None, room=0.0,
+          arena=None) -> list:  # fmt: skip
     """Walk ``bricks`` (in the states' common view order) for every state; caches and refill.
 
     Each brick is read and derived once (or taken from the memo) for all the states;
     ``report(fraction)`` follows after each brick.  Rendering only (no occlusion-free
     shares), a brick behind every ray's early termination is neither read nor walked.
-    ``room``: bytes the memos may take.
+    ``room``: bytes the memos may take; ``arena``: where the bricks' entries go.
     """
     memo, cmemo = _memo(volume, states[0], bricks, room, curv)
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
@@ -974,7 +1039,7 @@ def _pass(volume, states, bricks, curv, cap, build_cache, report=None, room=0.0)
     locked = _CURV_SCRATCH_LOCK.acquire(blocking=False)
     try:
         return _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo, keep,
-                            known, locked)  # fmt: skip
+                            known, locked, arena)  # fmt: skip
     finally:
         if locked:
             _CURV_SCRATCH_LOCK.release()
@@ -986,7 +1051,7 @@ _CURV_SCRATCH_LOCK = threading.Lock()
 
 
 def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo, keep, known,
-                 locked) -> list:  # fmt: skip
+                 locked, arena=None) -> list:  # fmt: skip
     """:func:`_pass` once its memos are known (``locked``: the curvature scratch is ours)."""
     caches = [[] if build_cache else None for _ in states]
     kept = [[] for _ in states]
@@ -1023,7 +1088,7 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
             c = walk(st, piece, br, offset=off, curvature=cv, build_cache=build_cache,
                      keep_codes=keep and codes is None, derived=derived,
                      progress=part, shade_all=not lazy,
-                     curvature_all=not lazy_curv)  # fmt: skip
+                     curvature_all=not lazy_curv, arena=arena)  # fmt: skip
             if not build_cache or c is None:
                 continue
             caches[n].append(c)

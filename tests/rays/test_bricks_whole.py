@@ -209,3 +209,19 @@ def test_a_lazily_shaded_bricked_cache_reevaluates_as_the_whole_one(scene):
     left = int(np.count_nonzero(parts.cache.shading[:, 0] == _UNSET))
     assert left < unset  # the low opacities reached entries the walk had not shaded
     assert int(np.count_nonzero(parts.cache.curvature < 0.0)) < no_curv
+
+
+def test_a_later_bricked_analysis_leaves_an_earlier_cache_alone(scene):
+    """The bricks' entries go through reused memory; the merged cache is the analysis's own."""
+    vol, spec, curv = scene
+    cams = [Camera.from_view(vol.bounds, width=30, height=30, azimuth=a, elevation=10.0)
+            for a in (20.0, 200.0)]  # fmt: skip
+    first = analyze(vol, spec, cam := cams[0], curvature=curv, brick=SIZES[1])
+    lut = first.cache.lut.copy()
+    analyze(vol, spec, cams[1], curvature=curv, brick=SIZES[1])  # reuses the memory
+    analyze(vol, spec, cams[1], curvature=curv, brick=SIZES[0])
+    assert np.array_equal(first.cache.lut, lut)
+    whole = analyze(vol, spec, cam, curvature=curv)
+    ops = (0.6, 0.1, 0.3)
+    assert _max_diff(reevaluate(whole.cache, opacities=ops),
+                     reevaluate(first.cache, opacities=ops)) <= 1e-6  # fmt: skip
