@@ -2,7 +2,11 @@
 #
 #   make demo    set up everything, then render the phantom into demo_out/
 #   make test    set up everything, then ruff check, ruff format --check, pytest
-#   make bench   benchmark JSON for the phantom, engine and cthead at 512x512
+#   make bench   benchmark JSON for the phantom, engine and cthead at 512x512 (benchmarks/bench/)
+#   make docs    the manual (Sphinx) into docs/_build/html, warnings as errors
+#   make optimiser-figures  benchmarks/optimizer_acceptance.json (the manual's optimiser table)
+#   make readme-image       docs/images/readme_before_after.png (the README's image)
+#   make renderer-figures   benchmarks/check_renderer.jsonl (the manual's image-agreement table)
 #   make report  regenerate benchmarks/REPORT.md (the paper's experiments; REPORT_ARGS=--quick)
 #   make scale   benchmarks/scale.json: time and memory against volume size, MPI ranks
 #   make paraview-setup   ParaView, Xvfb and .pvdeps/ for the plugin and `dvr-perception pvbatch`;
@@ -20,6 +24,9 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.dvr-perception-installed
 DATA ?= ../shared/data
 BENCH_SIZE ?= 512
+BENCH_REPEAT ?= 5
+README_IMAGE_ARGS ?= --size 384
+OPTIMISER_DATASETS ?= phantom,engine,cthead,lidc_chest,tooth,neghip,bonsai
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6
 # Web app (issue 7): its browser tests drive Debian's Chromium with playwright (never
 # `playwright install`, which downloads a browser).
@@ -40,10 +47,10 @@ ifeq ($(strip $(DISPLAY)),)
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
 endif
 
-.PHONY: help setup system-deps browser-deps paraview-setup paraview-macros paraview-system test lint demo bench report scale clean
+.PHONY: help setup system-deps browser-deps paraview-setup paraview-macros paraview-system test lint demo bench report scale clean docs readme-image optimiser-figures renderer-figures
 
 help:
-	@echo "targets: demo, test, bench, report, setup, paraview-setup, lint, clean"
+	@echo "targets: demo, test, docs, bench, report, setup, paraview-setup, lint, clean"
 
 setup: system-deps $(STAMP)
 
@@ -139,16 +146,56 @@ lint: setup
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
+# the manual builds after the tests, so that the gallery's scripts find numba's kernels cached
 test: lint browser-deps paraview-setup
 	$(BIN)/pytest
+	@$(MAKE) --no-print-directory docs
+
+# the manual: user guide, API reference from the docstrings, gallery (its scripts run), the
+# figures read from benchmarks/*.json; warnings are errors
+docs: setup
+	$(BIN)/sphinx-build -W --keep-going -q -b html docs docs/_build/html
+	@echo "docs: docs/_build/html/index.html"
+
+# benchmarks/check_renderer.jsonl: the manual's image-agreement table (our engine against VTK's
+# CPU ray caster, unshaded and shaded, and against the PyVista display; 256x256, three views)
+renderer-figures: setup
+	@set -e; out=benchmarks/check_renderer.jsonl; : > $$out.tmp; \
+	for v in phantom $(DATA)/engine.nhdr $(DATA)/cthead.nhdr $(DATA)/tooth.nhdr; do \
+	  for view in 0,0 40,30 120,0; do \
+	    for mode in --no-shade --shade "--against plotter"; do \
+	      r=$$($(BIN)/dvr-perception check-renderer $$v --size 256 --view=$$view $$mode \
+	           --out-dir build/check_renderer --json); \
+	      echo "{\"view\": \"$$view\", \"mode\": \"$$mode\", \"result\": $$r}" >> $$out.tmp; \
+	    done; \
+	  done; \
+	done; mv $$out.tmp $$out; echo "renderer-figures: wrote $$out"
+
+# the README's before/after image, made by the command the README names beside it
+readme-image: setup
+	$(BIN)/dvr-perception optimize $(DATA)/cthead.nhdr $(README_IMAGE_ARGS) --out build/readme_image
+	cp build/readme_image/before_after.png docs/images/readme_before_after.png
 
 demo: setup
 	$(BIN)/dvr-perception demo --out demo_out
 
+# benchmarks/bench/NAME.json: the manual's speed table (docs/guide/figures.md) reads them
 bench: setup
-	$(BIN)/dvr-perception bench phantom --size $(BENCH_SIZE) --json
-	$(BIN)/dvr-perception bench $(DATA)/engine.nhdr --size $(BENCH_SIZE) --json
-	$(BIN)/dvr-perception bench $(DATA)/cthead.nhdr --size $(BENCH_SIZE) --json
+	@mkdir -p benchmarks/bench
+	@set -e; for v in phantom $(DATA)/engine.nhdr $(DATA)/cthead.nhdr; do \
+	  n=$$(basename $$v .nhdr); \
+	  $(BIN)/dvr-perception bench $$v --size $(BENCH_SIZE) --repeat $(BENCH_REPEAT) --json \
+	    > benchmarks/bench/$$n.json.tmp; \
+	  mv benchmarks/bench/$$n.json.tmp benchmarks/bench/$$n.json; \
+	  echo "bench: wrote benchmarks/bench/$$n.json"; \
+	done
+
+# benchmarks/optimizer_acceptance.json: the manual's optimiser table (the whole three-stage run
+# with the defaults on the shared volumes at 512x512; about 4 minutes on 2 idle cores)
+optimiser-figures: setup
+	$(BIN)/python -m dvr_perception.optimize.acceptance --size $(BENCH_SIZE) --data $(DATA) \
+	  --datasets $(OPTIMISER_DATASETS) --out build/acceptance
+	cp build/acceptance/acceptance.json benchmarks/optimizer_acceptance.json
 
 report: setup
 	$(BIN)/dvr-perception report --data $(DATA) --out benchmarks -v $(REPORT_ARGS)
@@ -159,4 +206,4 @@ scale: setup
 	$(BIN)/python -m benchmarks.scale --data $(DATA) --out benchmarks/scale.json $(SCALE_ARGS)
 
 clean:
-	rm -rf demo_out bench_out .pytest_cache build
+	rm -rf demo_out bench_out .pytest_cache build docs/_build docs/api docs/auto_examples

@@ -34,6 +34,11 @@ def __getattr__(name):
     raise AttributeError(name)
 
 
+def __dir__():
+    """List the module's names with the lazily imported ``DVRApp`` (for ``dir()``, autodoc)."""
+    return sorted({*globals(), *__all__})
+
+
 def serve(app, *, port: int = 8080, host: str = "127.0.0.1") -> None:
     """Serve ``app`` on ``host:port`` until interrupted (blocking; no browser is opened).
 

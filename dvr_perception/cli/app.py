@@ -2,8 +2,9 @@
 
 The app needs the ``app`` extra (``pip install 'dvr-perception[app]'``).  It listens on
 127.0.0.1 by default and prints the address to open, with a random secret made for this run
-(``?secret=...``); without it no page or websocket is served (see README, Security).  It
-reads the data folder only and writes into a per-user state folder (``--state-dir``).
+(``?secret=...``); without it no page or websocket is served (see the manual's Security
+page, ``docs/guide/security.md``).  It reads the data folder only and writes into a
+per-user state folder (``--state-dir``).
 """
 
 from __future__ import annotations

@@ -151,8 +151,9 @@ class _LayerSets:
         #: ones, nothing covered is hidden.
         self.visible: np.ndarray | None = None
         self.carry: np.ndarray | None = None
-        #: Luminance of the view without layer ``e`` (``recomposite(e)``, computed once per
-        #: layer), or ``None`` when the analysis has no re-evaluation cache; ``prefer``: an
+        #: Luminance of the view without layer ``e`` on the pixels of a mask
+        #: (``recomposite(e, mask)``, computed once per layer: exact on ``mask``), or ``None``
+        #: when the analysis has no re-evaluation cache; ``prefer``: an
         #: encloser's TAP background is that view first (D3), else only when its plain view
         #: is missing or uniform.
         self.recomposite = None
@@ -306,8 +307,8 @@ class _LayerSets:
         """Read D3's TAP against the same pixels without ``e`` (reason "" without a cache)."""
         if self.recomposite is None:
             return float("nan"), ""
-        if e not in self._recomposited:
-            self._recomposited[e] = self.recomposite(e)
+        if e not in self._recomposited:  # read on ``shown`` only: those rays re-composited
+            self._recomposited[e] = self.recomposite(e, shown)
         alpha = transmitted_tap(lum_p, self._recomposited[e][shown], self.contrast)
         if math.isnan(alpha):
             return alpha, "what it covers has no luminance contrast without it"

@@ -72,12 +72,14 @@ def has_cache(analysis) -> bool:
     return callable(getattr(cache, "reevaluate", None))
 
 
-def _without(analysis, spec, layer: int) -> np.ndarray:
+def _without(analysis, spec, layer: int, pixels=None) -> np.ndarray:
     """Luminance of the same view with ``layer``'s opacity 0 (from the re-evaluation cache).
 
     The other parameters are those the analysis was rendered with (``stats["params"]`` of an
     engine analysis, so a re-evaluated analysis is re-composited with its own opacities,
-    colours, materials and light), else ``spec``'s opacities and colours.
+    colours, materials and light), else ``spec``'s opacities and colours.  ``pixels`` (an
+    (H, W) bool mask) re-composites only those rays of an engine cache: the luminance is
+    exact there and not meant to be read elsewhere.
     """
     from dvr_perception.rays.engine import RayCache, reevaluate
 
@@ -94,7 +96,8 @@ def _without(analysis, spec, layer: int) -> np.ndarray:
         kwargs = {"opacities": ops, "colors": params["colors"], "lighting": params["lighting"],
                   "light_direction": params["light_direction"]}  # fmt: skip
         if isinstance(cache, RayCache):
-            other = reevaluate(cache, background=spec.background, **kwargs)
+            rays = None if pixels is None else np.flatnonzero(pixels)
+            other = reevaluate(cache, background=spec.background, rays=rays, **kwargs)
         else:  # a stand-in that re-composites itself (the MPI ranks' RankCache)
             other = cache.reevaluate(**kwargs)
     else:

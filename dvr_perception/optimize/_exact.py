@@ -27,8 +27,9 @@ import numpy as np
 from dvr_perception.rays import _tables
 
 try:
-    from numba import njit
+    from numba import njit, prange
 except ImportError:  # no numba: the same loop in plain Python (slow, same numbers)
+    prange = range
 
     def njit(*args, **_kwargs):
         """Stand-in for :func:`numba.njit` that returns the function unchanged."""
@@ -37,16 +38,22 @@ except ImportError:  # no numba: the same loop in plain Python (slow, same numbe
 
 __all__ = ["OpacityModel"]
 
+#: From this many selected rays on, the rays are composited on all threads
+#: (:func:`_composite_grad_parallel`; every ray's numbers are the same either way).
+PARALLEL_RAYS = 4096
 
-@njit(cache=True)  # serial: a few ms of work, and the cores are often shared
-def _composite_grad(rays, start, count, lut, ids, alpha, dalpha, k, ert, grad, vis, dvis, acc,
-                    dacc):  # fmt: skip
+
+def _composite_grad_body(rays, start, count, lut, ids, alpha, dalpha, k, ert, grad, vis, dvis,
+                         acc, dacc):  # fmt: skip
     """Per selected ray: visible opacity per structure, accumulated opacity, and gradients.
 
     Without ``grad`` only ``vis`` and ``acc`` are written (``dvis`` and ``dacc`` are not
-    touched and may be any arrays of the right dimensions).
+    touched and may be any arrays of the right dimensions).  Compiled twice: serial
+    (:func:`_composite_grad`, few rays) and over the rays in parallel
+    (:func:`_composite_grad_parallel`); each ray is independent of the others, so both give
+    the same numbers.
     """
-    for i in range(rays.shape[0]):
+    for i in prange(rays.shape[0]):
         r = rays[i]
         g = np.zeros(k)
         tr = 1.0
@@ -76,6 +83,16 @@ def _composite_grad(rays, start, count, lut, ids, alpha, dalpha, k, ert, grad, v
         if grad:
             for q in range(k):
                 dacc[q, i] = -tr * g[q]
+
+
+_composite_grad = njit(cache=True)(_composite_grad_body)
+_composite_grad_parallel = njit(parallel=True, cache=True)(_composite_grad_body)
+
+
+def composite_grad(rays, *args) -> None:
+    """Run :func:`_composite_grad_body`: serial below :data:`PARALLEL_RAYS` rays, else parallel."""
+    kernel = _composite_grad if rays.shape[0] < PARALLEL_RAYS else _composite_grad_parallel
+    kernel(rays, *args)
 
 
 @njit(cache=True)
@@ -179,7 +196,7 @@ class OpacityModel:
                 vis, acc = np.empty((k, n)), np.empty(n)
                 m = n if grad else 1
                 dvis, dacc = np.zeros((k, k, m)), np.zeros((k, m))
-                _composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha,
+                composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha,
                                 k, _tables.ERT, grad, vis, dvis, acc, dacc)  # fmt: skip
             acc32, vis32 = acc.astype(np.float32), vis.astype(np.float32)  # as the engine's
             diff = target - vis32.astype(np.float64)
@@ -228,7 +245,7 @@ class OpacityModel:
                 alpha, dalpha, ids = self._tables(cache, ops)
                 vis, acc = np.empty((k, n)), np.empty(n)
                 dvis, dacc = np.zeros((k, k, n)), np.zeros((k, n))
-                _composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha,
+                composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha,
                                 k, _tables.ERT, True, vis, dvis, acc, dacc)  # fmt: skip
             vis = np.asarray(vis, np.float64)
             dvis = np.asarray(dvis, np.float64)

@@ -175,6 +175,7 @@ class Problem:
         )
         self.nfev = 0
         self._fixed = {}  # (view, whole) -> what does not depend on the parameters
+        self._last = {}  # view -> (params, analysis) of the latest rendering
 
     def present(self) -> np.ndarray:
         """(K,) bool: structures met by some masked ray of some view."""
@@ -215,8 +216,13 @@ class Problem:
         """Return the ray analysis of ``params`` in ``view`` (re-composited from the cache).
 
         A cache with a ``reevaluate`` method of its own (the MPI ranks' :class:`~dvr_perception.
-        distributed.RankCache`) re-composites itself.
+        distributed.RankCache`) re-composites itself.  The latest rendering of each view is
+        kept: the same parameters again (e.g. the final rendering after the re-check at the
+        user's resolution) return it without compositing.
         """
+        last = self._last.get(view)
+        if last is not None and last[0].same(params):
+            return last[1]
         cache = self.caches[view]
         kwargs = {
             "opacities": np.clip(params.opacities, 0.0, 1.0),
@@ -225,8 +231,12 @@ class Problem:
             "light_direction": params.light,
         }
         if hasattr(cache, "reevaluate"):
-            return cache.reevaluate(**kwargs)
-        return reevaluate(cache, **kwargs)
+            out = cache.reevaluate(**kwargs)
+        else:
+            out = reevaluate(cache, **kwargs)
+        fields = ("opacities", "lighting", "colors", "light")
+        self._last[view] = (Params(*(np.array(getattr(params, f)) for f in fields)), out)
+        return out
 
     def terms(self, params: Params, *, whole=False, need=TERMS, analyses=None) -> dict:
         """Terms ``{E_v, E_s, E_t, E, S, coverage, luminance, visible_share, badness}``.

@@ -275,17 +275,29 @@ def _run_exact(run, x0, groups, group_structures, max_iter, info, history):
         user = (OpacityModel(run.verify[0], params0), stage.floor(run.verify[1]))
     memo = {}
 
-    def cheap(y):
+    def cheap(y, grad=False):
+        """``(E_v, coverage, dE_v, dcoverage, share slack, dslack)`` at ``y``, remembered.
+
+        The gradients (``None`` until asked for with ``grad``) are computed on demand: SLSQP
+        asks for values alone at its line-search points.  A point counts as one model
+        evaluation (:data:`SLSQP_EVALS`) whether or not its gradients are asked for.
+        """
         key = np.asarray(y, float).tobytes()
-        if key not in memo:
+        hit = memo.get(key)
+        if hit is None or (grad and hit[2] is None):
             ops = ops0.copy()
             ops[idx] = np.exp(np.clip(y, lo, hi))
-            e_v, cov, g_v, g_c, share, d_share = model.evaluate(ops, shares=True)
+            e_v, cov, g_v, g_c, share, d_share = model.evaluate(ops, grad=grad, shares=True)
+            if hit is not None:  # the gradients of a point already counted
+                model.nfev -= 1
             jac = np.exp(np.clip(y, lo, hi))
             s, ds = share[guarded], d_share[guarded][:, idx] * jac
-            memo[key] = (e_v, cov, g_v[idx] * jac, g_c[idx] * jac,
-                         np.concatenate([s - share_lo, share_hi - s]),
-                         np.concatenate([ds, -ds]))  # fmt: skip
+            slack = np.concatenate([s - share_lo, share_hi - s])
+            if not grad:
+                memo[key] = (e_v, cov, None, None, slack, None)
+            else:
+                memo[key] = (e_v, cov, g_v[idx] * jac, g_c[idx] * jac, slack,
+                             np.concatenate([ds, -ds]))  # fmt: skip
         return memo[key]
 
     class _Budget(Exception):
@@ -311,12 +323,12 @@ def _run_exact(run, x0, groups, group_structures, max_iter, info, history):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 minimize(
-                    value, y_from, jac=lambda y: cheap(y)[2], method="SLSQP",
+                    value, y_from, jac=lambda y: cheap(y, True)[2], method="SLSQP",
                     bounds=[(lo, hi)] * idx.size,
                     constraints=[{"type": "ineq", "fun": lambda y: cheap(y)[1] - floor,
-                                  "jac": lambda y: cheap(y)[3]}]
+                                  "jac": lambda y: cheap(y, True)[3]}]
                     + ([{"type": "ineq", "fun": lambda y: cheap(y)[4],
-                         "jac": lambda y: cheap(y)[5]}] if guarded.size else []),
+                         "jac": lambda y: cheap(y, True)[5]}] if guarded.size else []),
                     options={"maxiter": SLSQP_ITER, "ftol": 1e-5},
                 )  # fmt: skip
         except _Budget:
@@ -343,7 +355,7 @@ def _run_exact(run, x0, groups, group_structures, max_iter, info, history):
         short = user_shortfall(y)
         if short <= 0.0:
             return y
-        d = cheap(y)[3]
+        d = cheap(y, True)[3]
         if not np.any(d > 0):
             return None
         t = 1.5 * short / float(d @ d)

@@ -2,7 +2,7 @@
 
 Load it with *Tools > Manage Plugins > Load New...*, ``LoadPlugin(path, ns=globals())`` in
 pvpython, or put this folder on ``PV_PLUGIN_PATH``.  ParaView 5.11 with Python >= 3.11 also
-needs ``dvr_perception/paraview/pvsite`` on ``PYTHONPATH`` (see ``paraview/README.md``).
+needs ``dvr_perception/paraview/pvsite`` on ``PYTHONPATH`` (see ``docs/guide/paraview.md``).
 
 The three proxies are shells: they declare the properties ParaView shows and hand every pipeline
 pass to the library's VTK filter (:mod:`dvr_perception.filters`), which is imported only when

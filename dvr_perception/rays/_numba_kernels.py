@@ -19,7 +19,8 @@ Kernels, parallel over chunks of image tiles (:func:`dvr_perception.rays.engine.
 * Shading and curvature of entries the walk's compositing did not reach (behind early ray
   termination) are marked unset (65535, curvature -1) and computed lazily (:func:`_fill`)
   the first time a re-evaluation reaches them; :func:`invalidate` marks all shading so after
-  a change of light.
+  a change of light, :func:`invalidate_structures` only some structures' after a change of
+  their specular powers.
   Sample positions are recomputed bit-identically from the sample index (no fp contraction).
 * :func:`segments` sets up every pixel's ray; :func:`compact` packs the entries in pixel order.
 
@@ -32,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["compact", "composite", "invalidate", "segments", "walk"]
+__all__ = ["compact", "composite", "invalidate", "invalidate_structures", "segments", "walk"]
 
 # VTK's fixed-point trilinear weights sum to 32765/32768 and the index is rounded up.
 _W_SCALE = 32765.0 / 32768.0
@@ -691,3 +692,19 @@ def finish(rgba, vis, cimg, bg, rgba32, image, acc, vis32, cimg32):
         cimg32[r] = np.float32(cimg[r])
         for s in range(k):
             vis32[s, r] = np.float32(vis[s, r])
+
+
+@njit(parallel=True, cache=True)
+def invalidate_structures(c_sh, c_lut, ids, stale):
+    """Mark the shading of the ``stale`` structures' entries as "not yet computed".
+
+    After a change of specular powers alone (same light and view): the shading table changed
+    only in those structures' rows, so the other entries keep theirs.  Entries outside every
+    structure (``ids < 0``, never shaded) are marked too.
+    """
+    n = c_sh.shape[0]
+    for ch in prange(64):
+        for i in range(ch * n // 64, (ch + 1) * n // 64):
+            s = ids[c_lut[i]]
+            if s < 0 or stale[s]:
+                c_sh[i, 0] = _UNSET

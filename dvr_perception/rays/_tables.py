@@ -25,6 +25,7 @@ __all__ = [
     "min_step",
     "shading_key",
     "shading_table",
+    "stale_structures",
     "step_and_unit",
 ]
 
@@ -191,6 +192,29 @@ def shading_table(light: np.ndarray, k: int) -> np.ndarray:
     hit = _SHADING_MEMO.get(key)
     if hit is not None:
         return hit
+    geo = _light_columns(light)
+    out = np.zeros((k, len(geo["diffuse"]), 2), np.uint16)
+    out[:, :, 0] = geo["diffuse"]
+    for s in range(k):
+        out[s, :, 1] = _specular_column(geo, float(light[3, s]))
+    out.flags.writeable = False
+    if len(_SHADING_MEMO) >= 8:
+        _SHADING_MEMO.pop(next(iter(_SHADING_MEMO)), None)
+    _SHADING_MEMO[key] = out
+    return out
+
+
+#: Per light geometry (light, half vector, view): the diffuse column and the specular
+#: columns by power (an optimiser changes one structure's power at a time).
+_LIGHT_MEMO: dict = {}
+
+
+def _light_columns(light: np.ndarray) -> dict:
+    """Return the power-independent part of :func:`shading_table` for ``light``'s geometry."""
+    key = light[4:7, :3].tobytes()
+    geo = _LIGHT_MEMO.get(key)
+    if geo is not None:
+        return geo
     if not _DIRECTIONS:
         from dvr_perception.rays._grid import code_directions
 
@@ -200,20 +224,59 @@ def shading_table(light: np.ndarray, k: int) -> np.ndarray:
     ndl = sign * (d @ light[4, :3])
     ndh = sign * (d @ light[5, :3])
     lit = ndl > 0.0
-    out = np.zeros((k, len(d), 2), np.uint16)
-    out[:, :, 0] = np.floor(np.where(lit, ndl, 0.0) * _SHADE_SCALE + 0.5)
     on = lit & (ndh > 0.001)
-    x = np.where(on, ndh, 0.0)
-    for s in range(k):
-        spec = np.where(on, np.power(x, light[3, s]), 0.0)
-        out[s, :, 1] = np.floor(np.minimum(spec, 1.0) * _SHADE_SCALE + 0.5)
-    out.flags.writeable = False
-    if len(_SHADING_MEMO) >= 8:
-        _SHADING_MEMO.pop(next(iter(_SHADING_MEMO)), None)
-    _SHADING_MEMO[key] = out
-    return out
+    geo = {
+        "diffuse": np.floor(np.where(lit, ndl, 0.0) * _SHADE_SCALE + 0.5).astype(np.uint16),
+        "on": on,
+        "x": np.where(on, ndh, 0.0),
+        "specular": {},
+    }
+    if len(_LIGHT_MEMO) >= 4:
+        _LIGHT_MEMO.pop(next(iter(_LIGHT_MEMO)), None)
+    _LIGHT_MEMO[key] = geo
+    return geo
+
+
+def _specular_column(geo: dict, power: float) -> np.ndarray:
+    """Return the specular column of :func:`shading_table` for one power (uint16, kept)."""
+    col = geo["specular"].get(power)
+    if col is None:
+        spec = np.where(geo["on"], np.power(geo["x"], power), 0.0)
+        col = np.floor(np.minimum(spec, 1.0) * _SHADE_SCALE + 0.5).astype(np.uint16)
+        if len(geo["specular"]) >= 24:
+            geo["specular"].pop(next(iter(geo["specular"])), None)
+        geo["specular"][power] = col
+    return col
 
 
 def shading_key(light: np.ndarray, k: int) -> bytes:
     """Return what :func:`shading_table` depends on (light, half vector, view, powers)."""
     return np.concatenate([[k], light[3, :k], light[4:7, :3].ravel()]).tobytes()
+
+
+def stale_structures(old: bytes, new: bytes) -> np.ndarray | None:
+    """Structures whose rows of :func:`shading_table` differ between two :func:`shading_key`.
+
+    ``None`` when the light, half vector or view changed (every row differs), else a (K,)
+    bool array: the structures whose specular power changed.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> light = np.zeros((7, 3))
+    >>> light[3], light[4:7, 2] = (8.0, 16.0, 32.0), 1.0
+    >>> other = light.copy()
+    >>> other[3, 1] = 20.0
+    >>> stale_structures(shading_key(light, 3), shading_key(other, 3)).tolist()
+    [False, True, False]
+    >>> other[4, :] = (0.6, 0.0, 0.8)
+    >>> stale_structures(shading_key(light, 3), shading_key(other, 3)) is None
+    True
+    """
+    a, b = np.frombuffer(old, np.float64), np.frombuffer(new, np.float64)
+    if a.size != b.size or a.size == 0 or a[0] != b[0]:
+        return None
+    k = int(a[0])
+    if not np.array_equal(a[1 + k :], b[1 + k :]):
+        return None
+    return a[1 : 1 + k] != b[1 : 1 + k]

@@ -716,6 +716,27 @@ def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, mod
     return rgba, vis, asg, present, cimg, start, count, entries, int(walked.sum())
 
 
+def _subset_order(rays, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return the visiting order of the flat pixel indices ``rays`` and its chunk pointers.
+
+    The indices sorted and unique, in at most :data:`_CHUNKS` chunks of consecutive runs
+    (as :func:`ray_order`'s ``(order, chunk_ptr)``).
+    """
+    try:
+        order = np.array(rays, np.int64).ravel()  # a copy: made read-only below
+    except (TypeError, ValueError):
+        raise DVRInputError("rays: expected flat pixel indices") from None
+    if order.size > 1 and not np.all(order[1:] > order[:-1]):  # flatnonzero's already are
+        order = np.unique(order)
+    if order.size and (order[0] < 0 or order[-1] >= n):
+        raise DVRInputError(f"rays: expected flat pixel indices in [0, {n}), got {rays!r}")
+    nchunk = max(min(order.size // 16, _CHUNKS), 1)
+    chunk_ptr = (np.arange(nchunk + 1, dtype=np.int64) * order.size) // nchunk
+    order.flags.writeable = False  # typed as ray_order's (no second compilation)
+    chunk_ptr.flags.writeable = False
+    return order, chunk_ptr
+
+
 def reevaluate(
     cache: RayCache,
     *,
@@ -724,6 +745,7 @@ def reevaluate(
     colors=None,
     light_direction=None,
     background=None,
+    rays=None,
 ) -> RayAnalysis:
     """Re-composite a cached analysis with new opacities, materials, light or background.
 
@@ -751,6 +773,11 @@ def reevaluate(
         Light direction in camera coordinates (``(0, 0, 1)`` = headlight).
     background : array_like, optional
         RGB in [0, 1] behind the volume.
+    rays : array_like of int, optional
+        Flat pixel indices: re-composite only these rays (numba and cuda caches; each equal
+        to the whole image's to the last bit).  The other pixels hold zeros (the background's
+        colour in ``image``): a partial view, for measures that read only these pixels (the
+        view without an enclosing layer of :func:`~dvr_perception.measures.transparency`).
 
     Returns
     -------
@@ -794,7 +821,12 @@ def reevaluate(
                 cache.ids[cache.lut], tab, shade,
             )  # fmt: skip
         else:
-            nk.invalidate(cache.shading)
+            # specular powers alone changed: only those structures' entries are recomputed
+            stale = None if z.get("refill") else _tables.stale_structures(z["shading_key"], key)
+            if stale is None:
+                nk.invalidate(cache.shading)
+            else:
+                nk.invalidate_structures(cache.shading, cache.lut, cache.ids, stale)
             if z.get("fill") is not None:  # a lazily shaded bricked cache: shaded below
                 z["filled"] = None
             elif z.get("refill") is not None:  # a bricked cache: no whole volume to fill from
@@ -807,15 +839,20 @@ def reevaluate(
             cache.start, cache.count, cache.lut, cache.shading, cache.curvature, *args, k
         )
     else:  # the kernel writes the float32 results itself
+        alloc = np.empty if rays is None else np.zeros  # a partial view: zeros elsewhere
         out = (
             np.asarray(spec.background, np.float32),
-            np.empty((h * w, 4), np.float32),
-            np.empty((h * w, 3), np.float32),
-            np.empty(h * w, np.float32),
-            np.empty((k, h * w), np.float32),
-            np.empty(h * w, np.float32),
+            alloc((h * w, 4), np.float32),
+            alloc((h * w, 3), np.float32),
+            alloc(h * w, np.float32),
+            alloc((k, h * w), np.float32),
+            alloc(h * w, np.float32),
         )
-        order, chunk_ptr = ray_order(h, w, tile=(1, w))
+        if rays is None:
+            order, chunk_ptr = ray_order(h, w, tile=(1, w))
+        else:
+            order, chunk_ptr = _subset_order(rays, h * w)
+            out[2][:] = np.clip(out[0], 0.0, 1.0)
         nk.composite(
             cache.start, cache.count, cache.lut, z["steps"], cache.shading, cache.curvature,
             z["a"], z["b"], z["t"], z["step"], z["volume"], z["curvature_volume"], order,
@@ -823,6 +860,8 @@ def reevaluate(
             _tables.ERT, out,
         )  # fmt: skip
         stats = {"backend": cache.backend, "rays": h * w, "reevaluated": True}
+        if rays is not None:
+            stats.update(rays=len(order), partial=True)
         stats["params"] = _params(ops, cols, mats, direction)
         stats["cache_entries"] = len(cache.lut)
         res = _analysis(*out[1:4], out[4], cache.assigned, cache.present, out[5], spec, camera,

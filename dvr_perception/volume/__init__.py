@@ -43,3 +43,8 @@ def __getattr__(name: str):
 
         return make_phantom
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    """List the module's names with the lazily imported ones (for ``dir()`` and autodoc)."""
+    return sorted({*globals(), *__all__})

@@ -116,6 +116,34 @@ def test_exact_opacity_model_matches_the_problem(phantom):
         assert g_v[k] == pytest.approx((ev_u - ev_d) / (2 * h), rel=0.15, abs=5e-3)
 
 
+def test_exact_opacity_model_is_the_same_serial_and_parallel(phantom, monkeypatch):
+    """From PARALLEL_RAYS rays on the rays are composited in parallel: the same numbers."""
+    from dvr_perception.optimize import _exact
+
+    vol, spec, cam = phantom
+    problem = Problem([analyze(vol, spec, cam).cache], [None], spec, np.ones(3), {}, None)
+    model = OpacityModel(problem, Params.from_spec(spec))
+    ops = np.array([0.2, 0.5, 0.35, 0.6, 0.45, 0.8])
+    serial = model.evaluate(ops, shares=True)
+    monkeypatch.setattr(_exact, "PARALLEL_RAYS", 1)
+    parallel = model.evaluate(ops, shares=True)
+    for a, b in zip(serial, parallel, strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_the_latest_rendering_is_reused_for_the_same_parameters(phantom):
+    vol, spec, cam = phantom
+    problem = Problem([analyze(vol, spec, cam).cache], [None], spec, np.ones(3), {}, None)
+    params = Params.from_spec(spec)
+    first = problem.render(params)
+    assert problem.render(params.replace(opacities=params.opacities.copy())) is first
+    other = problem.render(params.replace(opacities=params.opacities * 0.5))
+    assert other is not first
+    assert not np.array_equal(other.rgba, first.rgba)
+    assert problem.render(params) is not first  # only the latest is kept
+    assert np.array_equal(problem.render(params).rgba, first.rgba)
+
+
 def test_no_fading_holds_at_the_user_resolution(phantom):
     """Optimised on 24 px rays, the 48 px image keeps its coverage when the user asks for it
     (``coverage_keep=1``, checked exactly there)."""
