@@ -37,10 +37,11 @@ def deprecated_alias(new, old_name: str, new_path: str):
     return alias
 
 
-def renamed_keyword(old: str, new: str):
+def renamed_keyword(old: str, new: str, *, name: str | None = None):
     """Decorate a function whose keyword ``old`` is now ``new``: ``old=`` warns and is passed on.
 
-    Giving both is a :class:`TypeError`, as any repeated argument.
+    Giving both is a :class:`TypeError`, as any repeated argument.  ``name`` is the callable's
+    name in the messages (default: the function's ``__name__``; e.g. the class for ``__init__``).
 
     Examples
     --------
@@ -55,13 +56,15 @@ def renamed_keyword(old: str, new: str):
     """
 
     def decorate(fn):
+        shown = name or fn.__name__
+
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
             if old in kwargs:
                 if new in kwargs:
-                    raise TypeError(f"{fn.__name__}() got both {old}= and {new}= (use {new}=)")
+                    raise TypeError(f"{shown}() got both {old}= and {new}= (use {new}=)")
                 warnings.warn(
-                    f"{fn.__name__}({old}=...) is deprecated; use {new}=",
+                    f"{shown}({old}=...) is deprecated; use {new}=",
                     DeprecationWarning,
                     stacklevel=2,
                 )

@@ -539,7 +539,7 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
             rows.append(
                 {
                     "name": s.name,
-                    "color": rgb_to_hex(s.color),
+                    "color": rgb_to_hex(s.colour),
                     "visible": round(100 * float(visible[s.name]), 1),
                     "wanted": round(100 * float(wanted.get(s.name, {}).get("wanted", 0.0)), 1),
                 }
@@ -611,7 +611,7 @@ class DVRApp(OptimiseHandlers, TFHandlers, LensHandlers, StudyHandlers, TrameApp
     @guard
     def set_colour(self, index, value):
         """Colour picked: set a structure's colour."""
-        self.session.set_structure(index, color=value)
+        self.session.set_structure(index, colour=value)
         self._show_spec()
 
     @guard

@@ -169,7 +169,7 @@ class LensHandlers:
             rows.append(
                 {
                     **r,
-                    "color": rgb_to_hex(s.color),
+                    "color": rgb_to_hex(s.colour),
                     "use_vis": prev.get("use_vis", False),
                     "vis": prev.get("vis", round(min(max(share, 0.05), 1.0), 2)),
                     "use_tr": prev.get("use_tr", False),

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dvr_perception._deprecation import renamed_keyword
 from dvr_perception.errors import DVRInputError
 
 __all__ = [
@@ -522,12 +523,14 @@ class Session:
         n = len(self.undo_labels)
         return [{"steps": n - k, "label": self.undo_labels[k]} for k in range(n - 1, -1, -1)]
 
+    @renamed_keyword("color", "colour", name="Session.set_structure")
     def set_structure(
-        self, index: int, *, importance=None, color=None, value_range=None, opacity=None
+        self, index: int, *, importance=None, colour=None, value_range=None, opacity=None
     ):
         """Change one structure's importance (its opacity then follows it), colour or range.
 
-        ``opacity`` sets the rendering opacity alone (the transfer-function view's handle).
+        ``opacity`` sets the rendering opacity alone (the transfer-function view's handle);
+        ``colour`` is ``#rrggbb`` (``color=`` is a deprecated alias).
         """
         k = int(index)
         if not 0 <= k < len(self.spec.structures):
@@ -557,8 +560,8 @@ class Session:
             if not (math.isfinite(v) and 0.0 <= v <= 1.0):
                 raise DVRInputError(f"opacity of {s.name}: expected 0 to 1, got {opacity}")
             s = replace(s, opacity=v)
-        if color is not None:
-            s = replace(s, color=hex_to_rgb(color))
+        if colour is not None:
+            s = replace(s, colour=hex_to_rgb(colour))
         if s == self.spec.structures[k]:
             return self.spec
         what = "importance" if importance is not None else "colour"
@@ -582,7 +585,7 @@ class Session:
                 "name": s.name,
                 "importance": round(float(s.importance), 3),
                 "opacity": round(float(s.render_opacity), 3),
-                "color": rgb_to_hex(s.color),
+                "color": rgb_to_hex(s.colour),
                 "range": [round(float(v), 1) for v in s.range] if s.range else None,
                 "label": None if s.label is None else int(s.label),
             }

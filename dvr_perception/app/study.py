@@ -241,7 +241,7 @@ class RankingTask:
         ids, urls, measured = [], {}, {}
         for n, level in enumerate(RANKING_LEVELS):
             structures = list(spec.structures)
-            structures[k] = replace(target, color=_brighter(target.color, level))
+            structures[k] = replace(target, colour=_brighter(target.colour, level))
             variant = replace(spec, structures=tuple(structures))
             analysis = analyze(volume, variant, camera, curvature=curvature, build_cache=True)
             t = transparency(analysis, variant).per_structure.get(target.name, {})

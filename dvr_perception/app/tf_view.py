@@ -157,7 +157,7 @@ def tf_chart(histogram: dict, spec, *, before=None) -> dict:
             {
                 "index": k,
                 "name": s.name,
-                "color": rgb_to_hex(s.color),
+                "color": rgb_to_hex(s.colour),
                 "points": _points(pts),
                 "x_lo": _f(pts[0][0]),
                 "x_hi": _f(pts[3][0]),
@@ -170,7 +170,7 @@ def tf_chart(histogram: dict, spec, *, before=None) -> dict:
     old = []
     if before is not None:
         old = [
-            {"points": _points(_trapezoid(s, lo, hi)), "color": rgb_to_hex(s.color)}
+            {"points": _points(_trapezoid(s, lo, hi)), "color": rgb_to_hex(s.colour)}
             for s in before.structures
             if s.range is not None
         ]
@@ -269,7 +269,7 @@ def colour_bar_stops(spec, histogram: dict) -> list[dict]:
         out.append(
             {
                 "name": s.name,
-                "color": rgb_to_hex(s.color),
+                "color": rgb_to_hex(s.colour),
                 "start": round(min(max(a, 0.0), 100.0), 2),
                 "end": round(min(max(b, 0.0), 100.0), 2),
             }

@@ -195,7 +195,7 @@ def apply_params(spec, params: dict):
                 **{k: float(v) for k, v in params["lighting"][s.name].items()}
             )
         if s.name in params.get("color", {}):
-            changes["color"] = tuple(float(c) for c in params["color"][s.name])
+            changes["colour"] = tuple(float(c) for c in params["color"][s.name])
         out.append(replace(s, **changes))
     rendering = spec.rendering
     if "light_direction" in params:
@@ -250,7 +250,7 @@ def _two_structures(name: str, spec):
         block = Structure(
             "block",
             0.5,
-            by["light metal"].color,
+            by["light metal"].colour,
             range=(lo, hi),
             edge=0.1,
             lighting=by["light metal"].lighting,
@@ -393,9 +393,9 @@ def run_shape(cfg: Config, start_spec, name: str = "cthead") -> dict:
 
 
 # -- Fig. 9: colour saturation and perceived transparency ---------------------------------------
-def with_saturation(color, fraction: float):
-    """``color`` with its HSV saturation set to ``fraction`` (hue and value kept)."""
-    h, _, v = colorsys.rgb_to_hsv(*color)
+def with_saturation(colour, fraction: float):
+    """``colour`` with its HSV saturation set to ``fraction`` (hue and value kept)."""
+    h, _, v = colorsys.rgb_to_hsv(*colour)
     return tuple(float(c) for c in colorsys.hsv_to_rgb(h, float(fraction), v))
 
 
@@ -415,7 +415,7 @@ def run_saturation(cfg: Config, name: str = "neghip", outer: str = "diffuse lobe
         s = replace(
             spec,
             structures=tuple(
-                replace(x, color=with_saturation(x.color, pct / 100)) if x.name == outer else x
+                replace(x, colour=with_saturation(x.colour, pct / 100)) if x.name == outer else x
                 for x in spec.structures
             ),
         )
@@ -424,7 +424,9 @@ def run_saturation(cfg: Config, name: str = "neghip", outer: str = "diffuse lobe
         series.append(
             {
                 "saturation_percent": pct,
-                "color": [float(c) for c in next(x.color for x in s.structures if x.name == outer)],
+                "color": [
+                    float(c) for c in next(x.colour for x in s.structures if x.name == outer)
+                ],
                 "perceived_transparency": m["perceived_transparency"],
                 "outer_transparency": m["perceived_transparency"][outer],
                 "outer_transparency_plain": m["perceived_transparency_plain"][outer],
@@ -464,7 +466,7 @@ def run_saturation(cfg: Config, name: str = "neghip", outer: str = "diffuse lobe
             "before": before,
             "after": after,
             "seconds": seconds,
-            "color_after": {x.name: [float(c) for c in x.color] for x in res.spec.structures},
+            "color_after": {x.name: [float(c) for c in x.colour] for x in res.spec.structures},
             "stage": _stage_record(res.stages[0]),
         },
         "checks": [

@@ -50,7 +50,11 @@ Reported figures (seconds unless stated):
   :func:`~dvr_perception.rays.memory.plan`: the whole volume whenever it fits the limit);
   ``bricks`` – per timed analysis (``frame``, ``render``, ``measure``) the bricks it walked,
   0 for the whole volume.  ``samples`` – the ray samples of a full frame (inside the volume);
-  ``samples_walked`` – those its walk visited.
+  ``samples_walked`` – those its walk visited (the cache-building walk visits every sample
+  behind early ray termination); ``samples_walked_skipping`` – those the ``measure``
+  analysis visited (no cache: behind early ray termination it skips what cannot change a
+  result, DECISIONS D8), ``samples_walked_exact`` – those the same analysis visits with
+  ``exact=True`` (the full walk; one more analysis, not timed).
 """
 
 from __future__ import annotations
@@ -302,9 +306,11 @@ def run(args: argparse.Namespace) -> int:
     all_measures(warm, spec)  # compiles the measures' kernels
     del warm  # one analysis at a time: the peak memory is a frame's, not two frames'
     bricks: dict[str, int] = {}  # per timed analysis: bricks walked (0: the whole volume)
+    walked_by: dict[str, int] = {}  # per timed analysis: samples its walk visited
 
     def counted(name, analysis):
         bricks[name] = int(analysis.stats.get("bricks", 0))
+        walked_by[name] = int(analysis.stats.get("samples_walked", 0))
         return analysis
 
     frames, vtk_frame_s, vtk_error, vtk_peak = _paired_frames(
@@ -342,6 +348,9 @@ def run(args: argparse.Namespace) -> int:
     measure_s = _measure_times(
         lambda: analyze(vol, spec, cam, curvature=curv, build_cache=False), spec, args.repeat
     )
+    exact = analyze(vol, spec, cam, curvature=curv, build_cache=False, exact=True)
+    walked_exact = int(exact.stats["samples_walked"])
+    del exact
 
     report = {
         "volume": inputs.volume_source,
@@ -373,6 +382,8 @@ def run(args: argparse.Namespace) -> int:
         "bricks": bricks,
         "samples": int(samples) if samples is not None else None,
         "samples_walked": int(walked) if walked is not None else None,
+        "samples_walked_skipping": walked_by.get("measure"),
+        "samples_walked_exact": walked_exact,
     }
     if vtk_error is not None:
         report["vtk_error"] = vtk_error

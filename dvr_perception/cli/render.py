@@ -64,10 +64,11 @@ def run(args: argparse.Namespace) -> int:
 
         curvature = curvature_source(inputs.volume, inputs.spec)
     # the image alone needs no sample behind early ray termination; the buffers' assigned
-    # (occlusion-free) opacities need every sample of every ray
+    # (occlusion-free) opacities need every sample of every ray (exact: not capped where
+    # presence saturates, as the measures alone would allow)
     result = analyze(
         inputs.volume, inputs.spec, inputs.camera, curvature=curvature, build_cache=False,
-        occlusion_free=buffers is not None, backend=args.backend,
+        occlusion_free=buffers is not None, backend=args.backend, exact=True,
     )  # fmt: skip
     seconds = time.perf_counter() - t0
     with staged_files(*([out] if buffers is None else [out, buffers])) as tmps:

@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from dvr_perception._deprecation import renamed_keyword
 from dvr_perception.errors import DVRInputError
 from dvr_perception.parallel import Communicator, peak_rss_mb
 from dvr_perception.rays.ranks import (
@@ -183,7 +184,7 @@ class RankSession:
                 self._analyze(cam)
             elif op == OP_REEVALUATE:
                 self._reevaluate(int(got["view"][0]), got["opacities"], got["lighting"],
-                                 got["colors"], got["light"])  # fmt: skip
+                                 got["colours"], got["light"])  # fmt: skip
             elif op == OP_OPACITY:
                 self._opacity(int(got["view"][0]), got["rays"], got["opacities"],
                               bool(got["grad"][0]))  # fmt: skip
@@ -244,7 +245,7 @@ class RankSession:
         engine_made(out, mark=True)
         return out
 
-    def _tables_of(self, view, opacities, lighting, colors, light_dir):
+    def _tables_of(self, view, opacities, lighting, colours, light_dir):
         """Return the view's colour, light and opacity tables (re-shading for a new light)."""
         from dvr_perception.rays import _tables, bricks
         from dvr_perception.structures.spec import Lighting
@@ -254,7 +255,7 @@ class RankSession:
         k = len(spec.structures)
         ops = _tables.check_opacities(opacities, k)
         mats = [Lighting(*(float(v) for v in row)) for row in np.asarray(lighting, float)]
-        cols, mats = _tables.material(spec, colors=np.asarray(colors, float), lighting=mats)
+        cols, mats = _tables.material(spec, colours=np.asarray(colours, float), lighting=mats)
         light = _tables.light_array(state.camera, mats, np.asarray(light_dir, float),
                                     spec.rendering.light_intensity)  # fmt: skip
         if t["shade"]:
@@ -276,7 +277,7 @@ class RankSession:
         alpha = _tables.alpha_table(t["ids"], t["memb"], ops, t["ratio"])
         return cols, light, alpha
 
-    def _reevaluate(self, v, opacities, lighting, colors, light_dir):
+    def _reevaluate(self, v, opacities, lighting, colours, light_dir):
         from dvr_perception.rays import _tables, bricks
 
         view = self.views[v]
@@ -292,7 +293,7 @@ class RankSession:
             return {"st": st, "vis": np.zeros((k, nrays))}
 
         def work(arrays):
-            cols, light, alpha = self._tables_of(view, opacities, lighting, colors, light_dir)
+            cols, light, alpha = self._tables_of(view, opacities, lighting, colours, light_dir)
             nb.composite_part(cache.start, cache.count, cache.lut, cache.shading,
                               cache.curvature, state.tables["ids"], alpha, cols, light,
                               state.tables["shade"], has_curv, _tables.ERT, arrays["st"],
@@ -352,7 +353,8 @@ class RankCache:
         self.importance_accumulated = analysis.importance_accumulated
         self.stats = dict(analysis.stats)
 
-    def reevaluate(self, *, opacities=None, lighting=None, colors=None, light_direction=None):
+    @renamed_keyword("colors", "colours")
+    def reevaluate(self, *, opacities=None, lighting=None, colours=None, light_direction=None):
         """:func:`~dvr_perception.rays.engine.reevaluate` over the ranks (same parameters)."""
         from dvr_perception.rays import _tables
         from dvr_perception.rays._walk_setup import _finish, _params
@@ -364,8 +366,8 @@ class RankCache:
         ops = _tables.check_opacities([x.render_opacity for x in s] if opacities is None
                                       else opacities, k)  # fmt: skip
         mats = [x.lighting for x in s] if lighting is None else list(lighting)
-        cols = np.array([x.color for x in s], float) if colors is None else colors
-        cols_checked, mats = _tables.material(spec, colors=cols, lighting=mats)
+        cols = np.array([x.colour for x in s], float) if colours is None else colours
+        cols_checked, mats = _tables.material(spec, colours=cols, lighting=mats)
         direction = spec.rendering.light_direction if light_direction is None else light_direction
         arrays = {
             "view": np.array([self.view], np.int64),
@@ -373,11 +375,11 @@ class RankCache:
             "lighting": np.array(
                 [[m.ambient, m.diffuse, m.specular, m.specular_power] for m in mats], float
             ),
-            "colors": np.asarray(cols, float),
+            "colours": np.asarray(cols, float),
             "light": np.asarray(direction, np.float64).reshape(-1),
         }
         self.session._command(OP_REEVALUATE, **arrays)
-        got = self.session._reevaluate(self.view, ops, arrays["lighting"], arrays["colors"],
+        got = self.session._reevaluate(self.view, ops, arrays["lighting"], arrays["colours"],
                                        arrays["light"])  # fmt: skip
         st, vis = got["st"], got["vis"]
         rgba = np.empty((len(st), 4))

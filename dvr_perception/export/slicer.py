@@ -198,7 +198,7 @@ def _label_nodes(spec, opacities) -> tuple[list[list[float]], list[list[float]],
     opacity: list[list[float]] = []
     for i in order:
         s = spec.structures[i]
-        label, rgb, op = float(s.label), [float(c) for c in s.color], float(ops[i])
+        label, rgb, op = float(s.label), [float(c) for c in s.colour], float(ops[i])
         for x, y in ((label - _HALF, 0.0), (label - _EDGE, op), (label + _EDGE, op)):
             opacity.append([x, y, 0.5, 0.0])
         opacity.append([label + _HALF, 0.0, 0.5, 0.0])
@@ -208,7 +208,7 @@ def _label_nodes(spec, opacities) -> tuple[list[list[float]], list[list[float]],
         {
             "name": s.name,
             "label": int(s.label),
-            "color": [float(c) for c in s.color],
+            "color": [float(c) for c in s.colour],
             "opacity": float(ops[i]),
             "importance": float(s.importance),
         }

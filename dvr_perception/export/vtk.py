@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import warnings
 
+from dvr_perception._deprecation import renamed_keyword
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.structures.spec import Lighting, Structure, StructureSpec
 from dvr_perception.structures.transfer import _opacities, _range_structures
@@ -91,7 +92,7 @@ def to_vtk_transfer_functions(
             otf.AddPoint(x, y)
         last = nodes[-1]
         inset = max(_COLOR_INSET * width, floor)
-        r, g, b = (float(c) for c in spec.structures[k].color)
+        r, g, b = (float(c) for c in spec.structures[k].colour)
         ctf.AddRGBPoint(lo + inset, r, g, b)
         ctf.AddRGBPoint(hi - inset, r, g, b)
     return ctf, otf
@@ -158,12 +159,14 @@ def _nodes(otf) -> list[tuple[float, float]]:
     return out
 
 
-def spec_from_vtk(color_tf, opacity_tf, *, names=None) -> StructureSpec:
+@renamed_keyword("color_tf", "colour_tf")
+def spec_from_vtk(colour_tf, opacity_tf, *, names=None) -> StructureSpec:
     """Recover trapezoid structures from VTK transfer functions (inverse of the converter).
 
     The opacity function must consist of 4-point trapezoids ``(lo, 0), (a, o), (b, o), (hi, 0)``
     (touching trapezoids may share their zero points).  Importance = plateau opacity, colour =
-    colour at the plateau centre, edge = ramp width / range width.
+    colour at the plateau centre, edge = ramp width / range width.  ``colour_tf`` is the
+    ``vtkColorTransferFunction`` (keyword ``color_tf=`` is a deprecated alias).
     """
     pts = _nodes(opacity_tf)
     structures = []
@@ -187,8 +190,8 @@ def spec_from_vtk(color_tf, opacity_tf, *, names=None) -> StructureSpec:
         edge = 0.0 if edge <= 10 * _STEP_WIDTH else edge
         k = len(structures)
         name = names[k] if names is not None and k < len(names) else f"structure_{k + 1}"
-        color = tuple(float(c) for c in color_tf.GetColor(0.5 * (a + b)))
-        structures.append(Structure(name, float(o), color, range=(lo, hi), edge=edge))
+        colour = tuple(float(c) for c in colour_tf.GetColor(0.5 * (a + b)))
+        structures.append(Structure(name, float(o), colour, range=(lo, hi), edge=edge))
         i += 3
     if names is not None and len(names) != len(structures):
         raise DVRInputError(

@@ -274,7 +274,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         p = Params.from_spec(res.spec)
         result = session.caches[0].reevaluate(
             opacities=np.clip(p.opacities, 0.0, 1.0), lighting=p.materials(),
-            colors=np.clip(p.colors, 0.0, 1.0), light_direction=p.light,
+            colours=np.clip(p.colours, 0.0, 1.0), light_direction=p.light,
         )  # fmt: skip
         try:  # measured while the ranks serve: E_t may re-composite through them (D7)
             self._fill_result(output, result, res, camera)
@@ -335,7 +335,7 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         structures = {s.name: s for s in opt.structures}
         ordered = [structures[n] for n in names]
         fd.AddArray(double_array([s.render_opacity for s in ordered], "opacity"))
-        fd.AddArray(point_array([list(s.color) for s in ordered], "color"))
+        fd.AddArray(point_array([list(s.colour) for s in ordered], "color"))
         for key in ("ambient", "diffuse", "specular", "specular_power"):
             fd.AddArray(double_array([getattr(s.lighting, key) for s in ordered], key))
         fd.AddArray(point_array([list(opt.rendering.light_direction)], "light_direction"))

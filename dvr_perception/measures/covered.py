@@ -93,7 +93,7 @@ def _without(analysis, spec, layer: int, pixels=None) -> np.ndarray:
     if params is not None:
         ops = list(params["opacities"])
         ops[layer] = 0.0
-        kwargs = {"opacities": ops, "colors": params["colors"], "lighting": params["lighting"],
+        kwargs = {"opacities": ops, "colours": params["colours"], "lighting": params["lighting"],
                   "light_direction": params["light_direction"]}  # fmt: skip
         if isinstance(cache, RayCache):
             rays = None if pixels is None else np.flatnonzero(pixels)
@@ -103,11 +103,11 @@ def _without(analysis, spec, layer: int, pixels=None) -> np.ndarray:
     else:
         ops = [float(s.render_opacity) for s in spec.structures]
         ops[layer] = 0.0
-        colors = [tuple(s.color) for s in spec.structures]
+        colours = [tuple(s.colour) for s in spec.structures]
         if isinstance(cache, RayCache):
-            other = reevaluate(cache, opacities=ops, colors=colors, background=spec.background)
+            other = reevaluate(cache, opacities=ops, colours=colours, background=spec.background)
         else:
-            other = cache.reevaluate(opacities=ops, colors=colors)
+            other = cache.reevaluate(opacities=ops, colours=colours)
     y, _ = _image_luminance(other, spec, analysis.accumulated.shape)
     return y
 

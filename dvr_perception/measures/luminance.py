@@ -37,7 +37,7 @@ def _finite_array(x, name: str) -> np.ndarray:
     return arr
 
 
-def _color_array(x, name: str, channels: int) -> np.ndarray:
+def _colour_array(x, name: str, channels: int) -> np.ndarray:
     arr = _finite_array(x, name)
     if arr.ndim < 1 or arr.shape[-1] != channels:
         hint = (
@@ -74,7 +74,7 @@ def luminance(rgb) -> np.ndarray:
     >>> luminance([[[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]]).round(4)
     array([[0.7152, 0.2126]])
     """
-    arr = _color_array(rgb, "rgb", 3)
+    arr = _colour_array(rgb, "rgb", 3)
     return arr @ np.asarray(LUMA_WEIGHTS)
 
 
@@ -114,7 +114,7 @@ def composite_luminance(rgba_premultiplied, *, background=(0.0, 0.0, 0.0)) -> np
     >>> float(composite_luminance(px, background=(1.0, 1.0, 1.0)))
     1.0
     """
-    arr = _color_array(rgba_premultiplied, "rgba_premultiplied", 4)
+    arr = _colour_array(rgba_premultiplied, "rgba_premultiplied", 4)
     bg = _finite_array(background, "background")
     if bg.shape != (3,) or np.any(bg < 0):
         raise DVRInputError(

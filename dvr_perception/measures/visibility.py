@@ -248,6 +248,14 @@ def visibility(
         )
     names = _names(analysis, spec, visible.shape[0])
     notes: list[str] = []
+    stats = getattr(analysis, "stats", None)
+    cap = stats.get("assigned_cap") if isinstance(stats, dict) else None
+    if cap is not None and composition == "thickness":  # the skipping walk (DECISIONS D8)
+        raise DVRInputError(
+            f"composition='thickness' reads the occlusion-free opacity beyond saturation, "
+            f"but this analysis holds it capped at {cap} (analyze(..., exact=False) without "
+            f"the cache); analyse with exact=True or build_cache=True"
+        )
     if getattr(analysis, "importance_accumulated", None) is None:
         notes.append("no importance_accumulated: the analysis is taken to be rendered at the "
                      "importances (A_imp = accumulated)")  # fmt: skip

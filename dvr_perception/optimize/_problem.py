@@ -45,6 +45,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from dvr_perception._deprecation import renamed_keyword
 from dvr_perception.errors import DVRWarning
 from dvr_perception.measures import shape
 from dvr_perception.measures.luminance import LUMA_WEIGHTS
@@ -60,12 +61,24 @@ TERMS = ("E_v", "E_s", "E_t")
 
 @dataclass(frozen=True, eq=False)
 class Params:
-    """Rendering parameters: opacities (K,), lighting (K, 4), colours (K, 3), light (3,)."""
+    """Rendering parameters: opacities (K,), lighting (K, 4), colours (K, 3), light (3,).
+
+    ``colors`` (attribute, constructor and :meth:`replace` keyword) is a deprecated alias of
+    ``colours``.
+    """
 
     opacities: np.ndarray
     lighting: np.ndarray
-    colors: np.ndarray
+    colours: np.ndarray
     light: np.ndarray
+
+    @property
+    def colors(self) -> np.ndarray:
+        """Deprecated alias of ``colours``."""
+        warnings.warn(
+            "Params.colors is deprecated; use Params.colours", DeprecationWarning, stacklevel=2
+        )
+        return self.colours
 
     @classmethod
     def from_spec(cls, spec: StructureSpec) -> Params:
@@ -85,10 +98,11 @@ class Params:
                 ],
                 float,
             ),
-            colors=np.array([x.color for x in s], float),
+            colours=np.array([x.colour for x in s], float),
             light=light / np.linalg.norm(light),
         )
 
+    @renamed_keyword("colors", "colours", name="Params.replace")
     def replace(self, **changes) -> Params:
         return replace(self, **{k: np.array(v, float) for k, v in changes.items()})
 
@@ -102,7 +116,7 @@ class Params:
                 s,
                 opacity=float(self.opacities[k]),
                 lighting=Lighting(*(float(v) for v in self.lighting[k])),
-                color=tuple(float(c) for c in self.colors[k]),
+                colour=tuple(float(c) for c in self.colours[k]),
             )
             for k, s in enumerate(spec.structures)
         )
@@ -119,15 +133,19 @@ class Params:
         return Params(
             opacities=(1.0 - t) * self.opacities + t * other.opacities,
             lighting=(1.0 - t) * self.lighting + t * other.lighting,
-            colors=(1.0 - t) * self.colors + t * other.colors,
+            colours=(1.0 - t) * self.colours + t * other.colours,
             light=light / max(float(np.linalg.norm(light)), 1e-12),
         )
 
     def same(self, other: Params) -> bool:
         return all(
             np.array_equal(getattr(self, f), getattr(other, f))
-            for f in ("opacities", "lighting", "colors", "light")
+            for f in ("opacities", "lighting", "colours", "light")
         )
+
+
+# ``Params(colors=...)`` keeps working for one release (a DeprecationWarning).
+Params.__init__ = renamed_keyword("colors", "colours", name="Params")(Params.__init__)
 
 
 class Problem:
@@ -227,14 +245,14 @@ class Problem:
         kwargs = {
             "opacities": np.clip(params.opacities, 0.0, 1.0),
             "lighting": params.materials(),
-            "colors": np.clip(params.colors, 0.0, 1.0),
+            "colours": np.clip(params.colours, 0.0, 1.0),
             "light_direction": params.light,
         }
         if hasattr(cache, "reevaluate"):
             out = cache.reevaluate(**kwargs)
         else:
             out = reevaluate(cache, **kwargs)
-        fields = ("opacities", "lighting", "colors", "light")
+        fields = ("opacities", "lighting", "colours", "light")
         self._last[view] = (Params(*(np.array(getattr(params, f)) for f in fields)), out)
         return out
 

@@ -425,7 +425,7 @@ def _why(problem, full_problem, start, params, initial, final, kept_stages) -> d
         "shape_before": shape[0], "shape_after": shape[1],
     }  # fmt: skip
     colour = {
-        "colors_before": start.colors, "colors_after": params.colors,
+        "colours_before": start.colours, "colours_after": params.colours,
         "transparency_before": trans[0], "transparency_after": trans[1],
         "shape_before": shape_c[0], "shape_after": shape_c[1],
     }  # fmt: skip

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import colorsys
 import math
+import warnings
 
 import numpy as np
 
@@ -297,7 +298,7 @@ def _dist(c0, c1) -> float:
 
 
 def _colour(i, names, cl, overlap, verbose) -> str | None:
-    c0, c1 = np.asarray(cl["colors_before"], float), np.asarray(cl["colors_after"], float)
+    c0, c1 = np.asarray(cl["colours_before"], float), np.asarray(cl["colours_after"], float)
     size = _dist(c0[i], c1[i])
     if size < _LAB_SEEN:
         return None
@@ -385,7 +386,8 @@ def explain(names, opacities_before, opacities_after, shares_before, shares_afte
         y up, z to the viewer) and optionally ``shape_before``, ``shape_after`` ((K,): each
         structure's shape mismatch, lower is better, across the lighting stage).
     colour : dict, optional
-        ``colors_before``, ``colors_after`` ((K, 3) RGB in [0, 1]) and optionally
+        ``colours_before``, ``colours_after`` ((K, 3) RGB in [0, 1]; the keys
+        ``colors_before``, ``colors_after`` are deprecated aliases) and optionally
         ``transparency_before``, ``transparency_after`` ((K,): each structure's mismatch of
         perceived transparency, lower is better, across the colour stage) and
         ``shape_before``, ``shape_after`` (its shape mismatch across the colour stage).
@@ -423,6 +425,14 @@ def explain(names, opacities_before, opacities_after, shares_before, shares_afte
     else:
         cov = np.clip(np.asarray(covers, float), 0.0, None)
     over_k = None if over is None else np.asarray(over, float)
+    if colour is not None and ("colors_before" in colour or "colors_after" in colour):
+        warnings.warn(
+            "explain(colour=...): the keys 'colors_before', 'colors_after' are deprecated; "
+            "use 'colours_before', 'colours_after'",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        colour = {key.replace("colors_", "colours_", 1): v for key, v in colour.items()}
     if overlap is None:
         both = cov + cov.T if covers is not None else np.ones((k, k))
     else:

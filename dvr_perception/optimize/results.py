@@ -103,7 +103,7 @@ class OptimizationResult:
     ----------
     spec : StructureSpec
         The optimised spec: rendering opacities in ``Structure.opacity``, materials in
-        ``Structure.lighting``, colours in ``Structure.color``, the light direction in
+        ``Structure.lighting``, colours in ``Structure.colour``, the light direction in
         ``rendering.light_direction``.
     initial, final : dict
         Terms (see the module docstring) at the user's resolution before and after, averaged

@@ -359,7 +359,7 @@ class ColourStage(Stage):
         return lo, hi
 
     def _hsv(self, params, idx):
-        return np.array([colorsys.rgb_to_hsv(*np.clip(params.colors[i], 0, 1)) for i in idx])
+        return np.array([colorsys.rgb_to_hsv(*np.clip(params.colours[i], 0, 1)) for i in idx])
 
     def encode(self, params, active):  # noqa: D102 (see Stage)
         idx = np.flatnonzero(active)
@@ -378,10 +378,10 @@ class ColourStage(Stage):
         hsv[:, 1:] = _decode(x[:, :2], *self._bounds(hsv))
         if self.allow_hue:
             hsv[:, 0] = np.mod(x[:, 2] / self._HUE_SCALE, 1.0)
-        colors = params.colors.copy()
+        colours = params.colours.copy()
         for row, i in zip(hsv, idx, strict=True):
-            colors[i] = np.clip(colorsys.hsv_to_rgb(*row), 0.0, 1.0)
-        return params.replace(colors=colors)
+            colours[i] = np.clip(colorsys.hsv_to_rgb(*row), 0.0, 1.0)
+        return params.replace(colours=colours)
 
     def constraints(self, terms, start, weights):
         """Return the base constraints plus the brightness guard."""
@@ -390,7 +390,7 @@ class ColourStage(Stage):
     def describe(self, params, names):  # noqa: D102
         return {
             "color": {
-                n: [float(c) for c in col] for n, col in zip(names, params.colors, strict=True)
+                n: [float(c) for c in col] for n, col in zip(names, params.colours, strict=True)
             }
         }
 

@@ -285,7 +285,7 @@ def _label_property(spec, volume, ops):
         c = _vtk.vtkColorTransferFunction()
         o = _vtk.vtkPiecewiseFunction()
         for v in (lo, hi):
-            c.AddRGBPoint(v, *(float(x) for x in s.color))
+            c.AddRGBPoint(v, *(float(x) for x in s.colour))
             o.AddPoint(v, float(ops[k]))
         prop.SetLabelColor(1 + j, c)
         prop.SetLabelScalarOpacity(1 + j, o)

@@ -38,6 +38,7 @@ _SHARED = (
     "_sample_at",
     "_table_index",
     "_block_skip",
+    "_block_exit",
     "_shade_at",
     "_tail",
     "_walk_ray",
@@ -67,10 +68,10 @@ _walk_ray = _device_twins()["_walk_ray"]
 
 @cuda.jit
 def walk(
-    vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, curv, a, b, t_first,
-    nsteps, base, step, ids, memb, alpha_r, alpha_w, col, light, tab, shade, has_curv, build,
-    tail, ert, rgba, vis, asg, present, cimg, count, walked, aimp, state, c_lut, c_j, c_sh,
-    c_curv, width, height,
+    vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, smask, sdist, cap,
+    curv, a, b, t_first, nsteps, base, step, ids, memb, alpha_r, alpha_w, col, light, tab, shade,
+    has_curv, build, tail, ert, rgba, vis, asg, present, cimg, count, walked, aimp, state, c_lut,
+    c_j, c_sh, c_curv, width, height,
 ):  # fmt: skip
     """One thread per ray: the per-ray body of :func:`_numba_kernels.walk`.
 
@@ -81,7 +82,8 @@ def walk(
     if x >= width or y >= height:
         return
     r = y * width + x
-    maps = (tix, cells, blocks, rep, lab, lab_base, (kmap, tids, t_alpha, t_bit))
+    tmaps = (kmap, tids, t_alpha, t_bit, smask, sdist, cap)
+    maps = (tix, cells, blocks, rep, lab, lab_base, tmaps)
     geo = (vol.shape[2], vol.shape[1], vol.shape[0], 0, 0, 0)
     count[r] = 0
     for s in range(vis.shape[0]):

@@ -26,6 +26,8 @@ __all__ = [
     "BLOCK",
     "CELL_EMPTY",
     "CELL_MIXED",
+    "NO_CAP",
+    "SATURATION",
     "ZERO_CODE",
     "block_map",
     "camera_pack",
@@ -37,6 +39,9 @@ __all__ = [
     "normal_codes",
     "ray_segments",
     "scalar_range",
+    "skip_maps",
+    "structure_blocks",
+    "structure_distances",
     "voxel_records",
 ]
 
@@ -336,6 +341,142 @@ def block_map(volume, cells: np.ndarray) -> np.ndarray:
         memo.pop(k, None)  # (another thread may have dropped it)
     memo[key] = (weakref.ref(cells), out)
     return out
+
+
+#: Occlusion-free opacity at which a structure's presence on a ray has saturated (D8): the
+#: walk behind early ray termination that skips (``analyze(..., exact=False)``) stops adding
+#: to a structure's ``assigned`` there and stores ``min(assigned, SATURATION)``.  The presence
+#: weight ``1 - exp(-a / 0.05)`` is then within 2.1e-9 of its exact value (1e-6 for a
+#: ``presence_scale`` up to 0.072), and the transparency measure, which reads ``assigned``
+#: capped at 0.7 (D7), reads the same numbers.
+SATURATION = 1.0
+
+
+def structure_blocks(volume, index: np.ndarray, entry_bits: np.ndarray, labels=None,
+                     lab_base: int = -1) -> np.ndarray:  # fmt: skip
+    """Bitmask of the structures each block of ``BLOCK**3`` cells can reach (uint32 ``[z, y, x]``).
+
+    The blocks are :func:`block_map`'s.  A sample's table entry lies between the smallest and
+    largest index of its cell's corners (widened as :func:`cell_map` widens it), so a block
+    reaches the structures of the entries between the extremes of the voxels its cells touch
+    (``4 b .. 4 b + 4`` on each axis), plus, with ``labels`` (:func:`label_map`, entry
+    ``lab_base + v - 1`` for value ``v``), the label structures of those voxels.
+    ``entry_bits``: per table entry the bit of its structure (0 outside every structure), at
+    most 32 structures.  A superset is safe: the walk skips a block only when every structure
+    in its mask has saturated on the ray.  Memoised per ``(index, labels, entry_bits)`` on
+    ``volume`` (``None``: in a small module-level store).
+    """
+    bits = np.ascontiguousarray(entry_bits, np.uint32)
+    key = ("sblocks", id(index), id(labels), bits.tobytes(), int(lab_base))
+    memo = _store(volume) if volume is not None else _LOOSE
+    hit = memo.get(key)
+    if hit is not None and hit[0]() is index:
+        return hit[1]
+    n = len(bits)
+    last = (lab_base if lab_base >= 0 else n) - 1  # the interpolated entry is at most this
+    nz, ny, nx = index.shape
+    shape = tuple(-(-(max(v - 1, 1)) // BLOCK) for v in (nz, ny, nx))
+    # runs of entries with the same bits: a block ORs the runs between its extremes
+    change = np.flatnonzero(bits[1:] != bits[:-1]) + 1
+    run = np.zeros(n, np.int64)
+    run[change] = 1
+    run = np.cumsum(run)
+    run_bits = bits[np.concatenate([[0], change])] if n else np.zeros(0, np.uint32)
+    has = labels is not None
+    lab = labels if has else np.zeros((1, 1, 1), np.uint8)
+    fast = _fast()
+    out = np.zeros(shape, np.uint32)
+    if fast is not None:
+        fast.structure_blocks(index, run, run_bits, bits, lab, has, int(lab_base), last, out)
+    else:
+        _structure_blocks_numpy(index, run, run_bits, bits, lab, has, int(lab_base), last, out)
+    kept = _CELL_MAPS_KEPT if volume is not None else _LOOSE_KEPT
+    old = [k for k in list(memo) if isinstance(k, tuple) and k and k[0] == "sblocks"]
+    for k in old[: max(len(old) - kept + 1, 0)]:
+        memo.pop(k, None)  # (another thread may have dropped it)
+    memo[key] = (weakref.ref(index), out)
+    return out
+
+
+#: :func:`structure_blocks` of index volumes without their volume (a bricked walk's derived
+#: volumes given without the piece): the newest few, checked by identity as above.
+_LOOSE: dict = {}
+_LOOSE_KEPT = 64
+
+
+#: ``cap`` of the exact walk behind early ray termination (no structure ever saturates).
+NO_CAP = 1e300
+
+
+def skip_maps(volume, tix: np.ndarray, t_bit: np.ndarray, labels, lab_base: int, skip: bool,
+              k: int):  # fmt: skip
+    """``(smask, sdist, cap)``: the skipping walk behind early ray termination (``_tail``).
+
+    ``skip``: :func:`structure_blocks` of ``tix`` (``t_bit``: per table entry its ``present``
+    bit, a spare last entry ignored), their :func:`structure_distances` for the ``k``
+    structures and :data:`SATURATION`; else placeholders and :data:`NO_CAP` (the exact walk).
+    """
+    if not skip:
+        return np.zeros((1, 1, 1), np.uint32), np.zeros((1, 1, 1, 1), np.uint8), NO_CAP
+    bits = np.asarray(t_bit)[: len(t_bit) - 1]
+    smask = structure_blocks(volume, tix, bits, labels, lab_base)
+    return smask, structure_distances(smask, k), SATURATION
+
+
+#: :func:`structure_distances` are made only while they take at most this many bytes.
+DISTANCES_BYTES = 128 * 2**20
+_DIST: dict = {}
+_DIST_KEPT = 64
+
+
+def structure_distances(smask: np.ndarray, k: int) -> np.ndarray:
+    """Per structure, each block's chessboard distance to the nearest block reaching it.
+
+    uint8 ``(k, bz, by, bx)`` over :func:`structure_blocks`'s ``smask``: 0 for a block whose
+    mask holds structure ``s``, else the distance ``d`` in blocks (at most 255; 255 where no
+    block holds ``s``), so no block within ``d - 1`` blocks on each axis can reach ``s``.  A
+    ray whose unsaturated structures are ``U`` may jump as far as :func:`block_map`'s empty
+    space allows with ``min(d[s] for s in U)``.  Larger than :data:`DISTANCES_BYTES`: a
+    ``(k, 1, 1, 1)`` array of zeros (no such jumps).  Memoised per ``smask`` (the newest few).
+    """
+    key = (id(smask), int(k))
+    hit = _DIST.get(key)
+    if hit is not None and hit[0]() is smask:
+        return hit[1]
+    if k * smask.size > DISTANCES_BYTES:
+        return np.zeros((k, 1, 1, 1), np.uint8)
+    from scipy import ndimage
+
+    out = np.empty((k, *smask.shape), np.uint8)
+    for s in range(k):
+        far = (smask & np.uint32(1 << s)) == 0
+        if far.all():
+            out[s] = 255
+        else:
+            dist = ndimage.distance_transform_cdt(far, metric="chessboard")
+            np.minimum(dist, 255, out=dist)
+            out[s] = dist
+    while len(_DIST) >= _DIST_KEPT:
+        _DIST.pop(next(iter(_DIST)), None)
+    _DIST[key] = (weakref.ref(smask), out)
+    return out
+
+
+def _structure_blocks_numpy(index, run, run_bits, bits, lab, has, lab_base, last, out):
+    """:func:`structure_blocks` block by block in numpy (the numba twin's reference)."""
+    b = BLOCK
+    for zb, yb, xb in np.ndindex(out.shape):
+        box = (slice(b * zb, b * zb + b + 1), slice(b * yb, b * yb + b + 1),
+               slice(b * xb, b * xb + b + 1))  # fmt: skip
+        v = index[box]
+        klo = min(max(math.floor(int(v.min()) * _W_SCALE + _W_BIAS) - 2, 0), last)
+        khi = min(max(math.floor(int(v.max()) * _W_SCALE + _W_BIAS) + 1, 0), last)
+        m = np.bitwise_or.reduce(run_bits[run[klo] : run[khi] + 1], initial=np.uint32(0))
+        if has:
+            lv = lab[box]
+            lv = lv[lv > 0].astype(np.int64)
+            m |= np.bitwise_or.reduce(bits[lab_base + lv - 1], initial=np.uint32(0))
+        out[zb, yb, xb] = m
 
 
 #: Code of a zero gradient in VTK's spherical direction encoding (``255 * 256``).

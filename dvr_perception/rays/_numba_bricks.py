@@ -95,9 +95,10 @@ def brick_ranges(a, b, t_first, nsteps, step, lo, hi, gdims, j0, j1):
 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def walk_brick(
-    vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, curv, a, b,
-    t_first, j0, j1, step, order, chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light, tab,
-    shade, has_curv, build, tail, chunk_base, ert, geo, st, bits, vis, asg, c_lut, c_j, c_sh,
+    vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, smask, sdist, cap,
+    curv, a,
+    b, t_first, j0, j1, step, order, chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light,
+    tab, shade, has_curv, build, tail, chunk_base, ert, geo, st, bits, vis, asg, c_lut, c_j, c_sh,
     c_curv, start, count, walked,
 ):  # fmt: skip
     """Walk every ray's run ``[j0, j1)`` in this brick, continuing the state ``st``/``bits``.
@@ -107,7 +108,15 @@ def walk_brick(
     :func:`_numba_kernels.walk` (chunk ``c`` packs its cache entries from ``chunk_base[c]``).
     """
     for c in prange(nchunk):
-        maps = (tix, cells, blocks, rep, lab, lab_base, (kmap, tids, t_alpha, t_bit))
+        maps = (
+            tix,
+            cells,
+            blocks,
+            rep,
+            lab,
+            lab_base,
+            (kmap, tids, t_alpha, t_bit, smask, sdist, cap),
+        )
         g = (geo[0], geo[1], geo[2], geo[3], geo[4], geo[5])
         e = chunk_base[c]
         for i in range(chunk_ptr[c], chunk_ptr[c + 1]):

@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["cell_classes", "index_volume", "normal_codes", "records_where"]
+__all__ = ["cell_classes", "index_volume", "normal_codes", "records_where", "structure_blocks"]
 
 _W_SCALE = 32765.0 / 32768.0
 _W_BIAS = 32767.0 / 32768.0
@@ -136,3 +136,37 @@ def records_where(data, aspect, index, cells, out):
                 if need:
                     code = _code(data, z, y, x, nz, ny, nx, ax, ay, az)
                 out[z, y, x] = np.uint32(index[z, y, x]) | (np.uint32(code) << np.uint32(16))
+
+
+@njit(parallel=True, cache=True)
+def structure_blocks(index, run, run_bits, bits, labels, has_labels, lab_base, last, out):
+    """Per block of 4^3 cells, the structures its samples can reach (``_grid.structure_blocks``).
+
+    The extremes of the voxels ``4 b .. 4 b + 4`` per axis, widened as ``cell_classes`` widens
+    them and clamped to ``last``, select runs of table entries; their bits, with the bits of
+    the label entries of those voxels, are ORed.
+    """
+    nz, ny, nx = index.shape
+    bz, by, bx = out.shape
+    for zb in prange(bz):
+        for yb in range(by):
+            for xb in range(bx):
+                lo = np.int64(1) << 40
+                hi = np.int64(-1)
+                m = np.uint32(0)
+                for z in range(4 * zb, min(4 * zb + 5, nz)):
+                    for y in range(4 * yb, min(4 * yb + 5, ny)):
+                        for x in range(4 * xb, min(4 * xb + 5, nx)):
+                            v = np.int64(index[z, y, x])
+                            lo = min(lo, v)
+                            hi = max(hi, v)
+                            if has_labels:
+                                lv = np.int64(labels[z, y, x])
+                                if lv > 0:
+                                    m |= bits[lab_base + lv - 1]
+                if hi >= 0:
+                    klo = min(max(np.int64(math.floor(lo * _W_SCALE + _W_BIAS)) - 2, 0), last)
+                    khi = min(max(np.int64(math.floor(hi * _W_SCALE + _W_BIAS)) + 1, 0), last)
+                    for q in range(run[klo], run[khi] + 1):
+                        m |= run_bits[q]
+                out[zb, yb, xb] = m

@@ -11,7 +11,11 @@ Kernels, parallel over chunks of image tiles (:func:`dvr_perception.rays.engine.
   sample's cell class in :func:`_grid.cell_map`: an empty cell is passed over, a plateau
   cell gives the table entry without interpolating the 8 corners.
   With ``build`` the walk packs one cache entry per sample with membership > 0 (table index,
-  sample index, shading and curvature) into its chunk's region.
+  sample index, shading and curvature) into its chunk's region.  Without it (and unless
+  ``exact``) :func:`_tail` skips what cannot change a result (DECISIONS D8): a structure whose
+  ``assigned`` has saturated, and, once the transmittance at the importances is below early
+  ray termination, blocks whose cells reach only saturated structures
+  (:func:`_grid.structure_blocks`).
 * Shading (:func:`_shade_at`) is VTK's: the shading-table entries of the 8 corners' normal codes
   are interpolated trilinearly (lit diffuse cosine and specular power term, stored per entry as
   uint16 ``round(x * 65534)``; materials, colours and opacities are applied at compositing).
@@ -224,6 +228,31 @@ def _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz):
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
+def _block_exit(j, n, t_first, step, ax, ay, az, bx, by, bz, x0, y0, z0):
+    """Return the sample to look at next after sample ``j``, in the block of cells from ``x0``.
+
+    The ray leaves the box of cells ``[x0, x0 + 4)`` (likewise y, z) where it first crosses one
+    of its faces moved ``1e-6`` voxel inwards (far more than the rounding of a position);
+    every sample up to that point lies inside the box, so the one after it is the first that
+    may not, and no sample of another block is passed over.  At least ``j + 1``, at most
+    ``n``.
+    """
+    t_out = 1e300
+    for i in range(3):
+        ai = ax if i == 0 else (ay if i == 1 else az)
+        bi = bx if i == 0 else (by if i == 1 else bz)
+        c0 = x0 if i == 0 else (y0 if i == 1 else z0)
+        if bi > 0.0:
+            t_out = min(t_out, (c0 + _BLOCK - 1e-6 - ai) / bi)
+        elif bi < 0.0:
+            t_out = min(t_out, (c0 + 1e-6 - ai) / bi)
+    f = (t_out - t_first) / step
+    if f >= n:
+        return n
+    return max(j + 1, int(f) + 1)  # f < 0: below j + 1 anyway
+
+
+@njit(cache=True, fastmath=_FM, inline="always")
 def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n,
           step, shade, has_curv, build, base, cnt, walked, bits, asg, out, ti, ert,
           geo):  # fmt: skip
@@ -242,8 +271,17 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
     entry's ``present`` bit, 0 for the spare).  Looking at empty and plateau samples one by
     one costs less than jumping over the short runs that noisy data have (cthead: 25 %
     less time for whole rays, the same sums to the last bit).
+
+    ``tail_maps`` ends with ``smask``, ``sdist`` and ``cap``.  ``cap`` finite (the skipping
+    walk, never with ``build``): a structure whose ``asg`` reaches ``cap`` has saturated on
+    this ray and keeps ``cap``; once ``ti < ert`` a block whose ``smask``
+    (:func:`_grid.structure_blocks`: the structures its cells can reach) holds only saturated
+    structures is jumped like an empty one, as far as ``sdist``
+    (:func:`_grid.structure_distances`) says no block reaches a structure still unsaturated,
+    and the ray stops when every structure has saturated.  Nothing the walk
+    returns changes but ``asg`` above ``cap`` (which is ``min(asg, cap)``) and ``walked``.
     """
-    kmap, tids, t_alpha, t_bit = tail_maps
+    kmap, tids, t_alpha, t_bit, smask, sdist, cap = tail_maps
     c_lut, c_j, c_sh, c_curv = out
     spare = asg.shape[0] - 1
     lab_end = (lab_base if lab_base >= 0 else len(tids) - 1) - 1
@@ -256,15 +294,42 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
     bnxy = blocks.shape[1] * bnx
     nxy = nx * ny
     binv = _jump_scale(bx, by, bz, step) * _BLOCK
+    skipping = cap < 1e299 and not build
+    sf = smask.reshape(smask.size)
+    sd = sdist.reshape(sdist.size)
+    nblk = blocks.size
+    has_dist = (sdist.shape[1] == blocks.shape[0] and sdist.shape[2] == blocks.shape[1]
+                and sdist.shape[3] == blocks.shape[2])  # fmt: skip
+    every = (np.uint64(1) << np.uint64(spare)) - np.uint64(1)
+    sat = np.uint64(0)
+    if skipping:
+        for s in range(spare):
+            if asg[s, r] >= cap:
+                sat |= np.uint64(1) << np.uint64(s)
     while j < n:
+        if skipping and ti < ert and sat == every:
+            break  # every structure has saturated: nothing further can change a result
         px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, gnx, gny, gnz)
         walked += 1
         lx = x - ox
         ly = y - oy
         lz = z - oz
-        d = bf[(lz >> 2) * bnxy + (ly >> 2) * bnx + (lx >> 2)]
+        ob = (lz >> 2) * bnxy + (ly >> 2) * bnx + (lx >> 2)
+        d = bf[ob]
         if d > 1:
             j += max(int((d - 1) * binv), 1)
+            continue
+        if skipping and ti < ert and (np.uint64(sf[ob]) & ~sat) == 0:
+            if has_dist:  # how far no block can reach a structure still unsaturated
+                dmin = 255
+                for q in range(spare):
+                    if (sat >> np.uint64(q)) & np.uint64(1) == 0:
+                        dmin = min(dmin, sd[q * nblk + ob])
+                if dmin > 1:
+                    j += max(int((dmin - 1) * binv), 1)
+                    continue
+            j = _block_exit(j, n, t_first, step, ax, ay, az, bx, by, bz, ((lx >> 2) << 2) + ox,
+                            ((ly >> 2) << 2) + oy, ((lz >> 2) << 2) + oz)  # fmt: skip
             continue
         o = lz * nxy + ly * nx + lx
         cl = cf[o]
@@ -280,7 +345,15 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
                 fz = min(max(pz - z, 0.0), 1.0)
                 k = _table_index(tf, o, nx, nxy, 1, fx, fy, fz, lab_end)
         s = tids[k]
-        asg[s, r] += t_alpha[k]
+        if skipping:
+            if s != spare and (sat >> np.uint64(s)) & np.uint64(1) == 0:
+                v = asg[s, r] + t_alpha[k]
+                if v >= cap:
+                    v = cap
+                    sat |= np.uint64(1) << np.uint64(s)
+                asg[s, r] = v
+        else:
+            asg[s, r] += t_alpha[k]
         if ti >= ert:
             ti *= 1.0 - t_alpha[k]
         bits |= t_bit[k]
@@ -305,8 +378,9 @@ def _walk_ray(
     """Walk one ray, compositing until early ray termination.
 
     ``maps`` is ``(tix, cells, blocks, rep, lab, lab_base, tail_maps)`` (see
-    :func:`walk`; one tuple because a call with more than 30 arguments becomes ``*args``,
-    which numba cannot inline).
+    :func:`walk` and :func:`_tail`: with a finite ``cap`` every ``asg`` stays at most ``cap``;
+    one tuple because a call with more than 30 arguments becomes ``*args``, which numba cannot
+    inline).
 
     ``vol`` holds the table index per voxel (low 16 bits) and, when shading, the normal code
     (high 16 bits).  ``build``: also write one cache entry per sample with membership
@@ -330,6 +404,7 @@ def _walk_ray(
     c_lut, c_j, c_sh, c_curv = out
     tix, cells, blocks, rep, lab, lab_base, tail_maps = maps
     lab_end = (lab_base if lab_base >= 0 else len(ids)) - 1
+    cap = tail_maps[6]
     gnx, gny, gnz, ox, oy, oz = geo
     ny, nx = vol.shape[1], vol.shape[2]
     volf = vol.reshape(vol.size)
@@ -381,7 +456,7 @@ def _walk_ray(
             continue
         s = ids[k]
         bits |= np.uint32(1) << np.uint32(s)
-        asg[s, r] += alpha_w[k]
+        asg[s, r] = min(asg[s, r] + alpha_w[k], cap)  # cap: see _tail (1e300: no cap)
         if ti >= ert:
             ti *= 1.0 - alpha_w[k]
         e = base + cnt
@@ -530,7 +605,8 @@ def _composite_ray(
 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def walk(
-    vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, curv, a, b,
+    vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, smask, sdist, cap,
+    curv, a, b,
     t_first, nsteps, step, order, chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light, tab,
     shade, has_curv, build, tail, chunk_base, ert, rgba, vis, asg, present, cimg, c_lut, c_j,
     c_sh, c_curv, start, count, chunk_end, walked, aimp, state,
@@ -547,14 +623,24 @@ def walk(
     structure; ``lab``: :func:`_grid.label_map` whose value ``v > 0``
     means table entry ``lab_base + v - 1`` (``lab_base`` -1: no label structures);
     ``kmap``, ``tids``, ``t_alpha`` and ``t_bit``: what :func:`_tail` reads
-    (``asg`` has a spare last row for it, ``K + 1`` rows in all).
+    (``asg`` has a spare last row for it, ``K + 1`` rows in all); ``smask``, ``sdist``
+    (:func:`_grid.skip_maps`) and ``cap`` (:data:`_grid.SATURATION`, or 1e300 for the
+    exact walk): the skipping walk behind early ray termination (:func:`_tail`).
 
     Chunk ``c`` (rays ``order[chunk_ptr[c]:chunk_ptr[c + 1]]``, whole tiles of pixels) packs
     their entries from ``chunk_base[c]`` on and records its end in ``chunk_end[c]``.
     """
     for c in prange(nchunk):
         # built here: a tuple holding a tuple of arrays cannot enter a parallel loop
-        maps = (tix, cells, blocks, rep, lab, lab_base, (kmap, tids, t_alpha, t_bit))
+        maps = (
+            tix,
+            cells,
+            blocks,
+            rep,
+            lab,
+            lab_base,
+            (kmap, tids, t_alpha, t_bit, smask, sdist, cap),
+        )
         geo = (vol.shape[2], vol.shape[1], vol.shape[0], 0, 0, 0)
         e = chunk_base[c]
         for i in range(chunk_ptr[c], chunk_ptr[c + 1]):

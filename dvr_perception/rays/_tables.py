@@ -115,17 +115,19 @@ def alpha_table(ids: np.ndarray, memb: np.ndarray, ops: np.ndarray, ratio: float
     return _quantise(corr)
 
 
-def material(spec, *, colors=None, lighting=None) -> tuple[np.ndarray, tuple]:
+def material(spec, *, colours=None, lighting=None) -> tuple[np.ndarray, tuple]:
     """Colours (K, 3) rounded like VTK's table, and the K :class:`Lighting` materials."""
     k = len(spec.structures)
-    cols = np.array([s.color for s in spec.structures], float) if colors is None else colors
+    cols = np.array([s.colour for s in spec.structures], float) if colours is None else colours
     try:
         cols = np.asarray(cols, dtype=np.float64)
     except (TypeError, ValueError):
-        raise DVRInputError(f"colors: expected {k} RGB triples in [0, 1], got {colors!r}") from None
+        raise DVRInputError(
+            f"colours: expected {k} RGB triples in [0, 1], got {colours!r}"
+        ) from None
     if cols.shape != (k, 3) or not np.all(np.isfinite(cols)) or cols.min() < 0 or cols.max() > 1:
         raise DVRInputError(
-            f"colors: expected shape ({k}, 3) with values in [0, 1], got shape {cols.shape}"
+            f"colours: expected shape ({k}, 3) with values in [0, 1], got shape {cols.shape}"
         )
     mats = tuple(s.lighting for s in spec.structures) if lighting is None else tuple(lighting)
     if len(mats) != k or not all(isinstance(m, Lighting) for m in mats):

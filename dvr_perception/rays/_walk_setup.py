@@ -286,7 +286,7 @@ def _params(ops, cols, mats, direction) -> dict:
     """Return an analysis's rendering parameters as :func:`reevaluate` takes them (``stats``)."""
     return {
         "opacities": tuple(float(o) for o in ops),
-        "colors": tuple(tuple(float(c) for c in row) for row in np.asarray(cols)),
+        "colours": tuple(tuple(float(c) for c in row) for row in np.asarray(cols)),
         "lighting": tuple(mats),
         "light_direction": tuple(float(d) for d in np.asarray(direction, np.float64).ravel()),
     }

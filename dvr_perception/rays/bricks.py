@@ -224,6 +224,9 @@ class RayState:
     ``st`` (R, 7) float64: premultiplied r, g, b, transmittance, transmittance at the
     importances, curvature numerator and weight; ``bits`` (R,) present bits; ``vis`` (K, R)
     and ``asg`` (K + 1, R; the last row counts samples outside every structure) float64.
+    ``exact``: walks without the cache walk every sample behind early ray termination (else
+    they skip what cannot change a result, as :func:`~dvr_perception.rays.engine.analyze`'s
+    ``exact`` says).
     """
 
     geometry: Geometry
@@ -238,15 +241,16 @@ class RayState:
     vis: np.ndarray
     asg: np.ndarray
     stats: dict = field(default_factory=dict)
+    exact: bool = False
 
     @classmethod
     def start(cls, geometry, spec, camera, *, scalar_range, opacities=None, occlusion_free=True,
-              segments=None):  # fmt: skip
+              segments=None, exact=False):  # fmt: skip
         """Fresh rays for ``camera`` through the whole volume ``geometry``.
 
         ``scalar_range`` must be the whole volume's ``(min, max)`` (the transfer table spans
-        it).  ``segments``: the camera's rays when already made (``_walk_setup._segments``
-        of the same camera, volume and sample distance; read only).
+        it); ``exact``: see the class.  ``segments``: the camera's rays when already made
+        (``_walk_setup._segments`` of the same camera, volume and sample distance; read only).
         """
         if not isinstance(geometry, Geometry):
             raise DVRInputError(f"geometry: expected a Geometry, got {type(geometry).__name__}")
@@ -295,7 +299,7 @@ class RayState:
         return cls(
             geometry, spec, camera, ops, bool(occlusion_free), seg, tables, st,
             np.zeros(nrays, np.uint32), np.zeros((k, nrays)), np.zeros((k + 1, nrays)),
-            {"samples_walked": 0, "bricks": 0, "t_start": time.perf_counter()},
+            {"samples_walked": 0, "bricks": 0, "t_start": time.perf_counter()}, bool(exact),
         )  # fmt: skip
 
     def arrays(self) -> dict[str, np.ndarray]:
@@ -350,13 +354,18 @@ def derive(piece: Volume, state: RayState) -> tuple:
     return vol, _grid.compact_index(piece, idx), cells, _grid.block_map(piece, cells), labmap
 
 
-def _piece_arrays(piece: Volume, state: RayState, curvature, derived=None):
-    """Per-brick arrays the walk reads: ``vol``, the ``maps`` tuple and the curvature."""
+def _piece_arrays(piece: Volume, state: RayState, curvature, derived=None, skip=False):
+    """Per-brick arrays the walk reads: ``vol``, the ``maps`` tuple and the curvature.
+
+    ``skip``: the skipping walk behind early ray termination (``_grid.skip_maps``; its block
+    masks are memoised on ``piece``).
+    """
     t = state.tables
     vol, tix, cells, blocks, labmap = derive(piece, state) if derived is None else derived
     size = t["lut"].size
     lab = (labmap, size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8), -1)
-    maps = (tix, cells, blocks, t["rep"], *lab, *t["tail"])
+    sm = _grid.skip_maps(piece, tix, t["tail"][3], labmap, lab[1], skip, len(t["rep"]))
+    maps = (tix, cells, blocks, t["rep"], *lab, *t["tail"], *sm)
     cv = np.zeros((2, 2, 2), np.float32) if curvature is None else curvature
     return vol, maps, cv
 
@@ -481,7 +490,10 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
         raise DVRInputError("build_cache: needs an occlusion-free state (occlusion_free=True)")
     cam = state.camera
     j0, j1 = _runs(state, brick)
-    vol, maps, cv = _piece_arrays(piece, state, curvature, derived)
+    skip = state.occlusion_free and not build_cache and not state.exact
+    vol, maps, cv = _piece_arrays(piece, state, curvature, derived, skip)
+    if skip:
+        state.stats["assigned_cap"] = _grid.SATURATION
     order, chunk_ptr = ray_order(cam.height, cam.width)
     if report:
         order, chunk_ptr = _interleaved(order, chunk_ptr, _group())
@@ -680,6 +692,7 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None, fill=None
         "backend": "numba",
         "sample_distance": state.tables["step"],
         "occlusion_free": state.occlusion_free,
+        "assigned_cap": state.stats.get("assigned_cap"),
         "bricks": state.stats["bricks"],
     }
     t = state.tables
@@ -868,14 +881,14 @@ KEEP_CODES_SHARE = 0.25
 def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, brick=(64, 64, 64),
                     opacities=None, curvature=None, build_cache: bool = True,
                     occlusion_free: bool = True, memory_limit=None, progress=None,
-                    segments=None) -> RayAnalysis:  # fmt: skip
+                    segments=None, exact: bool = False) -> RayAnalysis:  # fmt: skip
     """:func:`~dvr_perception.rays.engine.analyze`, walking the volume brick by brick.
 
     Parameters
     ----------
     brick : tuple of int
         Cells per brick ``(z, y, x)``.
-    volume, spec, camera, opacities, curvature, build_cache, occlusion_free, memory_limit
+    volume, spec, camera, opacities, curvature, build_cache, occlusion_free, memory_limit, exact
         As :func:`~dvr_perception.rays.engine.analyze` (``curvature``: a whole-volume array,
         a :class:`~dvr_perception.rays.curvature_field.CurvatureField`, or ``None``).
     progress : callable, optional
@@ -901,21 +914,22 @@ def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, bric
     return analyze_bricked_views(
         volume, spec, [camera], brick=brick, opacities=opacities, curvature=curvature,
         build_cache=build_cache, occlusion_free=occlusion_free, memory_limit=memory_limit,
-        progress=progress, segments=None if segments is None else [segments],
+        progress=progress, segments=None if segments is None else [segments], exact=exact,
     )[0]  # fmt: skip
 
 
 def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick=(64, 64, 64),
                           opacities=None, curvature=None, build_cache: bool = True,
                           occlusion_free: bool = True, memory_limit=None, progress=None,
-                          segments=None) -> list[RayAnalysis]:  # fmt: skip
+                          segments=None, exact: bool = False) -> list[RayAnalysis]:  # fmt: skip
     """:func:`analyze_bricked` for several cameras, deriving each brick once for all of them.
 
     Cameras that meet the bricks in the same order (e.g. one view at several resolutions, as
     the optimiser uses) share one pass over the volume: each brick's derived volumes and
     curvature are computed once and every camera's rays walk it.  The results equal one
-    :func:`analyze_bricked` per camera.  ``progress``: as :func:`analyze_bricked`, over all
-    the cameras; ``segments``: per camera its rays, when already made.
+    :func:`analyze_bricked` per camera.  ``progress`` and ``exact``: as
+    :func:`analyze_bricked`, over all the cameras; ``segments``: per camera its rays, when
+    already made.
 
     Examples
     --------
@@ -947,6 +961,7 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
             opacities=opacities,
             occlusion_free=occlusion_free,
             segments=None if segments is None else segments[n],
+            exact=exact,
         )
         for n, cam in enumerate(cameras)
     ]

@@ -44,6 +44,7 @@ import warnings
 
 import numpy as np
 
+from dvr_perception._deprecation import renamed_keyword
 from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.rays import _grid, _tables, memory
@@ -126,6 +127,7 @@ def analyze(
     brick=None,
     memory_limit=None,
     progress=None,
+    exact: bool = False,
 ) -> RayAnalysis:
     """Render ``volume`` with ``spec`` from ``camera`` and measure every structure per pixel.
 
@@ -177,6 +179,18 @@ def analyze(
         inside a kernel; the result does not depend on it.  A callback that raises
         :class:`StopIteration` cancels the analysis:
         :class:`~dvr_perception.errors.DVRCancelled` is raised (nothing is returned).
+    exact : bool
+        Walk every sample behind early ray termination.  By default an analysis without the
+        cache (``build_cache=False``, ``occlusion_free=True``) skips what cannot change a
+        result there (DECISIONS D8): a structure whose ``assigned`` opacity on a ray has
+        reached :data:`~dvr_perception.rays._grid.SATURATION` (1.0, where its presence has
+        saturated) is not added to any more, and, once the ray's transmittance at the
+        importances is below early ray termination, blocks of cells that can reach only
+        such structures (or none) are jumped.  Every buffer is the exact walk's except
+        ``assigned``, which is ``min(assigned, 1.0)`` (``stats["assigned_cap"]``); every
+        measure's terms agree within 1e-6, but the thickness composition and
+        ``assigned_share`` read ``assigned`` beyond saturation: pass ``exact=True`` (or
+        build the cache, whose walk is always exact) for them.
 
     Returns
     -------
@@ -228,6 +242,7 @@ def analyze(
         kind = "numba"
     has_curv = curv is not None
     need = _plan(volume, spec, camera, seg, lut, memb, has_curv, build_cache, memory_limit, brick)
+    skip = occlusion_free and not build_cache and not exact
     if kind == "cuda" and need["mode"] == "bricks":
         if backend == "cuda":
             raise DVRInputError(
@@ -245,19 +260,20 @@ def analyze(
         return analyze_bricked(
             volume, spec, camera, brick=need["brick"], opacities=ops, curvature=curv,
             build_cache=build_cache, occlusion_free=occlusion_free, memory_limit=memory_limit,
-            progress=report, segments=seg if host_rays else None,
+            progress=report, segments=seg if host_rays else None, exact=exact,
         )  # fmt: skip
     return _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cache,
-                          occlusion_free, report, t_start)  # fmt: skip
+                          occlusion_free, report, t_start, skip)  # fmt: skip
 
 
 def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cache,
-                   occlusion_free, report, t_start) -> RayAnalysis:  # fmt: skip
+                   occlusion_free, report, t_start, skip=False) -> RayAnalysis:  # fmt: skip
     """Analyse the whole volume at once (:func:`analyze` chose it): walk, cache and result.
 
     ``scene``: :func:`_scene`'s tuple; ``kind``: the back end that runs (:func:`_kind`);
     ``imp`` and ``ops``: the checked importances and opacities; ``curv``: the checked
-    curvature array or None.
+    curvature array or None; ``skip``: the skipping walk behind early ray termination
+    (``exact=False`` without the cache).
     """
     nk, step, unit, lut, labmap, ids, memb, seg = scene
     k = len(spec.structures)
@@ -291,13 +307,15 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
             c_sh = _npk.shade_entries(vol, seg, step, start, count, c_j, ids[c_lut], tab, shade)
             rgba, vis, cimg = _npk.composite(start, count, c_lut, c_sh, c_curv, *args, k)
             present, asg, aimp = out["present"], out["assigned"], out["importance_accumulated"]
+            if skip:  # the full walk, stored as the skipping walk stores it
+                asg = np.minimum(asg, _grid.SATURATION)
         else:
             walker = _walk_numba
             if kind == "cuda":
                 walker = functools.partial(_walk_cuda, bg=np.asarray(spec.background, np.float32))
             res = walker(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
                          camera, build_cache, occlusion_free, locked,
-                         report.sub(0.1, 0.9))  # fmt: skip
+                         report.sub(0.1, 0.9), skip=skip)  # fmt: skip
             rgba, vis, asg, present, cimg, start, count, entries, walked, aimp = res
             if entries is not None:
                 c_lut, c_j = entries["lut"], entries["steps"]
@@ -325,6 +343,7 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
             "backend": kind,
             "sample_distance": step,
             "occlusion_free": bool(occlusion_free),
+            "assigned_cap": _grid.SATURATION if skip else None,
             "params": _params(ops, cols, mats, rs.light_direction),
         }
         if not occlusion_free:  # not computed past early ray termination: no number at all
@@ -399,6 +418,7 @@ def analyze_views(
     memory_limit=None,
     progress=None,
     backend: str = "auto",
+    exact: bool = False,
 ) -> list[RayAnalysis]:
     """:func:`analyze` for each camera; a volume analysed in bricks is read once for all.
 
@@ -406,7 +426,8 @@ def analyze_views(
     that meet the bricks in the same order (one view at several resolutions) share a pass
     over the volume (:func:`~dvr_perception.rays.bricks.analyze_bricked_views`): each brick
     is derived once instead of once per camera.  The results equal separate calls.
-    ``progress``: as :func:`analyze`, over all the cameras; ``backend``: as :func:`analyze`
+    ``progress``: as :func:`analyze`, over all the cameras; ``exact``: as :func:`analyze`;
+    ``backend``: as :func:`analyze`
     (the shared bricked pass is the CPU's: with ``"cuda"`` every camera is analysed whole on
     the GPU).
 
@@ -439,13 +460,14 @@ def analyze_views(
 
         return analyze_bricked_views(
             volume, spec, cameras, brick=bricks.pop(), curvature=curv, build_cache=build_cache,
-            memory_limit=memory_limit, progress=report, segments=segs,
+            memory_limit=memory_limit, progress=report, segments=segs, exact=exact,
         )  # fmt: skip
     kw = {
         "curvature": curvature,
         "build_cache": build_cache,
         "memory_limit": memory_limit,
         "backend": backend,
+        "exact": exact,
     }
     n = len(cameras)
     return [analyze(volume, spec, cam, progress=report.sub(i / n, (i + 1) / n), **kw)
@@ -457,8 +479,11 @@ _SCRATCH_LOCK = threading.Lock()
 
 
 def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k, camera, build,
-                tail, locked, report=None):  # fmt: skip
-    """Run the numba walk (with the cache: fused build and compositing, then compaction)."""
+                tail, locked, report=None, skip=False):  # fmt: skip
+    """Run the numba walk (with the cache: fused build and compositing, then compaction).
+
+    ``skip``: the skipping walk behind early ray termination (``analyze(..., exact=False)``).
+    """
     shade, has_curv = args[5], args[6]
     h, w = camera.height, camera.width
     nrays = h * w
@@ -492,8 +517,10 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     src_j = _scratch("j", cap if build else 1, (), np.int32, locked)
     src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked)
     src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked)
-    maps = (tix, cells, _grid.block_map(volume, cells), rep, *lab,
-            *_tail_tables(ids, memb, alpha_w, rep, k))  # fmt: skip
+    tail_tables = _tail_tables(ids, memb, alpha_w, rep, k)
+    labels = lab[0] if lab[1] >= 0 else None
+    maps = (tix, cells, _grid.block_map(volume, cells), rep, *lab, *tail_tables,
+            *_grid.skip_maps(volume, tix, tail_tables[3], labels, lab[1], skip, k))  # fmt: skip
     layout = (order, chunk_ptr, h, w)
     out = _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args,
                         (build, tail), chunk_base, rgba, vis, asg_all, present, cimg, src_lut,
@@ -503,7 +530,7 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
 
 
 def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k, camera, build,
-               tail, locked=False, report=None, bg=None):  # fmt: skip
+               tail, locked=False, report=None, bg=None, skip=False):  # fmt: skip
     """Run the walk on the GPU (:mod:`~dvr_perception.rays._cuda_kernels`); as :func:`_walk_numba`.
 
     One thread per ray.  The float32 outputs and the image over the background ``bg`` are
@@ -531,6 +558,8 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
     blocks = _grid.block_map(volume, cells)
     rep = _plateau_entries(ids, memb, k)
     kmap, tids, t_alpha, t_bit = _tail_tables(ids, memb, alpha_w, rep, k)
+    smask, sdist, cap_ = _grid.skip_maps(volume, tix, t_bit, lab[0] if lab[1] >= 0 else None,
+                                         lab[1], skip, k)  # fmt: skip
     cached = "total" in seg  # a ray set of _cuda.rays_for: kept on the device
     total = seg["total"] if cached else int(n.sum())
     cap = max(total, 1) if build else 1
@@ -541,6 +570,8 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
     # the placeholders of no curvature or labels are new arrays each time: kept by content
     dev = [_cuda.table(a) if a.nbytes <= 1 << 16 else _cuda.to_device(a, keep=True) for a in big]
     small = [_cuda.table(a) for a in (rep, kmap, tids, t_alpha, t_bit)]
+    smask_d, sdist_d = (_cuda.table(a) if a.nbytes <= 1 << 16 else _cuda.to_device(a, keep=True)
+                        for a in (smask, sdist))  # fmt: skip
     if cached:
         rays = [_cuda.to_device(seg[q], keep=True, pool="rays") for q in ("a", "b", "t", "n")]
     else:
@@ -587,9 +618,9 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
         with _cuda.quiet_launch():  # small images: no low-occupancy warning per frame
             ck.walk[grid, (bx, by)](
                 vol_d, tix_d, cells_d, blocks_d, small[0], lab_d, np.int64(lab[1]), *small[1:],
-                cv_d, *rays, base_d, float(step), *tables, bool(shade),
-                bool(has_curv), bool(build), bool(tail), float(ert), out["rgba"], out["vis"],
-                out["asg"], out["present"], out["cimg"], out["count"], out["walked"],
+                smask_d, sdist_d, float(cap_), cv_d, *rays, base_d, float(step), *tables,
+                bool(shade), bool(has_curv), bool(build), bool(tail), float(ert), out["rgba"],
+                out["vis"], out["asg"], out["present"], out["cimg"], out["count"], out["walked"],
                 out["aimp"], out["state"], *src, np.int64(w), np.int64(h),
             )  # fmt: skip
         # float32 outputs and the image over the background made on the device (as _finish)
@@ -737,12 +768,13 @@ def _subset_order(rays, n: int) -> tuple[np.ndarray, np.ndarray]:
     return order, chunk_ptr
 
 
+@renamed_keyword("colors", "colours")
 def reevaluate(
     cache: RayCache,
     *,
     opacities=None,
     lighting=None,
-    colors=None,
+    colours=None,
     light_direction=None,
     background=None,
     rays=None,
@@ -767,8 +799,8 @@ def reevaluate(
         ``K`` rendering opacities in [0, 1].
     lighting : sequence of Lighting, optional
         ``K`` per-structure materials.
-    colors : array_like, optional
-        ``(K, 3)`` RGB in [0, 1].
+    colours : array_like, optional
+        ``(K, 3)`` RGB in [0, 1] (``colors=`` is a deprecated alias).
     light_direction : array_like, optional
         Light direction in camera coordinates (``(0, 0, 1)`` = headlight).
     background : array_like, optional
@@ -795,7 +827,7 @@ def reevaluate(
     ops = _tables.check_opacities(
         [s.render_opacity for s in spec.structures] if opacities is None else opacities, k
     )
-    cols, mats = _tables.material(spec, colors=colors, lighting=lighting)
+    cols, mats = _tables.material(spec, colours=colours, lighting=lighting)
     rs = spec.rendering
     direction = rs.light_direction if light_direction is None else light_direction
     light = _tables.light_array(camera, mats, direction, rs.light_intensity)

@@ -6,7 +6,7 @@ The format::
      "background": [r, g, b],                              # optional, default black
      "structures": [
         {"name": "bone", "range": [lo, hi],                 # or "label": int
-         "importance": 0.8, "color": [r, g, b],
+         "importance": 0.8, "colour": [r, g, b],  # or "color"
          "lighting": {"ambient", "diffuse", "specular", "specular_power"},   # optional
          "expected_opacity": 0.8, "opacity": 0.5,            # optional
          "edge": 0.1},                                      # optional, in [0, 0.5]
@@ -68,7 +68,7 @@ def spec_from_dict(d, *, source: str = "spec") -> StructureSpec:
     Examples
     --------
     >>> spec = spec_from_dict({"version": 1, "structures": [
-    ...     {"name": "skin", "range": [200, 650], "importance": 0.3, "color": [1, .8, .7]}]})
+    ...     {"name": "skin", "range": [200, 650], "importance": 0.3, "colour": [1, .8, .7]}]})
     >>> spec.structures[0].range
     (200.0, 650.0)
     """
@@ -102,7 +102,7 @@ def spec_to_dict(spec: StructureSpec) -> dict:
     Examples
     --------
     >>> d = {"version": 1, "structures": [
-    ...     {"name": "a", "label": 3, "importance": 1.0, "color": [1, 0, 0]}], "labels": "l.nhdr"}
+    ...     {"name": "a", "label": 3, "importance": 1.0, "colour": [1, 0, 0]}], "labels": "l.nhdr"}
     >>> spec_to_dict(spec_from_dict(d))["structures"][0]["lighting"]["specular_power"]
     16.0
     """
@@ -114,7 +114,7 @@ def spec_to_dict(spec: StructureSpec) -> dict:
         else:
             e["label"] = int(s.label)
         e["importance"] = float(s.importance)
-        e["color"] = [float(c) for c in s.color]
+        e["colour"] = [float(c) for c in s.colour]
         e["edge"] = float(s.edge)
         e["lighting"] = _lighting_dict(s.lighting)
         if s.opacity is not None:
@@ -237,7 +237,7 @@ def save_spec(spec: StructureSpec, path, *, relative_to=None) -> None:
     --------
     >>> import tempfile, os
     >>> spec = spec_from_dict({"version": 1, "structures": [
-    ...     {"name": "a", "range": [0, 1], "importance": 0.5, "color": [1, 1, 1]}]})
+    ...     {"name": "a", "range": [0, 1], "importance": 0.5, "colour": [1, 1, 1]}]})
     >>> with tempfile.TemporaryDirectory() as tmp:
     ...     save_spec(spec, os.path.join(tmp, "a.json"))
     ...     load_spec(os.path.join(tmp, "a.json")) == spec
@@ -289,7 +289,7 @@ def attach_labels(volume, spec: StructureSpec):
     >>> from dvr_perception.volume import Volume
     >>> vol = Volume(np.zeros((2, 2, 2), np.uint8))
     >>> spec = spec_from_dict({"version": 1, "structures": [
-    ...     {"name": "air", "range": [0, 10], "importance": 0.5, "color": [1, 1, 1]}]})
+    ...     {"name": "air", "range": [0, 10], "importance": 0.5, "colour": [1, 1, 1]}]})
     >>> attach_labels(vol, spec) is vol
     True
     """
@@ -343,7 +343,7 @@ def check_spec_for_volume(spec: StructureSpec, volume) -> list[str]:
     >>> from dvr_perception.volume import Volume
     >>> vol = Volume(np.zeros((2, 2, 2), np.uint8))
     >>> spec = spec_from_dict({"version": 1, "structures": [
-    ...     {"name": "air", "range": [0, 10], "importance": 0.5, "color": [1, 1, 1]}]})
+    ...     {"name": "air", "range": [0, 10], "importance": 0.5, "colour": [1, 1, 1]}]})
     >>> check_spec_for_volume(spec, vol)
     []
     """

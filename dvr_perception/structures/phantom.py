@@ -57,7 +57,7 @@ def phantom_spec() -> StructureSpec:
     ('calcification', (28.0, 70.0), (0.0, 0.0, 1.6))
     """
     structures = tuple(
-        Structure(name=name, importance=imp, color=color, range=rng)
+        Structure(name=name, importance=imp, colour=color, range=rng)
         for name, _value, rng, imp, color in PHANTOM_MATERIALS
     )
     # Opacity per 8 voxels of ray length: thin shells stay see-through while the filled brain

@@ -291,16 +291,18 @@ def _hounsfield_structures(volume, seed: int) -> list[Structure]:
         need = _MIN_SHARE_METAL if name == "metal" else _MIN_SHARE
         if share < need:
             continue
-        structures.append(Structure(name=name, importance=importance, color=color, range=(lo, top)))
+        structures.append(
+            Structure(name=name, importance=importance, colour=color, range=(lo, top))
+        )
     return structures
 
 
-def _class_color(i: int, k: int) -> tuple[float, float, float]:
+def _class_colour(i: int, k: int) -> tuple[float, float, float]:
     """Colour of class ``i`` of ``k``: evenly along :data:`PALETTE`, the last one ivory.
 
     Examples
     --------
-    >>> [_class_color(i, 3) for i in range(3)] == [PALETTE[0], PALETTE[4], PALETTE[7]]
+    >>> [_class_colour(i, 3) for i in range(3)] == [PALETTE[0], PALETTE[4], PALETTE[7]]
     True
     """
     if k <= 1:
@@ -428,7 +430,7 @@ def propose_structures(
             Structure(
                 name=name,
                 importance=round(float(importances[i]), 4),
-                color=_class_color(i, k),
+                colour=_class_colour(i, k),
                 range=(lo, hi),
                 opacity=BULK_OPACITY if faint else None,
             )

@@ -345,7 +345,7 @@ def spec_from_segmentation(path, volume=None, *, importance=None) -> StructureSp
     if volume is not None:
         segmentation_labels(path, volume)
     structures = tuple(
-        Structure(name=s["name"], importance=imp, color=s["color"], label=s["label"])
+        Structure(name=s["name"], importance=imp, colour=s["color"], label=s["label"])
         for s, imp in zip(segments, importances, strict=True)
     )
     return StructureSpec(structures=structures, labels_file=str(path.resolve()))

@@ -11,14 +11,16 @@ Transfer-function semantics (shared by our engine and the VTK converters):
   opacity ``opacity_s`` starts at the importance and is what the optimiser changes.  Opacity is
   per ``opacity_unit_distance`` of ray length and corrected for the sample distance as VTK's
   ``ScalarOpacityUnitDistance`` does: ``a = 1 - (1 - opacity*m) ** (step / unit)``.
-* The colour of a sample of ``s`` is ``color_s``; shading is Phong with the structure's lighting.
+* The colour of a sample of ``s`` is ``colour_s``; shading is Phong with the structure's lighting.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field, replace
 
+from dvr_perception._deprecation import renamed_keyword
 from dvr_perception.errors import DVRInputError
 
 __all__ = [
@@ -107,12 +109,13 @@ class Structure:
 
     ``opacity`` is the rendering opacity; ``None`` means "equal to ``importance``".
     ``expected_opacity`` is the perceived opacity the transparency measure aims for; ``None``
-    means "equal to ``importance``".
+    means "equal to ``importance``".  ``colour`` is RGB in [0, 1]; the keyword and attribute
+    ``color`` are deprecated aliases of it.
     """
 
     name: str
     importance: float
-    color: tuple[float, float, float]
+    colour: tuple[float, float, float]
     range: tuple[float, float] | None = None
     label: int | None = None
     edge: float = 0.1
@@ -128,6 +131,14 @@ class Structure:
             raise DVRInputError(f"structure name {shown!r}: {problem}")
 
     @property
+    def color(self) -> tuple[float, float, float]:
+        """Deprecated alias of :attr:`colour`."""
+        warnings.warn(
+            "Structure.color is deprecated; use Structure.colour", DeprecationWarning, stacklevel=2
+        )
+        return self.colour
+
+    @property
     def render_opacity(self) -> float:
         """The opacity used for rendering (``opacity`` or, if unset, ``importance``)."""
         return self.importance if self.opacity is None else self.opacity
@@ -136,6 +147,10 @@ class Structure:
     def target_opacity(self) -> float:
         """The opacity the transparency measure expects (``expected_opacity`` or importance)."""
         return self.importance if self.expected_opacity is None else self.expected_opacity
+
+
+# ``Structure(color=...)`` keeps working for one release (a DeprecationWarning).
+Structure.__init__ = renamed_keyword("color", "colour", name="Structure")(Structure.__init__)
 
 
 @dataclass(frozen=True)
@@ -191,7 +206,8 @@ _STRUCTURE_KEYS = (
     "range",
     "label",
     "importance",
-    "color",
+    "colour",
+    "color",  # read as "colour" (files written by 0.1 spell it so)
     "lighting",
     "expected_opacity",
     "opacity",
@@ -304,9 +320,12 @@ def _parse_structure(c: _Checker, d, path: str, has_labels: bool) -> Structure:
     if "importance" not in d:
         c.fail(f"{path}.importance", "is missing; expected a number in (0, 1]", show_got=False)
     importance = c.number(d["importance"], f"{path}.importance", 0, 1, lo_open=True)
-    if "color" not in d:
-        c.fail(f"{path}.color", "is missing; expected [r, g, b] in [0, 1]", show_got=False)
-    color = c.vector(d["color"], f"{path}.color", 3, 0, 1, "numbers in [0, 1]")
+    if "colour" in d and "color" in d:
+        c.fail(f"{path}", f"({name!r}) gives both 'colour' and 'color'; give one", show_got=False)
+    key = "color" if "color" in d else "colour"
+    if key not in d:
+        c.fail(f"{path}.colour", "is missing; expected [r, g, b] in [0, 1]", show_got=False)
+    colour = c.vector(d[key], f"{path}.{key}", 3, 0, 1, "numbers in [0, 1]")
     light = Lighting()
     if d.get("lighting") is not None:
         ld = c.obj(d["lighting"], f"{path}.lighting", _LIGHTING_KEYS)
@@ -323,7 +342,7 @@ def _parse_structure(c: _Checker, d, path: str, has_labels: bool) -> Structure:
     return Structure(
         name=name,
         importance=importance,
-        color=color,
+        colour=colour,
         range=rng,
         label=label,
         edge=0.1 if edge is None else edge,

@@ -88,9 +88,9 @@ def test_malformed_spec_file_is_an_input_error(session):
 
 def test_edit_save_load_and_undo(session):
     original = session.spec
-    session.set_structure(0, importance=0.5, color="#ff0000")
+    session.set_structure(0, importance=0.5, colour="#ff0000")
     assert session.spec.structures[0].importance == 0.5
-    assert session.spec.structures[0].color == (1.0, 0.0, 0.0)
+    assert session.spec.structures[0].colour == (1.0, 0.0, 0.0)
     assert session.save_spec_file("edited.json") == "saved/edited.json"
     assert (session.settings_dir / "edited.json").is_file()
     assert not any(session.data_dir.iterdir())  # the data folder is only read
@@ -101,7 +101,10 @@ def test_edit_save_load_and_undo(session):
     with pytest.raises(DVRInputError, match="0 to 1"):
         session.set_structure(0, importance=2)
     with pytest.raises(DVRInputError, match="rrggbb"):
-        session.set_structure(0, color="red")
+        session.set_structure(0, colour="red")
+    with pytest.warns(DeprecationWarning, match=r"set_structure\(color=\.\.\.\) is deprecated"):
+        session.set_structure(1, color="#00ff00")  # the old keyword, for one release
+    assert session.spec.structures[1].colour == (0.0, 1.0, 0.0)
 
 
 def test_export_writes_spec_and_presets(session):

@@ -121,7 +121,7 @@ def test_history_undo_to_any_step(session):
     original = session.spec
     session.set_structure(0, importance=0.5)
     after_first = session.spec
-    session.set_structure(1, color="#00ff00")
+    session.set_structure(1, colour="#00ff00")
     session.set_structure(2, importance=0.9)
     rows = session.history_rows()
     assert [r["steps"] for r in rows] == [1, 2, 3]

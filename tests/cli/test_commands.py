@@ -220,6 +220,10 @@ def test_bench_alternates_frames_and_survives_a_vtk_that_cannot_render(capsys, m
     # two medians timed apart: at 16 px their order is noise, so only their presence is checked
     assert report["measure_total_s"] > 0
     assert report["measure_s"] > 0
+    # the walk behind early ray termination: the cache's and the exact one visit the same
+    # samples, the measure's analysis (no cache) skips (D8) and visits at most as many
+    assert report["samples_walked_exact"] == report["samples_walked"]
+    assert 0 < report["samples_walked_skipping"] <= report["samples_walked_exact"]
 
 
 def test_bench_rejects_bad_repeat(capsys):

@@ -332,7 +332,7 @@ def test_specular_highlights_are_not_reported_as_straight_alpha(phantom):
     # so the filter must not warn "rgba_premultiplied: colour channels exceed their opacity".
     _, spec, image = phantom
     light = Lighting(ambient=0.5, diffuse=0.8, specular=1.0, specular_power=2.0)
-    white = [replace(s, lighting=light, color=(1.0, 1.0, 1.0)) for s in spec.structures]
+    white = [replace(s, lighting=light, colour=(1.0, 1.0, 1.0)) for s in spec.structures]
     shiny = replace(spec, structures=tuple(white), rendering=replace(spec.rendering, shade=True))
     f = PerceptionMeasures()
     f.spec_json = json.dumps(spec_to_dict(shiny))

@@ -76,7 +76,7 @@ def test_output_image_and_field_data(filtered, phantom):
     assert _field(out, "light_direction").shape == (1, 3)
     opt = spec_from_dict(json.loads(_field(out, "optimized_spec_json")[0]))
     np.testing.assert_allclose(_field(out, "opacity"), [s.render_opacity for s in opt.structures])
-    np.testing.assert_allclose(_field(out, "color"), [s.color for s in opt.structures])
+    np.testing.assert_allclose(_field(out, "color"), [s.colour for s in opt.structures])
     assert max(progress) == pytest.approx(1.0)
     assert any(0.2 < p < 0.9 for p in progress)  # reported from the optimiser's callback
     # the curvature volume and the first analyses report from inside (issue 19)

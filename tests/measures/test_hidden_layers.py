@@ -218,7 +218,7 @@ def test_neghip_outer_layer_transparency_falls_with_saturation(shared_data, cach
         s = dataclasses.replace(
             spec,
             structures=tuple(
-                dataclasses.replace(x, color=with_saturation(x.color, pct / 100))
+                dataclasses.replace(x, colour=with_saturation(x.colour, pct / 100))
                 if x.name == outer
                 else x
                 for x in spec.structures

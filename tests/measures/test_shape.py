@@ -109,7 +109,7 @@ def test_background_enters_the_luminance():
     acc[:, :3] = 1.0
     ana = grey_analysis(np.full((6, 6), 0.5), np.zeros((6, 6)), accumulated=acc)
     black = StructureSpec(
-        structures=(Structure(name="s", importance=1.0, color=(0.5, 0.5, 0.5), range=(0, 1)),)
+        structures=(Structure(name="s", importance=1.0, colour=(0.5, 0.5, 0.5), range=(0, 1)),)
     )
     grey = StructureSpec(structures=black.structures, background=(0.5, 0.5, 0.5))
     assert shape(ana, black, percentile=99.0).v_i.max() == pytest.approx(1.0)  # silhouette edge

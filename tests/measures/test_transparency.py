@@ -50,7 +50,7 @@ def composite(shape, layers, background=(0.0, 0.0, 0.0)):
 
 def make_spec(names, importances, background=(0.0, 0.0, 0.0)):
     structures = tuple(
-        Structure(name=n, importance=w, color=(1.0, 1.0, 1.0), range=(i, i + 1))
+        Structure(name=n, importance=w, colour=(1.0, 1.0, 1.0), range=(i, i + 1))
         for i, (n, w) in enumerate(zip(names, importances, strict=True))
     )
     return StructureSpec(structures=structures, background=background)

@@ -34,7 +34,7 @@ def two_structure_analysis(w_front=0.6, w_back=0.2):
 def spec_for(names, importances):
     return StructureSpec(
         structures=tuple(
-            Structure(name=n, importance=w, color=(1.0, 1.0, 1.0), range=(i, i + 1))
+            Structure(name=n, importance=w, colour=(1.0, 1.0, 1.0), range=(i, i + 1))
             for i, (n, w) in enumerate(zip(names, importances, strict=True))
         )
     )

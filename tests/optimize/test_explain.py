@@ -209,7 +209,7 @@ def _colour():
     after = before.copy()
     after[1] = (0.7, 0.1, 0.1)  # heart: more saturated, away from the muscle's red-brown
     return {
-        "colors_before": before, "colors_after": after,
+        "colours_before": before, "colours_after": after,
         "transparency_before": np.array([0.02, 0.05, 0.04]),
         "transparency_after": np.array([0.02, 0.03, 0.04]),
     }  # fmt: skip
@@ -340,7 +340,7 @@ def test_phantom_shading_and_colour_lines_match_the_changes(phantom_run):
         assert (e["shading"] is not None) == bool(changed), (name, e["shading"])
         shading += e["shading"] is not None
         colour += e["colour"] is not None
-        if np.allclose(p0.colors[k], p1.colors[k]):
+        if np.allclose(p0.colours[k], p1.colours[k]):
             assert e["colour"] is None
         line = explanation_line(name, e)
         assert not JARGON.search(line), line
@@ -358,7 +358,7 @@ def test_a_barely_visible_colour_change_is_still_said_with_its_reason():
     before = np.array([[0.95, 0.88, 0.70], [0.85, 0.92, 1.0]])
     after = np.array([[0.9387, 0.8677, 0.6853], [0.85, 0.92, 1.0]])
     colour = {
-        "colors_before": before, "colors_after": after,
+        "colours_before": before, "colours_after": after,
         "transparency_before": np.zeros(2), "transparency_after": np.zeros(2),
         "shape_before": np.array([0.40, 0.30]), "shape_after": np.array([0.35, 0.30]),
     }  # fmt: skip

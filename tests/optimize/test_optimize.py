@@ -240,8 +240,8 @@ def test_colour_stage_keeps_hue_and_does_not_raise_E_t(phantom, stage1):
     assert r.final["E_t"] <= r.initial["E_t"] + 1e-12
     assert r.final["E"] <= r.initial["E"] + 1e-12
     for before, after in zip(stage1.spec.structures, r.spec.structures, strict=True):
-        h0, s0, v0 = colorsys.rgb_to_hsv(*before.color)
-        h1, s1, v1 = colorsys.rgb_to_hsv(*after.color)
+        h0, s0, v0 = colorsys.rgb_to_hsv(*before.colour)
+        h1, s1, v1 = colorsys.rgb_to_hsv(*after.colour)
         assert s1 >= 0.8 * s0 - 1e-6  # keeps its colour identity: not washed out ...
         assert s1 <= s0 + 0.2 + 1e-6  # ... nor garish
         assert h1 == pytest.approx(h0, abs=1e-6)
@@ -392,7 +392,7 @@ def test_colour_stage_changes_colours_and_lowers_E_t(phantom, stage1):
     r = optimize(vol, stage1.spec, cam, stages=("colour",), max_iter=3, seed=2)
     assert r.stages[0].message == "improved"
     assert r.final["E_t"] < r.initial["E_t"] - 5e-4
-    moved = [np.abs(np.subtract(a.color, b.color)).max()
+    moved = [np.abs(np.subtract(a.colour, b.colour)).max()
              for a, b in zip(stage1.spec.structures, r.spec.structures, strict=True)]  # fmt: skip
     assert max(moved) > 0.01
 

@@ -72,7 +72,9 @@ def _ssim(vol, spec, cam) -> float:
 def test_optimisation_changes_materials_per_structure(optimised):
     _, _, before, after, _, lighting_moves = optimised
     assert len(after.structures) == len(before.structures)
-    colours = [a.color != b.color for a, b in zip(after.structures, before.structures, strict=True)]
+    colours = [
+        a.colour != b.colour for a, b in zip(after.structures, before.structures, strict=True)
+    ]
     assert sum(colours) >= 2  # the colour stage moved several structures
     lightings = {s.lighting for s in after.structures}
     changed = [

@@ -65,6 +65,6 @@ def test_changed_colour_fails_the_baseline(vtk_can_render, phantom):
     vol, spec, cam = _scene_spec(phantom, "per_structure")
     baseline = _read(BASELINES / "phantom_per_structure.png")
     structures = list(spec.structures)
-    structures[3] = replace(structures[3], color=(0.2, 1.0, 0.2))  # tumour: red -> green
+    structures[3] = replace(structures[3], colour=(0.2, 1.0, 0.2))  # tumour: red -> green
     image = render_plotter(vol, replace(spec, structures=tuple(structures)), cam)
     assert not matches_baseline(image, baseline)

@@ -140,7 +140,7 @@ def test_more_materials_than_components_fall_back_with_warning(vtk_can_render, p
                 s = spec.structures[k]
                 mid = 0.5 * sum(s.range)
                 color = prop.GetRGBTransferFunction(c).GetColor(mid)
-                assert np.allclose(color, s.color, atol=1e-6)
+                assert np.allclose(color, s.colour, atol=1e-6)
                 assert prop.GetScalarOpacity(c).GetValue(mid) == pytest.approx(s.render_opacity)
             assert prop.GetSpecularPower(c) == lightings[c].specular_power
     finally:

@@ -63,6 +63,7 @@ def compare(vol, spec, cam, **kw):
     a = analyze(vol, spec, cam, backend="numba", **kw)
     b = analyze(vol, spec, cam, backend="cuda", **kw)
     rec = {"backend": b.stats["backend"], "buffers": diff(a, b),
+           "walked": [a.stats["samples_walked"], b.stats["samples_walked"]],
            "hit": int(np.count_nonzero(a.accumulated > 0.05)),
            "structures_seen": int(np.count_nonzero(np.bitwise_or.reduce(a.present.ravel())
                                                     >> np.arange(len(spec.structures)) & 1))}
@@ -100,7 +101,24 @@ def labels_scene():
     return vol, spec
 
 
+def slab_scene():  # an opaque slab in front of a thin layer, seen from above: skipping jumps
+    data = np.zeros((24, 12, 12), np.uint8)
+    data[8:] = 220
+    data[2:4] = 100
+    spec = StructureSpec((Structure("layer", 0.05, (1, 0, 0), range=(60, 140), edge=0.0),
+                          Structure("slab", 1.0, (1, 1, 1), range=(180, 255), edge=0.0)),
+                         rendering=RenderSettings(shade=False))
+    vol = Volume(data)
+    cx, cy, cz = vol.center
+    cam = Camera(position=(cx, cy, cz + 100.0), focal_point=(cx, cy, cz),
+                 parallel_projection=True, parallel_scale=4.0, width=12, height=10)
+    return vol, spec, cam
+
+
 out = {}
+svol, sspec, scam = slab_scene()
+out["skipping"] = compare(svol, sspec, scam, build_cache=False)
+out["skipping_exact"] = compare(svol, sspec, scam, build_cache=False, exact=True)
 vol, spec = make_phantom(size=16)
 cam = Camera.from_view(vol.bounds, width=12, height=10)
 side = Camera.from_view(vol.bounds, width=12, height=10, azimuth=70.0, elevation=20.0)
@@ -258,7 +276,16 @@ def sim() -> dict:
     return json.loads(run.stdout.strip().splitlines()[-1])
 
 
-CASES = ("shaded_cache", "unshaded", "unshaded_cache", "labels", "curvature", "render_only")
+CASES = (
+    "shaded_cache",
+    "unshaded",
+    "unshaded_cache",
+    "labels",
+    "curvature",
+    "render_only",
+    "skipping",
+    "skipping_exact",
+)
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -278,6 +305,15 @@ def test_cuda_equals_numba(sim, case):
         assert all(rec["cache_equal"].values()), rec["cache_equal"]
         for field, d in rec["reevaluated"].items():
             assert d <= 1e-5, (field, d)
+
+
+def test_the_skipping_walk_is_the_numba_one(sim):
+    """The walk behind early ray termination skips on the GPU as on the CPU (D8)."""
+    skip, exact = sim["skipping"]["walked"], sim["skipping_exact"]["walked"]
+    assert skip[0] == skip[1]
+    assert exact[0] == exact[1]
+    assert skip[0] < 0.7 * exact[0]
+    assert sim["skipping"]["structures_seen"] == 2  # the layer behind the slab is found
 
 
 def test_cases_cover_what_they_claim(sim):
@@ -580,4 +616,4 @@ def test_volume_package_still_offers_the_vtk_readers():
     assert callable(v.to_vtk_image)
     with pytest.raises(AttributeError, match="no attribute 'nothing'"):
         _ = v.nothing
-    assert v.make_phantom(size=16)[0].data.shape == (16, 16, 16)
+    assert v.phantom_volume(size=16).data.shape == (16, 16, 16)

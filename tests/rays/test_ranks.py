@@ -210,7 +210,7 @@ def test_rank_cache_reevaluates_new_opacities_colours_and_light_as_the_whole_cac
     k = len(spec.structures)
     params = [
         {"opacities": np.linspace(0.9, 0.2, k)},
-        {"colors": np.tile([0.2, 0.7, 0.4], (k, 1)), "light_direction": (0.3, 0.5, 0.8)},
+        {"colours": np.tile([0.2, 0.7, 0.4], (k, 1)), "light_direction": (0.3, 0.5, 0.8)},
         {"lighting": [Lighting(0.2, 0.6, 0.5, 30.0)] * k, "opacities": np.full(k, 0.35)},
     ]
     curvature, _ = curvature_volume(vol, spec)

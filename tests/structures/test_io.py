@@ -41,7 +41,7 @@ def _full() -> dict:
                 "name": "skin",
                 "range": [10.0, 20.0],
                 "importance": 0.3,
-                "color": [1.0, 0.8, 0.7],
+                "colour": [1.0, 0.8, 0.7],
                 "edge": 0.25,
                 "lighting": {
                     "ambient": 0.1,
@@ -56,7 +56,7 @@ def _full() -> dict:
                 "name": "organ",
                 "label": 3,
                 "importance": 1.0,
-                "color": [1.0, 0.0, 0.0],
+                "colour": [1.0, 0.0, 0.0],
                 "edge": 0.1,
                 "lighting": {
                     "ambient": 0.2,

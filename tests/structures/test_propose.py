@@ -41,8 +41,8 @@ def test_three_blobs_give_three_ranges(dtype, scale):
         assert a[1] == b[0]  # contiguous, touching
     assert ranges[-1][1] == pytest.approx(float(_three_blobs(dtype, scale=scale).data.max()))
     assert [s.importance for s in spec.structures] == [0.15, 0.5, 0.85]
-    assert [s.color for s in spec.structures] == [PALETTE[0], PALETTE[4], PALETTE[7]]
-    assert spec.structures[-1].color == (1.0, 0.96, 0.84)  # the densest class is ivory
+    assert [s.colour for s in spec.structures] == [PALETTE[0], PALETTE[4], PALETTE[7]]
+    assert spec.structures[-1].colour == (1.0, 0.96, 0.84)  # the densest class is ivory
 
 
 def test_names_and_round_trip():

@@ -159,11 +159,11 @@ def test_hu_ct_gets_tissue_structures_covering_the_standard_windows(dtype):
     # the radiologist's palette and weights
     bone, vessels, fat, soft = (got[n] for n in ("bone", "contrast-enhanced vessels", "fat",
                                                  "soft tissue"))  # fmt: skip
-    assert min(bone.color) > 0.8  # ivory
-    assert bone.color[2] < bone.color[0]
-    assert vessels.color[0] > 0.7 and max(vessels.color[1:]) < 0.2  # noqa: PT018 (red)
-    assert fat.color[0] > 0.9 and fat.color[1] > 0.8 and fat.color[2] < 0.5  # noqa: PT018
-    assert soft.color[0] > soft.color[1] > 0.5  # pink
+    assert min(bone.colour) > 0.8  # ivory
+    assert bone.colour[2] < bone.colour[0]
+    assert vessels.colour[0] > 0.7 and max(vessels.colour[1:]) < 0.2  # noqa: PT018 (red)
+    assert fat.colour[0] > 0.9 and fat.colour[1] > 0.8 and fat.colour[2] < 0.5  # noqa: PT018
+    assert soft.colour[0] > soft.colour[1] > 0.5  # pink
     assert min(bone.importance, vessels.importance) > max(fat.importance, soft.importance)
     assert describe_proposal(spec) == "structures proposed by tissue from Hounsfield units"
 

@@ -74,7 +74,7 @@ def test_spec_has_the_segments_names_colours_and_labels(files, name):
     spec = load_spec(d / name)
     assert list(spec.names) == NAMES
     assert [s.label for s in spec.structures] == [1, 5, 7]
-    assert [s.color for s in spec.structures] == [s["color"] for s in SEGMENTS]
+    assert [s.colour for s in spec.structures] == [s["color"] for s in SEGMENTS]
     assert all(s.range is None for s in spec.structures)
     # default rule: the smallest segment (the tumour) is the most important, the body the least
     imp = [s.importance for s in spec.structures]
@@ -174,7 +174,7 @@ def test_optimize_keeps_names_and_colours_in_outputs_and_slicer_export(files, tm
     report = json.loads(stdout)
     assert list(report["final"]["structures"]) == NAMES
     spec = json.loads((out / "optimized_spec.json").read_text(encoding="utf-8"))
-    assert [(s["name"], s["label"], s["color"]) for s in spec["structures"]] == [
+    assert [(s["name"], s["label"], s["colour"]) for s in spec["structures"]] == [
         (s["name"], s["label"], list(s["color"])) for s in SEGMENTS
     ]
     assert load_spec(out / "optimized_spec.json").names == tuple(NAMES)  # labels path resolves

@@ -174,7 +174,7 @@ def test_round_trip_spec_vtk_spec(spec2):
     for s, t in zip(spec.structures, back.structures, strict=True):
         assert t.range == pytest.approx(s.range)
         assert t.importance == pytest.approx(s.importance)
-        assert t.color == pytest.approx(s.color)
+        assert t.colour == pytest.approx(s.colour)
         assert t.edge == pytest.approx(s.edge, abs=1e-6)
 
 

@@ -45,7 +45,7 @@ def test_basic_properties(phantom):
     assert spec.names[0] == "skin"
     assert spec.background == (0.0, 0.0, 0.0)
     assert all(s.lighting == Lighting() for s in spec.structures)
-    assert len({s.color for s in spec.structures}) == len(spec.structures)
+    assert len({s.colour for s in spec.structures}) == len(spec.structures)
     imp = [s.importance for s in spec.structures]
     assert imp == sorted(imp)
     assert imp[0] == min(imp)
