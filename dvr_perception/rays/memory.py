@@ -25,6 +25,7 @@ from 23.2 GB of memory (11.8 GB is the default limit on a 23.5 GB machine), else
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 
@@ -137,11 +138,32 @@ class Plan(dict):
     """
 
 
+#: :func:`_filled_fraction` per volume (while it lives) and table: a plan per analysis.
+_FILLED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
 def _filled_fraction(volume, lut, memb, stride: int = 4) -> float:
-    """Share of voxels whose table entry belongs to a structure (every ``stride``-th voxel)."""
+    """Share of voxels whose table entry belongs to a structure (every ``stride``-th voxel).
+
+    Remembered per volume and table (the engine assumes a volume's data do not change).
+    """
+    inside = np.asarray(memb[: lut.size]) > 0
+    key = (float(lut.lo), float(lut.scale), int(lut.size), inside.tobytes(), stride)
+    try:
+        memo = _FILLED.setdefault(volume, {})
+    except TypeError:  # not weakly referable (a stand-in object): not remembered
+        memo = {}
+    hit = memo.get(key)
+    if hit is None:
+        hit = memo[key] = _filled(volume, lut, inside, stride)
+        while len(memo) > 8:
+            del memo[next(iter(memo))]
+    return hit
+
+
+def _filled(volume, lut, inside, stride) -> float:
     d = volume.data[::stride, ::stride, ::stride].astype(np.float64)
     idx = np.clip(np.floor((d - lut.lo) * lut.scale), 0, lut.size - 1).astype(np.int64)
-    inside = np.asarray(memb[: lut.size]) > 0
     frac = float(inside[idx].mean()) if idx.size else 1.0
     if volume.labels is not None:
         frac = max(frac, float(np.mean(volume.labels[::stride, ::stride, ::stride] > 0)))
