@@ -89,12 +89,14 @@ def main(argv=None) -> int:
     for name, kw in kinds.items():
         engine.analyze(vol, spec, cam, backend="numba", **kw)
         cost = np.array(_scratch()["walked"][:nrays], np.float64)  # per-ray samples
-        many = engine._threads
-        engine._threads = lambda: 64  # the dealing of many threads, whatever runs here
+        from dvr_perception.rays import _walk_setup
+
+        many = _walk_setup._threads
+        _walk_setup._threads = lambda: 64  # the dealing of many threads, whatever runs here
         try:
-            golden = engine.ray_order(cam.height, cam.width)
+            golden = _walk_setup.ray_order(cam.height, cam.width)
         finally:
-            engine._threads = many
+            _walk_setup._threads = many
         out["kinds"][name] = {
             "golden": speedups(cost, *golden, threads),
             "round_robin": speedups(cost, *_round_robin(cam.height, cam.width), threads),

@@ -357,7 +357,7 @@ class RankCache:
     def reevaluate(self, *, opacities=None, lighting=None, colours=None, light_direction=None):
         """:func:`~dvr_perception.rays.engine.reevaluate` over the ranks (same parameters)."""
         from dvr_perception.rays import _tables
-        from dvr_perception.rays.engine import _finish, _params
+        from dvr_perception.rays._walk_setup import _finish, _params
 
         t0 = time.perf_counter()
         spec = self.spec

@@ -22,7 +22,7 @@ from numba import njit, prange
 
 from dvr_perception.rays._numba_kernels import _FM, _IQS, _UNSET, _fill, _sample_at, _walk_ray
 
-__all__ = ["brick_ranges", "composite_part", "fill_range", "place", "walk_brick"]
+__all__ = ["brick_ranges", "composite_part", "fill_range", "place", "reach", "walk_brick"]
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
@@ -240,3 +240,29 @@ def composite_part(start, count, c_lut, c_sh, c_curv, ids, alpha_r, col, light, 
         st[r, 3] = tr
         st[r, 4] = num
         st[r, 5] = den
+
+
+@njit(parallel=True, cache=True, fastmath=_FM)
+def reach(start, count, c_lut, alpha, ert, out):
+    """Per ray, how many of its entries compositing at ``alpha`` can reach, with a margin.
+
+    Compositing (:func:`_numba_kernels._composite_ray`) stops after the entry that takes the
+    transmittance below ``ert``; here the count runs on until it falls below ``ert / 2`` and
+    one entry further, so rounding cannot make compositing reach past it.  Where the
+    transmittance never falls that far: every entry.  A lazily shaded bricked cache shades
+    these entries before it is composited (:func:`fill_range` on ``[start, start + out)``).
+    """
+    half = 0.5 * ert
+    for r in prange(len(start)):
+        tr = 1.0
+        e0 = start[r]
+        n = count[r]
+        q = 0
+        while q < n:
+            al = alpha[c_lut[e0 + q]]
+            q += 1
+            if al > 0.0:
+                tr *= 1.0 - al
+                if tr < half:
+                    break
+        out[r] = min(q + 1, n)

@@ -26,6 +26,7 @@ The pieces are public so that ParaView's MPI ranks can each walk their own piece
 from __future__ import annotations
 
 import math
+import threading
 import time
 import weakref
 from dataclasses import dataclass, field
@@ -37,6 +38,18 @@ from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError
 from dvr_perception.rays import _grid, _tables
 from dvr_perception.rays._results import RayAnalysis, RayCache
+from dvr_perception.rays._walk_setup import (
+    _check_curvature,
+    _check_inputs,
+    _finish,
+    _group,
+    _interleaved,
+    _params,
+    _plateau_entries,
+    _segments,
+    _tail_tables,
+    ray_order,
+)
 from dvr_perception.rays.camera import Camera
 from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.structures.transfer import build_lut
@@ -232,18 +245,17 @@ class RayState:
 
     @classmethod
     def start(cls, geometry, spec, camera, *, scalar_range, opacities=None, occlusion_free=True,
-              exact=False):  # fmt: skip
+              segments=None, exact=False):  # fmt: skip
         """Fresh rays for ``camera`` through the whole volume ``geometry``.
 
         ``scalar_range`` must be the whole volume's ``(min, max)`` (the transfer table spans
-        it); ``exact``: see the class.
+        it); ``exact``: see the class.  ``segments``: the camera's rays when already made
+        (``_walk_setup._segments`` of the same camera, volume and sample distance; read only).
         """
-        from dvr_perception.rays import engine
-
         if not isinstance(geometry, Geometry):
             raise DVRInputError(f"geometry: expected a Geometry, got {type(geometry).__name__}")
         probe = Volume(np.zeros((2, 2, 2), geometry.dtype), geometry.spacing, geometry.origin)
-        engine._check_inputs(probe, spec, camera, "numba")
+        _check_inputs(probe, spec, camera, "numba")
         nk, _ = _kernels()
         k = len(spec.structures)
         imp = _tables.check_opacities([s.importance for s in spec.structures], k, "importance")
@@ -277,10 +289,10 @@ class RayState:
             "light": light,
             "tab": _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16),
             "shade": shade,
-            "rep": engine._plateau_entries(ids, memb, k),
+            "rep": _plateau_entries(ids, memb, k),
         }
-        tables["tail"] = engine._tail_tables(ids, memb, alpha_w, tables["rep"], k)
-        seg = engine._segments(nk, camera, geometry, step)
+        tables["tail"] = _tail_tables(ids, memb, alpha_w, tables["rep"], k)
+        seg = _segments(nk, camera, geometry, step) if segments is None else segments
         nrays = camera.width * camera.height
         st = np.zeros((nrays, 7))
         st[:, 3:5] = 1.0
@@ -383,18 +395,31 @@ def _check_piece(piece, brick, offset, state, curvature):
     return off
 
 
-#: Keep the bricks' sample runs (for re-shading after a change of light) up to this many bytes.
+#: Keep the bricks' sample runs (for re-shading after a change of light, and for the next
+#: analyses of the same camera and bricks) up to this many bytes.
 RUNS_BYTES = 256 * 2**20
+#: Runs of recent analyses: (camera pack, volume shape, brick) -> (j0, j1), oldest first.
+_RUNS: dict = {}
+_RUNS_LOCK = threading.Lock()
 
 
 def _runs(state: RayState, brick: Brick) -> tuple[np.ndarray, np.ndarray]:
-    """Every ray's run ``[j0, j1)`` of samples in ``brick`` (kept while small enough)."""
-    runs = state.stats.setdefault("runs", {})
-    hit = runs.get(brick)
-    if hit is not None:
-        return hit
-    _, nb = _kernels()
+    """Every ray's run ``[j0, j1)`` of samples in ``brick`` (not to be changed; kept while small).
+
+    The runs depend on the rays and the brick only: analyses of the same camera and bricks
+    (a measure per view, the optimiser's analyses) find them here.
+    """
     seg = state.seg
+    key = state.stats.get("rays_key")
+    if key is None:
+        pack = _grid.camera_pack(state.camera, state.geometry, state.tables["step"])
+        key = state.stats["rays_key"] = (pack.tobytes(), state.geometry.shape)
+    with _RUNS_LOCK:
+        hit = _RUNS.pop((key, brick), None)
+        if hit is not None:
+            _RUNS[(key, brick)] = hit  # the most recent last
+            return hit
+    _, nb = _kernels()
     gz, gy, gx = state.geometry.shape
     lo = np.array([c[0] for c in brick.cells[::-1]], np.int64)
     hi = np.array([c[1] for c in brick.cells[::-1]], np.int64)
@@ -403,14 +428,18 @@ def _runs(state: RayState, brick: Brick) -> tuple[np.ndarray, np.ndarray]:
     j1 = np.empty(nrays, np.int64)
     nb.brick_ranges(seg["a"], seg["b"], seg["t"], seg["n"], state.tables["step"], lo, hi,
                     np.array([gx, gy, gz], np.int64), j0, j1)  # fmt: skip
-    if (len(runs) + 1) * 16 * nrays <= RUNS_BYTES:
-        runs[brick] = (j0, j1)
+    if 16 * nrays <= RUNS_BYTES:
+        with _RUNS_LOCK:
+            _RUNS[(key, brick)] = (j0, j1)
+            while sum(a.nbytes + b.nbytes for a, b in _RUNS.values()) > RUNS_BYTES:
+                del _RUNS[next(iter(_RUNS))]
     return j0, j1
 
 
 def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curvature=None,
          build_cache: bool = True, keep_codes: bool = False, derived=None,
-         progress=None) -> BrickCache | None:  # fmt: skip
+         progress=None, shade_all: bool = True, curvature_all: bool = True,
+         arena=None) -> BrickCache | None:  # fmt: skip
     """Walk ``brick``'s samples of every ray, continuing ``state`` (changed in place).
 
     Parameters
@@ -439,26 +468,32 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
         after each group of ray tiles: the rays then go to the kernel in groups of chunks, one
         call each, with the same result.  :class:`StopIteration` from it raises
         :class:`~dvr_perception.errors.DVRCancelled` (the state is then partly walked).
+    shade_all : bool
+        Shade every cache entry (default).  False: only the entries composited here; the
+        others stay unset for a lazily shaded cache (:func:`_filler`), which must shade
+        whatever compositing can reach before it composites.
+    curvature_all : bool
+        The same for the entries' curvature (False only with ``shade_all`` False: the
+        shading's marker is the one compositing tests).
+    arena : _Arena, optional
+        Where the brick's cache entries go (until the bricks' caches are merged); default
+        fresh arrays.
 
     Returns
     -------
     BrickCache or None
     """
-    nk, nb = _kernels()
+    _kernels()  # one clear error without numba
     report = reporter(progress)
     off = _check_piece(piece, brick, offset, state, curvature)
     if build_cache and not state.occlusion_free:
         raise DVRInputError("build_cache: needs an occlusion-free state (occlusion_free=True)")
-    t, seg, cam = state.tables, state.seg, state.camera
-    gz, gy, gx = state.geometry.shape
-    nrays = cam.width * cam.height
+    cam = state.camera
     j0, j1 = _runs(state, brick)
     skip = state.occlusion_free and not build_cache and not state.exact
     vol, maps, cv = _piece_arrays(piece, state, curvature, derived, skip)
-    has_curv = curvature is not None
-    shade = t["shade"]
-    from dvr_perception.rays.engine import _group, _interleaved, ray_order
-
+    if skip:
+        state.stats["assigned_cap"] = _grid.SATURATION
     order, chunk_ptr = ray_order(cam.height, cam.width)
     if report:
         order, chunk_ptr = _interleaved(order, chunk_ptr, _group())
@@ -467,11 +502,50 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     per_chunk = np.add.reduceat(runs, chunk_ptr[:-1]) if build_cache else np.zeros(nchunk, int)
     chunk_base = np.ascontiguousarray(np.concatenate([[0], np.cumsum(per_chunk)])[:-1])
     cap = max(int(per_chunk.sum()), 1)
+    mine = build_cache and _SRC_LOCK.acquire(blocking=False)
+    try:
+        return _walk_src(state, brick, vol, maps, cv if curvature is not None else None, j0, j1,
+                         order, chunk_ptr, chunk_base, cap, off, report, build_cache, keep_codes,
+                         shade_all, curvature_all, mine, arena)  # fmt: skip
+    finally:
+        if mine:
+            _SRC_LOCK.release()
+
+
+#: The walk's entries before compaction, reused from brick to brick (fresh memory costs page
+#: faults), and their lock (an analysis in another thread uses fresh arrays).
+_SRC: dict = {}
+_SRC_LOCK = threading.Lock()
+
+
+def _src(name, n, tail, dtype, shared):
+    """``n`` rows of the reused scratch ``name`` (``shared``), else a fresh array."""
+    if not shared:
+        return np.empty((n, *tail), dtype)
+    a = _SRC.get(name)
+    if a is None or len(a) < n:
+        a = np.empty((max(n, int(1.25 * len(a)) if a is not None else n), *tail), dtype)
+        _SRC[name] = a
+    return a[:n]
+
+
+def _walk_src(state, brick, vol, maps, cv, j0, j1, order, chunk_ptr, chunk_base, cap, off,
+              report, build_cache, keep_codes, shade_all, curvature_all, shared,
+              arena=None):  # fmt: skip
+    """:func:`walk` once the runs and chunks are known (``shared``: the scratch is ours)."""
+    nk, nb = _kernels()
+    t, seg, cam = state.tables, state.seg, state.camera
+    gz, gy, gx = state.geometry.shape
+    nrays = cam.width * cam.height
+    nchunk = len(chunk_ptr) - 1
+    has_curv = cv is not None
+    shade = t["shade"]
+    cv = np.zeros((2, 2, 2), np.float32) if cv is None else cv
     src = (
-        np.empty(cap, np.uint16),
-        np.empty(cap, np.int32),
-        np.empty((cap if shade else 1, 2), np.uint16),
-        np.empty(cap if has_curv else 1, np.float32),
+        _src("lut", cap, (), np.uint16, shared),
+        _src("j", cap, (), np.int32, shared),
+        _src("sh", cap if shade else 1, (2,), np.uint16, shared),
+        _src("curv", cap if has_curv else 1, (), np.float32, shared),
     )
     start = np.empty(nrays, np.int64)
     count = np.empty(nrays, np.int64)
@@ -490,28 +564,75 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
         report(c1 / nchunk)
     state.stats["samples_walked"] += int(walked.sum())
     state.stats["bricks"] += 1
-    if skip:
-        state.stats["assigned_cap"] = _grid.SATURATION
     if not build_cache:
         return None
     dest = np.zeros(nrays, np.int64)
     np.cumsum(count[:-1], out=dest[1:])
     e = int(dest[-1] + count[-1])
+    take = _Arena.fresh if arena is None else arena.take
     out = (
-        np.empty(e, np.uint16),
-        np.empty(e, np.int32),
-        np.empty((e if shade else 0, 2), np.uint16),
-        np.empty(e if has_curv else 0, np.float32),
+        take("lut", e, (), np.uint16),
+        take("j", e, (), np.int32),
+        take("sh", e if shade else 0, (2,), np.uint16),
+        take("curv", e if has_curv else 0, (), np.float32),
     )
     rows, row_ptr = ray_order(cam.height, cam.width, tile=(1, cam.width))
     nk.compact(rows, row_ptr, len(row_ptr) - 1, start, count, dest, *src, *out, shade, has_curv)
     del src
-    if shade or has_curv:  # behind early ray termination: not composited yet, no volume later
+    fill_shade = shade and shade_all
+    fill_curv = has_curv and (curvature_all or not shade)
+    if fill_shade or fill_curv:  # behind early ray termination: not composited yet
         nb.fill_range(dest, count, out[0], out[1], out[2], out[3], seg["a"], seg["b"], seg["t"],
-                      t["step"], j0, j1, vol, cv, geo, t["ids"], t["tab"], shade, has_curv,
+                      t["step"], j0, j1, vol, cv, geo, t["ids"], t["tab"], fill_shade, fill_curv,
                       np.uint32(16))  # fmt: skip
     codes = (vol >> np.uint32(16)).astype(np.uint16) if keep_codes and shade else None
     return BrickCache(brick, dest, count, *out, codes=codes, offset=off)
+
+
+class _Arena:
+    """Reused memory for the bricks' cache entries of one analysis, until they are merged.
+
+    Fresh memory costs page faults (as much as the copy into it); the entries of every brick
+    are taken one after another from buffers kept for the next analysis, grown to what the
+    last one needed.  One analysis at a time holds the arena (:data:`_ARENA_LOCK`); others
+    take fresh arrays.
+    """
+
+    def __init__(self) -> None:
+        self.used: dict = {}
+        self.need: dict = {}
+
+    @staticmethod
+    def fresh(name, n, tail, dtype):
+        """Return a fresh array of ``n`` rows."""
+        return np.empty((n, *tail), dtype)
+
+    def take(self, name, n, tail, dtype):
+        """Return the next ``n`` rows of buffer ``name`` (fresh ones when it is full)."""
+        if n == 0:
+            return np.empty((0, *tail), dtype)
+        used = self.used.get(name, 0)
+        self.used[name] = used + n
+        self.need[name] = used + n
+        buf = _ARENA_BUFFERS.get(name)
+        if buf is None or len(buf) < used + n:
+            return np.empty((n, *tail), dtype)
+        return buf[used : used + n]
+
+    def release(self) -> None:
+        """Grow the buffers that were short to what this analysis needed (for the next)."""
+        for name, need in self.need.items():
+            buf = _ARENA_BUFFERS.get(name)
+            if buf is None or len(buf) < need:
+                tail, dtype = _ARENA_KINDS[name]
+                _ARENA_BUFFERS.pop(name, None)
+                _ARENA_BUFFERS[name] = np.empty((int(need * 1.1) + 1, *tail), dtype)
+
+
+_ARENA_KINDS = {"lut": ((), np.uint16), "j": ((), np.int32), "sh": ((2,), np.uint16),
+                "curv": ((), np.float32)}  # fmt: skip
+_ARENA_LOCK = threading.Lock()
+_ARENA_BUFFERS: dict = {}
 
 
 def _merge(caches, state) -> dict:
@@ -540,15 +661,15 @@ def _merge(caches, state) -> dict:
     return {"start": dest, "count": total, **m}
 
 
-def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAnalysis:
+def finish(state: RayState, caches=None, *, refill=None, seconds=None, fill=None) -> RayAnalysis:
     """Return the analysis of the walked rays (every brick walked once, in view order).
 
     ``caches``: the bricks' :class:`BrickCache` in view order (consumed); merged into the
     result's :class:`RayCache`.  ``refill(cache, tab)``: recomputes shading after a change of
-    light (:func:`analyze_bricked` passes one that re-reads the bricks).
+    light (:func:`analyze_bricked` passes one that re-reads the bricks).  ``fill(cache,
+    alpha, tab)``: shades the entries compositing at opacities ``alpha`` can reach, for a
+    cache whose bricks were walked with ``shade_all=False`` (:func:`_filler`).
     """
-    from dvr_perception.rays import engine
-
     spec, cam = state.spec, state.camera
     k = len(spec.structures)
     st = state.st
@@ -575,9 +696,7 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
         "bricks": state.stats["bricks"],
     }
     t = state.tables
-    stats["params"] = engine._params(
-        state.opacities, t["cols"], t["mats"], spec.rendering.light_direction
-    )
+    stats["params"] = _params(state.opacities, t["cols"], t["mats"], spec.rendering.light_direction)
     if not state.occlusion_free:
         asg = np.full((k, len(st)), np.nan, np.float32)
         aimp = np.full(len(st), np.nan, np.float32)
@@ -596,6 +715,8 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
             "curvature_volume": np.zeros((2, 2, 2), np.float32),
             "shading_key": _tables.shading_key(t["light"], k) if t["shade"] else b"",
             "refill": refill,
+            "fill": fill,
+            "filled": None,  # the opacities whose reach is shaded (None: only the walk's)
         }
         cache = RayCache(
             spec=spec.with_opacities(state.opacities), camera=cam, ids=t["ids"],
@@ -608,24 +729,41 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None) -> RayAna
         stats["cache_entries"] = len(m["lut"])
         stats["cache_bytes"] = cache.nbytes
     vis = np.ascontiguousarray(state.vis)
-    return engine._finish(rgba, vis, asg, state.bits.copy(), cimg, spec, cam, stats, cache, aimp)
+    return _finish(rgba, vis, asg, state.bits.copy(), cimg, spec, cam, stats, cache, aimp)
 
 
-def _pieces(volume: Volume, bricks, curvature, skip=(), skip_curvature=()):
+def _pieces(volume: Volume, bricks, curvature, skip=(), skip_curvature=(), scratch=None,
+            wanted=None):  # fmt: skip
     """Each brick's piece of ``volume`` (a view), its offset and curvature piece.
 
     The piece is ``None`` for bricks in ``skip`` and the curvature piece for bricks in
     ``skip_curvature`` (both known from the memo).  ``curvature``: a whole-volume array or
     a :class:`~dvr_perception.rays.curvature_field.CurvatureField` (its piece computed here).
+    ``scratch``: a dict in which a whole-volume array's pieces are copied into one reused
+    buffer (valid until the next piece; fresh memory costs page faults), else fresh arrays.
+    ``wanted(brick)`` False (asked when the brick's turn comes): neither piece is made and
+    the offset is ``None``.
     """
     for br in bricks:
         ranges = br.voxels(volume.data.shape)
         (z0, z1), (y0, y1), (x0, x1) = ranges
         sl = (slice(z0, z1), slice(y0, y1), slice(x0, x1))
         piece = cv = None
-        if isinstance(curvature, np.ndarray):
+        if wanted is not None and not wanted(br):
+            yield br, None, None, None  # no offset: skipped
+            continue
+        if curvature is None or br in skip_curvature:
+            pass
+        elif isinstance(curvature, np.ndarray) and scratch is not None:
+            shape = (z1 - z0, y1 - y0, x1 - x0)
+            buf = scratch.get("curvature")
+            if buf is None or buf.size < math.prod(shape):
+                buf = scratch["curvature"] = np.empty(math.prod(shape), np.float32)
+            cv = buf[: math.prod(shape)].reshape(shape)
+            np.copyto(cv, curvature[sl], casting="unsafe")
+        elif isinstance(curvature, np.ndarray):
             cv = np.ascontiguousarray(curvature[sl], np.float32)
-        elif curvature is not None and br not in skip_curvature:
+        else:
             cv = curvature.piece(ranges)
         if br not in skip:
             labels = None if volume.labels is None else volume.labels[sl]
@@ -636,25 +774,34 @@ def _pieces(volume: Volume, bricks, curvature, skip=(), skip_curvature=()):
 #: Derived volumes of recent bricked analyses, per volume (while the memory limit allows).
 _MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 #: The bricks' derived volumes (about 7 bytes a voxel) are kept between analyses of a volume
-#: while they take at most this share of the memory limit; their curvature pieces (4 bytes a
-#: voxel) too while both fit.
-MEMO_SHARE = 0.0625
+#: while they take at most this share of the room the bricked analysis leaves under the
+#: memory limit (:func:`~dvr_perception.rays.memory.plan`'s estimate of its peak); their
+#: curvature pieces (4 bytes a voxel; of a field, or of a whole-volume array while it lives)
+#: too while both fit.  A volume bricked only because it
+#: is a little too large for the whole-volume analysis then costs what the whole volume costs
+#: from its second analysis on.
+MEMO_SHARE = 0.5
 
 
 def _curvature_key(curvature):
-    """Return what identifies the curvature pieces a memo holds (arrays are sliced, not kept).
+    """Return what identifies the curvature pieces a memo holds.
 
-    A field of the same volume, sigma and structure ranges/labels gives the same pieces.
+    A field of the same volume, sigma and structure ranges/labels gives the same pieces; a
+    whole-volume array gives them while it lives (its identity; like the checked curvature,
+    an array is assumed not to change in place).
     """
-    if curvature is None or isinstance(curvature, np.ndarray):
+    if curvature is None:
         return None
+    if isinstance(curvature, np.ndarray):
+        return ("array", id(curvature), curvature.ctypes.data, curvature.shape)
     structures = tuple((s.range, s.label) for s in curvature.spec.structures)
     return (curvature.sigma, structures)
 
 
-def _memo(volume, state, bricks, cap, curvature=None) -> tuple[dict | None, dict | None]:
+def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dict | None]:
     """Return the memos of ``volume``'s brick-derived volumes and curvature pieces, or None.
 
+    ``room``: bytes the memos may take (:data:`MEMO_SHARE` of what the analysis leaves free).
     The derived volumes depend on the tables only, the curvature pieces on the field only:
     analyses with and without curvature share the derived volumes.
     """
@@ -665,21 +812,30 @@ def _memo(volume, state, bricks, cap, curvature=None) -> tuple[dict | None, dict
         t["labels"], t["shade"], tuple(br.cells for br in bricks),
     )  # fmt: skip
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
-    if 7 * held > MEMO_SHARE * cap:
+    if 7 * held > room:
         _MEMO.pop(volume, None)
         return None, None
     hit = _MEMO.get(volume)
     if hit is None or hit["key"] != key:
-        hit = {"key": key, "bricks": {}, "curvature_key": None, "curvature": {}}
+        hit = {
+            "key": key,
+            "bricks": {},
+            "curvature_key": None,
+            "curvature": {},
+            "curvature_ref": None,
+        }
         _MEMO[volume] = hit  # the newest tables only
-    field = curvature is not None and not isinstance(curvature, np.ndarray)
-    if not field or 11 * held > MEMO_SHARE * cap:
-        if field:
-            hit["curvature"], hit["curvature_key"] = {}, None
+    if curvature is None:
+        return hit["bricks"], None
+    if 11 * held > room:
+        hit["curvature"], hit["curvature_key"] = {}, None
         return hit["bricks"], None
     ckey = (_curvature_key(curvature), tuple(br.cells for br in bricks))
-    if hit["curvature_key"] != ckey:
+    array = isinstance(curvature, np.ndarray)
+    same = hit["curvature_key"] == ckey and (not array or hit["curvature_ref"]() is curvature)
+    if not same:  # (an array of the same id and address is a new one once the old died)
         hit["curvature"], hit["curvature_key"] = {}, ckey
+        hit["curvature_ref"] = weakref.ref(curvature) if array else None
     return hit["bricks"], hit["curvature"]
 
 
@@ -724,8 +880,8 @@ KEEP_CODES_SHARE = 0.25
 
 def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, brick=(64, 64, 64),
                     opacities=None, curvature=None, build_cache: bool = True,
-                    occlusion_free: bool = True, memory_limit=None,
-                    progress=None, exact: bool = False) -> RayAnalysis:  # fmt: skip
+                    occlusion_free: bool = True, memory_limit=None, progress=None,
+                    segments=None, exact: bool = False) -> RayAnalysis:  # fmt: skip
     """:func:`~dvr_perception.rays.engine.analyze`, walking the volume brick by brick.
 
     Parameters
@@ -741,6 +897,8 @@ def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, bric
         are merged; at most about 100 calls, non-decreasing.  A callback that raises
         :class:`StopIteration` cancels the analysis with
         :class:`~dvr_perception.errors.DVRCancelled`.
+    segments : dict, optional
+        The camera's rays when the caller has made them (:meth:`RayState.start`).
 
     Examples
     --------
@@ -756,21 +914,22 @@ def analyze_bricked(volume: Volume, spec: StructureSpec, camera: Camera, *, bric
     return analyze_bricked_views(
         volume, spec, [camera], brick=brick, opacities=opacities, curvature=curvature,
         build_cache=build_cache, occlusion_free=occlusion_free, memory_limit=memory_limit,
-        progress=progress, exact=exact,
+        progress=progress, segments=None if segments is None else [segments], exact=exact,
     )[0]  # fmt: skip
 
 
 def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick=(64, 64, 64),
                           opacities=None, curvature=None, build_cache: bool = True,
-                          occlusion_free: bool = True, memory_limit=None,
-                          progress=None, exact: bool = False) -> list[RayAnalysis]:  # fmt: skip
+                          occlusion_free: bool = True, memory_limit=None, progress=None,
+                          segments=None, exact: bool = False) -> list[RayAnalysis]:  # fmt: skip
     """:func:`analyze_bricked` for several cameras, deriving each brick once for all of them.
 
     Cameras that meet the bricks in the same order (e.g. one view at several resolutions, as
     the optimiser uses) share one pass over the volume: each brick's derived volumes and
     curvature are computed once and every camera's rays walk it.  The results equal one
     :func:`analyze_bricked` per camera.  ``progress`` and ``exact``: as
-    :func:`analyze_bricked`, over all the cameras.
+    :func:`analyze_bricked`, over all the cameras; ``segments``: per camera its rays, when
+    already made.
 
     Examples
     --------
@@ -783,14 +942,14 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
     >>> bool(np.array_equal(both[1].rgba, one.rgba))
     True
     """
-    from dvr_perception.rays import engine, memory
+    from dvr_perception.rays import memory
 
     t0 = time.perf_counter()
     cameras = list(cameras)
     for cam in cameras:
-        engine._check_inputs(volume, spec, cam, "numba")
+        _check_inputs(volume, spec, cam, "numba")
     report = reporter(progress)
-    curv = engine._check_curvature(curvature, volume)
+    curv = _check_curvature(curvature, volume)
     every = split(volume.data.shape, brick)
     rng = _grid.scalar_range(volume)
     states = [
@@ -801,31 +960,48 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
             scalar_range=rng,
             opacities=opacities,
             occlusion_free=occlusion_free,
+            segments=None if segments is None else segments[n],
             exact=exact,
         )
-        for cam in cameras
+        for n, cam in enumerate(cameras)
     ]
     groups: dict = {}  # one pass over the volume per order of the bricks
     for n, st in enumerate(states):
         groups.setdefault(tuple(view_order(every, st)), []).append(n)
     cap = memory.limit(memory_limit)
-    out = [None] * len(cameras)
+    room = MEMO_SHARE * max(cap - sum(_peak(volume, st, brick, curv, build_cache, cap)
+                                      for st in states), 0)  # fmt: skip
     report(0.0)
+    arena = _Arena() if build_cache and _ARENA_LOCK.acquire(blocking=False) else None
+    try:
+        results = _views(volume, states, every, groups, curv, cap, build_cache, report, room,
+                         arena, t0)  # fmt: skip
+    finally:
+        if arena is not None:
+            arena.release()
+            _ARENA_LOCK.release()
+    report(1.0)
+    return results
+
+
+def _views(volume, states, every, groups, curv, cap, build_cache, report, room, arena, t0):
+    """Walk the passes of :func:`analyze_bricked_views`; return the finished analyses."""
+    out = [None] * len(states)
+    ncam = len(states)
     walked = 0  # cameras whose pass is done: each pass's share of the bar is its cameras'
     for order, members in groups.items():
         bricks = [every[i] for i in order]
-        share = report.sub(0.95 * walked / len(cameras),
-                           0.95 * (walked + len(members)) / len(cameras))  # fmt: skip
-        got = _pass(volume, [states[n] for n in members], bricks, curv, cap, build_cache, share)
+        share = report.sub(0.95 * walked / ncam, 0.95 * (walked + len(members)) / ncam)
+        got = _pass(volume, [states[n] for n in members], bricks, curv, cap, build_cache, share,
+                    room, arena)  # fmt: skip
         walked += len(members)
         for n, res in zip(members, got, strict=True):
             out[n] = res
     seconds = time.perf_counter() - t0
     results = [
-        finish(st, caches, refill=refill, seconds=seconds) for st, (caches, refill) in
-        zip(states, out, strict=True)
-    ]  # fmt: skip
-    report(1.0)
+        finish(st, caches, refill=refill, fill=fill, seconds=seconds)
+        for st, (caches, refill, fill) in zip(states, out, strict=True)
+    ]
     return results
 
 
@@ -836,22 +1012,83 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
 INNER_PROGRESS_BRICKS = 16
 
 
-def _pass(volume, states, bricks, curv, cap, build_cache, report=None) -> list:
+def _peak(volume, state, brick, curv, build_cache, cap) -> float:
+    """Bytes the bricked analysis of ``state``'s camera holds at its peak (the memos aside)."""
+    from dvr_perception.rays import memory
+
+    t = state.tables
+    try:
+        return memory.plan(
+            volume, len(state.st), int(state.seg["n"].sum()), k=len(state.spec.structures),
+            shade=t["shade"], curvature=curv is not None, build_cache=build_cache, lut=t["lut"],
+            membership=t["memb"], memory_limit=max(int(cap), 2**20), brick=brick,
+        )["bricked"]  # fmt: skip
+    except DVRInputError:  # more than the limit even in bricks: no room for memos
+        return float(cap)
+
+
+def _alive(states, brick) -> bool:
+    """Whether a ray of ``states`` that meets ``brick`` is still short of early termination."""
+    for st in states:
+        if st.occlusion_free:
+            return True  # every sample counts (assigned opacities)
+        j0, j1 = _runs(st, brick)
+        if np.any(st.st[j1 > j0, 3] >= _tables.ERT):
+            return True
+    return False
+
+
+def _pass(volume, states, bricks, curv, cap, build_cache, report=None, room=0.0,
+          arena=None) -> list:  # fmt: skip
     """Walk ``bricks`` (in the states' common view order) for every state; caches and refill.
 
     Each brick is read and derived once (or taken from the memo) for all the states;
-    ``report(fraction)`` follows after each brick.
+    ``report(fraction)`` follows after each brick.  Rendering only (no occlusion-free
+    shares), a brick behind every ray's early termination is neither read nor walked.
+    ``room``: bytes the memos may take; ``arena``: where the bricks' entries go.
     """
-    memo, cmemo = _memo(volume, states[0], bricks, cap, curv)
+    memo, cmemo = _memo(volume, states[0], bricks, room, curv)
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
     keep = build_cache and memo is None and 2 * held <= KEEP_CODES_SHARE * cap
     known = set(memo) if memo is not None else set()
+    locked = _CURV_SCRATCH_LOCK.acquire(blocking=False)
+    try:
+        return _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo, keep,
+                            known, locked, arena)  # fmt: skip
+    finally:
+        if locked:
+            _CURV_SCRATCH_LOCK.release()
+
+
+#: The reused buffer of whole-volume curvature pieces (:func:`_pieces`) and its lock.
+_CURV_SCRATCH: dict = {}
+_CURV_SCRATCH_LOCK = threading.Lock()
+
+
+def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo, keep, known,
+                 locked, arena=None) -> list:  # fmt: skip
+    """:func:`_pass` once its memos are known (``locked``: the curvature scratch is ours)."""
     caches = [[] if build_cache else None for _ in states]
     kept = [[] for _ in states]
-    pieces = _pieces(volume, bricks, curv, skip=known, skip_curvature=set(cmemo or ()))
+    # with every brick's normal codes kept (memo or codes), entries behind early ray
+    # termination are shaded only when a re-evaluation can reach them (_filler)
+    lazy = build_cache and states[0].tables["shade"] and (memo is not None or keep)
+    # and their curvature too while the memo keeps the bricks' curvature pieces
+    lazy_curv = lazy and curv is not None and cmemo is not None
+    pieces_kept = []
+    # rendering only: a brick behind every ray's termination is not read (nor its piece made)
+    wanted = None if any(st.occlusion_free for st in states) else (lambda br: _alive(states, br))
+    scratch = _CURV_SCRATCH if locked and cmemo is None else None  # memo pieces: their own
+    pieces = _pieces(volume, bricks, curv, skip=known, skip_curvature=set(cmemo or ()),
+                     scratch=scratch, wanted=wanted)  # fmt: skip
     for done, (br, piece, off, cv) in enumerate(pieces, 1):
+        if off is None:  # not wanted
+            if report:
+                report(done / len(bricks))
+            continue
         if cmemo is not None:
             cv = cmemo.setdefault(br, cv)
+        pieces_kept.append(cv if lazy_curv else None)
         derived = memo.get(br) if memo is not None else None
         if memo is not None and derived is None:
             derived = memo[br] = derive(piece, states[0])
@@ -865,7 +1102,8 @@ def _pass(volume, states, bricks, curv, cap, build_cache, report=None) -> list:
                                   (done - 1 + (n + 1) / len(states)) / len(bricks))  # fmt: skip
             c = walk(st, piece, br, offset=off, curvature=cv, build_cache=build_cache,
                      keep_codes=keep and codes is None, derived=derived,
-                     progress=part)  # fmt: skip
+                     progress=part, shade_all=not lazy,
+                     curvature_all=not lazy_curv, arena=arena)  # fmt: skip
             if not build_cache or c is None:
                 continue
             caches[n].append(c)
@@ -880,9 +1118,50 @@ def _pass(volume, states, bricks, curv, cap, build_cache, report=None) -> list:
             report(done / len(bricks))
     out = []
     for st, cs, kp in zip(states, caches, kept, strict=True):
-        refill = None
+        refill = fill = None
         if build_cache and st.tables["shade"]:
             kp = None if any(k is None for k in kp) else kp
             refill = _refiller(weakref.ref(volume), bricks, kp, st)
-        out.append((cs, refill))
+            if lazy:
+                fill = _filler(bricks, kp, st, pieces_kept if lazy_curv else None)
+        out.append((cs, refill, fill))
     return out
+
+
+def _filler(bricks, kept, state, curvature=None):
+    """Shade the entries of a lazily shaded bricked cache that compositing can reach.
+
+    ``kept``: per brick its normal codes (or voxel records), their shift and offset;
+    ``curvature``: per brick its curvature piece when the entries' curvature is lazy too
+    (else every entry's curvature is set).  A call
+    ``fill(cache, alpha, tab)`` before compositing at opacities ``alpha`` (per table entry)
+    shades, brick by brick, every unset entry up to :func:`_numba_bricks.reach` at the
+    entry-wise minimum of ``alpha`` and the opacities already served (lower opacities reach
+    at least as far), with the shading table ``tab``; when ``alpha`` is nowhere below those,
+    nothing is left to shade and it returns at once.  ``cache.lazy["filled"]`` is ``None``
+    after a change of light (nothing shaded).
+    """
+    t, seg = state.tables, state.seg
+    gz, gy, gx = state.geometry.shape
+
+    def fill(cache, alpha, tab):
+        z = cache.lazy
+        done = z["filled"]
+        if done is not None and np.all(alpha >= done):
+            return
+        lo = np.asarray(alpha, np.float64) if done is None else np.minimum(alpha, done)
+        _, nb = _kernels()
+        upto = np.empty(len(cache.start), np.int64)
+        nb.reach(cache.start, cache.count, cache.lut, lo, _tables.ERT, upto)
+        none = np.zeros((2, 2, 2), np.float32)
+        pieces = [None] * len(bricks) if curvature is None else curvature
+        for br, (vol, shift, off), cv in zip(bricks, kept, pieces, strict=True):
+            j0, j1 = _runs(state, br)
+            geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
+            nb.fill_range(cache.start, upto, cache.lut, z["steps"], cache.shading,
+                          cache.curvature, seg["a"], seg["b"], seg["t"], t["step"], j0, j1, vol,
+                          none if cv is None else cv, geo, cache.ids, tab, True, cv is not None,
+                          np.uint32(shift))  # fmt: skip
+        z["filled"] = lo
+
+    return fill

@@ -6,7 +6,10 @@ and returns a :class:`RayAnalysis`: the image plus, per structure and pixel, its
 and the visibility-weighted boundary curvature.  With ``build_cache=True`` it keeps, per ray,
 the compact list of samples with non-zero membership (:class:`RayCache`) so that
 :func:`reevaluate` can apply new opacities, colours, materials or light direction without
-touching the volume again.
+touching the volume again.  :func:`analyze` checks its inputs, plans the memory
+(:func:`~dvr_perception.rays.memory.plan`) and hands over to the whole-volume walk here or to
+the bricked one (:mod:`~dvr_perception.rays.bricks`, imported when needed); what both walks
+share lives below them in :mod:`~dvr_perception.rays._walk_setup`.
 
 Conventions matched to ``vtkFixedPointVolumeRayCastMapper`` (``docs/vtk_conventions.md``):
 
@@ -38,98 +41,40 @@ import functools
 import threading
 import time
 import warnings
-import weakref
 
 import numpy as np
 
 from dvr_perception._deprecation import renamed_keyword
-from dvr_perception._numba import kernels
 from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.rays import _grid, _tables, memory
 from dvr_perception.rays import _numpy_kernels as _npk
-from dvr_perception.rays._results import RayAnalysis, RayCache, engine_made
+from dvr_perception.rays._results import RayAnalysis, RayCache
+from dvr_perception.rays._walk_setup import (  # noqa: F401 - also engine's names for callers
+    _CHUNKS,
+    BACKENDS,
+    TILE,
+    _analysis,
+    _check_curvature,
+    _check_inputs,
+    _finish,
+    _group,
+    _interleaved,
+    _numba_kernels,
+    _params,
+    _plateau_entries,
+    _segments,
+    _tail_tables,
+    _threads,
+    _with_labels,
+    ray_order,
+)
 from dvr_perception.rays.camera import Camera
-from dvr_perception.structures.spec import MAX_STRUCTURES, StructureSpec
+from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.structures.transfer import build_lut
 from dvr_perception.volume.volume import Volume
 
 __all__ = ["RayAnalysis", "RayCache", "analyze", "analyze_views", "reevaluate"]
-
-BACKENDS = ("auto", "numba", "numpy", "cuda")
-_MAX_STRUCTURES = MAX_STRUCTURES
-
-
-def _numba_kernels():
-    """Return the numba kernel module, or None when numba is unavailable or disabled."""
-    return kernels("dvr_perception.rays._numba_kernels")
-
-
-def _check_inputs(volume, spec, camera, backend) -> None:
-    if not isinstance(volume, Volume):
-        raise DVRInputError(f"volume: expected a Volume, got {type(volume).__name__}")
-    if not isinstance(spec, StructureSpec):
-        raise DVRInputError(f"spec: expected a StructureSpec, got {type(spec).__name__}")
-    if not isinstance(camera, Camera):
-        raise DVRInputError(f"camera: expected a Camera, got {type(camera).__name__}")
-    k = len(spec.structures)
-    if not 1 <= k <= _MAX_STRUCTURES:
-        raise DVRInputError(f"spec.structures: expected 1 to {_MAX_STRUCTURES} structures, got {k}")
-    if backend not in BACKENDS:
-        raise DVRInputError(f"backend: expected one of {BACKENDS}, got {backend!r}")
-
-
-def _check_curvature(curvature, volume) -> np.ndarray | None:
-    if curvature is None:
-        return None
-    from dvr_perception.rays.curvature_field import CurvatureField
-
-    if isinstance(curvature, CurvatureField):
-        if curvature.shape != volume.data.shape:
-            raise DVRInputError(
-                f"curvature: a field of shape {curvature.shape}, the volume is "
-                f"{volume.data.shape} (z, y, x)"
-            )
-        return curvature  # computed piece by piece (bricks) or whole (below)
-    try:
-        c = np.asarray(curvature, dtype=np.float32)
-    except (TypeError, ValueError):
-        raise DVRInputError("curvature: expected a float array shaped like the volume") from None
-    if c.shape != volume.data.shape:
-        raise DVRInputError(
-            f"curvature: expected shape {volume.data.shape} (z, y, x) like the volume, "
-            f"got {c.shape}"
-        )
-    nk = _numba_kernels()
-    if nk is not None:
-        c = np.ascontiguousarray(c)
-        state = _checked_curvature(nk, c)
-        if state == 2:
-            raise DVRInputError("curvature: values must be finite")
-        return c if state == 0 else np.abs(c)  # already |H|: used as is, not copied
-    if not np.all(np.isfinite(c)):
-        raise DVRInputError("curvature: values must be finite")
-    return np.ascontiguousarray(np.abs(c))
-
-
-_CURV_CHECKED: dict = {}
-
-
-def _checked_curvature(nk, c: np.ndarray) -> int:
-    """``nk.check_curvature`` of ``c``, remembered for the same (live, read-only use) array.
-
-    The same curvature array is passed frame after frame; a full pass over it costs several
-    ms.  Like the cache, the engine assumes a curvature array is not modified in place.
-    """
-    key = (id(c), c.ctypes.data, c.shape)
-    hit = _CURV_CHECKED.get(key)
-    if hit is not None and hit[0]() is c:
-        return hit[1]
-    state = int(nk.check_curvature(c.reshape(-1)))
-    for k in [k for k, v in _CURV_CHECKED.items() if v[0]() is None]:
-        _CURV_CHECKED.pop(k, None)
-    _CURV_CHECKED[key] = (weakref.ref(c), state)
-    return state
 
 
 def _pick_backend(backend: str):
@@ -167,66 +112,6 @@ def _kind(backend: str, nk) -> str:
         if _cuda.auto_usable():
             return "cuda"
     return "numba"
-
-
-def _segments(nk, camera, volume, step: float) -> dict:
-    """Per-ray sample ranges (``_grid.ray_segments``; numba twin when available)."""
-    if nk is None:
-        return _grid.ray_segments(camera, volume, step)
-    nrays = camera.width * camera.height
-    seg = {
-        "a": np.empty((nrays, 3)),
-        "b": np.empty((nrays, 3)),
-        "t": np.empty(nrays),
-        "n": np.empty(nrays, np.int32),
-    }
-    nk.segments(_grid.camera_pack(camera, volume, step), seg["a"], seg["b"], seg["t"], seg["n"])
-    return seg
-
-
-def _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp) -> RayAnalysis:
-    h, w = camera.height, camera.width
-    k = len(spec.structures)
-    bg = np.asarray(spec.background, np.float32)
-    nk = _numba_kernels()
-    if nk is not None and rgba.dtype == vis.dtype == cimg.dtype == np.float64:
-        rgba32 = np.empty((h, w, 4), np.float32)
-        image = np.empty((h, w, 3), np.float32)
-        acc = np.empty((h, w), np.float32)
-        vis32 = np.empty((k, h, w), np.float32)
-        cimg32 = np.empty((h, w), np.float32)
-        nk.finish(
-            np.ascontiguousarray(rgba).reshape(-1, 4), np.ascontiguousarray(vis).reshape(k, -1),
-            np.ascontiguousarray(cimg).reshape(-1), bg, rgba32.reshape(-1, 4),
-            image.reshape(-1, 3), acc.reshape(-1), vis32.reshape(k, -1), cimg32.reshape(-1),
-        )  # fmt: skip
-        rgba, vis, cimg = rgba32, vis32, cimg32
-    else:
-        rgba = np.asarray(rgba, np.float32).reshape(h, w, 4)
-        image = np.clip(rgba[..., :3] + (1.0 - rgba[..., 3:]) * bg, 0.0, 1.0)
-        acc = np.ascontiguousarray(rgba[..., 3])
-    return _analysis(rgba, image, acc, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
-
-
-def _analysis(rgba, image, acc, vis, asg, present, cimg, spec, camera, stats, cache, aimp):
-    h, w = camera.height, camera.width
-    k = len(spec.structures)
-    analysis = RayAnalysis(
-        rgba=rgba.reshape(h, w, 4),
-        image=image.reshape(h, w, 3),
-        accumulated=acc.reshape(h, w),
-        visible=np.asarray(vis, np.float32).reshape(k, h, w),
-        assigned=np.asarray(asg, np.float32).reshape(k, h, w),
-        present=np.asarray(present, np.uint32).reshape(h, w),
-        curvature=np.asarray(cimg, np.float32).reshape(h, w),
-        names=spec.names,
-        camera=camera,
-        stats=stats,
-        cache=cache,
-        importance_accumulated=np.asarray(aimp, np.float32).reshape(h, w),
-    )
-    engine_made(analysis, mark=True)
-    return analysis
 
 
 def analyze(
@@ -338,15 +223,8 @@ def analyze(
         [s.render_opacity for s in spec.structures] if opacities is None else opacities, k
     )
     curv = _check_curvature(curvature, volume)
-    nk, step, unit, lut, labmap, ids, memb, seg = _scene(volume, spec, camera, backend)
-    cols, mats = _tables.material(spec)
-    rs = spec.rendering
-    light = _tables.light_array(camera, mats, rs.light_direction, rs.light_intensity)
-    ratio = step / unit
-    alpha_w = _tables.alpha_table(ids, memb, imp, ratio)
-    alpha_r = _tables.alpha_table(ids, memb, ops, ratio)
-    shade, has_curv = bool(rs.shade), curv is not None
-    nrays = camera.width * camera.height
+    scene = _scene(volume, spec, camera, backend)
+    nk, _, _, lut, _, _, memb, seg = scene
     if not seg["n"].any():
         warnings.warn(
             f"camera sees none of volume {volume.name!r}; returning an empty image",
@@ -354,6 +232,7 @@ def analyze(
             stacklevel=2,
         )
     kind = _kind(backend, nk)
+    host_rays = kind != "cuda"  # seg: the CPU's rays (the GPU's are made by _cuda.rays_for)
     if kind == "cuda" and brick is not None:
         if backend == "cuda":
             raise DVRInputError(
@@ -361,6 +240,7 @@ def analyze(
                 "is CPU only (backend='numba' or 'auto')"
             )
         kind = "numba"
+    has_curv = curv is not None
     need = _plan(volume, spec, camera, seg, lut, memb, has_curv, build_cache, memory_limit, brick)
     skip = occlusion_free and not build_cache and not exact
     if kind == "cuda" and need["mode"] == "bricks":
@@ -374,14 +254,37 @@ def analyze(
     if need["mode"] == "whole" and curv is not None and not isinstance(curv, np.ndarray):
         curv = _check_curvature(np.asarray(curv), volume)  # a field, read whole
     report(0.0)
-    if need["mode"] == "bricks":
+    if need["mode"] == "bricks":  # the bricked walk (imported only when needed)
         from dvr_perception.rays.bricks import analyze_bricked
 
         return analyze_bricked(
             volume, spec, camera, brick=need["brick"], opacities=ops, curvature=curv,
             build_cache=build_cache, occlusion_free=occlusion_free, memory_limit=memory_limit,
-            progress=report, exact=exact,
+            progress=report, segments=seg if host_rays else None, exact=exact,
         )  # fmt: skip
+    return _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cache,
+                          occlusion_free, report, t_start, skip)  # fmt: skip
+
+
+def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cache,
+                   occlusion_free, report, t_start, skip=False) -> RayAnalysis:  # fmt: skip
+    """Analyse the whole volume at once (:func:`analyze` chose it): walk, cache and result.
+
+    ``scene``: :func:`_scene`'s tuple; ``kind``: the back end that runs (:func:`_kind`);
+    ``imp`` and ``ops``: the checked importances and opacities; ``curv``: the checked
+    curvature array or None; ``skip``: the skipping walk behind early ray termination
+    (``exact=False`` without the cache).
+    """
+    nk, step, unit, lut, labmap, ids, memb, seg = scene
+    k = len(spec.structures)
+    cols, mats = _tables.material(spec)
+    rs = spec.rendering
+    light = _tables.light_array(camera, mats, rs.light_direction, rs.light_intensity)
+    ratio = step / unit
+    alpha_w = _tables.alpha_table(ids, memb, imp, ratio)
+    alpha_r = _tables.alpha_table(ids, memb, ops, ratio)
+    shade, has_curv = bool(rs.shade), curv is not None
+    nrays = camera.width * camera.height
     idx = _grid.index_volume(volume, lut.lo, lut.scale, lut.size)
     cells = None if nk is None else _grid.cell_map(volume, idx, ids, memb, labmap)
     vol = _grid.voxel_records(volume, idx, cells) if shade else idx
@@ -545,11 +448,11 @@ def analyze_views(
         _check_inputs(volume, spec, cam, backend)
     # the tables and label map are the same for every camera: only the rays differ
     nk, step, _, lut, _, _, memb, _ = _scene(volume, spec, cameras[0], backend)
+    segs = [_segments(nk, cam, volume, step) for cam in cameras]
     plans = [
-        _plan(volume, spec, cam, _segments(nk, cam, volume, step), lut, memb, curv is not None,
-              build_cache, memory_limit, None)
-        for cam in cameras
-    ]  # fmt: skip
+        _plan(volume, spec, cam, seg, lut, memb, curv is not None, build_cache, memory_limit, None)
+        for cam, seg in zip(cameras, segs, strict=True)
+    ]
     bricks = {tuple(p["brick"]) for p in plans if p["mode"] == "bricks"}
     shared = len(cameras) > 1 and len(bricks) == 1 and all(p["mode"] == "bricks" for p in plans)
     if shared and _kind(backend, nk) != "cuda":  # bricks are the CPU's (analyze() decides)
@@ -557,7 +460,7 @@ def analyze_views(
 
         return analyze_bricked_views(
             volume, spec, cameras, brick=bricks.pop(), curvature=curv, build_cache=build_cache,
-            memory_limit=memory_limit, progress=report, exact=exact,
+            memory_limit=memory_limit, progress=report, segments=segs, exact=exact,
         )  # fmt: skip
     kw = {
         "curvature": curvature,
@@ -569,78 +472,6 @@ def analyze_views(
     n = len(cameras)
     return [analyze(volume, spec, cam, progress=report.sub(i / n, (i + 1) / n), **kw)
             for i, cam in enumerate(cameras)]  # fmt: skip
-
-
-#: The walk casts rays in tiles of this many pixels (rows, columns): neighbouring rays meet
-#: the same voxels, so they stay in the processor's cache.
-TILE = (16, 16)
-#: Tiles are dealt to this many chunks (parallel work items, balanced load).
-_CHUNKS = 64
-#: With more threads than this, tile ``i`` goes to chunk ``floor(frac(i * _GOLDEN) *
-#: chunks)`` (the golden ratio's fractional part: a low-discrepancy sequence), else to chunk
-#: ``i % chunks`` (:func:`ray_order`).
-_GOLDEN = (5.0**0.5 - 1.0) / 2.0
-_SPREAD_THREADS = 4
-_ORDERS: dict = {}
-_ORDERS_LOCK = threading.Lock()
-
-
-def ray_order(height: int, width: int, *, tile=TILE) -> tuple[np.ndarray, np.ndarray]:
-    """Return the order in which the numba kernels visit the rays (memoised, read-only).
-
-    Tiles of ``tile = (rows, columns)`` pixels, row by row inside a tile, are dealt to at
-    most 64 chunks; chunk ``c`` visits ``order[chunk_ptr[c]:chunk_ptr[c + 1]]`` (flat pixel
-    indices, every pixel exactly once).  The walk uses square tiles (:data:`TILE`);
-    compositing from the cache uses whole image rows (``tile=(1, width)``), the order in
-    which the cache entries are stored.
-
-    With more than :data:`_SPREAD_THREADS` numba threads, tile ``i`` (row-major) goes to
-    chunk ``floor(frac(i g) n)`` with ``g`` the golden ratio's fractional part: every chunk,
-    and every run of consecutive chunks (what one thread gets from numba's static schedule
-    of a parallel loop), takes tiles spread evenly over the image, so the threads get equal
-    work however many there are.  Dealt round-robin (the default on fewer threads: its
-    chunks sweep down tile columns, 3-4 % less work for the walk than spread tiles), a
-    512-pixel image's 32 tile columns make each of the 64 chunks one column, and runs of
-    adjacent columns go to one thread: 8 threads got no more done than 4 on the 512 x 512 x
-    452 CT (issue 31; ``benchmarks/thread_balance.py``).  The order does not change any
-    result: every ray is computed on its own.
-
-    Examples
-    --------
-    >>> order, ptr = ray_order(3, 20)
-    >>> len(ptr) - 1, sorted(order.tolist()) == list(range(60))
-    (2, True)
-    >>> order[: ptr[1]].tolist()[:18]
-    [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 20, 21]
-    >>> ray_order(3, 20, tile=(1, 20))[0][:4].tolist()
-    [0, 1, 2, 3]
-    """
-    th, tw = (max(int(v), 1) for v in tile)
-    spread = _threads() > _SPREAD_THREADS
-    key = (int(height), int(width), th, tw, spread)
-    with _ORDERS_LOCK:
-        hit = _ORDERS.get(key)
-    if hit is not None:
-        return hit
-    rows = np.arange(height * width, dtype=np.int64).reshape(height, width)
-    ty, tx = -(-height // th), -(-width // tw)
-    tiles = [rows[y * th : (y + 1) * th, x * tw : (x + 1) * tw].ravel()
-             for y in range(ty) for x in range(tx)]  # fmt: skip
-    nchunk = max(min(len(tiles), _CHUNKS), 1)
-    deal = np.arange(len(tiles)) % nchunk
-    if spread:
-        deal = np.floor(np.mod(np.arange(len(tiles)) * _GOLDEN, 1.0) * nchunk).astype(np.int64)
-    parts = [np.concatenate([tiles[i] for i in np.flatnonzero(deal == c)])
-             for c in range(nchunk) if np.any(deal == c)]  # fmt: skip
-    order = np.ascontiguousarray(np.concatenate(parts))
-    chunk_ptr = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
-    order.flags.writeable = False
-    chunk_ptr.flags.writeable = False
-    with _ORDERS_LOCK:  # analyses may run in several threads (web app)
-        while len(_ORDERS) >= 8:
-            del _ORDERS[next(iter(_ORDERS))]
-        _ORDERS[key] = (order, chunk_ptr)
-    return order, chunk_ptr
 
 
 _SCRATCH: dict = {}
@@ -857,77 +688,6 @@ def _cuda_array(shape, dtype):
     return cuda.device_array(shape, dtype)
 
 
-def _threads() -> int:
-    """Return numba's thread count (how many chunks run at once)."""
-    import numba
-
-    return max(1, int(numba.get_num_threads()))
-
-
-def _group() -> int:
-    """Chunks per kernel call when a progress callback is reported between calls."""
-    return max(16, 4 * _threads())
-
-
-def _interleaved(order, chunk_ptr, per: int):
-    """Reorder the chunks so that every ``per`` consecutive ones are spread over the image.
-
-    A kernel call over ``per`` consecutive chunks of :func:`ray_order` would take tiles from
-    one stretch of its dealing sequence only, so its threads could get unequal shares of a
-    region (a brick's footprint).  Here run ``g`` takes chunks ``g, g + G, g + 2G, ...``
-    (``G`` runs), as the threads of one call over all the chunks do.  Every ray is still
-    visited once.
-    """
-    nchunk = len(chunk_ptr) - 1
-    runs = -(-nchunk // per)
-    perm = [c for g in range(runs) for c in range(g, nchunk, runs)]
-    parts = [order[chunk_ptr[c] : chunk_ptr[c + 1]] for c in perm]
-    ptr = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
-    return np.ascontiguousarray(np.concatenate(parts)), ptr
-
-
-def _tail_tables(ids, memb, alpha_w, rep, k):
-    """Return what the walk behind early ray termination looks up (``_numba_kernels._tail``).
-
-    ``kmap``: a cell class's table entry (a plateau's entry; the spare entry ``len(ids)``
-    for empty and mixed cells); per table entry plus the spare, its structure (``k``, the
-    spare row of ``asg``, outside every structure), its importance opacity (0 there) and its
-    ``present`` bit (0 there).
-    """
-    n = len(ids)
-    inside = memb > 0
-    tids = np.append(np.where(inside, ids, k), k).astype(np.int64)
-    t_alpha = np.append(np.where(inside, alpha_w, 0.0), 0.0)
-    t_bit = np.where(tids < k, np.left_shift(1, np.minimum(tids, 31)), 0).astype(np.uint32)
-    kmap = np.full(256, n, np.int64)
-    for s in range(k):
-        if rep[s] >= 0:
-            kmap[1 + s] = rep[s]
-    return kmap, tids, t_alpha, t_bit
-
-
-def _with_labels(volume, spec, lut):
-    """Return the label map and the table extended by one entry per label structure.
-
-    Entry ``lut.size + j`` is label structure ``j`` (membership 1); a sample whose nearest
-    voxel carries that label takes it, whatever its intensity.  Without label structures the
-    map is ``None`` and the table is the intensity table.
-    """
-    lab_s = [i for i, s in enumerate(spec.structures) if s.label is not None]
-    labmap = _grid.label_map(volume, [spec.structures[i].label for i in lab_s])
-    ids = np.concatenate([lut.ids, np.asarray(lab_s, lut.ids.dtype)])
-    memb = np.concatenate([lut.membership, np.ones(len(lab_s), lut.membership.dtype)])
-    return labmap, np.ascontiguousarray(ids), np.ascontiguousarray(memb)
-
-
-def _plateau_entries(ids, memb, k) -> np.ndarray:
-    """Per structure, a table entry on its plateau (membership 1), or -1 (``_grid.cell_map``)."""
-    rep = np.full(max(k, 1), -1, np.int64)
-    for e in np.flatnonzero(memb == 1)[::-1]:
-        rep[ids[e]] = e
-    return rep
-
-
 def _scratch(name, n, tail, dtype, shared):
     """Return ``n`` rows of a reusable module-level scratch array.
 
@@ -1006,16 +766,6 @@ def _subset_order(rays, n: int) -> tuple[np.ndarray, np.ndarray]:
     order.flags.writeable = False  # typed as ray_order's (no second compilation)
     chunk_ptr.flags.writeable = False
     return order, chunk_ptr
-
-
-def _params(ops, cols, mats, direction) -> dict:
-    """Return an analysis's rendering parameters as :func:`reevaluate` takes them (``stats``)."""
-    return {
-        "opacities": tuple(float(o) for o in ops),
-        "colours": tuple(tuple(float(c) for c in row) for row in np.asarray(cols)),
-        "lighting": tuple(mats),
-        "light_direction": tuple(float(d) for d in np.asarray(direction, np.float64).ravel()),
-    }
 
 
 @renamed_keyword("colors", "colours")
@@ -1109,9 +859,13 @@ def reevaluate(
                 nk.invalidate(cache.shading)
             else:
                 nk.invalidate_structures(cache.shading, cache.lut, cache.ids, stale)
-            if z.get("refill") is not None:  # a bricked cache: no whole volume to fill from
+            if z.get("fill") is not None:  # a lazily shaded bricked cache: shaded below
+                z["filled"] = None
+            elif z.get("refill") is not None:  # a bricked cache: no whole volume to fill from
                 z["refill"](cache, tab)
         z["shading_key"] = key
+    if nk is not None and z.get("fill") is not None:  # what compositing can reach is shaded
+        z["fill"](cache, alpha_r, tab)
     if nk is None:
         rgba, vis, cimg = _npk.composite(
             cache.start, cache.count, cache.lut, cache.shading, cache.curvature, *args, k

@@ -168,9 +168,9 @@ def _filled_fraction(volume, lut, memb, stride: int = 4) -> float:
 
 
 def _filled_fraction_of(volume, lut, memb, stride: int) -> float:
+    inside = np.asarray(memb[: lut.size]) > 0
     d = volume.data[::stride, ::stride, ::stride].astype(np.float64)
     idx = np.clip(np.floor((d - lut.lo) * lut.scale), 0, lut.size - 1).astype(np.int64)
-    inside = np.asarray(memb[: lut.size]) > 0
     frac = float(inside[idx].mean()) if idx.size else 1.0
     if volume.labels is not None:
         frac = max(frac, float(np.mean(volume.labels[::stride, ::stride, ::stride] > 0)))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dvr_perception.rays import engine
+from dvr_perception.rays import _walk_setup
 from dvr_perception.rays.engine import TILE, ray_order
 
 
@@ -19,7 +19,7 @@ def _static_speedup(cost, order, chunk_ptr, threads):
 
 @pytest.fixture
 def many_threads(monkeypatch):
-    monkeypatch.setattr(engine, "_threads", lambda: 16)
+    monkeypatch.setattr(_walk_setup, "_threads", lambda: 16)
 
 
 @pytest.mark.parametrize("size", [512, 384, 700])
@@ -44,7 +44,7 @@ def test_a_chunk_is_no_tile_column(many_threads):
 
 
 def test_few_threads_keep_the_round_robin_sweeps(monkeypatch):
-    monkeypatch.setattr(engine, "_threads", lambda: 2)
+    monkeypatch.setattr(_walk_setup, "_threads", lambda: 2)
     order, chunk_ptr = ray_order(512, 512)
     assert np.array_equal(np.sort(order), np.arange(512 * 512))
     columns = order[chunk_ptr[5] : chunk_ptr[6]] % 512 // TILE[1]
