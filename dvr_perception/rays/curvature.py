@@ -231,6 +231,8 @@ def _curvature_kernels():
 _BAND_VOXELS = 1 << 18
 #: Fewest rows of a y band cut to give many threads work (each band filters its ghost rows).
 _MIN_ROWS = 16
+#: Extents of at least this many voxels are cut into a band per thread (a 256^3 one is).
+_SPLIT_VOXELS = 1 << 23
 
 
 def _check_sigma(sigma, where: str = "curvature_volume") -> float:
@@ -502,9 +504,12 @@ def curvature_volume(
     _, (ey0, ey1), (ex0, ex1) = ext
     # y bands (the ring of a band stays in the processor's cache), run by a pool of threads
     rows = max(_BAND_VOXELS // ((ex1 - ex0) * (2 * geo.radii[0] + 1)), 8)
-    # a band for every thread (of 16 rows or more): a 512-row extent made 9 bands, idling 7
-    # of 16 threads (the same bits however it is cut)
-    bands = max(1, round((ey1 - ey0) / rows), min(_threads(), (ey1 - ey0) // _MIN_ROWS))
+    # a band for every thread (of 16 rows or more) on a large extent: a 512-row extent made 9
+    # bands, idling 7 of 16 threads (the same bits however it is cut).  A small one keeps its
+    # single band: a few ms of work, whose progress is then reported slice by slice.
+    bands = max(1, round((ey1 - ey0) / rows))
+    if (ext[0][1] - ext[0][0]) * (ey1 - ey0) * (ex1 - ex0) >= _SPLIT_VOXELS:
+        bands = max(bands, min(_threads(), (ey1 - ey0) // _MIN_ROWS))
     cuts = [ey0 + ((ey1 - ey0) * i) // bands for i in range(bands + 1)]
     chunks = [(ext[0], (a, b), ext[2]) for a, b in itertools.pairwise(cuts)]
 

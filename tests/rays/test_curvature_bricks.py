@@ -266,6 +266,11 @@ def test_many_threads_cut_more_bands_with_the_same_bits(backend, monkeypatch):
     real = curvature_module._chunk
     monkeypatch.setattr(curvature_module, "_threads", lambda: 16)
     monkeypatch.setattr(curvature_module, "_chunk", lambda *a: cuts.append(a[2]) or real(*a))
+    small, _ = curvature_volume(vol, spec)
+    assert len(cuts) == 1  # a small extent keeps one band (progress slice by slice)
+    np.testing.assert_array_equal(small, one)
+    cuts.clear()
+    monkeypatch.setattr(curvature_module, "_SPLIT_VOXELS", 1)  # as a large extent is cut
     many, many_bnd = curvature_volume(vol, spec)
     assert len(cuts) == 70 // curvature_module._MIN_ROWS  # 4 bands of 16 or more rows
     np.testing.assert_array_equal(many_bnd, one_bnd)
