@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -66,12 +65,9 @@ def _terms(analysis, spec) -> dict:
 
 
 def _median(fn, repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(statistics.median(times))
+    from dvr_perception._timing import median_time
+
+    return median_time(fn, repeat)
 
 
 def _equal(inputs, curv) -> dict:

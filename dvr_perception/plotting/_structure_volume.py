@@ -67,6 +67,7 @@ import numpy as np
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.export.vtk import to_vtk_transfer_functions
 from dvr_perception.structures.spec import Lighting, StructureSpec
+from dvr_perception.structures.transfer import _opacities
 from dvr_perception.volume.volume import Volume
 
 __all__ = ["MAX_MATERIALS", "StructureVolume", "add_structures", "apply", "material_groups"]
@@ -191,18 +192,7 @@ def _check(volume, spec, opacities) -> np.ndarray:
             "volume.labels: the spec has label structures but the volume has no label volume "
             "(load the spec's 'labels' file with attach_labels, or Volume(..., labels=...))"
         )
-    if opacities is None:
-        ops = np.array([s.render_opacity for s in spec.structures], dtype=np.float64)
-    else:
-        ops = np.asarray(opacities, dtype=np.float64).ravel()
-        if ops.shape != (len(spec.structures),):
-            raise DVRInputError(
-                f"opacities: expected {len(spec.structures)} values (one per structure), "
-                f"got {ops.size}"
-            )
-    if not np.all(np.isfinite(ops)) or np.any((ops < 0) | (ops > 1)):
-        raise DVRInputError(f"opacities: every opacity must be in [0, 1], got {ops.tolist()}")
-    return ops
+    return _opacities(spec, opacities)
 
 
 def _distance(value, volume: Volume, what: str) -> float:
