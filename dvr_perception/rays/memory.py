@@ -16,10 +16,9 @@ The limit (:mod:`dvr_perception._memory`, read by the volume readers too) is, in
 ``memory_limit`` argument, :func:`set_limit` (the command line's
 ``--memory-limit``), the environment variable ``DVR_PERCEPTION_MEMORY_LIMIT`` and
 :data:`DEFAULT_FRACTION` of the machine's physical memory.  Sizes here are binary (GB =
-2**30 bytes).  A 512 x 512 x 452 uint16 CT at 512 x 512 pixels needs about 1.5 GB whole (2
-bytes a voxel for the volume, 11 for the derived volumes and ``|H|``, 348 a pixel), so it is
-analysed whole on any machine with 3 GB; a 1024 x 1024 x 904 one needs about 11.6 GB, whole
-from 23.2 GB of memory (11.8 GB is the default limit on a 23.5 GB machine), else in bricks.
+2**30 bytes).  The whole-volume estimate (:func:`whole_volume_bytes`) counts the volume's own
+bytes, about 11 a voxel for the derived volumes and ``|H|``, and 348 a pixel; a volume is
+analysed whole whenever that fits the limit, else in bricks.
 """
 
 from __future__ import annotations
