@@ -20,7 +20,6 @@ optimiser in the layering (it is used only by front ends).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import os
@@ -217,16 +216,9 @@ def read_json_file(path, what: str):
             text = fh.read(MAX_JSON_BYTES + 1)
     except (OSError, UnicodeDecodeError) as exc:
         raise DVRInputError(f"{what}: cannot read ({exc})") from None
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise DVRInputError(
-            f"{what}: not valid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
-        ) from None
-    except RecursionError:
-        raise DVRInputError(f"{what}: JSON nested too deeply") from None
-    except ValueError as exc:  # e.g. an integer of more than 4300 digits
-        raise DVRInputError(f"{what}: not valid JSON ({str(exc)[:80]})") from None
+    from dvr_perception.structures.io import loads_json
+
+    return loads_json(text, what)
 
 
 _FACTORS = re.compile(r"^\s*(\d{1,9})\s*(?:,\s*(\d{1,9})\s*,\s*(\d{1,9})\s*)?$")

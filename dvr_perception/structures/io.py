@@ -143,6 +143,31 @@ def spec_to_dict(spec: StructureSpec) -> dict:
     return out
 
 
+def loads_json(text: str, name: str):
+    """Parse JSON ``text``, or raise one :class:`DVRInputError` naming ``name`` and the place.
+
+    Examples
+    --------
+    >>> loads_json('{"a": [1, 2]}', "spec.json")
+    {'a': [1, 2]}
+    >>> try:
+    ...     loads_json('{"a": }', "s.json")
+    ... except ValueError as exc:
+    ...     print(exc)
+    s.json: not valid JSON at line 1, column 7: Expecting value
+    """
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise DVRInputError(
+            f"{name}: not valid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
+        ) from None
+    except RecursionError:
+        raise DVRInputError(f"{name}: JSON nested too deeply") from None
+    except ValueError as exc:  # e.g. an integer of more than 4300 digits
+        raise DVRInputError(f"{name}: not valid JSON ({str(exc)[:80]})") from None
+
+
 def load_spec(path) -> StructureSpec:
     """Read and validate a spec JSON file.
 
@@ -186,16 +211,7 @@ def load_spec(path) -> StructureSpec:
         raise DVRInputError(f"{name}: not UTF-8 text ({exc.reason})") from None
     except OSError as exc:
         raise DVRInputError(f"{path}: cannot read spec file ({exc.strerror})") from None
-    try:
-        d = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise DVRInputError(
-            f"{name}: not valid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
-        ) from None
-    except RecursionError:
-        raise DVRInputError(f"{name}: JSON nested too deeply") from None
-    except ValueError as exc:  # e.g. an integer of more than 4300 digits
-        raise DVRInputError(f"{name}: not valid JSON ({str(exc)[:80]})") from None
+    d = loads_json(text, name)
     spec, unknown = parse_spec_dict(_without_data_field(d), name)
     if unknown:
         warnings.warn(
