@@ -25,6 +25,7 @@ The pieces are public so that ParaView's MPI ranks can each walk their own piece
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
@@ -36,7 +37,7 @@ import numpy as np
 from dvr_perception._numba import kernels
 from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError
-from dvr_perception.rays import _grid, _tables
+from dvr_perception.rays import _grid, _tables, memory
 from dvr_perception.rays._results import RayAnalysis, RayCache
 from dvr_perception.rays._walk_setup import (
     _check_curvature,
@@ -783,6 +784,38 @@ _MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 MEMO_SHARE = 0.5
 
 
+def _memo_bytes(volume) -> int:
+    try:
+        return memory.array_bytes(_MEMO.get(volume))
+    except TypeError:  # not weak-referenceable: nothing memoised
+        return 0
+
+
+def _memo_drop(volume) -> None:
+    with contextlib.suppress(TypeError):  # not weak-referenceable: nothing memoised
+        _MEMO.pop(volume, None)
+
+
+def _buffers_bytes(_volume=None) -> int:
+    """Bytes of the buffers every bricked analysis reuses (kept between analyses)."""
+    with _RUNS_LOCK:
+        runs = list(_RUNS.values())
+    return memory.array_bytes(dict(_SRC), dict(_ARENA_BUFFERS), dict(_CURV_SCRATCH), runs)
+
+
+def _buffers_drop(_volume=None) -> None:
+    """Free the reused buffers (those in use by a running analysis live on until it ends)."""
+    for d in (_SRC, _ARENA_BUFFERS, _CURV_SCRATCH):
+        d.clear()
+    with _RUNS_LOCK:
+        _RUNS.clear()
+
+
+#: :func:`~dvr_perception.rays.memory.plan` counts (and may drop) the memos and buffers.
+memory.keeps("bricks", _memo_bytes, _memo_drop)
+memory.keeps("bricks_buffers", _buffers_bytes, _buffers_drop, per_volume=False)
+
+
 def _curvature_key(curvature):
     """Return what identifies the curvature pieces a memo holds.
 
@@ -942,8 +975,6 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
     >>> bool(np.array_equal(both[1].rgba, one.rgba))
     True
     """
-    from dvr_perception.rays import memory
-
     t0 = time.perf_counter()
     cameras = list(cameras)
     for cam in cameras:
@@ -969,8 +1000,7 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
     for n, st in enumerate(states):
         groups.setdefault(tuple(view_order(every, st)), []).append(n)
     cap = memory.limit(memory_limit)
-    room = MEMO_SHARE * max(cap - sum(_peak(volume, st, brick, curv, build_cache, cap)
-                                      for st in states), 0)  # fmt: skip
+    room = _room(volume, states, brick, curv, build_cache, cap)
     report(0.0)
     arena = _Arena() if build_cache and _ARENA_LOCK.acquire(blocking=False) else None
     try:
@@ -1012,19 +1042,34 @@ def _views(volume, states, every, groups, curv, cap, build_cache, report, room, 
 INNER_PROGRESS_BRICKS = 16
 
 
-def _peak(volume, state, brick, curv, build_cache, cap) -> float:
-    """Bytes the bricked analysis of ``state``'s camera holds at its peak (the memos aside)."""
-    from dvr_perception.rays import memory
+def _room(volume, states, brick, curv, build_cache, cap) -> float:
+    """Bytes the memos (or the kept normal codes) may take: :data:`MEMO_SHARE` of the room.
 
+    The room is what the limit leaves beside the bricked analyses of ``states`` (each one's
+    :func:`~dvr_perception.rays.memory.plan` estimate, the memos aside; what every analysis
+    of the volume holds, the volume itself first, counted once).
+    """
+    peaks = [_peak(volume, st, brick, curv, build_cache, cap) for st in states]
+    held = max(h for _, h in peaks)
+    return MEMO_SHARE * max(cap - held - sum(p - h for p, h in peaks), 0)
+
+
+def _peak(volume, state, brick, curv, build_cache, cap) -> tuple[float, float]:
+    """Bytes the bricked analysis of ``state``'s camera holds at its peak (the memos aside).
+
+    And of those what every analysis of the volume holds (``plan``'s ``held``).
+    """
     t = state.tables
     try:
-        return memory.plan(
+        p = memory.plan(
             volume, len(state.st), int(state.seg["n"].sum()), k=len(state.spec.structures),
             shade=t["shade"], curvature=curv is not None, build_cache=build_cache, lut=t["lut"],
             membership=t["memb"], memory_limit=max(int(cap), 2**20), brick=brick,
-        )["bricked"]  # fmt: skip
+            curvature_array=isinstance(curv, np.ndarray),
+        )  # fmt: skip
     except DVRInputError:  # more than the limit even in bricks: no room for memos
-        return float(cap)
+        return float(cap), 0.0
+    return p["bricked"] - p["memo"], p["held"]
 
 
 def _alive(states, brick) -> bool:
@@ -1049,7 +1094,8 @@ def _pass(volume, states, bricks, curv, cap, build_cache, report=None, room=0.0,
     """
     memo, cmemo = _memo(volume, states[0], bricks, room, curv)
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
-    keep = build_cache and memo is None and 2 * held <= KEEP_CODES_SHARE * cap
+    # the codes stay with the cache (counted as the memo would be: within the room)
+    keep = build_cache and memo is None and 2 * held <= min(KEEP_CODES_SHARE * cap, room)
     known = set(memo) if memo is not None else set()
     locked = _CURV_SCRATCH_LOCK.acquire(blocking=False)
     try:

@@ -12,13 +12,26 @@ and scratch take a small share of the limit.  When even bricks do not fit,
 :func:`plan` raises one error naming ``--memory-limit`` instead of letting the operating system
 kill the process.
 
+Both estimates count everything that stays alive while the analysis runs, not only what it
+allocates: the volume itself, the memos the engine keeps between analyses of the volume (the
+whole volume's derived volumes of :mod:`~dvr_perception.rays._grid`, the bricks' derived
+volumes and curvature pieces of :mod:`~dvr_perception.rays.bricks`; :func:`kept_bytes`), the
+bricked walk's reused buffers, and a whole-volume ``|H|`` array handed to a bricked analysis.
+A memo the chosen way does not read (the whole volume's derived volumes in a bricked run, the
+bricks' in a whole one) is dropped when it would not fit beside the run; the bricks' memo and
+kept normal codes take at most :data:`~dvr_perception.rays.bricks.MEMO_SHARE` of what the
+estimate leaves under the limit.  So the measured peak of an analysis, its memos included,
+stays under the limit (``tests/rays/test_plan_kept.py`` measures it).
+
 The limit (:mod:`dvr_perception._memory`, read by the volume readers too) is, in order: the
 ``memory_limit`` argument, :func:`set_limit` (the command line's
 ``--memory-limit``), the environment variable ``DVR_PERCEPTION_MEMORY_LIMIT`` and
-:data:`DEFAULT_FRACTION` of the machine's physical memory.  Sizes here are binary (GB =
-2**30 bytes).  The whole-volume estimate (:func:`whole_volume_bytes`) counts the volume's own
-bytes, about 11 a voxel for the derived volumes and ``|H|``, and 348 a pixel; a volume is
-analysed whole whenever that fits the limit, else in bricks.
+:data:`DEFAULT_FRACTION` (a quarter) of the machine's physical memory; the rest is left to
+Python and its libraries, VTK's renderer (its own copy of the volume) and the machine's other
+programs.  Sizes here are binary (GB = 2**30 bytes).  The whole-volume estimate
+(:func:`whole_volume_bytes`) counts the volume's own bytes, about 11 a voxel for the
+derived volumes and ``|H|``, and 348 a pixel; a volume is analysed whole whenever that fits
+the limit, else in bricks.
 """
 
 from __future__ import annotations
@@ -45,6 +58,9 @@ __all__ = [
     "ENV",
     "Plan",
     "check_image",
+    "drop_kept",
+    "keeps",
+    "kept_bytes",
     "limit",
     "machine_memory",
     "parse_size",
@@ -60,6 +76,106 @@ BRICK_SHARE = 0.125
 # the limit itself (default, --memory-limit, environment) is read on the ground floor, where the
 # volume readers use it too
 _human = human_bytes
+
+
+#: What the engine keeps between analyses: name -> (bytes kept for a volume, drop them).
+_KEEPERS: dict = {}
+
+
+def keeps(name: str, size, drop, *, per_volume: bool = True) -> None:
+    """Register a memo the engine keeps between analyses, so :func:`plan` counts it.
+
+    ``size(volume)`` returns the bytes the memo holds for ``volume`` (``per_volume`` False:
+    for every volume, e.g. reused buffers) and ``drop(volume)`` frees them.
+    """
+    _KEEPERS[name] = (size, drop, per_volume)
+
+
+def _nbytes(obj, seen) -> int:
+    """Bytes of the arrays in ``obj`` (dicts, tuples and lists walked; each array once)."""
+    if isinstance(obj, np.ndarray):
+        base = obj
+        while isinstance(base.base, np.ndarray):
+            base = base.base
+        if id(base) in seen:
+            return 0
+        seen.add(id(base))
+        return int(base.nbytes)
+    if isinstance(obj, dict):
+        return sum(_nbytes(v, seen) for v in list(obj.values()))
+    if isinstance(obj, tuple | list):
+        return sum(_nbytes(v, seen) for v in obj)
+    return 0
+
+
+def array_bytes(*objs) -> int:
+    """Bytes of the distinct arrays in ``objs`` (walking dicts, tuples and lists).
+
+    Examples
+    --------
+    >>> a = np.zeros(100, np.uint8)
+    >>> array_bytes({"a": a, "b": (a[:10], np.zeros(5))})  # a view of a counts once
+    140
+    """
+    seen: set = set()
+    return sum(_nbytes(o, seen) for o in objs)
+
+
+def _grid_size(volume) -> int:
+    from dvr_perception.rays import _grid
+
+    try:
+        memo = _grid._STORE.get(volume)
+    except TypeError:  # not weak-referenceable: nothing memoised
+        return 0
+    return array_bytes(memo) if memo else 0
+
+
+def _grid_drop(volume) -> None:
+    from dvr_perception.rays import _grid
+
+    try:
+        memo = _grid._STORE.get(volume)
+    except TypeError:
+        return
+    for key in [k for k in list(memo or ()) if k != "range"]:
+        memo.pop(key, None)  # (another thread may have dropped it)
+
+
+#: The whole volume's derived volumes (:mod:`~dvr_perception.rays._grid`, per volume).
+keeps("whole", _grid_size, _grid_drop)
+
+
+def kept_bytes(volume, names=None) -> dict[str, int]:
+    """Bytes the engine keeps between analyses, per memo (:func:`keeps`), for ``volume``.
+
+    ``names``: only these memos.  A memo of another volume is not counted (it goes with its
+    volume); buffers reused by every analysis are.
+
+    Examples
+    --------
+    >>> from dvr_perception.structures.phantom import make_phantom
+    >>> from dvr_perception.rays import _grid
+    >>> vol, _ = make_phantom(size=16)
+    >>> kept_bytes(vol, ["whole"])
+    {'whole': 0}
+    >>> _ = _grid.index_volume(vol, 0.0, 1.0, 256)  # a derived volume, 2 bytes a voxel
+    >>> kept_bytes(vol, ["whole"])
+    {'whole': 8192}
+    """
+    out = {}
+    for name, (size, _, per_volume) in list(_KEEPERS.items()):
+        if names is None or name in names:
+            out[name] = int(size(volume) if per_volume else size(None))
+    return out
+
+
+def drop_kept(volume, names) -> None:
+    """Free the memos ``names`` (:func:`keeps`) of ``volume``."""
+    for name in names:
+        entry = _KEEPERS.get(name)
+        if entry is not None:
+            entry[1](volume)
 
 
 def ray_bytes(k: int) -> int:
@@ -133,8 +249,11 @@ def whole_fits(volume, memory_limit=None, **kwargs) -> bool:
 class Plan(dict):
     """What :func:`plan` decided.
 
-    ``mode`` ("whole" or "bricks"), ``brick`` (cells, z y x), ``limit`` and the estimated
-    peak bytes of both ways (``whole``, ``bricked``).
+    ``mode`` ("whole" or "bricks"), ``brick`` (cells, z y x), ``limit``, the estimated
+    peak bytes of both ways (``whole``, ``bricked``; the memos kept included), ``held`` (the
+    bytes every analysis of the volume holds: the volume, a whole ``|H|`` array, the kept
+    whole-volume derived volumes), ``memo`` (the bricks' memo counted) and ``entries`` (the
+    estimated cache entries).
     """
 
 
@@ -177,16 +296,25 @@ def _filled_fraction_of(volume, lut, memb, stride: int) -> float:
 
 
 def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bool,
-         build_cache: bool, lut, membership, memory_limit=None, brick=None) -> Plan:  # fmt: skip
+         build_cache: bool, lut, membership, memory_limit=None, brick=None,
+         curvature_array: bool = False) -> Plan:  # fmt: skip
     """Choose whole or bricked and check the estimate against the limit.
 
     ``samples`` is the number of samples of all rays (the walk's segments), ``lut`` the
     transfer table and ``membership`` its per-entry membership.  ``brick`` forces bricks of
-    that many cells.  Raises :class:`~dvr_perception.errors.DVRInputError` when the analysis
-    cannot fit.
+    that many cells.  ``curvature_array``: the curvature is a whole-volume array (alive
+    beside a bricked run too), not a field computed per brick.  Raises
+    :class:`~dvr_perception.errors.DVRInputError` when the analysis cannot fit.
+
+    Both estimates hold the volume and the memos kept for it (:func:`kept_bytes`); a memo
+    the chosen way does not read is dropped when the run would not fit beside it.  The
+    result's ``held`` is what every analysis of the volume holds (the volume, a whole
+    ``|H|`` array, the kept whole-volume derived volumes) and ``memo`` the bricks' memo
+    counted in ``bricked``.
     """
     cap = limit(memory_limit)
     voxels = int(volume.data.size)
+    data = voxels * int(volume.data.itemsize)
     compact = lut.size <= 256
     per_voxel = _voxel_bytes(volume, shade=shade, curvature=False, compact=compact)
     entry = 2 + 4 + (4 if shade else 0) + (4 if curvature else 0)
@@ -196,9 +324,15 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     rays_bytes = nrays * per_ray
     cache = entries * entry if build_cache else 0.0
     scratch_whole = samples * entry if build_cache else 0.0
-    # the peak of the run: the volume, its derived volumes and |H|, samples, scratch, rays
-    whole = (
+    kept = kept_bytes(volume)
+    grid = kept.pop("whole", 0)  # the whole volume's derived volumes
+    memo = kept.pop("bricks", 0)  # the bricks' derived volumes and curvature pieces
+    buffers = sum(kept.values())  # the bricked walk's reused buffers
+    # the peak of the run: the volume, its derived volumes (those kept beyond them too) and
+    # |H|, samples, scratch, rays
+    whole_own = (
         whole_volume_bytes(volume, shade=shade, curvature=curvature, compact=compact)
+        + max(grid - voxels * per_voxel, 0)  # those of other tables
         + scratch_whole
         + cache
         + rays_bytes
@@ -217,23 +351,45 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     else:
         cells = tuple(int(c) for c in brick)
     bvox = math.prod(c + 3 for c in cells)
-    bricked = (
-        bvox * (per_voxel + volume.data.itemsize)
-        + scratch_whole * min(1.0, bvox / max(voxels, 1)) * 2.0
-        + 2.0 * cache  # the bricks' entries and their merged copy
+    held = data + (4 * voxels if curvature and curvature_array else 0)
+    # the walk's scratch and the bricks' entries go to reused buffers (grown, never shrunk)
+    walk_buffers = max(buffers, scratch_whole * min(1.0, bvox / max(voxels, 1)) * 2.0 + cache)
+    bricked_own = (
+        held
+        + bvox * (per_voxel + volume.data.itemsize + (4 if curvature else 0))
+        + walk_buffers
+        + cache  # the bricks' entries merged
         + rays_bytes
     )
-    out = Plan(limit=cap, whole=whole, bricked=bricked, brick=cells, entries=entries)
-    if brick is None and whole <= cap:  # whole whenever it fits, however many voxels
-        out["mode"] = "whole"
+    out = Plan(limit=cap, brick=cells, entries=entries)
+    stale = max(grid - voxels * per_voxel, 0)  # derived volumes of other tables
+    if brick is None and whole_own > cap >= whole_own - stale:
+        drop_kept(volume, ["whole"])  # they alone kept the whole volume from fitting
+        whole_own -= stale
+        grid = 0
+    if brick is None and whole_own <= cap:  # whole whenever it fits, however many voxels
+        if whole_own + memo + buffers > cap:  # the bricks' memos do not fit beside it
+            drop_kept(volume, [n for n in _KEEPERS if n != "whole"])
+            memo = buffers = 0
+        out.update(mode="whole", whole=whole_own + memo + buffers,
+                   bricked=bricked_own + grid + memo, held=held + grid, memo=memo)  # fmt: skip
         return out
+    if bricked_own + grid + memo > cap and grid:  # a bricked run does not read them
+        drop_kept(volume, ["whole"])
+        grid = 0
+    if bricked_own + grid + memo > cap and memo:  # made again while they fit (bricks.py)
+        drop_kept(volume, ["bricks"])
+        memo = 0
+    bricked = bricked_own + grid + memo
+    out.update(whole=whole_own + memo + buffers, bricked=bricked, held=held + grid, memo=memo)
     if bricked > cap:
         raise DVRInputError(
             f"memory: analysing volume {getattr(volume, 'name', '')!r} "
             f"({'x'.join(str(n) for n in volume.data.shape[::-1])} voxels) at {nrays} rays "
             f"needs about {_human(bricked)} even in bricks (of which {_human(2.0 * cache)} for the "
-            f"cache of samples), more than the memory limit of {_human(cap)}; raise it with "
-            f"--memory-limit (or {ENV}), or use a smaller image size"
+            f"cache of samples and {_human(data)} for the volume itself), more than the memory "
+            f"limit of {_human(cap)}; raise it with --memory-limit (or {ENV}), or use a smaller "
+            f"image size"
         )
     out["mode"] = "bricks"
     return out

@@ -67,16 +67,16 @@ def test_the_limit_alone_decides_at_the_byte():
     assert below["bricked"] <= whole - 1
 
 
-def test_the_default_limit_is_half_the_machine(monkeypatch):
+def test_the_default_limit_is_a_quarter_of_the_machine(monkeypatch):
     monkeypatch.delenv(memory.ENV, raising=False)
     memory.set_limit(None)
     big, spec, lut, memb = _ct((904, 1024, 1024))  # the 1024 x 1024 x 904 CT
     whole = int(_plan(big, spec, lut, memb, "64G")["whole"])
     assert 11 * 2**30 < whole < 12 * 2**30
-    monkeypatch.setattr(_memory, "machine_memory", lambda: 2 * whole)
+    monkeypatch.setattr(_memory, "machine_memory", lambda: 4 * whole)
     assert memory.limit() == whole
     assert _plan(big, spec, lut, memb, None)["mode"] == "whole"
-    monkeypatch.setattr(_memory, "machine_memory", lambda: 2 * whole - 2)
+    monkeypatch.setattr(_memory, "machine_memory", lambda: 4 * whole - 4)
     assert _plan(big, spec, lut, memb, None)["mode"] == "bricks"
 
 
