@@ -398,7 +398,7 @@ def _check_piece(piece, brick, offset, state, curvature):
 
 #: Keep the bricks' sample runs (for re-shading after a change of light, and for the next
 #: analyses of the same camera and bricks) up to this many bytes.
-RUNS_BYTES = 256 * 2**20
+RUNS_BYTES = memory.RUNS_BYTES
 #: Runs of recent analyses: (camera pack, volume shape, brick) -> (j0, j1), oldest first.
 _RUNS: dict = {}
 _RUNS_LOCK = threading.Lock()
@@ -798,15 +798,21 @@ def _memo_drop(volume) -> None:
 
 def _buffers_bytes(_volume=None) -> int:
     """Bytes of the buffers every bricked analysis reuses (kept between analyses)."""
-    with _RUNS_LOCK:
-        runs = list(_RUNS.values())
-    return memory.array_bytes(dict(_SRC), dict(_ARENA_BUFFERS), dict(_CURV_SCRATCH), runs)
+    return memory.array_bytes(dict(_SRC), dict(_ARENA_BUFFERS), dict(_CURV_SCRATCH))
 
 
 def _buffers_drop(_volume=None) -> None:
     """Free the reused buffers (those in use by a running analysis live on until it ends)."""
     for d in (_SRC, _ARENA_BUFFERS, _CURV_SCRATCH):
         d.clear()
+
+
+def _runs_bytes(_volume=None) -> int:
+    with _RUNS_LOCK:
+        return memory.array_bytes(list(_RUNS.values()))
+
+
+def _runs_drop(_volume=None) -> None:
     with _RUNS_LOCK:
         _RUNS.clear()
 
@@ -814,6 +820,7 @@ def _buffers_drop(_volume=None) -> None:
 #: :func:`~dvr_perception.rays.memory.plan` counts (and may drop) the memos and buffers.
 memory.keeps("bricks", _memo_bytes, _memo_drop)
 memory.keeps("bricks_buffers", _buffers_bytes, _buffers_drop, per_volume=False)
+memory.keeps("bricks_runs", _runs_bytes, _runs_drop, per_volume=False)
 
 
 def _curvature_key(curvature):

@@ -18,7 +18,7 @@ whole volume's derived volumes of :mod:`~dvr_perception.rays._grid`, the bricks'
 volumes and curvature pieces of :mod:`~dvr_perception.rays.bricks`; :func:`kept_bytes`), the
 bricked walk's reused buffers, and a whole-volume ``|H|`` array handed to a bricked analysis.
 A memo the chosen way does not read (the whole volume's derived volumes in a bricked run, the
-bricks' in a whole one) is dropped when it would not fit beside the run; the bricks' memo and
+bricks' memos and buffers in a whole one) is dropped when the way is chosen; the bricks' memo and
 kept normal codes take at most :data:`~dvr_perception.rays.bricks.MEMO_SHARE` of what the
 estimate leaves under the limit.  So the measured peak of an analysis, its memos included,
 stays under the limit (``tests/rays/test_plan_kept.py`` measures it).
@@ -73,6 +73,13 @@ __all__ = [
 
 #: A brick's derived volumes and scratch may take this share of the limit.
 BRICK_SHARE = 0.125
+#: Bytes a voxel of the temporaries made beside the derived volumes while they are built
+#: (the block map's empty-cell mask and its padded copy, :func:`~dvr_perception.rays._grid.
+#: block_map`).
+TRANSIENT_VOXEL_BYTES = 2
+#: The bricks' sample runs (16 bytes a ray and brick) are kept up to this many bytes
+#: (:func:`dvr_perception.rays.bricks._runs`).
+RUNS_BYTES = 256 * 2**20
 # the limit itself (default, --memory-limit, environment) is read on the ground floor, where the
 # volume readers use it too
 _human = human_bytes
@@ -236,14 +243,23 @@ def whole_volume_bytes(volume, *, shade: bool = True, curvature: bool = True,
     return int(data.size) * (per + data.itemsize)
 
 
+def _whole_share(volume, **kwargs) -> int:
+    """:func:`whole_volume_bytes`, the label volume and the temporaries of the derived volumes."""
+    labels = getattr(volume, "labels", None)
+    extra = int(labels.nbytes) if labels is not None else 0
+    return whole_volume_bytes(volume, **kwargs) + extra + TRANSIENT_VOXEL_BYTES * volume.data.size
+
+
 def whole_fits(volume, memory_limit=None, **kwargs) -> bool:
     """Whether the volume's share of a whole-volume analysis fits the limit.
 
-    :func:`whole_volume_bytes` (``kwargs``) against :func:`limit`: what
-    :func:`~dvr_perception.rays.curvature_field.curvature_source` decides by (the ``|H|``
-    volume whole, or a field computed per brick), before the image size is known.
+    :func:`whole_volume_bytes` (``kwargs``), with the label volume and the temporaries made
+    while the derived volumes are built (:data:`TRANSIENT_VOXEL_BYTES`), against
+    :func:`limit`: what :func:`~dvr_perception.rays.curvature_field.curvature_source` decides
+    by (the ``|H|`` volume whole, or a field computed per brick), before the image size is
+    known.
     """
-    return whole_volume_bytes(volume, **kwargs) <= limit(memory_limit)
+    return _whole_share(volume, **kwargs) <= limit(memory_limit)
 
 
 class Plan(dict):
@@ -307,7 +323,7 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     :class:`~dvr_perception.errors.DVRInputError` when the analysis cannot fit.
 
     Both estimates hold the volume and the memos kept for it (:func:`kept_bytes`); a memo
-    the chosen way does not read is dropped when the run would not fit beside it.  The
+    the chosen way does not read is dropped (freed) as the way is chosen.  The
     result's ``held`` is what every analysis of the volume holds (the volume, a whole
     ``|H|`` array, the kept whole-volume derived volumes) and ``memo`` the bricks' memo
     counted in ``bricked``.
@@ -327,11 +343,14 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     kept = kept_bytes(volume)
     grid = kept.pop("whole", 0)  # the whole volume's derived volumes
     memo = kept.pop("bricks", 0)  # the bricks' derived volumes and curvature pieces
+    runs = kept.pop("bricks_runs", 0)  # the bricks' sample runs of recent cameras
     buffers = sum(kept.values())  # the bricked walk's reused buffers
     # the peak of the run: the volume, its derived volumes (those kept beyond them too) and
     # |H|, samples, scratch, rays
+    labels = getattr(volume, "labels", None)
+    labels = int(labels.nbytes) if labels is not None else 0
     whole_own = (
-        whole_volume_bytes(volume, shade=shade, curvature=curvature, compact=compact)
+        _whole_share(volume, shade=shade, curvature=curvature, compact=compact)
         + max(grid - voxels * per_voxel, 0)  # those of other tables
         + scratch_whole
         + cache
@@ -351,13 +370,19 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     else:
         cells = tuple(int(c) for c in brick)
     bvox = math.prod(c + 3 for c in cells)
-    held = data + (4 * voxels if curvature and curvature_array else 0)
+    held = data + labels
+    held += 4 * voxels if curvature and curvature_array else 0
     # the walk's scratch and the bricks' entries go to reused buffers (grown, never shrunk)
     walk_buffers = max(buffers, scratch_whole * min(1.0, bvox / max(voxels, 1)) * 2.0 + cache)
+    nbricks = math.prod(
+        -(-max(n - 1, 1) // c) for n, c in zip(volume.data.shape, cells, strict=True)
+    )
     bricked_own = (
         held
-        + bvox * (per_voxel + volume.data.itemsize + (4 if curvature else 0))
+        + bvox
+        * (per_voxel + TRANSIENT_VOXEL_BYTES + volume.data.itemsize + (4 if curvature else 0))
         + walk_buffers
+        + min(runs + 16 * nrays * nbricks, RUNS_BYTES)
         + cache  # the bricks' entries merged
         + rays_bytes
     )
@@ -368,20 +393,18 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
         whole_own -= stale
         grid = 0
     if brick is None and whole_own <= cap:  # whole whenever it fits, however many voxels
-        if whole_own + memo + buffers > cap:  # the bricks' memos do not fit beside it
+        if memo + buffers + runs:  # the bricked walk's memos: not read here
             drop_kept(volume, [n for n in _KEEPERS if n != "whole"])
-            memo = buffers = 0
-        out.update(mode="whole", whole=whole_own + memo + buffers,
-                   bricked=bricked_own + grid + memo, held=held + grid, memo=memo)  # fmt: skip
+        out.update(mode="whole", whole=whole_own, bricked=bricked_own, held=held + grid,
+                   memo=0)  # fmt: skip
         return out
-    if bricked_own + grid + memo > cap and grid:  # a bricked run does not read them
+    if grid:  # the whole volume's derived volumes: a bricked run does not read them
         drop_kept(volume, ["whole"])
-        grid = 0
-    if bricked_own + grid + memo > cap and memo:  # made again while they fit (bricks.py)
+    if bricked_own + memo > cap and memo:  # made again while they fit (bricks.py)
         drop_kept(volume, ["bricks"])
         memo = 0
-    bricked = bricked_own + grid + memo
-    out.update(whole=whole_own + memo + buffers, bricked=bricked, held=held + grid, memo=memo)
+    bricked = bricked_own + memo
+    out.update(whole=whole_own, bricked=bricked, held=held, memo=memo)
     if bricked > cap:
         raise DVRInputError(
             f"memory: analysing volume {getattr(volume, 'name', '')!r} "
