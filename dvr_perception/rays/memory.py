@@ -153,6 +153,26 @@ def _grid_drop(volume) -> None:
 keeps("whole", _grid_size, _grid_drop)
 
 
+def _tables_size(_volume=None) -> int:
+    from dvr_perception.rays import _tables
+
+    return array_bytes(
+        dict(_tables._SHADING_MEMO), dict(_tables._LIGHT_MEMO), list(_tables._DIRECTIONS)
+    )
+
+
+def _tables_drop(_volume=None) -> None:  # small, and the next analysis needs one: kept
+    return None
+
+
+#: The shading tables and their light columns (a few MB, for every volume).
+keeps("tables", _tables_size, _tables_drop, per_volume=False)
+#: Bytes of one structure's shading table (65536 normal codes, two uint16) and of the light
+#: columns and code directions a new light adds (65536 codes, 35 bytes each).
+SHADING_TABLE_BYTES = 65536 * 4
+LIGHT_BYTES = 65536 * 35
+
+
 def kept_bytes(volume, names=None) -> dict[str, int]:
     """Bytes the engine keeps between analyses, per memo (:func:`keeps`), for ``volume``.
 
@@ -344,6 +364,8 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     grid = kept.pop("whole", 0)  # the whole volume's derived volumes
     memo = kept.pop("bricks", 0)  # the bricks' derived volumes and curvature pieces
     runs = kept.pop("bricks_runs", 0)  # the bricks' sample runs of recent cameras
+    # the shading tables kept, or this light's (the same light's table is found again)
+    tables = max(kept.pop("tables", 0), k * SHADING_TABLE_BYTES + LIGHT_BYTES if shade else 0)
     buffers = sum(kept.values())  # the bricked walk's reused buffers
     # the peak of the run: the volume, its derived volumes (those kept beyond them too) and
     # |H|, samples, scratch, rays
@@ -352,6 +374,7 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     whole_own = (
         _whole_share(volume, shade=shade, curvature=curvature, compact=compact)
         + max(grid - voxels * per_voxel, 0)  # those of other tables
+        + tables
         + scratch_whole
         + cache
         + rays_bytes
@@ -384,6 +407,7 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
         + walk_buffers
         + min(runs + 16 * nrays * nbricks, RUNS_BYTES)
         + cache  # the bricks' entries merged
+        + tables
         + rays_bytes
     )
     out = Plan(limit=cap, brick=cells, entries=entries)
