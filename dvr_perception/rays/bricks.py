@@ -498,9 +498,12 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     order, chunk_ptr = ray_order(cam.height, cam.width)
     if report:
         order, chunk_ptr = _interleaved(order, chunk_ptr, _group())
+    order, chunk_ptr = _crossing(order, chunk_ptr, j0, j1)
     nchunk = len(chunk_ptr) - 1
     runs = (j1 - j0)[order]
-    per_chunk = np.add.reduceat(runs, chunk_ptr[:-1]) if build_cache else np.zeros(nchunk, int)
+    per_chunk = np.zeros(nchunk, np.int64)
+    if build_cache and nchunk:
+        per_chunk = np.add.reduceat(runs, chunk_ptr[:-1])
     chunk_base = np.ascontiguousarray(np.concatenate([[0], np.cumsum(per_chunk)])[:-1])
     cap = max(int(per_chunk.sum()), 1)
     mine = build_cache and _SRC_LOCK.acquire(blocking=False)
@@ -511,6 +514,26 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     finally:
         if mine:
             _SRC_LOCK.release()
+
+
+def _crossing(order, chunk_ptr, j0, j1) -> tuple[np.ndarray, np.ndarray]:
+    """Return the rays of ``order``'s chunks that cross the brick (``j1 > j0``), chunk by chunk.
+
+    Empty chunks are dropped; each keeps its rays in their order, so the walk visits only the
+    brick's rays and its threads share them as they share the image's tiles; every ray's
+    result is the same (each ray is computed on its own).
+
+    Examples
+    --------
+    >>> order, ptr = np.array([3, 0, 1, 2]), np.array([0, 2, 4])
+    >>> o, p = _crossing(order, ptr, np.zeros(4, int), np.array([0, 1, 0, 0]))
+    >>> o.tolist(), p.tolist()
+    ([1], [0, 1])
+    """
+    keep = (j1 > j0)[order]
+    ptr = np.zeros(len(keep) + 1, np.int64)
+    np.cumsum(keep, out=ptr[1:])
+    return np.ascontiguousarray(order[keep]), np.unique(ptr[chunk_ptr])
 
 
 #: The walk's entries before compaction, reused from brick to brick (fresh memory costs page
@@ -548,11 +571,14 @@ def _walk_src(state, brick, vol, maps, cv, j0, j1, order, chunk_ptr, chunk_base,
         _src("sh", cap if shade else 1, (2,), np.uint16, shared),
         _src("curv", cap if has_curv else 1, (), np.float32, shared),
     )
-    start = np.empty(nrays, np.int64)
-    count = np.empty(nrays, np.int64)
-    walked = np.empty(nrays, np.int64)
+    # the walk sets them for the brick's rays only (``order``: those crossing it)
+    start = np.zeros(nrays, np.int64)
+    count = np.zeros(nrays, np.int64)
+    walked = np.zeros(nrays, np.int64)
     geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
-    per = _group() if report else nchunk  # groups of chunks: see progress
+    per = max(_group() if report else nchunk, 1)  # groups of chunks: see progress
+    if not nchunk:
+        report(1.0)  # no ray crosses the brick
     for c0 in range(0, nchunk, per):
         c1 = min(c0 + per, nchunk)
         nb.walk_brick(
@@ -577,8 +603,8 @@ def _walk_src(state, brick, vol, maps, cv, j0, j1, order, chunk_ptr, chunk_base,
         take("sh", e if shade else 0, (2,), np.uint16),
         take("curv", e if has_curv else 0, (), np.float32),
     )
-    rows, row_ptr = ray_order(cam.height, cam.width, tile=(1, cam.width))
-    nk.compact(rows, row_ptr, len(row_ptr) - 1, start, count, dest, *src, *out, shade, has_curv)
+    # the brick's rays, chunk by chunk (a ray's entries go to the same place in any order)
+    nk.compact(order, chunk_ptr, nchunk, start, count, dest, *src, *out, shade, has_curv)
     del src
     fill_shade = shade and shade_all
     fill_curv = has_curv and (curvature_all or not shade)

@@ -161,12 +161,17 @@ def _tables_size(_volume=None) -> int:
     )
 
 
-def _tables_drop(_volume=None) -> None:  # small, and the next analysis needs one: kept
-    return None
+def _tables_drop(_volume=None) -> None:
+    from dvr_perception.rays import _tables
+
+    _tables._SHADING_MEMO.clear()
+    _tables._LIGHT_MEMO.clear()
 
 
 #: The shading tables and their light columns (a few MB, for every volume).
 keeps("tables", _tables_size, _tables_drop, per_volume=False)
+#: The memos only a bricked analysis reads (:mod:`~dvr_perception.rays.bricks` keeps them).
+BRICKED_MEMOS = ("bricks", "bricks_buffers", "bricks_runs")
 #: Bytes of one structure's shading table (65536 normal codes, two uint16) and of the light
 #: columns and code directions a new light adds (65536 codes, 35 bytes each).
 SHADING_TABLE_BYTES = 65536 * 4
@@ -418,7 +423,7 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
         grid = 0
     if brick is None and whole_own <= cap:  # whole whenever it fits, however many voxels
         if memo + buffers + runs:  # the bricked walk's memos: not read here
-            drop_kept(volume, [n for n in _KEEPERS if n != "whole"])
+            drop_kept(volume, BRICKED_MEMOS)
         out.update(mode="whole", whole=whole_own, bricked=bricked_own, held=held + grid,
                    memo=0)  # fmt: skip
         return out

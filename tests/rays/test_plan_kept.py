@@ -29,6 +29,11 @@ pytest.importorskip("numba")
 FACTOR = 2.0
 
 
+def _forget():
+    """Free the buffers and tables earlier analyses (other tests) left: a small limit here."""
+    memory.drop_kept(None, ["bricks_buffers", "bricks_runs", "tables"])
+
+
 def _estimate(vol, spec, cam, **kw):
     """:func:`memory.plan` of an analysis of ``vol`` from ``cam`` (``kw``: its settings)."""
     from dvr_perception.rays.engine import _scene
@@ -66,6 +71,7 @@ def _sequence(vol, spec, cam, limit, measured=None, curv=None):
 
 def test_a_bricked_run_after_a_whole_one_stays_under_the_limit():
     # compile every kernel first: loading them allocates Python objects tracemalloc would see
+    _forget()
     small, spec0 = make_phantom(size=24)
     cam0 = Camera.from_view(small.bounds, width=16, height=16, azimuth=30.0)
     limit0 = _estimate(small, spec0, cam0, curvature=False, build_cache=False)["whole"]
@@ -103,6 +109,7 @@ def test_a_bricked_run_after_a_whole_one_stays_under_the_limit():
 def test_the_estimate_is_within_a_factor_of_the_measured_peak():
     vol, spec = make_phantom(size=96)
     cam = Camera.from_view(vol.bounds, width=48, height=48, azimuth=30.0)
+    _forget()
     # just under the whole-volume run: bricks
     limit = int(_estimate(vol, spec, cam, curvature=False, build_cache=True)["whole"]) - 1
     analyze(vol, spec, cam, memory_limit=limit)  # compiles; leaves the buffers kept
