@@ -16,9 +16,12 @@ Both estimates count everything that stays alive while the analysis runs, not on
 allocates: the volume itself, the memos the engine keeps between analyses of the volume (the
 whole volume's derived volumes of :mod:`~dvr_perception.rays._grid`, the bricks' derived
 volumes and curvature pieces of :mod:`~dvr_perception.rays.bricks`; :func:`kept_bytes`), the
-bricked walk's reused buffers, and a whole-volume ``|H|`` array handed to a bricked analysis.
+bricked walk's reused buffers, and a whole-volume ``|H|`` array handed to a bricked analysis
+(not the shading tables: a few MB whatever the volume).
 A memo the chosen way does not read (the whole volume's derived volumes in a bricked run, the
-bricks' memos and buffers in a whole one) is dropped when the way is chosen; the bricks' memo and
+bricks' memos and buffers in a whole one) is dropped unless it fits beside :data:`MARGIN`
+times the run's estimate (analyses that alternate between the ways keep both while they fit
+easily); the bricks' memo and
 kept normal codes take at most :data:`~dvr_perception.rays.bricks.MEMO_SHARE` of what the
 estimate leaves under the limit.  So the measured peak of an analysis, its memos included,
 stays under the limit (``tests/rays/test_plan_kept.py`` measures it).
@@ -168,14 +171,15 @@ def _tables_drop(_volume=None) -> None:
     _tables._LIGHT_MEMO.clear()
 
 
-#: The shading tables and their light columns (a few MB, for every volume).
+#: The shading tables and their light columns (a few MB whatever the volume: reported by
+#: :func:`kept_bytes`, not counted by :func:`plan`).
 keeps("tables", _tables_size, _tables_drop, per_volume=False)
+#: A memo the chosen way does not read is kept only while this many times the run's
+#: estimate fits beside it (the estimate is within 1.3x of the measured peak,
+#: ``tests/rays/test_plan_kept.py``).
+MARGIN = 1.5
 #: The memos only a bricked analysis reads (:mod:`~dvr_perception.rays.bricks` keeps them).
 BRICKED_MEMOS = ("bricks", "bricks_buffers", "bricks_runs")
-#: Bytes of one structure's shading table (65536 normal codes, two uint16) and of the light
-#: columns and code directions a new light adds (65536 codes, 35 bytes each).
-SHADING_TABLE_BYTES = 65536 * 4
-LIGHT_BYTES = 65536 * 35
 
 
 def kept_bytes(volume, names=None) -> dict[str, int]:
@@ -348,7 +352,7 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     :class:`~dvr_perception.errors.DVRInputError` when the analysis cannot fit.
 
     Both estimates hold the volume and the memos kept for it (:func:`kept_bytes`); a memo
-    the chosen way does not read is dropped (freed) as the way is chosen.  The
+    the chosen way does not read is dropped (freed) when the run does not fit beside it.  The
     result's ``held`` is what every analysis of the volume holds (the volume, a whole
     ``|H|`` array, the kept whole-volume derived volumes) and ``memo`` the bricks' memo
     counted in ``bricked``.
@@ -369,8 +373,7 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     grid = kept.pop("whole", 0)  # the whole volume's derived volumes
     memo = kept.pop("bricks", 0)  # the bricks' derived volumes and curvature pieces
     runs = kept.pop("bricks_runs", 0)  # the bricks' sample runs of recent cameras
-    # the shading tables kept, or this light's (the same light's table is found again)
-    tables = max(kept.pop("tables", 0), k * SHADING_TABLE_BYTES + LIGHT_BYTES if shade else 0)
+    kept.pop("tables", 0)  # a few MB whatever the volume: not counted (see the module)
     buffers = sum(kept.values())  # the bricked walk's reused buffers
     # the peak of the run: the volume, its derived volumes (those kept beyond them too) and
     # |H|, samples, scratch, rays
@@ -379,7 +382,6 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     whole_own = (
         _whole_share(volume, shade=shade, curvature=curvature, compact=compact)
         + max(grid - voxels * per_voxel, 0)  # those of other tables
-        + tables
         + scratch_whole
         + cache
         + rays_bytes
@@ -412,7 +414,6 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
         + walk_buffers
         + min(runs + 16 * nrays * nbricks, RUNS_BYTES)
         + cache  # the bricks' entries merged
-        + tables
         + rays_bytes
     )
     out = Plan(limit=cap, brick=cells, entries=entries)
@@ -422,18 +423,21 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
         whole_own -= stale
         grid = 0
     if brick is None and whole_own <= cap:  # whole whenever it fits, however many voxels
-        if memo + buffers + runs:  # the bricked walk's memos: not read here
+        if MARGIN * whole_own + memo + buffers + runs > cap:  # the bricked walk's: not read
             drop_kept(volume, BRICKED_MEMOS)
-        out.update(mode="whole", whole=whole_own, bricked=bricked_own, held=held + grid,
-                   memo=0)  # fmt: skip
+            memo = buffers = runs = 0
+        out.update(mode="whole", whole=whole_own + memo + buffers + runs,
+                   bricked=bricked_own + grid + memo, held=held + grid, memo=memo)  # fmt: skip
         return out
-    if grid:  # the whole volume's derived volumes: a bricked run does not read them
+    if MARGIN * bricked_own + grid + memo > cap and grid:  # a bricked run does not read them
         drop_kept(volume, ["whole"])
-    if bricked_own + memo > cap and memo:  # made again while they fit (bricks.py)
+        grid = 0
+    if bricked_own + grid + memo > cap and memo:  # made again while they fit (bricks.py)
         drop_kept(volume, ["bricks"])
         memo = 0
-    bricked = bricked_own + memo
-    out.update(whole=whole_own, bricked=bricked, held=held, memo=memo)
+    bricked = bricked_own + grid + memo
+    out.update(whole=whole_own + memo + buffers + runs, bricked=bricked, held=held + grid,
+               memo=memo)  # fmt: skip
     if bricked > cap:
         raise DVRInputError(
             f"memory: analysing volume {getattr(volume, 'name', '')!r} "
