@@ -498,8 +498,7 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     order, chunk_ptr = ray_order(cam.height, cam.width)
     if report:
         order, chunk_ptr = _interleaved(order, chunk_ptr, _group())
-    if _CROSSING:
-        order, chunk_ptr = _crossing(order, chunk_ptr, j0, j1)
+    order, chunk_ptr = _crossing(order, chunk_ptr, j0, j1)
     nchunk = len(chunk_ptr) - 1
     runs = (j1 - j0)[order]
     per_chunk = np.zeros(nchunk, np.int64)
@@ -515,9 +514,6 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     finally:
         if mine:
             _SRC_LOCK.release()
-
-
-_CROSSING = True
 
 
 def _crossing(order, chunk_ptr, j0, j1) -> tuple[np.ndarray, np.ndarray]:
