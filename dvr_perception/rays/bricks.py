@@ -908,27 +908,34 @@ def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dic
 def _refiller(volume_ref, bricks, kept, state):
     """Recompute every entry's shading brick by brick (after a change of light).
 
-    ``kept``: per brick its normal codes and offset (:func:`walk`'s ``keep_codes``), or
-    ``None`` to re-derive them from the volume (slow: done on every change of light).
+    ``kept``: per brick its normal codes (or voxel records), their shift and offset
+    (:func:`walk`'s ``keep_codes``), ``None`` for a brick to re-derive from the volume (slow:
+    done on every change of light), or ``None`` for all of them.
     """
+    kept = [None] * len(bricks) if kept is None else list(kept)
 
-    def refill(cache, tab):
-        _, nb = _kernels()
-        seg, t = state.seg, state.tables
-        gz, gy, gx = state.geometry.shape
-        if kept is not None:  # (codes or records, their shift, offset) per brick
-            todo = [(br, *k) for br, k in zip(bricks, kept, strict=True)]
-        else:
+    def todo():
+        missing = [br for br, k in zip(bricks, kept, strict=True) if k is None]
+        pieces = iter(())
+        if missing:
             volume = volume_ref()
             if volume is None:
                 raise DVRInputError(
                     "cache: the volume of this bricked analysis is gone; a new light needs it"
                 )
-            todo = (
-                (br, derive(piece, state)[0], 16, off)
-                for br, piece, off, _ in _pieces(volume, bricks, None)
-            )
-        for br, vol, shift, off in todo:
+            pieces = _pieces(volume, missing, None)
+        for br, k in zip(bricks, kept, strict=True):
+            if k is None:  # the next missing brick, derived one at a time
+                _, piece, off, _ = next(pieces)
+                yield br, derive(piece, state)[0], 16, off
+            else:  # (codes or records, their shift, offset)
+                yield (br, *k)
+
+    def refill(cache, tab):
+        _, nb = _kernels()
+        seg, t = state.seg, state.tables
+        gz, gy, gx = state.geometry.shape
+        for br, vol, shift, off in todo():
             j0, j1 = _runs(state, br)
             geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
             nb.fill_range(cache.start, cache.count, cache.lut, cache.lazy["steps"], cache.shading,
@@ -939,8 +946,8 @@ def _refiller(volume_ref, bricks, kept, state):
     return refill
 
 
-#: Keep the bricks' normal codes for a change of light while they take at most this share
-#: of the memory limit.
+#: Keep the bricks' normal codes for a change of light (front bricks first) while they take at
+#: most this share of the memory limit (and of the room the memo rule leaves).
 KEEP_CODES_SHARE = 0.25
 
 
@@ -1126,9 +1133,9 @@ def _pass(volume, states, bricks, curv, cap, build_cache, report=None, room=0.0,
     ``room``: bytes the memos may take; ``arena``: where the bricks' entries go.
     """
     memo, cmemo = _memo(volume, states[0], bricks, room, curv)
-    held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
-    # the codes stay with the cache (counted as the memo would be: within the room)
-    keep = build_cache and memo is None and 2 * held <= min(KEEP_CODES_SHARE * cap, room)
+    # the codes stay with the cache (counted as the memo would be: within the room), brick by
+    # brick in view order while they fit (a change of light re-derives the others)
+    keep = min(KEEP_CODES_SHARE * cap, room) if build_cache and memo is None else 0.0
     known = set(memo) if memo is not None else set()
     locked = _CURV_SCRATCH_LOCK.acquire(blocking=False)
     try:
@@ -1151,7 +1158,11 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
     kept = [[] for _ in states]
     # with every brick's normal codes kept (memo or codes), entries behind early ray
     # termination are shaded only when a re-evaluation can reach them (_filler)
-    lazy = build_cache and states[0].tables["shade"] and (memo is not None or keep)
+    shape = volume.data.shape
+    sizes = [2 * math.prod(b - a for a, b in br.voxels(shape)) for br in bricks]  # their codes
+    keep_all = bool(keep) and sum(sizes) <= keep
+    lazy = build_cache and states[0].tables["shade"] and (memo is not None or keep_all)
+    used = 0  # bytes of the codes kept
     # and their curvature too while the memo keeps the bricks' curvature pieces
     lazy_curv = lazy and curv is not None and cmemo is not None
     pieces_kept = []
@@ -1174,19 +1185,21 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
         if derived is None and len(states) > 1:
             derived = derive(piece, states[0])  # once for every state
         codes = None
+        keep_br = bool(keep) and used + sizes[done - 1] <= keep
+        used += sizes[done - 1] if keep_br else 0
         for n, st in enumerate(states):
             part = None  # this state's share of the brick's part of the bar
             if report and len(bricks) < INNER_PROGRESS_BRICKS:
                 part = report.sub((done - 1 + n / len(states)) / len(bricks),
                                   (done - 1 + (n + 1) / len(states)) / len(bricks))  # fmt: skip
             c = walk(st, piece, br, offset=off, curvature=cv, build_cache=build_cache,
-                     keep_codes=keep and codes is None, derived=derived,
+                     keep_codes=keep_br and codes is None, derived=derived,
                      progress=part, shade_all=not lazy,
                      curvature_all=not lazy_curv, arena=arena)  # fmt: skip
             if not build_cache or c is None:
                 continue
             caches[n].append(c)
-            if keep:
+            if keep_br:
                 codes = c.codes if codes is None else codes
                 c.codes = None
                 k = (codes, 0)
@@ -1199,7 +1212,7 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
     for st, cs, kp in zip(states, caches, kept, strict=True):
         refill = fill = None
         if build_cache and st.tables["shade"]:
-            kp = None if any(k is None for k in kp) else kp
+            kp = None if all(k is None for k in kp) else kp
             refill = _refiller(weakref.ref(volume), bricks, kp, st)
             if lazy:
                 fill = _filler(bricks, kp, st, pieces_kept if lazy_curv else None)
