@@ -355,6 +355,16 @@ def derive(piece: Volume, state: RayState) -> tuple:
     return vol, _grid.compact_index(piece, idx), cells, _grid.block_map(piece, cells), labmap
 
 
+def _records(piece: Volume, state: RayState) -> np.ndarray:
+    """Return the brick's voxel records only (:func:`derive`'s first, when shading)."""
+    t = state.tables
+    lut = t["lut"]
+    idx = _grid.index_volume(piece, lut.lo, lut.scale, lut.size)
+    labmap = _grid.label_map(piece, t["labels"]) if t["labels"] else None
+    cells = _grid.cell_map(piece, idx, t["ids"], t["memb"], labmap)
+    return _grid.voxel_records(piece, idx, cells)
+
+
 def _piece_arrays(piece: Volume, state: RayState, curvature, derived=None, skip=False):
     """Per-brick arrays the walk reads: ``vol``, the ``maps`` tuple and the curvature.
 
@@ -927,7 +937,7 @@ def _refiller(volume_ref, bricks, kept, state):
         for br, k in zip(bricks, kept, strict=True):
             if k is None:  # the next missing brick, derived one at a time
                 _, piece, off, _ = next(pieces)
-                yield br, derive(piece, state)[0], 16, off
+                yield br, _records(piece, state), 16, off
             else:  # (codes or records, their shift, offset)
                 yield (br, *k)
 

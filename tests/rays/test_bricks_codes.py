@@ -35,8 +35,9 @@ def test_codes_kept_for_the_front_bricks_only_reshade_as_the_whole_cache(monkeyp
     monkeypatch.setattr(bricks, "_memo", lambda *args, **kw: (None, None))  # no memo: codes
     monkeypatch.setattr(bricks, "KEEP_CODES_SHARE", 0.5 * codes / limit)  # half of them fit
     derived = []
-    real = bricks.derive
+    real, records = bricks.derive, bricks._records
     monkeypatch.setattr(bricks, "derive", lambda *a: derived.append(1) or real(*a))
+    monkeypatch.setattr(bricks, "_records", lambda *a: derived.append(1) or records(*a))
     parts = analyze(vol, spec, cam, curvature=curv, brick=size, memory_limit=limit,
                     build_cache=True)  # fmt: skip
     assert parts.cache.lazy["fill"] is None  # not every brick's codes: shaded at the walk
