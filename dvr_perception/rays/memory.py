@@ -80,6 +80,10 @@ BRICK_SHARE = 0.125
 #: (the block map's empty-cell mask and its padded copy, :func:`~dvr_perception.rays._grid.
 #: block_map`).
 TRANSIENT_VOXEL_BYTES = 2
+#: Bytes a voxel of the temporaries of a brick's curvature piece computed from the volume
+#: (:class:`~dvr_perception.rays.curvature_field.CurvatureField`: smoothed planes with their
+#: margins; measured 32 inside a 128-voxel phantom).
+CURVATURE_PIECE_BYTES = 32
 #: The bricks' sample runs (16 bytes a ray and brick) are kept up to this many bytes
 #: (:func:`dvr_perception.rays.bricks._runs`).
 RUNS_BYTES = 256 * 2**20
@@ -349,7 +353,8 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     transfer table and ``membership`` its per-entry membership.  ``brick`` forces bricks of
     that many cells.  ``curvature_array``: the curvature is a whole-volume array (alive
     beside a bricked run too), not a field computed per brick.  Raises
-    :class:`~dvr_perception.errors.DVRInputError` when the analysis cannot fit.
+    :class:`~dvr_perception.errors.DVRInputError` when what the analysis itself allocates
+    cannot fit even in bricks.
 
     Both estimates hold the volume and the memos kept for it (:func:`kept_bytes`); a memo
     the chosen way does not read is dropped (freed) when the run does not fit beside it.  The
@@ -402,20 +407,28 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     bvox = math.prod(c + 3 for c in cells)
     held = data + labels
     held += 4 * voxels if curvature and curvature_array else 0
-    # the walk's scratch and the bricks' entries go to reused buffers (grown, never shrunk)
-    walk_buffers = max(buffers, scratch_whole * min(1.0, bvox / max(voxels, 1)) * 2.0 + cache)
     nbricks = math.prod(
         -(-max(n - 1, 1) // c) for n, c in zip(volume.data.shape, cells, strict=True)
     )
-    bricked_own = (
-        held
-        + bvox
-        * (per_voxel + TRANSIENT_VOXEL_BYTES + volume.data.itemsize + (4 if curvature else 0))
-        + walk_buffers
-        + min(runs + 16 * nrays * nbricks, RUNS_BYTES)
-        + cache  # the bricks' entries merged
-        + rays_bytes
-    )
+    # a brick's derived volumes and their temporaries, its curvature piece (and the
+    # temporaries of a piece computed from the volume)
+    piece = per_voxel + TRANSIENT_VOXEL_BYTES + volume.data.itemsize
+    piece += (4 + (0 if curvature_array else CURVATURE_PIECE_BYTES)) if curvature else 0
+
+    def in_bricks(buffers, runs):
+        # the walk's scratch and the bricks' entries go to reused buffers (grown, never
+        # shrunk), the runs are kept for the next analyses
+        walk = max(buffers, scratch_whole * min(1.0, bvox / max(voxels, 1)) * 2.0 + cache)
+        return (
+            held
+            + bvox * piece
+            + walk
+            + min(runs + 16 * nrays * nbricks, RUNS_BYTES)
+            + cache  # the bricks' entries merged
+            + rays_bytes
+        )
+
+    bricked_own = in_bricks(buffers, runs)
     out = Plan(limit=cap, brick=cells, entries=entries)
     stale = max(grid - voxels * per_voxel, 0)  # derived volumes of other tables
     if brick is None and whole_own > cap >= whole_own - stale:
@@ -429,6 +442,9 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
         out.update(mode="whole", whole=whole_own + memo + buffers + runs,
                    bricked=bricked_own + grid + memo, held=held + grid, memo=memo)  # fmt: skip
         return out
+    if bricked_own > cap >= in_bricks(0, 0):  # buffers of earlier runs, larger than this one's
+        drop_kept(volume, ["bricks_buffers", "bricks_runs"])
+        bricked_own = in_bricks(0, 0)
     if MARGIN * bricked_own + grid + memo > cap and grid:  # a bricked run does not read them
         drop_kept(volume, ["whole"])
         grid = 0
@@ -438,14 +454,22 @@ def plan(volume, nrays: int, samples: int, *, k: int, shade: bool, curvature: bo
     bricked = bricked_own + grid + memo
     out.update(whole=whole_own + memo + buffers + runs, bricked=bricked, held=held + grid,
                memo=memo)  # fmt: skip
-    if bricked > cap:
+    # refused when what the run itself allocates cannot fit (a brick's derived volumes, the
+    # scratch, the bricks' entries and their merged copy, the per-ray buffers); what else it
+    # counts (the volume, kept memos and buffers) bounds the memos and kept codes
+    own = (
+        bvox * (per_voxel + volume.data.itemsize)
+        + scratch_whole * min(1.0, bvox / max(voxels, 1)) * 2.0
+        + 2.0 * cache
+        + rays_bytes
+    )
+    if own > cap:
         raise DVRInputError(
             f"memory: analysing volume {getattr(volume, 'name', '')!r} "
             f"({'x'.join(str(n) for n in volume.data.shape[::-1])} voxels) at {nrays} rays "
-            f"needs about {_human(bricked)} even in bricks (of which {_human(2.0 * cache)} for the "
-            f"cache of samples and {_human(data)} for the volume itself), more than the memory "
-            f"limit of {_human(cap)}; raise it with --memory-limit (or {ENV}), or use a smaller "
-            f"image size"
+            f"needs about {_human(own)} even in bricks (of which {_human(2.0 * cache)} for the "
+            f"cache of samples), more than the memory limit of {_human(cap)}; raise it with "
+            f"--memory-limit (or {ENV}), or use a smaller image size"
         )
     out["mode"] = "bricks"
     return out
