@@ -165,6 +165,10 @@ def test_bench_reports_keys(capsys, vtk_can_render):
     assert report["size"] == [24, 24]
     assert min(report["frame_s"], report["vtk_frame_s"]) > 0
     assert report["frame_ratio"] == pytest.approx(report["frame_s"] / report["vtk_frame_s"])
+    # the full analysis (no cache, the skipping walk) and the cache-building one, both timed
+    ratio = report["frame_cache_s"] / report["vtk_frame_s"]
+    assert report["frame_cache_ratio"] == pytest.approx(ratio)
+    assert report["samples_walked"] <= report["samples_walked_cache"] <= report["samples"]
     assert report["render_ratio"] == pytest.approx(report["render_s"] / report["vtk_frame_s"])
     assert report["cache_mb"] > 0
     # VTK rendered in a child process: its memory is reported apart from the engine's

@@ -214,7 +214,7 @@ def test_rank_cache_reevaluates_new_opacities_colours_and_light_as_the_whole_cac
         {"lighting": [Lighting(0.2, 0.6, 0.5, 30.0)] * k, "opacities": np.full(k, 0.35)},
     ]
     curvature, _ = curvature_volume(vol, spec)
-    whole = analyze(vol, spec, cam, curvature=curvature)
+    whole = analyze(vol, spec, cam, curvature=curvature, build_cache=True)
     got = _session_reevaluations(vol, spec, cam, n, params)
     expect = [whole] + [reevaluate(whole.cache, **p) for p in params]
     assert got[0].cache.present is not None
