@@ -479,7 +479,8 @@ def test_unoccluded_enclosure_gives_the_tap_of_what_the_layer_covers(grey):
 def test_unoccluded_enclosure_needs_the_cache():
     vol = shell_volume()
     spec = shell_spec(0.6)
-    a = analyze(vol, spec, parallel_camera(vol), build_cache=False)
+    # a copy the engine did not make: no cache and no volume to walk again
+    a = dataclasses.replace(analyze(vol, spec, parallel_camera(vol), build_cache=False))
     with pytest.raises(DVRInputError, match="build_cache=True"):
         transparency(a, spec, enclosure="unoccluded")
     with pytest.raises(DVRInputError, match="enclosure"):

@@ -294,7 +294,7 @@ def test_render_only_stops_at_early_termination_and_leaves_assigned_undefined(ba
     with pytest.raises(DVRInputError, match="assigned must be finite"):
         visibility(image, spec)
     with pytest.raises(DVRInputError, match="build_cache=False"):
-        analyze(vol, spec, cam, backend=backend, occlusion_free=False)
+        analyze(vol, spec, cam, backend=backend, occlusion_free=False, build_cache=True)
 
 
 def test_importance_accumulated_is_the_rendering_at_the_importances():
