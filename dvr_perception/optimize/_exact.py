@@ -219,6 +219,32 @@ class OpacityModel:
         out = (e_v / nv, cov / nv, g_v / nv, g_c / nv)
         return (*out, share / nv, d_share / nv) if shares else out
 
+    def coverage(self, ops) -> float:
+        """Return the coverage at opacities ``ops`` (K,): ``evaluate(ops, grad=False)[1]``.
+
+        The same compositing and the same float32 mean, without ``E_v`` and the shares (the
+        opacity stage's check at the user's resolution needs only this).  Counts as one
+        evaluation.
+        """
+        self.nfev += 1
+        ops = np.clip(np.asarray(ops, np.float64), 0.0, 1.0)
+        k = self.k
+        cov = 0.0
+        for cache, rays, _ in self.views:
+            n = rays.size
+            if n == 0:
+                continue
+            if hasattr(cache, "opacity_pass"):  # entries spread over MPI ranks
+                _, _, acc, _ = cache.opacity_pass(rays, ops, False)
+            else:
+                alpha, dalpha, ids = self._tables(cache, ops)
+                vis, acc = np.empty((k, n)), np.empty(n)
+                dvis, dacc = np.zeros((k, k, 1)), np.zeros((k, 1))
+                composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha,
+                                k, _tables.ERT, False, vis, dvis, acc, dacc)  # fmt: skip
+            cov += float(acc.astype(np.float32).mean())
+        return cov / len(self.views)
+
     def covering(self, ops) -> tuple:
         """Who hides whom, and who shows more than its target, at opacities ``ops``.
 

@@ -131,6 +131,28 @@ def test_exact_opacity_model_is_the_same_serial_and_parallel(phantom, monkeypatc
         assert np.array_equal(a, b)
 
 
+def test_coverage_alone_is_the_evaluations_coverage_bit_for_bit(phantom, monkeypatch):
+    """``coverage`` equals ``evaluate``'s, serial and parallel, and counts one evaluation.
+
+    The opacity stage checks its floor at the user's resolution with it.
+    """
+    from dvr_perception.optimize import _exact
+
+    vol, spec, cam = phantom
+    problem = Problem([analyze(vol, spec, cam).cache], [None], spec, np.ones(3), {}, None)
+    model = OpacityModel(problem, Params.from_spec(spec))
+    rng = np.random.default_rng(3)
+    for ops in [np.array([0.2, 0.5, 0.35, 0.6, 0.45, 0.8]), *rng.uniform(0, 1, (4, 6))]:
+        for parallel in (False, True):
+            monkeypatch.setattr(_exact, "PARALLEL_RAYS", 1 if parallel else 10**9)
+            want = model.evaluate(ops, grad=False)[1]
+            n = model.nfev
+            got = model.coverage(ops)
+            assert model.nfev == n + 1
+            assert got == want
+            assert 0.0 < got < 1.0
+
+
 def test_the_latest_rendering_is_reused_for_the_same_parameters(phantom):
     vol, spec, cam = phantom
     problem = Problem([analyze(vol, spec, cam).cache], [None], spec, np.ones(3), {}, None)
