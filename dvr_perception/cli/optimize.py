@@ -385,8 +385,10 @@ def optimize_result(volume, spec, camera, out_dir, *, stages=("opacity", "lighti
     # the optimiser's renderings of the view (equal to fresh analyses), else analyse again
     first, last = res.analyses or (None, None)
     curvature = None if res.analyses else curvature_source(volume, spec)
-    before, m_before, initial = _measure(volume, spec, camera, curvature, weights, first, backend)
+    # after first: the optimiser's last re-composite of the view's cache was the final one, so
+    # the cache's shading (filled lazily per lighting) is still that of ``last``
     after, m_after, final = _measure(volume, res.spec, camera, curvature, weights, last, backend)
+    before, m_before, initial = _measure(volume, spec, camera, curvature, weights, first, backend)
     t_measured = time.perf_counter()
     d = Path(out_dir)
     files = [write_png(d / "before.png", before.image), write_png(d / "after.png", after.image)]
