@@ -289,7 +289,13 @@ def stop_on_interrupt(progress: Progress):
 
 
 # -- measuring and writing -----------------------------------------------------------------------
-def _measure(volume, spec, camera, curvature, weights, result=None, backend="auto"):
+def _measure(volume, spec, camera, curvature, weights, result=None, backend="auto",
+             measured=None):  # fmt: skip
+    """Return ``(analysis, measures, terms)`` of ``spec`` in ``camera``.
+
+    ``result`` is the analysis when at hand (else analysed afresh), ``measured`` its
+    ``all_measures`` when at hand (the optimiser's ``measures``).
+    """
     from dvr_perception.cli.measure import _structures
     from dvr_perception.measures import all_measures
     from dvr_perception.rays.engine import analyze
@@ -297,7 +303,8 @@ def _measure(volume, spec, camera, curvature, weights, result=None, backend="aut
     if result is None:
         result = analyze(volume, spec, camera, curvature=curvature, build_cache=True,
                          backend=backend)  # fmt: skip
-    vis, shp, trn = all_measures(result, spec)
+        measured = None
+    vis, shp, trn = all_measures(result, spec) if measured is None else measured
     terms = {"E_v": float(vis.E_v), "E_s": float(shp.E_s), "E_t": float(trn.E_t)}
     terms["E"] = float(sum(w * terms[k] for w, k in zip(weights, TERMS, strict=True)))
     keep = ("visible_share", "target_share", "assigned_share", "perceived_transparency",
@@ -376,6 +383,7 @@ def optimize_result(volume, spec, camera, out_dir, *, stages=("opacity", "lighti
         resolution=resolution,
         coverage_keep=coverage_keep,
         backend=backend,
+        measures=True,
         **({} if objective is None else {"objective": objective}),
     )
     if isinstance(progress, Progress):
@@ -384,11 +392,13 @@ def optimize_result(volume, spec, camera, out_dir, *, stages=("opacity", "lighti
     log.info("measuring before and after")
     # the optimiser's renderings of the view (equal to fresh analyses), else analyse again
     first, last = res.analyses or (None, None)
+    got_before, got_after = res.measures or (None, None)
     curvature = None if res.analyses else curvature_source(volume, spec)
-    # after first: the optimiser's last re-composite of the view's cache was the final one, so
-    # the cache's shading (filled lazily per lighting) is still that of ``last``
-    after, m_after, final = _measure(volume, res.spec, camera, curvature, weights, last, backend)
-    before, m_before, initial = _measure(volume, spec, camera, curvature, weights, first, backend)
+    # (the optimiser measured both renderings where they were at hand: no second measuring)
+    after, m_after, final = _measure(volume, res.spec, camera, curvature, weights, last, backend,
+                                     got_after)  # fmt: skip
+    before, m_before, initial = _measure(volume, spec, camera, curvature, weights, first,
+                                         backend, got_before)  # fmt: skip
     t_measured = time.perf_counter()
     d = Path(out_dir)
     files = [write_png(d / "before.png", before.image), write_png(d / "after.png", after.image)]

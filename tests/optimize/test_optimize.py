@@ -61,6 +61,58 @@ def test_the_kept_renderings_equal_fresh_analyses_of_both_specs(phantom):
         )
 
 
+def _same_measures(a, b) -> bool:
+    """Whether two MeasureSets hold the same numbers and arrays, bit for bit."""
+    from dataclasses import fields, is_dataclass
+    from functools import partial
+
+    def same(x, y):
+        if isinstance(x, partial):  # a lazily made field: the same call
+            return (isinstance(y, partial) and x.func is y.func and same(x.args, y.args)
+                    and same(x.keywords, y.keywords))  # fmt: skip
+        if is_dataclass(x):
+            return type(x) is type(y) and all(
+                same(getattr(x, f.name), getattr(y, f.name)) for f in fields(x)
+            )
+        if isinstance(x, np.ndarray):
+            return isinstance(y, np.ndarray) and np.array_equal(x, y, equal_nan=True)
+        if isinstance(x, dict):
+            return x.keys() == y.keys() and all(same(x[k], y[k]) for k in x)
+        if isinstance(x, (list, tuple)):
+            return len(x) == len(y) and all(same(u, v) for u, v in zip(x, y, strict=True))
+        if isinstance(x, float) and np.isnan(x):
+            return isinstance(y, float) and np.isnan(y)
+        return x == y
+
+    return same(tuple(a), tuple(b))
+
+
+def test_measures_kept_by_the_optimiser_equal_measuring_its_renderings(phantom):
+    """``measures=True``: the before/after MeasureSets the CLI reports, without measuring again.
+
+    Measured where the optimiser had just rendered each (cheaper), they equal
+    ``all_measures`` of ``res.analyses`` afterwards, every field bit for bit; without the
+    option the result holds none, and the optimisation is the same.
+    """
+    from dvr_perception.measures import all_measures, results
+
+    vol, spec, cam = phantom
+    kw = {"stages": ("opacity", "lighting", "colour"), "max_iter": 2, "seed": 1}
+    r = optimize(vol, spec, cam, measures=True, **kw)
+    plain = optimize(vol, spec, cam, **kw)
+    assert plain.measures == ()
+    assert (plain.initial, plain.final, plain.spec) == (r.initial, r.final, r.spec)
+    assert len(r.measures) == 2
+    results._FIELD_MEMO.clear()  # measured afresh
+    for kept, analysis, sp in zip(r.measures, r.analyses, (spec, r.spec), strict=True):
+        again = all_measures(analysis, sp)
+        assert _same_measures(kept, again)
+    before, after = r.measures
+    assert before.visibility.E_v == pytest.approx(r.initial["E_v"], abs=1e-6)
+    assert after.transparency.E_t == pytest.approx(r.final["E_t"], abs=1e-6)
+    assert not _same_measures(before, after)  # the spec changed: the check can tell them apart
+
+
 def test_stage1_lowers_visibility_without_washing_out(phantom, stage1):
     vol, spec, cam = phantom
     r = stage1
