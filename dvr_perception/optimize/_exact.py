@@ -22,6 +22,8 @@ and its early ray termination, so they equal the ``E_v`` and ``coverage`` of
 
 from __future__ import annotations
 
+import types
+
 import numpy as np
 
 from dvr_perception.rays import _tables
@@ -85,8 +87,24 @@ def _composite_grad_body(rays, start, count, lut, ids, alpha, dalpha, k, ert, gr
                 dacc[q, i] = -tr * g[q]
 
 
-_composite_grad = njit(cache=True)(_composite_grad_body)
-_composite_grad_parallel = njit(parallel=True, cache=True)(_composite_grad_body)
+def _compiled(name: str, parallel: bool):
+    """:func:`_composite_grad_body` compiled (cached) under its own name ``name``.
+
+    numba's on-disk cache keys a kernel by its Python function (module, qualified name, first
+    line) and signature, not by the compile options: one function compiled twice, serial and
+    ``parallel=True``, shares one cache entry, and whichever was compiled first is what both
+    load afterwards.  Each variant is therefore a function of its own (the same code).
+    """
+    body = _composite_grad_body
+    func = types.FunctionType(body.__code__, body.__globals__, name, body.__defaults__,
+                              body.__closure__)  # fmt: skip
+    func.__qualname__ = name
+    func.__doc__ = body.__doc__
+    return njit(parallel=parallel, cache=True)(func)
+
+
+_composite_grad = _compiled("_composite_grad", parallel=False)
+_composite_grad_parallel = _compiled("_composite_grad_parallel", parallel=True)
 
 
 def composite_grad(rays, *args) -> None:

@@ -183,6 +183,52 @@ def test_exact_opacity_model_is_the_same_serial_and_parallel(phantom, monkeypatc
         assert np.array_equal(a, b)
 
 
+_LAYER_PROBE = """
+import sys, numpy as np, numba
+from dvr_perception.optimize import _exact
+n, k = 64, 3
+rays = np.arange(n, dtype=np.int64)
+start, count = np.zeros(n, np.int64), np.ones(n, np.int64)
+lut, ids = np.zeros(1, np.uint16), np.zeros(4, np.int64)
+alpha, dalpha = np.full(4, 0.5), np.ones(4)
+vis, acc, dvis, dacc = np.empty((k, n)), np.empty(n), np.zeros((k, k, n)), np.zeros((k, n))
+getattr(_exact, sys.argv[1])(rays, start, count, lut, ids, alpha, dalpha, k, 0.01, True, vis,
+                             dvis, acc, dacc)
+assert np.all(acc == 0.5) and np.all(vis[0] == 0.5), (acc, vis)
+try:
+    print(numba.threading_layer())
+except ValueError:  # no parallel region has run in this process
+    print("serial")
+"""
+
+
+def test_the_parallel_opacity_kernel_stays_parallel_with_a_warm_cache(tmp_path):
+    """The serial and the parallel compositing kernel have their own numba cache entries.
+
+    numba's cache keys a kernel by its Python function and signature, not by ``parallel``:
+    compiled from one function, whichever variant was cached first was loaded for both (the
+    optimiser composites few rays first, so the "parallel" kernel ran serially).  Here the
+    serial one is compiled and cached first, then a fresh process runs the parallel one from
+    the same cache folder: it must start numba's threads.
+    """
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "NUMBA_NUM_THREADS": "2"}
+
+    def run(kernel):
+        proc = subprocess.run([sys.executable, "-c", _LAYER_PROBE, kernel], env=env,
+                              capture_output=True, text=True, timeout=600, check=False)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr
+        return proc.stdout.strip().splitlines()[-1]
+
+    assert run("_composite_grad") == "serial"
+    assert any(tmp_path.rglob("*.nbi"))  # cached
+    assert run("_composite_grad_parallel") != "serial"  # a threading layer (omp, tbb, ...)
+    assert run("_composite_grad") == "serial"  # and the serial one stays serial
+
+
 def test_coverage_alone_is_the_evaluations_coverage_bit_for_bit(phantom, monkeypatch):
     """``coverage`` equals ``evaluate``'s, serial and parallel, and counts one evaluation.
 
