@@ -2,8 +2,9 @@
 
 The command loads its inputs (as ``render`` does), runs
 :func:`~dvr_perception.optimize.optimize` (Eq. 12-15 of the paper; stages ``opacity``,
-``lighting``, ``colour``) with a plain-text progress bar on stderr, then renders and measures
-the spec before and after at the user's resolution and writes into ``--out``, in two steps:
+``lighting``, ``colour``) with a plain-text progress bar on stderr, which also measures the
+spec before and after at the user's resolution (``measures=True``: on its own renderings,
+each measured while the optimiser has it at hand), and writes into ``--out``, in two steps:
 
 1. the result, as soon as it is known, and then printed: ``before.png`` and ``after.png``,
    ``optimized_spec.json`` (a spec for ``render``/``measure --structures``),
