@@ -107,6 +107,45 @@ def test_shape_filters_equal_scipy_bit_for_bit(shape, sigma):
     assert grad.max() > 0  # not trivially equal
 
 
+@pytest.mark.parametrize("numba_on", [True, False])
+@pytest.mark.parametrize("box", [(10, 30, 20, 50), (0, 5, 60, 80), (0, 64, 0, 3), (30, 31, 40, 41)])
+def test_shape_filters_of_a_framed_image_equal_scipy_bit_for_bit(monkeypatch, numba_on, box):
+    """Only the window around what varies is filtered; the bits are scipy's everywhere."""
+    from scipy import ndimage
+
+    if not numba_on:
+        monkeypatch.setenv("DVR_PERCEPTION_NO_NUMBA", "1")
+    shape_module = importlib.import_module("dvr_perception.measures.shape")
+    rng = np.random.default_rng(7)
+    y0, y1, x0, x1 = box
+    log_y = np.full((64, 80), np.log(0.2 + 0.01))  # a uniform background
+    log_y[y0:y1, x0:x1] = np.log(rng.random((y1 - y0, x1 - x0)) + 0.01)
+    mask = np.zeros((64, 80), bool)
+    mask[y0:y1, x0:x1] = rng.random((y1 - y0, x1 - x0)) > 0.3
+    values = rng.random((64, 80))  # values outside the mask do not count
+    sizes = []
+    real = shape_module._filtered
+    monkeypatch.setattr(
+        shape_module, "_filtered", lambda v, *a: sizes.append(v.shape) or real(v, *a)
+    )
+    for sigma in (0.5, 2.0, 10.666666666666666):
+        num, den, grad = shape_module._filters(values, mask, log_y, sigma)
+        weight = mask.astype(np.float64)
+        want = ndimage.gaussian_filter(values * weight, sigma, mode="nearest")
+        np.testing.assert_array_equal(num, want)
+        np.testing.assert_array_equal(den, ndimage.gaussian_filter(weight, sigma, mode="nearest"))
+        want = ndimage.gaussian_gradient_magnitude(log_y, sigma, mode="nearest")
+        np.testing.assert_array_equal(grad, want)
+        assert grad.max() > 0
+    assert sizes[0] != (64, 80)  # a window
+    assert (1, 1) in sizes  # and the constant image
+    flat = shape_module._filters(values, np.zeros((64, 80), bool), np.full((64, 80), -1.5), 2.0)
+    for got in flat:  # nothing varies: the filters' response to a constant image
+        assert np.all(got == got[0, 0])
+    assert flat[0][0, 0] == 0.0
+    assert flat[2][0, 0] == 0.0
+
+
 def test_shape_gives_the_same_result_without_numba(monkeypatch):
     from types import SimpleNamespace
 
