@@ -113,6 +113,20 @@ def transmitted_tap(lum_p: np.ndarray, lum_a: np.ndarray, contrast: str) -> floa
     return _contrast(*_robust(mean_p, max(slope, 0.0) * std_a), contrast) / c_a
 
 
+def carried(assigned: np.ndarray, scale: np.ndarray, layers, pix: np.ndarray) -> np.ndarray:
+    """Opacity ``layers`` carry on the flat pixels ``pix``: ``min(assigned, cap) * scale``.
+
+    ``assigned`` (K, H, W) is the occlusion-free opacity, capped at :data:`PRESENCE_CAP`
+    and scaled per structure by ``scale`` (K,) (see :func:`~.transparency._carried`);
+    returns (len(layers), len(pix)).  Made only where it is read (the covered pixels), not
+    for the whole (K, H, W) stack.
+    """
+    k = assigned.shape[0]
+    layers = np.asarray(layers, np.intp).reshape(-1)
+    on = assigned.reshape(k, -1)[np.ix_(layers, pix)]
+    return np.minimum(on, PRESENCE_CAP) * scale[layers][:, None]
+
+
 def _bits(layers) -> int:
     out = 0
     for k in layers:
@@ -145,12 +159,13 @@ class _LayerSets:
         self._templates: dict[frozenset, tuple] = {}
         #: ``enclosure="unoccluded"``: per enclosing layer, the luminance without it.
         self.without: dict[int, np.ndarray] | None = None
-        #: (K, H, W) visible opacities and carried (occlusion-free, capped) opacities: a
+        #: (K, H, W) visible opacities, and the carried (occlusion-free, capped) opacities
+        #: ``carry(layers, pix)`` (:func:`carried`; (layers, pixels) on flat pixels): a
         #: covered layer whose visible opacity is at most ``HIDDEN_FRACTION`` of what it
         #: carries on a pixel is hidden there (D3, D7); ``None``: footprints are visible
         #: ones, nothing covered is hidden.
         self.visible: np.ndarray | None = None
-        self.carry: np.ndarray | None = None
+        self.carry = None
         #: Luminance of the view without layer ``e`` on the pixels of a mask
         #: (``recomposite(e, mask)``, computed once per layer: exact on ``mask``), or ``None``
         #: when the analysis has no re-evaluation cache; ``prefer``: an
@@ -267,7 +282,7 @@ class _LayerSets:
         """
         k = self.visible.shape[0]
         vis = self.visible.reshape(k, -1)[np.ix_(layers, pix)].sum(axis=0)
-        carry = self.carry.reshape(k, -1)[np.ix_(layers, pix)].sum(axis=0)
+        carry = self.carry(layers, pix).sum(axis=0)
         return (vis > HIDDEN_FRACTION * carry) | (carry <= 0.0)
 
     def _encloser_tap(self, e: int, shown: np.ndarray) -> tuple[float, str | None]:
