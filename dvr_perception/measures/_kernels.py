@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["correlate_columns", "correlate_rows", "group_stats", "visibility_core"]
+__all__ = ["correlate_columns", "correlate_rows", "group_stats", "layer_bits", "visibility_core"]
 
 
 @njit(cache=True)
@@ -37,6 +37,25 @@ def group_stats(values, group, n):
     for g in range(n):
         std[g] = np.sqrt(sq[g] / max(count[g], 1))
     return count, mean, std
+
+
+@njit(cache=True)
+def layer_bits(visible, assigned, threshold, limits, out):
+    """Layer-set bitmask of every pixel: bit ``s`` where structure ``s`` is a layer there.
+
+    ``visible`` and ``assigned`` are (K, N) (float32 or float64, read in float64), ``limits``
+    (K,) float64 and ``out`` (N,) uint32: bit ``s`` of ``out[r]`` is set where
+    ``visible[s, r] > threshold`` or ``assigned[s, r] > limits[s]``, the comparisons of
+    :func:`~.regions.layer_footprints` and of the transparency measure's occlusion-free
+    footprints, without their (K, N) boolean stacks.
+    """
+    k = visible.shape[0]
+    for r in range(out.size):
+        b = 0
+        for s in range(k):
+            if float(visible[s, r]) > threshold or float(assigned[s, r]) > limits[s]:
+                b |= 1 << s
+        out[r] = b
 
 
 #: Fixed number of ray chunks of :func:`visibility_core`: its sums do not depend on the
@@ -72,14 +91,26 @@ def visibility_core(visible, assigned, a_imp, imp, scale, thickness, bits, edges
     w = np.empty((_CHUNKS, k))
     for ch in prange(_CHUNKS):
         for r in range(ch * n // _CHUNKS, (ch + 1) * n // _CHUNKS):
+            if not (has_bits and bits[r] != 0) and _blank(visible, assigned, r):
+                # nothing on this ray: target and deviation 0, every sum adds 0, no histogram
+                for s in range(k):
+                    target[s, r] = 0.0
+                deviation[r] = 0.0
+                nonempty[r] = False
+                continue
             total = 0.0
             asum = 0.0
             for s in range(k):
-                a = max(assigned[s, r], 0.0)
-                ws = a if thickness else imp[s] * -np.expm1(-a / scale)
+                a = max(float(assigned[s, r]), 0.0)
+                if thickness:
+                    ws = a
+                elif a == 0.0:  # imp * -expm1(-0 / scale) is 0: an absent structure
+                    ws = 0.0
+                else:
+                    ws = imp[s] * -np.expm1(-a / scale)
                 w[ch, s] = ws
                 total += ws
-                asum += assigned[s, r]
+                asum += float(assigned[s, r])
             full = asum > 0.0
             nonempty[r] = full
             dev = 0.0
@@ -87,13 +118,13 @@ def visibility_core(visible, assigned, a_imp, imp, scale, thickness, bits, edges
                 c = 0.0
                 if total > 0.0:
                     c = min(max(w[ch, s] / total, 0.0), 1.0)
-                t = c * a_imp[r]
-                v = visible[s, r]
+                t = c * float(a_imp[r])
+                v = float(visible[s, r])
                 target[s, r] = t
                 dev += abs(t - v)
                 part[ch, 0, s] += v
                 part[ch, 1, s] += t
-                part[ch, 2, s] += assigned[s, r]
+                part[ch, 2, s] += float(assigned[s, r])
                 if full:
                     part[ch, 3, s] += v
                     part[ch, 4, s] += t
@@ -101,7 +132,7 @@ def visibility_core(visible, assigned, a_imp, imp, scale, thickness, bits, edges
                     on = (bits[r] >> np.uint64(s)) & np.uint64(1)
                     here = on != 0
                 else:
-                    here = assigned[s, r] > 0.0 or v > 0.0
+                    here = float(assigned[s, r]) > 0.0 or v > 0.0
                 if here:
                     r_part[ch, s] += 1
                     h_part[ch, 0, s, _bin(min(max(v, 0.0), 1.0), edges)] += 1
@@ -129,6 +160,15 @@ def visibility_core(visible, assigned, a_imp, imp, scale, thickness, bits, edges
                 hist[1, s, b] += h_part[ch, 1, s, b]
             rays[s] += r_part[ch, s]
     return target, deviation, nonempty, e_sum, n_sum, sums, hist, rays
+
+
+@njit(cache=True, inline="always")
+def _blank(visible, assigned, r):
+    """Whether every structure's visible and assigned opacity on ray ``r`` is 0."""
+    for s in range(visible.shape[0]):  # noqa: SIM110 - a loop numba compiles, no generator
+        if visible[s, r] != 0.0 or assigned[s, r] != 0.0:
+            return False
+    return True
 
 
 @njit(cache=True, inline="always")

@@ -123,7 +123,7 @@ def carried(assigned: np.ndarray, scale: np.ndarray, layers, pix: np.ndarray) ->
     """
     k = assigned.shape[0]
     layers = np.asarray(layers, np.intp).reshape(-1)
-    on = assigned.reshape(k, -1)[np.ix_(layers, pix)]
+    on = assigned.reshape(k, -1)[np.ix_(layers, pix)].astype(np.float64)
     return np.minimum(on, PRESENCE_CAP) * scale[layers][:, None]
 
 
@@ -281,7 +281,7 @@ class _LayerSets:
         opacity they carry there (:func:`~.transparency._carried`).
         """
         k = self.visible.shape[0]
-        vis = self.visible.reshape(k, -1)[np.ix_(layers, pix)].sum(axis=0)
+        vis = self.visible.reshape(k, -1)[np.ix_(layers, pix)].astype(np.float64).sum(axis=0)
         carry = self.carry(layers, pix).sum(axis=0)
         return (vis > HIDDEN_FRACTION * carry) | (carry <= 0.0)
 

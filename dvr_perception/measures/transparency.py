@@ -93,7 +93,7 @@ from dvr_perception.measures._layer_sets import _LayerSets, carried
 from dvr_perception.measures.covered import _without as _luminance_without
 from dvr_perception.measures.covered import has_cache
 from dvr_perception.measures.psychophysics import calibrate
-from dvr_perception.measures.regions import _relations, layer_footprints, subregions
+from dvr_perception.measures.regions import _layer_set_bits, _relations, _subregions
 from dvr_perception.measures.results import (
     TransparencyResult,
     _accumulated,
@@ -130,16 +130,15 @@ def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure
             f"enclosure must be one of {', '.join(map(repr, ENCLOSURES))}, got {enclosure!r}"
         )
     accumulated = _accumulated(analysis)
-    visible = _visible(analysis, accumulated)
+    visible = _visible(analysis, accumulated, native=True)  # read in float64
     names = _names(analysis, spec, visible.shape[0])
     expected = [float(s.target_opacity) for s in spec.structures]
     y, notes = _image_luminance(analysis, spec, accumulated.shape)
-    footprints = layer_footprints(visible, threshold=threshold)
     assigned = _occlusion_free(analysis, accumulated.shape)
-    if assigned is not None:  # D3: where a structure is, not only where it is visible
-        importance = np.array([float(s.importance) for s in spec.structures])
-        footprints |= assigned > threshold * importance[:, None, None]
-    rmap = subregions(footprints, geometry=False)  # no bounding boxes: not reported
+    # D3: a layer where a structure is (its occlusion-free opacity), not only where it is seen
+    importance = np.array([float(s.importance) for s in spec.structures])
+    bits = _layer_set_bits(visible, threshold, assigned, threshold * importance)
+    rmap = _subregions(bits, len(names), geometry=False)  # no bounding boxes: not reported
     relations = _relations(rmap.layer_set, len(names), tolerance)  # = layer_relations
     layer_sets = _LayerSets(y, rmap, relations, names, contrast)
     if assigned is not None:
@@ -191,7 +190,7 @@ def _occlusion_free(analysis, shape) -> np.ndarray | None:
         return None
     if engine_made(analysis) and not analysis.stats.get("occlusion_free", True):
         return None
-    return _assigned(analysis, shape)
+    return _assigned(analysis, shape, native=True)  # read in float64
 
 
 def transparency_table(analysis, spec, *, calibration=None):

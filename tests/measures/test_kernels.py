@@ -186,3 +186,60 @@ def test_visibility_sums_do_not_depend_on_the_thread_count():
     for a, b in zip(one[4:], two[4:], strict=True):
         np.testing.assert_array_equal(a, b)
     assert one[3] == pytest.approx(float(one[1].astype(np.float64).sum()), rel=1e-9)
+
+
+@pytest.mark.parametrize("with_bits", [True, False])
+def test_visibility_core_reads_float32_fields_as_their_float64_values(with_bits):
+    """The engine's float32 fields go to the kernel as they are: the float64 results."""
+    from types import SimpleNamespace
+
+    vis_mod = importlib.import_module("dvr_perception.measures.visibility")
+
+    rng = np.random.default_rng(8)
+    k, h, w = 3, 29, 31
+    assigned = (rng.random((k, h, w)) * rng.choice([0.0, 0.01, 1.0], (k, h, w))).astype(np.float32)
+    visible = (rng.random((k, h, w)) * 0.3).astype(np.float32)
+    visible[:, :4], assigned[:, :4] = 0.0, 0.0  # blank rays
+    bits = rng.integers(0, 8, (h, w)).astype(np.uint32)
+    bits[:2] = 0
+    ana = SimpleNamespace(present=bits if with_bits else None)
+    rest = (rng.random((h, w)), np.array([0.2, 0.5, 0.9]), "importance", 0.05,
+            np.linspace(0.0, 1.0, 21))  # fmt: skip
+    got = vis_mod._core_numba(ana, visible, assigned, *rest)
+    want = vis_mod._core_numba(ana, visible.astype(np.float64), assigned.astype(np.float64), *rest)
+    ref = vis_mod._core_numpy(ana, visible.astype(np.float64), assigned.astype(np.float64), *rest)
+    for i in (0, 1, 2):
+        np.testing.assert_array_equal(got[i], want[i])
+        np.testing.assert_array_equal(got[i], ref[i])
+    assert got[3] == want[3]
+    for g, wt in zip(got[4], want[4], strict=True):
+        np.testing.assert_array_equal(g, wt)
+    np.testing.assert_array_equal(np.asarray(got[5]), np.asarray(want[5]))
+    np.testing.assert_array_equal(got[6], want[6])
+
+
+@pytest.mark.parametrize("numba_on", [True, False])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_layer_set_bits_equal_the_bitmask_of_the_footprints(monkeypatch, numba_on, dtype):
+    from dvr_perception.errors import DVRInputError
+    from dvr_perception.measures import regions
+
+    if not numba_on:
+        monkeypatch.setenv("DVR_PERCEPTION_NO_NUMBA", "1")
+    rng = np.random.default_rng(4)
+    k, h, w = 5, 23, 17
+    visible = (rng.random((k, h, w)) * 0.1).astype(dtype)
+    assigned = (rng.random((k, h, w)) * 0.2).astype(dtype)
+    # float32(0.05) lies above 0.05 in float64 (the comparison the footprints make)
+    visible[0, :3] = np.float32(0.05) if dtype == np.float32 else 0.05
+    assigned[0, :3] = 0.0
+    limits = 0.05 * np.array([0.2, 1.0, 0.5, 0.0, 0.9])
+    fp = regions.layer_footprints(visible.astype(np.float64), threshold=0.05)
+    want = regions._bitmask(fp | (assigned.astype(np.float64) > limits[:, None, None]))
+    got = regions._layer_set_bits(visible, 0.05, assigned, limits)
+    assert got.dtype == np.uint32
+    np.testing.assert_array_equal(got, want)
+    assert np.all(got[:3] & 1 == (1 if dtype == np.float32 else 0))
+    np.testing.assert_array_equal(regions._layer_set_bits(visible, 0.05), regions._bitmask(fp))
+    with pytest.raises(DVRInputError, match="threshold"):
+        regions._layer_set_bits(visible, 1.0)
