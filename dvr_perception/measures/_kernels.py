@@ -13,7 +13,15 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["correlate_columns", "correlate_rows", "group_stats", "layer_bits", "visibility_core"]
+__all__ = [
+    "correlate_columns",
+    "correlate_rows",
+    "group_stats",
+    "label_regions",
+    "layer_bits",
+    "neighbour_sets",
+    "visibility_core",
+]
 
 
 @njit(cache=True)
@@ -56,6 +64,103 @@ def layer_bits(visible, assigned, threshold, limits, out):
             if float(visible[s, r]) > threshold or float(assigned[s, r]) > limits[s]:
                 b |= 1 << s
         out[r] = b
+
+
+@njit(cache=True)
+def neighbour_sets(layer_set, k):
+    """Per layer ``i``, the union (a bitmask) of the layer sets found next to its pixels.
+
+    ``layer_set`` is an (H, W) bitmask image; ``seen[i]`` ORs the sets of every pixel within
+    the 8-neighbourhood (the pixel itself included) of a pixel holding layer ``i``: bit ``j``
+    of ``seen[i]`` says that layers ``i`` and ``j`` are adjacent (or overlap).  0 for a layer
+    no pixel holds.
+    """
+    h, w = layer_set.shape
+    seen = np.zeros(k, np.int64)
+    for y in range(h):
+        for x in range(w):
+            b = np.int64(layer_set[y, x])
+            if b == 0:
+                continue
+            near = np.int64(0)
+            for yy in range(max(y - 1, 0), min(y + 2, h)):
+                for xx in range(max(x - 1, 0), min(x + 2, w)):
+                    near |= np.int64(layer_set[yy, xx])
+            for i in range(k):
+                if (b >> i) & 1:
+                    seen[i] |= near
+    return seen
+
+
+@njit(cache=True)
+def _root(parent, p):
+    """Root of ``p`` in the union-find forest, compressing the path on the way."""
+    r = p
+    while parent[r] != r:
+        r = parent[r]
+    while parent[p] != r:
+        q = parent[p]
+        parent[p] = r
+        p = q
+    return r
+
+
+@njit(cache=True)
+def _union(parent, p, q):
+    """Join the components of ``p`` and ``q``: the larger root points to the smaller."""
+    a = _root(parent, p)
+    b = _root(parent, q)
+    if a < b:
+        parent[b] = a
+    elif b < a:
+        parent[a] = b
+
+
+@njit(cache=True)
+def label_regions(image):
+    """Label the connected components of equal value (8-connectivity) by first pixel.
+
+    ``image`` is (H, W) integer.  Returns ``(region_id, first, area)``: (H, W) int32 ids
+    ``0..n-1`` in row-major order of each component's first pixel (what
+    ``skimage.measure.label(image, background=<absent value>, connectivity=2)`` gives, minus
+    1), the flat index of each component's first pixel and its pixel count.
+
+    Union-find over the neighbours already visited (up-left, up, up-right, left), where each
+    pixel points to a smaller index, so every root is its component's first pixel and one
+    pass in row-major order numbers the components.  Of the visited neighbours only those
+    not already joined need a union: the pixel above touches the other three, and the
+    left one touches the upper left one.
+    """
+    h, w = image.shape
+    n = h * w
+    flat = image.reshape(n)
+    parent = np.arange(n)
+    for y in range(h):
+        for x in range(w):
+            p = y * w + x
+            v = flat[p]
+            if y > 0 and flat[p - w] == v:
+                parent[p] = _root(parent, p - w)
+                continue
+            if x > 0 and flat[p - 1] == v:
+                parent[p] = _root(parent, p - 1)
+            elif y > 0 and x > 0 and flat[p - w - 1] == v:
+                parent[p] = _root(parent, p - w - 1)
+            if y > 0 and x < w - 1 and flat[p - w + 1] == v:
+                _union(parent, p, p - w + 1)
+    region_id = np.empty(n, np.int32)
+    first = np.empty(n, np.int64)
+    area = np.zeros(n, np.int64)
+    count = 0
+    for p in range(n):
+        if parent[p] == p:
+            region_id[p] = count
+            first[count] = p
+            count += 1
+        else:  # a smaller index in the same component, numbered already
+            region_id[p] = region_id[parent[p]]
+        area[region_id[p]] += 1
+    return region_id.reshape(h, w), first[:count].copy(), area[:count].copy()
 
 
 #: Fixed number of ray chunks of :func:`visibility_core`: its sums do not depend on the

@@ -251,11 +251,15 @@ def subregions(footprints, *, geometry: bool = True) -> RegionMap:
 def _subregions(mask: np.ndarray, k: int, *, geometry: bool = True) -> RegionMap:
     """:func:`subregions` of the ``k`` layers of a (H, W) uint32 layer-set bitmask."""
     height, width = mask.shape
-    labels = label(mask.astype(np.int64), background=-1, connectivity=2)  # labels 1..n
-    region_id, first = _raster_ordered(labels)
+    nk = kernels("dvr_perception.measures._kernels")
+    if nk is not None:
+        region_id, first, area = nk.label_regions(np.ascontiguousarray(mask))
+    else:
+        labels = label(mask.astype(np.int64), background=-1, connectivity=2)  # labels 1..n
+        region_id, first = _raster_ordered(labels)
+        area = np.bincount(region_id.ravel(), minlength=first.size)
     flat = region_id.ravel()
     n = first.size
-    area = np.bincount(flat, minlength=n)
     sets = mask.ravel()[first].tolist()
     if geometry:
         rows, cols = np.divmod(np.arange(flat.size), width)
@@ -383,12 +387,18 @@ def _relations(layer_set: np.ndarray, k: int, tolerance: float) -> dict:
     area = (member * count[:, None]).sum(axis=0).astype(np.float64)
     inter = (member * count[:, None]).T @ member
     # i and j are adjacent when a pixel of j has layer i within its 8-neighbourhood
-    near = _dilate8(layer_set[None])[0]
     adjacent = np.zeros((k, k), bool)
-    for i in range(k):
-        if area[i]:
-            seen = np.bitwise_or.reduce(flat[(near.ravel() >> np.uint32(i)) & np.uint32(1) == 1])
-            adjacent[i] = (int(seen) >> np.arange(k)) & 1 == 1
+    nk = kernels("dvr_perception.measures._kernels")
+    if nk is not None:
+        for i, seen in enumerate(nk.neighbour_sets(layer_set, k).tolist()):
+            adjacent[i] = (seen >> np.arange(k)) & 1 == 1
+    else:
+        near = _dilate8(layer_set[None])[0]
+        for i in range(k):
+            if area[i]:
+                near_i = (near.ravel() >> np.uint32(i)) & np.uint32(1) == 1
+                seen = np.bitwise_or.reduce(flat[near_i])
+                adjacent[i] = (int(seen) >> np.arange(k)) & 1 == 1
     result: dict[tuple[int, int], Relation] = {}
     for i in range(k):
         for j in range(i + 1, k):

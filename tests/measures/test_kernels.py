@@ -243,3 +243,67 @@ def test_layer_set_bits_equal_the_bitmask_of_the_footprints(monkeypatch, numba_o
     np.testing.assert_array_equal(regions._layer_set_bits(visible, 0.05), regions._bitmask(fp))
     with pytest.raises(DVRInputError, match="threshold"):
         regions._layer_set_bits(visible, 1.0)
+
+
+@pytest.mark.parametrize("size", [(1, 1), (1, 9), (9, 1), (17, 23), (64, 48)])
+def test_label_regions_equal_skimage_in_raster_order(size):
+    from skimage.measure import label
+
+    from dvr_perception.measures import _kernels, regions
+
+    rng = np.random.default_rng(size[0] * 100 + size[1])
+    for values in (2, 3, 5):
+        image = rng.integers(0, values, size).astype(np.uint32)
+        image[size[0] // 2] = 7  # a band across: components joined around it
+        want, first = regions._raster_ordered(
+            label(image.astype(np.int64), background=-1, connectivity=2)
+        )
+        got, got_first, area = _kernels.label_regions(image)
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(got_first, first)
+        np.testing.assert_array_equal(area, np.bincount(want.ravel()))
+
+
+def test_label_regions_join_diagonal_and_u_shaped_components():
+    from dvr_perception.measures import _kernels
+
+    image = np.array(
+        [[1, 0, 0, 1],
+         [0, 1, 0, 1],
+         [0, 0, 0, 1],
+         [1, 1, 0, 1]], np.uint32,
+    )  # fmt: skip
+    ids, first, area = _kernels.label_regions(image)
+    # 1s: a diagonal pair, the right column, the bottom left pair; 0s: one 8-connected set
+    want = [[0, 1, 1, 2], [1, 0, 1, 2], [1, 1, 1, 2], [3, 3, 1, 2]]
+    np.testing.assert_array_equal(ids, want)
+    assert first.tolist() == [0, 1, 3, 12]
+    assert area.tolist() == [2, 8, 4, 2]
+    u_shape = np.array([[1, 0, 1], [1, 0, 1], [1, 1, 1]], np.uint32)
+    ids, first, area = _kernels.label_regions(u_shape)  # the arms meet on the last row
+    np.testing.assert_array_equal(ids, [[0, 1, 0], [0, 1, 0], [0, 0, 0]])
+    assert first.tolist() == [0, 1]
+    assert area.tolist() == [7, 2]
+
+
+@pytest.mark.parametrize("numba_on", [True, False])
+def test_regions_and_relations_do_not_depend_on_numba(monkeypatch, numba_on):
+    from dvr_perception.measures import layer_relations, subregions
+
+    rng = np.random.default_rng(12)
+    fp = np.zeros((4, 40, 50), bool)
+    fp[0, 5:35, 5:45] = True  # encloses 1
+    fp[1, 10:20, 10:20] = True
+    fp[2, 15:30, 15:50] = rng.random((15, 35)) > 0.2  # overlaps 0 and 1, ragged
+    fp[3, 36:40, 46:50] = True  # touches 0 diagonally at most: separate or touch
+    if not numba_on:
+        monkeypatch.setenv("DVR_PERCEPTION_NO_NUMBA", "1")
+    rmap, rel = subregions(fp), layer_relations(fp)
+    monkeypatch.setenv("DVR_PERCEPTION_NO_NUMBA", "0" if not numba_on else "1")
+    ref_map, ref_rel = subregions(fp), layer_relations(fp)
+    np.testing.assert_array_equal(rmap.region_id, ref_map.region_id)
+    assert rmap.regions == ref_map.regions
+    assert rel == ref_rel
+    assert rel[(0, 1)].kind == "enclose"
+    assert rel[(0, 2)].kind == "overlap"
