@@ -20,31 +20,72 @@ __all__ = [
     "label_regions",
     "layer_bits",
     "neighbour_sets",
+    "premultiplied_excess",
+    "seen_on",
     "visibility_core",
 ]
 
 
 @njit(cache=True)
 def group_stats(values, group, n):
-    """Per-group pixel count, mean and two-pass population std of ``values`` (flat arrays)."""
+    """Per-group pixel count, mean and two-pass population std of ``values`` (flat arrays).
+
+    Each group's sums run over its pixels in order; a run of pixels of one group is added
+    in a register and stored once (the same additions in the same order).
+    """
     count = np.zeros(n, np.int64)
     total = np.zeros(n)
-    for i in range(values.size):
+    size = values.size
+    i = 0
+    while i < size:
         g = group[i]
-        count[g] += 1
-        total[g] += values[i]
+        acc = total[g]
+        j = i
+        while j < size and group[j] == g:
+            acc += values[j]
+            j += 1
+        total[g] = acc
+        count[g] += j - i
+        i = j
     mean = np.empty(n)
     for g in range(n):
         mean[g] = total[g] / max(count[g], 1)
     sq = np.zeros(n)
-    for i in range(values.size):
+    i = 0
+    while i < size:
         g = group[i]
-        d = values[i] - mean[g]
-        sq[g] += d * d
+        m = mean[g]
+        acc = sq[g]
+        j = i
+        while j < size and group[j] == g:
+            d = values[j] - m
+            acc += d * d
+            j += 1
+        sq[g] = acc
+        i = j
     std = np.empty(n)
     for g in range(n):
         std[g] = np.sqrt(sq[g] / max(count[g], 1))
     return count, mean, std
+
+
+@njit(cache=True)
+def premultiplied_excess(rgba, slack):
+    """Count the pixels of an (N, 4) RGBA array whose colour exceeds their opacity.
+
+    Returns ``(over, covered)``: the pixels whose brightest colour exceeds their opacity
+    by more than ``slack``, and those with opacity above ``slack`` (read in float64).
+    """
+    over = 0
+    covered = 0
+    for i in range(rgba.shape[0]):
+        alpha = float(rgba[i, 3])
+        brightest = max(max(float(rgba[i, 0]), float(rgba[i, 1])), float(rgba[i, 2]))
+        if brightest > alpha + slack:
+            over += 1
+        if alpha > slack:
+            covered += 1
+    return over, covered
 
 
 @njit(cache=True)
@@ -64,6 +105,28 @@ def layer_bits(visible, assigned, threshold, limits, out):
             if float(visible[s, r]) > threshold or float(assigned[s, r]) > limits[s]:
                 b |= 1 << s
         out[r] = b
+
+
+@njit(cache=True)
+def seen_on(visible, assigned, scale, layers, pix, cap, fraction):
+    """Whether ``layers`` together are seen on the flat pixels ``pix`` (D3, D7).
+
+    ``visible`` and ``assigned`` are (K, N) (read in float64), ``scale`` (K,): on each pixel
+    the layers' visible opacities and carried opacities ``min(assigned, cap) * scale`` are
+    summed in the order of ``layers`` (as numpy sums a (layers, pixels) array over its
+    first axis); seen where the visible sum exceeds ``fraction`` times the carried one, or
+    nothing is carried.
+    """
+    out = np.empty(pix.size, np.bool_)
+    for i in range(pix.size):
+        p = pix[i]
+        vis = 0.0
+        carry = 0.0
+        for layer in layers:
+            vis += float(visible[layer, p])
+            carry += min(float(assigned[layer, p]), cap) * scale[layer]
+        out[i] = vis > fraction * carry or carry <= 0.0
+    return out
 
 
 @njit(cache=True)

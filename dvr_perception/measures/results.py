@@ -21,6 +21,7 @@ from functools import cached_property
 
 import numpy as np
 
+from dvr_perception._numba import kernels
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.measures.luminance import _composite, composite_luminance, luminance
 from dvr_perception.rays._results import RayAnalysis, engine_made
@@ -339,13 +340,19 @@ def _check_premultiplied(rgba: np.ndarray, notes: list[str], *, trusted: bool = 
     colour by construction (dim, specular-lit silhouettes may exceed their opacity on many
     pixels), so only the note is made.
     """
-    alpha = rgba[..., 3]
-    brightest = np.maximum(np.maximum(rgba[..., 0], rgba[..., 1]), rgba[..., 2])
-    over = brightest > alpha + _OPACITY_SLACK
-    n_over = int(np.count_nonzero(over))
+    nk = kernels("dvr_perception.measures._kernels")
+    if nk is not None:  # the counts below in one pass
+        n_over, covered = nk.premultiplied_excess(
+            np.ascontiguousarray(rgba).reshape(-1, 4), _OPACITY_SLACK
+        )
+    else:
+        alpha = rgba[..., 3]
+        brightest = np.maximum(np.maximum(rgba[..., 0], rgba[..., 1]), rgba[..., 2])
+        n_over = int(np.count_nonzero(brightest > alpha + _OPACITY_SLACK))
+        covered = int(np.count_nonzero(alpha > _OPACITY_SLACK))
     if n_over == 0:
         return
-    covered = max(int(np.count_nonzero(alpha > _OPACITY_SLACK)), 1)
+    covered = max(covered, 1)
     if not trusted and n_over > _STRAIGHT_FRACTION * covered:
         warnings.warn(
             f"analysis.rgba: colour exceeds opacity on {n_over} of {covered} covered pixels; "

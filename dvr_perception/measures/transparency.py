@@ -89,7 +89,7 @@ import numpy as np
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures._estimates import region_estimates, region_table
 from dvr_perception.measures._layer_sets import DENOMINATOR_EPS as DENOMINATOR_EPS  # re-export
-from dvr_perception.measures._layer_sets import _LayerSets, carried
+from dvr_perception.measures._layer_sets import Carried, _LayerSets
 from dvr_perception.measures.covered import _without as _luminance_without
 from dvr_perception.measures.covered import has_cache
 from dvr_perception.measures.psychophysics import calibrate
@@ -158,16 +158,16 @@ def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure
     return names, expected, rmap, relations, est, notes
 
 
-def _carried(analysis, spec, assigned: np.ndarray):
-    """Opacity each structure carries on each pixel, occlusion ignored (D7): a function.
+def _carried(analysis, spec, assigned: np.ndarray) -> Carried:
+    """Opacity each structure carries on each pixel, occlusion ignored (D7).
 
     The occlusion-free opacity ``assigned`` (at the importance opacities) capped at
     :data:`~._layer_sets.PRESENCE_CAP`, where presence saturates (D8: the skipping walk is exact
     below it), and scaled by the structure's rendering opacity over its importance, so a
     structure the rendering fades is not taken for a hidden one.  A covered structure whose
     visible opacity is at most :data:`~._layer_sets.HIDDEN_FRACTION` of this is hidden there.
-    Returns ``carry(layers, pix)``, the (layers, pixels) opacities on flat pixels
-    (:func:`~._layer_sets.carried`): made only on the covered pixels that are read.
+    Returns a :class:`~._layer_sets.Carried`: the opacities are made only on the covered
+    pixels that are read.
     """
     importance = np.array([float(s.importance) for s in spec.structures])
     params = getattr(analysis, "stats", None)
@@ -177,7 +177,7 @@ def _carried(analysis, spec, assigned: np.ndarray):
     else:
         render = np.array([float(s.render_opacity) for s in spec.structures])
     scale = np.divide(render, importance, out=np.ones_like(render), where=importance > 0)
-    return partial(carried, assigned, scale)
+    return Carried(assigned, scale)
 
 
 def _occlusion_free(analysis, shape) -> np.ndarray | None:

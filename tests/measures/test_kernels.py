@@ -307,3 +307,49 @@ def test_regions_and_relations_do_not_depend_on_numba(monkeypatch, numba_on):
     assert rel == ref_rel
     assert rel[(0, 1)].kind == "enclose"
     assert rel[(0, 2)].kind == "overlap"
+
+
+def test_group_stats_over_runs_of_one_group_equal_the_numpy_reference():
+    """Runs of pixels of one group (the usual image) are summed in a register: same bits."""
+    rng = np.random.default_rng(13)
+    groups = np.repeat(rng.integers(0, 9, 300), rng.integers(1, 40, 300)).astype(np.uint32)
+    values = rng.random(groups.size) * 1e3
+    got = _layer_sets._group_stats(values, groups, 12)
+    want = _layer_sets._group_stats_numpy(values, groups, 12)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_seen_on_equals_the_numpy_sums(dtype):
+    from dvr_perception.measures import _kernels
+
+    rng = np.random.default_rng(14)
+    k, n = 4, 3000
+    visible = (rng.random((k, n)) * rng.choice([0.0, 0.01, 0.3], (k, n))).astype(dtype)
+    assigned = (rng.random((k, n)) * rng.choice([0.0, 0.2, 2.0], (k, n))).astype(dtype)
+    carry = _layer_sets.Carried(assigned, np.array([0.5, 1.0, 2.0, 0.0]))
+    pix = np.sort(rng.choice(n, 1500, replace=False))
+    for layers in ([1], [2, 0], [0, 1, 3]):
+        vis = visible[np.ix_(layers, pix)].astype(np.float64).sum(axis=0)
+        held = carry.on(layers, pix).sum(axis=0)
+        want = (vis > _layer_sets.HIDDEN_FRACTION * held) | (held <= 0.0)
+        got = _kernels.seen_on(visible, assigned, carry.scale, np.array(layers), pix,
+                               _layer_sets.PRESENCE_CAP, _layer_sets.HIDDEN_FRACTION)  # fmt: skip
+        np.testing.assert_array_equal(got, want)
+        assert 0 < np.count_nonzero(got) < pix.size  # both cases occur
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_premultiplied_excess_counts_as_numpy(dtype):
+    from dvr_perception.measures import _kernels
+
+    rng = np.random.default_rng(15)
+    rgba = rng.random((500, 4)).astype(dtype)
+    rgba[:100, 3] = 0.0
+    rgba[100:200, :3] = rgba[100:200, 3:] + 1e-5  # on the edge of the slack
+    got = _kernels.premultiplied_excess(rgba, 1e-5)
+    wide = rgba.astype(np.float64)
+    over = np.count_nonzero(wide[:, :3].max(axis=1) > wide[:, 3] + 1e-5)
+    assert got == (over, np.count_nonzero(wide[:, 3] > 1e-5))
+    assert 0 < got[0] < 500
