@@ -5,7 +5,9 @@
 in order, as ``numpy.bincount`` does.  :func:`correlate_columns` and :func:`correlate_rows`
 give, bit for bit, what ``scipy.ndimage.correlate1d(..., axis=0 or 1, mode="nearest")``
 gives with a symmetric or antisymmetric kernel (scipy's symmetric loop, the same order of
-sums), vectorised along the rows and parallel over them.
+sums), vectorised along the rows and parallel over them.  Every kernel releases the
+interpreter lock (``nogil``): :func:`~dvr_perception.measures.combined.all_measures` runs
+transparency in a worker thread meanwhile.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ __all__ = [
 ]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def group_stats(values, group, n):
     """Per-group pixel count, mean and two-pass population std of ``values`` (flat arrays).
 
@@ -69,7 +71,7 @@ def group_stats(values, group, n):
     return count, mean, std
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def premultiplied_excess(rgba, slack):
     """Count the pixels of an (N, 4) RGBA array whose colour exceeds their opacity.
 
@@ -88,7 +90,7 @@ def premultiplied_excess(rgba, slack):
     return over, covered
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def layer_bits(visible, assigned, threshold, limits, out):
     """Layer-set bitmask of every pixel: bit ``s`` where structure ``s`` is a layer there.
 
@@ -107,7 +109,7 @@ def layer_bits(visible, assigned, threshold, limits, out):
         out[r] = b
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def seen_on(visible, assigned, scale, layers, pix, cap, fraction):
     """Whether ``layers`` together are seen on the flat pixels ``pix`` (D3, D7).
 
@@ -129,7 +131,7 @@ def seen_on(visible, assigned, scale, layers, pix, cap, fraction):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def neighbour_sets(layer_set, k):
     """Per layer ``i``, the union (a bitmask) of the layer sets found next to its pixels.
 
@@ -179,7 +181,7 @@ def _union(parent, p, q):
         parent[a] = b
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def label_regions(image):
     """Label the connected components of equal value (8-connectivity) by first pixel.
 
@@ -231,7 +233,7 @@ def label_regions(image):
 _CHUNKS = 64
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def visibility_core(visible, assigned, a_imp, imp, scale, thickness, bits, edges):
     """Per-ray targets and deviations, and the image-wide sums and histograms of visibility.
 
@@ -357,7 +359,7 @@ def _bin(x, edges):
     return i
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def correlate_columns(src, weights, signs, out):
     """Correlate each image of ``src`` along its first axis, clamping at the edges.
 
@@ -392,7 +394,7 @@ def correlate_columns(src, weights, signs, out):
                     o[x] += (a[x] - b[x]) * wj
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def correlate_rows(src, weights, signs, out):
     """:func:`correlate_columns` along the images' second axis (their rows).
 
