@@ -315,3 +315,25 @@ def test_cell_bounds_bound_every_cells_exact_gradient_maximum(backend, step):
         old = ((diffs[..., :3].max(axis=(0, 1, 2)).astype(np.float64) * geo.inv) ** 2).sum()
         assert bound2.max() < 0.25 * old
         assert bound2.max() < 2.0 * exact.max()
+
+
+@pytest.mark.parametrize("step", [False, True])
+def test_range_bound_lies_above_the_gradient_maximum(step):
+    """The flatness test's bound from the data range bounds the exact maximum, well below the
+    plain ``range * |inv|`` (a third of it at sigma 1, where a step nearly reaches it)."""
+    from dvr_perception.rays import _curvature_passes as P
+
+    vol = _blobs(shape=(24, 30, 28))
+    if step:
+        data = np.full(vol.data.shape, 100, np.uint16)
+        data[:, 14:] = 2100
+        vol = Volume(data, spacing=vol.spacing)
+    spec = _spec((500, 1500))
+    gmax = curvature_globals(vol, spec).gradient_max
+    geo = P._Geometry(vol.data.shape, vol.spacing, 1.0, tuple((0, n) for n in vol.data.shape))
+    span = float(vol.data.max()) - float(vol.data.min())
+    bound2 = C._range_bound2(geo, span, float(vol.data.max()))
+    assert 0 < gmax**2 <= bound2
+    assert bound2 < 0.2 * span**2 * float((geo.inv**2).sum())
+    if step:  # one axis reaches its term of the three-axis sum
+        assert bound2 < 3.0 * gmax**2
