@@ -295,8 +295,7 @@ def _measure(volume, spec, camera, curvature, weights, result=None, backend="aut
     from dvr_perception.rays.engine import analyze
 
     if result is None:
-        result = analyze(volume, spec, camera, curvature=curvature, build_cache=True,
-                         backend=backend)  # fmt: skip
+        result = analyze(volume, spec, camera, curvature=curvature, backend=backend)
     vis, shp, trn = all_measures(result, spec)
     terms = {"E_v": float(vis.E_v), "E_s": float(shp.E_s), "E_t": float(trn.E_t)}
     terms["E"] = float(sum(w * terms[k] for w, k in zip(weights, TERMS, strict=True)))

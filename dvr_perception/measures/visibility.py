@@ -206,7 +206,9 @@ def visibility(
         per-ray ``target`` opacities ``alpha_o`` (K, H, W); per structure the image-wide
         ``visible_share`` (``sum_r visible[s] / sum_r sum_s visible``), ``target_share``
         (``sum_r alpha_o[s] / sum_r sum_s alpha_o``), the thickness ``assigned_share``
-        (``sum_r assigned[s] / sum_r sum_s assigned``), ``visible_opacity`` and
+        (``sum_r assigned[s] / sum_r sum_s assigned``; ``analyze``'s default skipping walk
+        counts ``assigned`` up to saturation per ray, ``stats["assigned_cap"]``, DECISIONS
+        D8: ``exact=True`` or the cache for the share beyond it), ``visible_opacity`` and
         ``target_opacity`` (mean ``alpha_v`` and ``alpha_o`` over the non-empty rays),
         histograms of the per-ray ``alpha_v`` and ``alpha_o`` over the rays where the
         structure is present and their count; the ``bin_edges``, ``composition`` and

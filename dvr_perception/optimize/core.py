@@ -293,7 +293,7 @@ def optimize(
             curvature = curvature_source(volume, spec, progress=prep.sub(0.0, 0.3))
         # every camera in one call: a volume analysed in bricks is read once for all
         found = analyze_views(volume, spec, todo, curvature=curvature, progress=prep.sub(0.3, 1),
-                              backend=backend)  # fmt: skip
+                              backend=backend, build_cache=True)  # fmt: skip
     else:
         found = [analyzer(cam) for cam in todo]
     prep(1.0)

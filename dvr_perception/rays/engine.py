@@ -41,6 +41,7 @@ import functools
 import threading
 import time
 import warnings
+import weakref
 
 import numpy as np
 
@@ -74,7 +75,7 @@ from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.structures.transfer import build_lut
 from dvr_perception.volume.volume import Volume
 
-__all__ = ["RayAnalysis", "RayCache", "analyze", "analyze_views", "reevaluate"]
+__all__ = ["RayAnalysis", "RayCache", "analyze", "analyze_views", "reevaluate", "rewalk"]
 
 
 def _pick_backend(backend: str):
@@ -122,12 +123,13 @@ def analyze(
     opacities=None,
     curvature=None,
     backend: str = "auto",
-    build_cache: bool = True,
+    build_cache: bool = False,
     occlusion_free: bool = True,
     brick=None,
     memory_limit=None,
     progress=None,
     exact: bool = False,
+    rays=None,
 ) -> RayAnalysis:
     """Render ``volume`` with ``spec`` from ``camera`` and measure every structure per pixel.
 
@@ -156,7 +158,11 @@ def analyze(
         :class:`~dvr_perception.errors.DVRInputError`, where ``"auto"`` takes the bricked
         CPU analysis) and its cache re-evaluates on the CPU.
     build_cache : bool
-        Keep the per-ray sample lists for :func:`reevaluate` (costs memory and a little time).
+        Keep the per-ray sample lists for :func:`reevaluate` (an optimiser's or a slider's
+        repeated re-composites).  Off by default: the cache's walk must visit every sample
+        behind early ray termination (a new opacity may move it), which costs 2-3x the
+        analysis on deep volumes and memory; every measure is the same without it (the view
+        without an enclosing layer is then walked again, :func:`rewalk`, DECISIONS D7).
     occlusion_free : bool
         Compute the occlusion-free ``assigned`` opacities, which need every sample of every ray
         (default).  ``False`` renders only: every ray stops at early ray termination as VTK's
@@ -191,6 +197,13 @@ def analyze(
         measure's terms agree within 1e-6, but the thickness composition and
         ``assigned_share`` read ``assigned`` beyond saturation: pass ``exact=True`` (or
         build the cache, whose walk is always exact) for them.
+    rays : array_like of int, optional
+        Flat (row-major) pixel indices: walk only these rays; the other pixels see no volume
+        (background, zeros in every buffer).  Each walked ray equals the whole image's to
+        the last bit.  A partial view for what reads only some pixels, e.g. the view without
+        an enclosing layer that :func:`recomposite` makes by walking again where an analysis
+        has no cache (DECISIONS D7).  On the CPU (a ``"cuda"`` request walks them with
+        numba).
 
     Returns
     -------
@@ -223,7 +236,11 @@ def analyze(
         [s.render_opacity for s in spec.structures] if opacities is None else opacities, k
     )
     curv = _check_curvature(curvature, volume)
+    if rays is not None and _kind(backend, _pick_backend(backend)) == "cuda":
+        backend = "numba"  # a few rays: the CPU's walk (the GPU's rays are made whole)
     scene = _scene(volume, spec, camera, backend)
+    if rays is not None:
+        scene = (*scene[:-1], _only_rays(scene[-1], rays, camera))
     nk, _, _, lut, _, _, memb, seg = scene
     if not seg["n"].any():
         warnings.warn(
@@ -257,13 +274,43 @@ def analyze(
     if need["mode"] == "bricks":  # the bricked walk (imported only when needed)
         from dvr_perception.rays.bricks import analyze_bricked
 
-        return analyze_bricked(
+        res = analyze_bricked(
             volume, spec, camera, brick=need["brick"], opacities=ops, curvature=curv,
             build_cache=build_cache, occlusion_free=occlusion_free, memory_limit=memory_limit,
             progress=report, segments=seg if host_rays else None, exact=exact,
         )  # fmt: skip
-    return _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cache,
-                          occlusion_free, report, t_start, skip)  # fmt: skip
+        return _remember_source(res, volume, spec, backend, memory_limit)
+    res = _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cache,
+                         occlusion_free, report, t_start, skip)  # fmt: skip
+    return _remember_source(res, volume, spec, backend, memory_limit)
+
+
+def _only_rays(seg: dict, rays, camera: Camera) -> dict:
+    """``seg`` with no samples on every ray but ``rays`` (checked flat pixel indices)."""
+    n_rays = camera.width * camera.height
+    try:
+        sel = np.asarray(rays).ravel()
+        ok = sel.dtype.kind in "iu" and (sel.size == 0 or (sel.min() >= 0 and sel.max() < n_rays))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise DVRInputError(f"rays: expected flat pixel indices in [0, {n_rays}), got {rays!r}")
+    keep = np.zeros(n_rays, bool)
+    keep[sel] = True
+    out = dict(seg)
+    out["n"] = np.where(keep, seg["n"], 0).astype(seg["n"].dtype)
+    return out
+
+
+#: Per analysis without a cache: what :func:`recomposite` walks again (the volume, spec,
+#: back end and memory limit of the call).  Weak keys: dropped with the analysis.
+_SOURCES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _remember_source(res: RayAnalysis, volume, spec, backend, memory_limit) -> RayAnalysis:
+    if res.cache is None:
+        _SOURCES[res] = (volume, spec, backend, memory_limit)
+    return res
 
 
 def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cache,
@@ -414,7 +461,7 @@ def analyze_views(
     cameras,
     *,
     curvature=None,
-    build_cache: bool = True,
+    build_cache: bool = False,
     memory_limit=None,
     progress=None,
     backend: str = "auto",
@@ -458,10 +505,11 @@ def analyze_views(
     if shared and _kind(backend, nk) != "cuda":  # bricks are the CPU's (analyze() decides)
         from dvr_perception.rays.bricks import analyze_bricked_views
 
-        return analyze_bricked_views(
+        results = analyze_bricked_views(
             volume, spec, cameras, brick=bricks.pop(), curvature=curv, build_cache=build_cache,
             memory_limit=memory_limit, progress=report, segments=segs, exact=exact,
         )  # fmt: skip
+        return [_remember_source(r, volume, spec, backend, memory_limit) for r in results]
     kw = {
         "curvature": curvature,
         "build_cache": build_cache,
@@ -472,6 +520,69 @@ def analyze_views(
     n = len(cameras)
     return [analyze(volume, spec, cam, progress=report.sub(i / n, (i + 1) / n), **kw)
             for i, cam in enumerate(cameras)]  # fmt: skip
+
+
+def can_rewalk(analysis) -> bool:
+    """Whether :func:`rewalk` can render ``analysis``'s view again.
+
+    True for an analysis :func:`analyze` made without a cache (it remembers its volume).
+    """
+    return isinstance(analysis, RayAnalysis) and analysis in _SOURCES
+
+
+def rewalk(analysis: RayAnalysis, *, opacities, rays=None, background=None) -> RayAnalysis:
+    """Render an analysis's view again with new opacities, walking the volume (no cache).
+
+    What :func:`reevaluate` does from a cache, for an analysis made with
+    ``build_cache=False``: the same volume, spec, camera and back end, the image only (rays
+    stop at early ray termination), on ``rays`` only (flat pixel indices; default all).
+    DECISIONS D7: the transparency of an enclosing layer reads what it covers re-composited
+    without it; where no cache exists, this walk of the affected pixels with that layer's
+    opacity 0 gives the same luminance as the cache's re-composite.
+
+    Parameters
+    ----------
+    analysis : RayAnalysis
+        Made by :func:`analyze` or :func:`analyze_views` with ``build_cache=False``.
+    opacities : array_like of float
+        ``K`` rendering opacities in [0, 1].
+    rays : array_like of int, optional
+        Flat pixel indices to walk (the others are background), as :func:`analyze`'s.
+    background : array_like, optional
+        RGB in [0, 1] behind the volume (default the spec's).
+
+    Returns
+    -------
+    RayAnalysis
+        ``occlusion_free=False``: ``assigned`` is NaN.
+
+    Examples
+    --------
+    >>> from dvr_perception.structures.phantom import make_phantom
+    >>> vol, spec = make_phantom(size=24)
+    >>> cam = Camera.from_view(vol.bounds, width=8, height=8)
+    >>> res = analyze(vol, spec, cam, build_cache=False)
+    >>> ops = [s.render_opacity for s in spec.structures]
+    >>> again = rewalk(res, opacities=ops, rays=[27, 28])
+    >>> bool((again.image[3, 3:5] == res.image[3, 3:5]).all())
+    True
+    """
+    source = _SOURCES.get(analysis) if isinstance(analysis, RayAnalysis) else None
+    if source is None:
+        raise DVRInputError(
+            "analysis: only an analysis made by analyze(..., build_cache=False) can be walked "
+            "again (one with a cache re-composites with reevaluate)"
+        )
+    volume, spec, backend, memory_limit = source
+    if background is not None:
+        bg = np.asarray(background, dtype=np.float64)
+        if bg.shape != (3,) or not np.all((bg >= 0) & (bg <= 1)):
+            raise DVRInputError(f"background: expected 3 numbers in [0, 1], got {background}")
+        spec = StructureSpec(spec.structures, tuple(bg), spec.rendering, spec.view,
+                             spec.labels_file)  # fmt: skip
+    return analyze(volume, spec, analysis.camera, opacities=opacities, build_cache=False,
+                   occlusion_free=False, rays=rays, backend=backend,
+                   memory_limit=memory_limit)  # fmt: skip
 
 
 _SCRATCH: dict = {}
