@@ -90,11 +90,11 @@ import numpy as np
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures._estimates import region_estimates, region_table
 from dvr_perception.measures._layer_sets import DENOMINATOR_EPS as DENOMINATOR_EPS  # re-export
-from dvr_perception.measures._layer_sets import PRESENCE_CAP, _LayerSets
+from dvr_perception.measures._layer_sets import Carried, _LayerSets
 from dvr_perception.measures.covered import _without as _luminance_without
 from dvr_perception.measures.covered import can_recomposite
 from dvr_perception.measures.psychophysics import calibrate
-from dvr_perception.measures.regions import _relations, layer_footprints, subregions
+from dvr_perception.measures.regions import _layer_set_bits, _relations, _subregions
 from dvr_perception.measures.results import (
     TransparencyResult,
     _accumulated,
@@ -131,16 +131,15 @@ def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure
             f"enclosure must be one of {', '.join(map(repr, ENCLOSURES))}, got {enclosure!r}"
         )
     accumulated = _accumulated(analysis)
-    visible = _visible(analysis, accumulated)
+    visible = _visible(analysis, accumulated, native=True)  # read in float64
     names = _names(analysis, spec, visible.shape[0])
     expected = [float(s.target_opacity) for s in spec.structures]
     y, notes = _image_luminance(analysis, spec, accumulated.shape)
-    footprints = layer_footprints(visible, threshold=threshold)
     assigned = _occlusion_free(analysis, accumulated.shape)
-    if assigned is not None:  # D3: where a structure is, not only where it is visible
-        importance = np.array([float(s.importance) for s in spec.structures])
-        footprints |= assigned > threshold * importance[:, None, None]
-    rmap = subregions(footprints, geometry=False)  # no bounding boxes: not reported
+    # D3: a layer where a structure is (its occlusion-free opacity), not only where it is seen
+    importance = np.array([float(s.importance) for s in spec.structures])
+    bits = _layer_set_bits(visible, threshold, assigned, threshold * importance)
+    rmap = _subregions(bits, len(names), geometry=False)  # no bounding boxes: not reported
     relations = _relations(rmap.layer_set, len(names), tolerance)  # = layer_relations
     layer_sets = _LayerSets(y, rmap, relations, names, contrast)
     if assigned is not None:
@@ -160,14 +159,16 @@ def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure
     return names, expected, rmap, relations, est, notes
 
 
-def _carried(analysis, spec, assigned: np.ndarray) -> np.ndarray:
-    """(K, H, W) opacity each structure carries on each pixel, occlusion ignored (D7).
+def _carried(analysis, spec, assigned: np.ndarray) -> Carried:
+    """Opacity each structure carries on each pixel, occlusion ignored (D7).
 
     The occlusion-free opacity ``assigned`` (at the importance opacities) capped at
     :data:`~._layer_sets.PRESENCE_CAP`, where presence saturates (D8: the skipping walk is exact
     below it), and scaled by the structure's rendering opacity over its importance, so a
     structure the rendering fades is not taken for a hidden one.  A covered structure whose
     visible opacity is at most :data:`~._layer_sets.HIDDEN_FRACTION` of this is hidden there.
+    Returns a :class:`~._layer_sets.Carried`: the opacities are made only on the covered
+    pixels that are read.
     """
     importance = np.array([float(s.importance) for s in spec.structures])
     params = getattr(analysis, "stats", None)
@@ -177,7 +178,7 @@ def _carried(analysis, spec, assigned: np.ndarray) -> np.ndarray:
     else:
         render = np.array([float(s.render_opacity) for s in spec.structures])
     scale = np.divide(render, importance, out=np.ones_like(render), where=importance > 0)
-    return np.minimum(assigned, PRESENCE_CAP) * scale[:, None, None]
+    return Carried(assigned, scale)
 
 
 def _occlusion_free(analysis, shape) -> np.ndarray | None:
@@ -190,7 +191,7 @@ def _occlusion_free(analysis, shape) -> np.ndarray | None:
         return None
     if engine_made(analysis) and not analysis.stats.get("occlusion_free", True):
         return None
-    return _assigned(analysis, shape)
+    return _assigned(analysis, shape, native=True)  # read in float64
 
 
 def transparency_table(analysis, spec, *, calibration=None):
