@@ -905,7 +905,7 @@ def reevaluate(
     Parameters
     ----------
     cache : RayCache
-        ``analyze(...).cache``.
+        ``analyze(..., build_cache=True).cache``.
     opacities : array_like of float, optional
         ``K`` rendering opacities in [0, 1].
     lighting : sequence of Lighting, optional

@@ -239,7 +239,8 @@ def test_coverage_alone_is_the_evaluations_coverage_bit_for_bit(phantom, monkeyp
     from dvr_perception.optimize import _exact
 
     vol, spec, cam = phantom
-    problem = Problem([analyze(vol, spec, cam).cache], [None], spec, np.ones(3), {}, None)
+    cache = analyze(vol, spec, cam, build_cache=True).cache
+    problem = Problem([cache], [None], spec, np.ones(3), {}, None)
     model = OpacityModel(problem, Params.from_spec(spec))
     rng = np.random.default_rng(3)
     for ops in [np.array([0.2, 0.5, 0.35, 0.6, 0.45, 0.8]), *rng.uniform(0, 1, (4, 6))]:
