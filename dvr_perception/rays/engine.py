@@ -280,9 +280,32 @@ def analyze(
             progress=report, segments=seg if host_rays else None, exact=exact,
         )  # fmt: skip
         return _remember_source(res, volume, spec, backend, memory_limit)
+    # a few rays of the image: walked alone (CPU), then put in place in the image
+    subset = None
+    if rays is not None and kind == "numba" and not build_cache and not occlusion_free:
+        subset = np.flatnonzero(seg["n"])
     res = _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cache,
-                         occlusion_free, report, t_start, skip)  # fmt: skip
+                         occlusion_free, report, t_start, skip, subset)  # fmt: skip
     return _remember_source(res, volume, spec, backend, memory_limit)
+
+
+class _RayRow:
+    """The shape a subset of ``m`` rays is walked in: one row of ``m`` pixels."""
+
+    def __init__(self, m: int):
+        self.height, self.width = 1, m
+
+
+def _put_in_place(subset, nrays, rgba, vis, present, cimg):
+    """Return the outputs of a walk of ``subset`` alone as whole-image arrays (zeros elsewhere)."""
+    out = (np.zeros((nrays, 4)), np.zeros((vis.shape[0], nrays)), np.zeros(nrays, np.uint32),
+           np.zeros(nrays))  # fmt: skip
+    m = len(subset)
+    out[0][subset] = rgba[:m]
+    out[1][:, subset] = vis[:, :m]
+    out[2][subset] = present[:m]
+    out[3][subset] = cimg[:m]
+    return out
 
 
 def _only_rays(seg: dict, rays, camera: Camera) -> dict:
@@ -314,13 +337,16 @@ def _remember_source(res: RayAnalysis, volume, spec, backend, memory_limit) -> R
 
 
 def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cache,
-                   occlusion_free, report, t_start, skip=False) -> RayAnalysis:  # fmt: skip
+                   occlusion_free, report, t_start, skip=False,
+                   subset=None) -> RayAnalysis:  # fmt: skip
     """Analyse the whole volume at once (:func:`analyze` chose it): walk, cache and result.
 
     ``scene``: :func:`_scene`'s tuple; ``kind``: the back end that runs (:func:`_kind`);
     ``imp`` and ``ops``: the checked importances and opacities; ``curv``: the checked
     curvature array or None; ``skip``: the skipping walk behind early ray termination
-    (``exact=False`` without the cache).
+    (``exact=False`` without the cache); ``subset``: flat indices of the only rays with
+    samples (numba, image only): they are walked as one row of their own, so the set-up and
+    the walk cost what these rays cost, not the whole image.
     """
     nk, step, unit, lut, labmap, ids, memb, seg = scene
     k = len(spec.structures)
@@ -360,10 +386,16 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
             walker = _walk_numba
             if kind == "cuda":
                 walker = functools.partial(_walk_cuda, bg=np.asarray(spec.background, np.float32))
-            res = walker(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
-                         camera, build_cache, occlusion_free, locked,
+            walk_seg, walk_cam = seg, camera
+            if subset is not None:
+                walk_seg = {q: np.ascontiguousarray(seg[q][subset]) for q in ("a", "b", "t", "n")}
+                walk_cam = _RayRow(len(subset))
+            res = walker(nk, volume, lab, idx, vol, cv, walk_seg, step, memb, alpha_w, args, k,
+                         walk_cam, build_cache, occlusion_free, locked,
                          report.sub(0.1, 0.9), skip=skip)  # fmt: skip
             rgba, vis, asg, present, cimg, start, count, entries, walked, aimp = res
+            if subset is not None:
+                rgba, vis, present, cimg = _put_in_place(subset, nrays, rgba, vis, present, cimg)
             if entries is not None:
                 c_lut, c_j = entries["lut"], entries["steps"]
                 c_sh, c_curv = entries["shading"], entries["curvature"]

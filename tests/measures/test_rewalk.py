@@ -147,3 +147,25 @@ def test_rewalk_needs_an_engine_analysis_without_cache():
     assert can_rewalk(analyze(vol, spec, cam))
     with pytest.raises(DVRInputError, match="analysis"):
         rewalk(cached, opacities=[0.5] * len(spec.structures))
+
+
+@pytest.mark.parametrize("shade", [False, True])
+def test_a_few_rays_walked_alone_equal_the_whole_image_there(shade):
+    """Image-only walks of a subset (the re-walk's path) are the whole image's to the bit."""
+    vol, spec = _shell_volume(shade)
+    cam = Camera.from_view(vol.bounds, width=30, height=26, azimuth=20, elevation=10)
+    whole = analyze(vol, spec, cam, occlusion_free=False)
+    rays = np.array([0, 31, 200, 201, 202, 390, 399, 500, 779])
+    part = analyze(vol, spec, cam, occlusion_free=False, rays=rays[::-1])  # any order
+    flat = {n: getattr(part, n).reshape(-1, *getattr(part, n).shape[2:]) for n in
+            ("rgba", "image", "accumulated", "curvature", "present")}  # fmt: skip
+    for name, got in flat.items():
+        want = getattr(whole, name).reshape(-1, *getattr(whole, name).shape[2:])
+        assert np.array_equal(got[rays], want[rays]), name
+    others = np.setdiff1d(np.arange(cam.width * cam.height), rays)
+    assert not flat["accumulated"][others].any()
+    k = len(spec.structures)
+    assert np.array_equal(
+        part.visible.reshape(k, -1)[:, rays], whole.visible.reshape(k, -1)[:, rays]
+    )
+    assert whole.accumulated.reshape(-1)[rays].any()  # rays that see something
