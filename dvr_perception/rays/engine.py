@@ -38,6 +38,7 @@ Conventions matched to ``vtkFixedPointVolumeRayCastMapper`` (``docs/vtk_conventi
 from __future__ import annotations
 
 import functools
+import mmap
 import threading
 import time
 import warnings
@@ -335,6 +336,8 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
     idx = _grid.index_volume(volume, lut.lo, lut.scale, lut.size)
     cells = None if nk is None else _grid.cell_map(volume, idx, ids, memb, labmap)
     vol = _grid.voxel_records(volume, idx, cells) if shade else idx
+    if shade and cells is not None:  # the index lives on in the records only (numba's walk)
+        idx = _grid.index_in_records(volume, idx, vol)
     cv = curv if has_curv else np.zeros((2, 2, 2), np.float32)
     lab = (labmap, lut.size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8), -1)
     tab = _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16)
@@ -624,10 +627,12 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     chunk_base = np.ascontiguousarray(chunk_base[:-1])
     chunk_end = np.zeros(nchunk, np.int64)
     cap = max(total, 1)
-    src_lut = _scratch("lut", cap, (), np.uint16, locked)
-    src_j = _scratch("j", cap if build else 1, (), np.int32, locked)
-    src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked)
-    src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked)
+    # the entries' regions are filled in part: only the pages written take memory
+    src_lut = _scratch("lut", cap, (), np.uint16, locked, sparse=True)
+    src_j = _scratch("j", cap if build else 1, (), np.int32, locked, sparse=True)
+    src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked, sparse=True)
+    src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked,
+                        sparse=True)  # fmt: skip
     tail_tables = _tail_tables(ids, memb, alpha_w, rep, k)
     labels = lab[0] if lab[1] >= 0 else None
     maps = (tix, cells, _grid.block_map(volume, cells), rep, *lab, *tail_tables,
@@ -799,19 +804,70 @@ def _cuda_array(shape, dtype):
     return cuda.device_array(shape, dtype)
 
 
-def _scratch(name, n, tail, dtype, shared):
+def _scratch(name, n, tail, dtype, shared, sparse=False):
     """Return ``n`` rows of a reusable module-level scratch array.
 
     Page faults of fresh memory cost several ms per frame.  ``shared`` False (another thread
-    holds the scratch lock): a private array.
+    holds the scratch lock): a private array.  ``sparse``: memory of which the walk writes
+    only a part (:func:`_sparse_empty`).
     """
+    make = _sparse_empty if sparse else np.empty
     if not shared:
-        return np.empty((n, *tail), dtype)
+        return make((n, *tail), dtype)
     a = _SCRATCH.get(name)
     if a is None or len(a) < n:
-        a = np.empty((max(n, int(1.25 * len(a)) if a is not None else n), *tail), dtype)
+        _SCRATCH.pop(name, None)  # freed before the larger one is made
+        a = make((max(n, int(1.25 * len(a)) if a is not None else n), *tail), dtype)
         _SCRATCH[name] = a
     return a[:n]
+
+
+#: The scratch of the cache-building walk's entries (one region per chunk of rays).
+_ENTRY_SCRATCH = ("lut", "j", "sh", "curv")
+
+
+def release_scratch() -> None:
+    """Free the cache-building walk's entry scratch (kept to spare the next build page faults).
+
+    For a caller that builds no more caches for a while (the optimiser, once its views are
+    analysed): the scratch's written pages, about the size of the largest cache built, are
+    given back.  Skipped while an analysis holds the scratch.
+    """
+    if _SCRATCH_LOCK.acquire(blocking=False):
+        try:
+            for name in _ENTRY_SCRATCH:
+                _SCRATCH.pop(name, None)
+        finally:
+            _SCRATCH_LOCK.release()
+
+
+#: Arrays of at least this many bytes are made by :func:`_sparse_empty` without huge pages.
+_SPARSE_BYTES = 8 * 2**20
+
+
+def _sparse_empty(shape, dtype) -> np.ndarray:
+    """``np.empty(shape, dtype)`` whose memory is taken only where it is written.
+
+    The cache-building walk writes each chunk of rays' entries from the start of a region
+    sized for all of its samples, and fills a fraction of it (the samples in structures).
+    Memory is taken page by page as it is written, but numpy asks for transparent huge pages
+    (2 MiB) on large arrays, and every region then took whole huge pages: 80-100 % of the
+    regions were resident instead of the entries' share.  An anonymous private mapping
+    advised against huge pages keeps the resident part to the pages written (4 KiB each).
+    Small arrays, and systems without ``MADV_NOHUGEPAGE``: ``np.empty``.
+    """
+    dt = np.dtype(dtype)
+    count = int(np.prod(shape, dtype=np.int64))
+    nbytes = count * dt.itemsize
+    advice = getattr(mmap, "MADV_NOHUGEPAGE", None)
+    if nbytes < _SPARSE_BYTES or advice is None or not hasattr(mmap, "MAP_PRIVATE"):
+        return np.empty(shape, dt)
+    try:
+        buf = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE)
+        buf.madvise(advice)
+    except (OSError, ValueError):  # no such advice here: ordinary memory
+        return np.empty(shape, dt)
+    return np.frombuffer(buf, dt, count).reshape(shape)  # unmapped with the last view
 
 
 def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, modes,
