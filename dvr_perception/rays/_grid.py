@@ -16,6 +16,7 @@ Everything here is plain numpy and is shared by the numba and the numpy back end
 from __future__ import annotations
 
 import math
+import mmap
 import weakref
 
 import numpy as np
@@ -41,6 +42,7 @@ __all__ = [
     "ray_segments",
     "scalar_range",
     "skip_maps",
+    "sparse_zeros",
     "structure_blocks",
     "structure_distances",
     "voxel_records",
@@ -70,6 +72,41 @@ def _store(volume) -> dict:
         d = {}
         _STORE[volume] = d
     return d
+
+
+#: Arrays of at least this many bytes are made by :func:`sparse_zeros` without huge pages.
+SPARSE_BYTES = 8 * 2**20
+
+
+def sparse_zeros(shape, dtype) -> np.ndarray:
+    """``np.zeros(shape, dtype)`` whose memory is taken only where it is written.
+
+    For large arrays that are written in part: the cache-building walk's entries (each chunk
+    of rays fills a region sized for all of its samples from its start) and the ``|H|``
+    volume (boundary voxels only).  Memory is taken page by page as it is written, but numpy
+    asks for transparent huge pages (2 MiB) on large arrays, and every region touched then
+    took whole huge pages (80-100 % of the walk's regions were resident instead of the
+    entries' share).  An anonymous private mapping advised against huge pages keeps the
+    resident part to the 4 KiB pages written; it is unmapped with the last view.  Small
+    arrays, and systems without ``MADV_NOHUGEPAGE``: ``np.zeros``.
+
+    Examples
+    --------
+    >>> a = sparse_zeros((3, 2**21), np.float32)
+    >>> a.shape, a.dtype.name, bool(a.flags.writeable), float(a[2, 5])
+    ((3, 2097152), 'float32', True, 0.0)
+    """
+    dt = np.dtype(dtype)
+    count = int(np.prod(shape, dtype=np.int64))
+    advice = getattr(mmap, "MADV_NOHUGEPAGE", None)
+    if count * dt.itemsize < SPARSE_BYTES or advice is None or not hasattr(mmap, "MAP_PRIVATE"):
+        return np.zeros(shape, dt)
+    try:
+        buf = mmap.mmap(-1, count * dt.itemsize, flags=mmap.MAP_PRIVATE)
+        buf.madvise(advice)
+    except (OSError, ValueError):  # no such advice here: ordinary memory
+        return np.zeros(shape, dt)
+    return np.frombuffer(buf, dt, count).reshape(shape)
 
 
 def clipping_range(camera, bounds) -> tuple[float, float]:

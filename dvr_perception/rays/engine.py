@@ -38,7 +38,6 @@ Conventions matched to ``vtkFixedPointVolumeRayCastMapper`` (``docs/vtk_conventi
 from __future__ import annotations
 
 import functools
-import mmap
 import threading
 import time
 import warnings
@@ -809,9 +808,9 @@ def _scratch(name, n, tail, dtype, shared, sparse=False):
 
     Page faults of fresh memory cost several ms per frame.  ``shared`` False (another thread
     holds the scratch lock): a private array.  ``sparse``: memory of which the walk writes
-    only a part (:func:`_sparse_empty`).
+    only a part (:func:`~dvr_perception.rays._grid.sparse_zeros`).
     """
-    make = _sparse_empty if sparse else np.empty
+    make = _grid.sparse_zeros if sparse else np.empty
     if not shared:
         return make((n, *tail), dtype)
     a = _SCRATCH.get(name)
@@ -839,35 +838,6 @@ def release_scratch() -> None:
                 _SCRATCH.pop(name, None)
         finally:
             _SCRATCH_LOCK.release()
-
-
-#: Arrays of at least this many bytes are made by :func:`_sparse_empty` without huge pages.
-_SPARSE_BYTES = 8 * 2**20
-
-
-def _sparse_empty(shape, dtype) -> np.ndarray:
-    """``np.empty(shape, dtype)`` whose memory is taken only where it is written.
-
-    The cache-building walk writes each chunk of rays' entries from the start of a region
-    sized for all of its samples, and fills a fraction of it (the samples in structures).
-    Memory is taken page by page as it is written, but numpy asks for transparent huge pages
-    (2 MiB) on large arrays, and every region then took whole huge pages: 80-100 % of the
-    regions were resident instead of the entries' share.  An anonymous private mapping
-    advised against huge pages keeps the resident part to the pages written (4 KiB each).
-    Small arrays, and systems without ``MADV_NOHUGEPAGE``: ``np.empty``.
-    """
-    dt = np.dtype(dtype)
-    count = int(np.prod(shape, dtype=np.int64))
-    nbytes = count * dt.itemsize
-    advice = getattr(mmap, "MADV_NOHUGEPAGE", None)
-    if nbytes < _SPARSE_BYTES or advice is None or not hasattr(mmap, "MAP_PRIVATE"):
-        return np.empty(shape, dt)
-    try:
-        buf = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE)
-        buf.madvise(advice)
-    except (OSError, ValueError):  # no such advice here: ordinary memory
-        return np.empty(shape, dt)
-    return np.frombuffer(buf, dt, count).reshape(shape)  # unmapped with the last view
 
 
 def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, modes,

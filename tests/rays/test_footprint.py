@@ -131,7 +131,7 @@ def _resident_kib(a: np.ndarray) -> float:
 
 
 def test_sparse_scratch_takes_memory_only_where_written():
-    a = engine._sparse_empty((3 * 2**21, 2), np.uint16)  # 24 MiB
+    a = _grid.sparse_zeros((3 * 2**21, 2), np.uint16)  # 24 MiB
     assert a.shape == (3 * 2**21, 2)
     assert a.dtype == np.uint16
     assert a.flags.c_contiguous
@@ -140,7 +140,7 @@ def test_sparse_scratch_takes_memory_only_where_written():
     assert int(a[5 * 2**20 + 9, 1]) == 7
     if sys.platform.startswith("linux") and hasattr(mmap, "MADV_NOHUGEPAGE"):
         assert _resident_kib(a) <= 64  # a page or two, not a 2 MiB huge page
-    small = engine._sparse_empty((10, 3), np.float32)  # small: numpy's own
+    small = _grid.sparse_zeros((10, 3), np.float32)  # small: numpy's own
     assert small.shape == (10, 3)
     assert small.dtype == np.float32
 
