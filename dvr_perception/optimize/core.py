@@ -291,6 +291,7 @@ def optimize(
     if analyzer is None:
         if curvature is None:
             curvature = curvature_source(volume, spec, progress=prep.sub(0.0, 0.3))
+        release_scratch(scratch=False)  # the heap that earlier work freed, before the peak
         # every camera in one call: a volume analysed in bricks is read once for all
         found = analyze_views(volume, spec, todo, curvature=curvature, progress=prep.sub(0.3, 1),
                               backend=backend, build_cache=True)  # fmt: skip

@@ -37,6 +37,7 @@ __all__ = [
     "code_directions",
     "compact_index",
     "index_in_records",
+    "index_source",
     "index_volume",
     "normal_codes",
     "ray_segments",
@@ -240,12 +241,15 @@ def compact_index(volume, index: np.ndarray) -> np.ndarray:
     memo = _store(volume)
     if key not in memo:
         small = int(index.max(initial=0)) <= 255
-        memo[key] = index.astype(np.uint8) if small else _records_of(index)
+        memo[key] = index.astype(np.uint8) if small else index_source(index)
     return memo[key]
 
 
-def _records_of(index: np.ndarray) -> np.ndarray:
-    """Return the records ``index`` is a view of (:func:`index_in_records`), else ``index``."""
+def index_source(index: np.ndarray) -> np.ndarray:
+    """Return the voxel records ``index`` is a view of (:func:`index_in_records`), else ``index``.
+
+    What a walk that masks the low 16 bits reads for the table index: contiguous either way.
+    """
     base = index.base
     if (isinstance(base, np.ndarray) and base.dtype == np.uint32 and base.shape == index.shape
             and not index.flags.c_contiguous):  # fmt: skip
