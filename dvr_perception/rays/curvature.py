@@ -26,7 +26,6 @@ from scipy import ndimage
 from dvr_perception._numba import kernels
 from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRCancelled, DVRInputError
-from dvr_perception.rays import _grid
 from dvr_perception.rays._curvature_passes import (
     _axis_sigmas,
     _check_extent,
@@ -489,7 +488,7 @@ def curvature_volume(
     ):
         raise DVRInputError(f"curvature_volume: offset must be a finite number, got {offset!r}")
     shape = tuple(b - a for a, b in ext)
-    out = _grid.sparse_zeros(shape, np.float32)  # boundary voxels only: written in part
+    out = np.zeros(shape, dtype=np.float32)
     boundary = np.zeros(shape, dtype=bool)
     nk = _curvature_kernels()
     geo = _Geometry(data.shape, volume.spacing, sig, ext)
