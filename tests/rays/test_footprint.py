@@ -60,7 +60,7 @@ def test_the_index_lives_on_inside_the_voxel_records():
     vol = Volume(_data())
     spec = _spec()
     cam = Camera.from_view(vol.bounds, width=24, height=20)
-    analyze(vol, spec, cam, backend="numba")
+    analyze(vol, spec, cam, backend="numba", build_cache=True)
     lut = build_lut(spec, scalar_range=_grid.scalar_range(vol), dtype=vol.data.dtype)
     assert lut.size > 256
     idx = _grid.index_volume(vol, lut.lo, lut.scale, lut.size)
@@ -81,7 +81,7 @@ def test_analyses_after_the_index_moved_equal_those_of_a_fresh_volume(shape):
     cam = Camera.from_view(vol.bounds, width=26, height=21)
     curv = np.abs(np.sin(np.arange(data.size, dtype=np.float32))).reshape(data.shape)
     kinds = (
-        {"curvature": curv},
+        {"curvature": curv, "build_cache": True},
         {"curvature": curv, "build_cache": False},
         {"curvature": curv, "build_cache": False, "exact": True},
         {"build_cache": False, "occlusion_free": False},
@@ -150,7 +150,7 @@ def test_releasing_the_scratch_changes_no_result():
     vol = Volume(_data())
     spec = _spec()
     cam = Camera.from_view(vol.bounds, width=20, height=20)
-    first = _buffers(analyze(vol, spec, cam, backend="numba"))
+    first = _buffers(analyze(vol, spec, cam, backend="numba", build_cache=True))
     engine.release_scratch()
     assert not engine._SCRATCH
-    _same(first, _buffers(analyze(vol, spec, cam, backend="numba")))
+    _same(first, _buffers(analyze(vol, spec, cam, backend="numba", build_cache=True)))
