@@ -25,7 +25,7 @@ from dvr_perception.optimize.results import (
 from dvr_perception.optimize.stages import STAGES
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature_field import curvature_source
-from dvr_perception.rays.engine import BACKENDS, analyze_views
+from dvr_perception.rays.engine import BACKENDS, analyze_views, release_scratch
 from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.volume.volume import Volume
 
@@ -298,9 +298,11 @@ def optimize(
     if analyzer is None:
         if curvature is None:
             curvature = curvature_source(volume, spec, progress=prep.sub(0.0, 0.3))
+        release_scratch(scratch=False)  # the heap that earlier work freed, before the peak
         # every camera in one call: a volume analysed in bricks is read once for all
         found = analyze_views(volume, spec, todo, curvature=curvature, progress=prep.sub(0.3, 1),
                               backend=backend, build_cache=True)  # fmt: skip
+        release_scratch()  # no more caches are built here: the walk's scratch goes back
     else:
         found = [analyzer(cam) for cam in todo]
     prep(1.0)

@@ -360,7 +360,12 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
     nrays = camera.width * camera.height
     idx = _grid.index_volume(volume, lut.lo, lut.scale, lut.size)
     cells = None if nk is None else _grid.cell_map(volume, idx, ids, memb, labmap)
-    vol = _grid.voxel_records(volume, idx, cells) if shade else idx
+    if shade:
+        vol = _grid.voxel_records(volume, idx, cells)
+        if cells is not None:  # the index lives on in the records only (numba's walk)
+            idx = _grid.index_in_records(volume, idx, vol)
+    else:  # the index, or the records that hold it (a view of them is not contiguous)
+        vol = idx if cells is None else _grid.index_source(idx)
     cv = curv if has_curv else np.zeros((2, 2, 2), np.float32)
     lab = (labmap, lut.size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8), -1)
     tab = _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16)
@@ -656,10 +661,12 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     chunk_base = np.ascontiguousarray(chunk_base[:-1])
     chunk_end = np.zeros(nchunk, np.int64)
     cap = max(total, 1)
-    src_lut = _scratch("lut", cap, (), np.uint16, locked)
-    src_j = _scratch("j", cap if build else 1, (), np.int32, locked)
-    src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked)
-    src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked)
+    # the entries' regions are filled in part: only the pages written take memory
+    src_lut = _scratch("lut", cap, (), np.uint16, locked, sparse=True)
+    src_j = _scratch("j", cap if build else 1, (), np.int32, locked, sparse=True)
+    src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked, sparse=True)
+    src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked,
+                        sparse=True)  # fmt: skip
     tail_tables = _tail_tables(ids, memb, alpha_w, rep, k)
     labels = lab[0] if lab[1] >= 0 else None
     maps = (tix, cells, _grid.block_map(volume, cells), rep, *lab, *tail_tables,
@@ -831,19 +838,64 @@ def _cuda_array(shape, dtype):
     return cuda.device_array(shape, dtype)
 
 
-def _scratch(name, n, tail, dtype, shared):
+def _scratch(name, n, tail, dtype, shared, sparse=False):
     """Return ``n`` rows of a reusable module-level scratch array.
 
     Page faults of fresh memory cost several ms per frame.  ``shared`` False (another thread
-    holds the scratch lock): a private array.
+    holds the scratch lock): a private array.  ``sparse``: memory of which the walk writes
+    only a part (:func:`~dvr_perception.rays._grid.sparse_zeros`).
     """
+    make = _grid.sparse_zeros if sparse else np.empty
     if not shared:
-        return np.empty((n, *tail), dtype)
+        return make((n, *tail), dtype)
     a = _SCRATCH.get(name)
     if a is None or len(a) < n:
-        a = np.empty((max(n, int(1.25 * len(a)) if a is not None else n), *tail), dtype)
+        _SCRATCH.pop(name, None)  # freed before the larger one is made
+        a = make((max(n, int(1.25 * len(a)) if a is not None else n), *tail), dtype)
         _SCRATCH[name] = a
     return a[:n]
+
+
+def release_scratch(*, scratch: bool = True) -> None:
+    """Give memory back: the walk's scratch (``scratch``) and the C heap's free memory.
+
+    The scratch (kept to spare the next analysis page faults: the per-ray buffers and the
+    cache-building walk's entries, about the size of the largest cache built) is for a
+    caller that walks no more rays for a while (the optimiser, once its views are
+    analysed); it is skipped while an analysis holds it.  The C library is asked to return
+    the heap memory that earlier analyses and measures freed (glibc's ``malloc_trim``: 85 MiB
+    after the timed frames of a 512 x 512 x 452 CT), e.g. before a large analysis.
+    """
+    if scratch and _SCRATCH_LOCK.acquire(blocking=False):
+        try:
+            _SCRATCH.clear()
+        finally:
+            _SCRATCH_LOCK.release()
+    _trim_heap()
+
+
+@functools.cache
+def _malloc_trim():
+    """Return glibc's ``malloc_trim``, or None (another C library, or none found)."""
+    import ctypes
+    import ctypes.util
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        fn = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes, fn.restype = [ctypes.c_size_t], ctypes.c_int
+    return fn
+
+
+def _trim_heap() -> None:
+    """Return the C heap's free memory to the system where the C library can (glibc)."""
+    fn = _malloc_trim()
+    if fn is not None:
+        fn(0)
 
 
 def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, modes,
