@@ -281,7 +281,7 @@ def run(args: argparse.Namespace) -> int:
     import numba
 
     from dvr_perception.rays.curvature_field import CurvatureField, curvature_source
-    from dvr_perception.rays.engine import analyze, reevaluate
+    from dvr_perception.rays.engine import analyze, reevaluate, release_scratch
 
     analyze = functools.partial(analyze, backend=args.backend)  # every frame on that back end
     with contextlib.ExitStack() as held:
@@ -342,8 +342,10 @@ def run(args: argparse.Namespace) -> int:
     frame_s, render_s, measure_total_s = frames["frame"], frames["render"], frames["measure"]
     frame_cache_s = frames["frame_cache"]
 
-    # what the re-evaluations start from
+    # what the re-evaluations start from; as the optimiser, once its views are analysed, the
+    # walk's scratch goes back (no cache is built while re-evaluating)
     result = analyze(vol, spec, cam, curvature=curv, build_cache=True)
+    release_scratch()
     base = np.array([s.render_opacity for s in spec.structures], float)
     rng = np.random.default_rng(args.seed)
 
