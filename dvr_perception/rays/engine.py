@@ -296,16 +296,27 @@ class _RayRow:
         self.height, self.width = 1, m
 
 
-def _put_in_place(subset, nrays, rgba, vis, present, cimg):
-    """Return the outputs of a walk of ``subset`` alone as whole-image arrays (zeros elsewhere)."""
-    out = (np.zeros((nrays, 4)), np.zeros((vis.shape[0], nrays)), np.zeros(nrays, np.uint32),
-           np.zeros(nrays))  # fmt: skip
-    m = len(subset)
-    out[0][subset] = rgba[:m]
-    out[1][:, subset] = vis[:, :m]
-    out[2][subset] = present[:m]
-    out[3][subset] = cimg[:m]
-    return out
+def _finish_rays(subset, rgba, vis, asg, present, cimg, spec, camera, stats, aimp):
+    """:func:`_finish` of a walk of ``subset`` alone, put in place in the whole image.
+
+    The rays not walked hold zeros and the background, as a ray that sees no volume.
+    """
+    n, k, m = camera.height * camera.width, len(spec.structures), len(subset)
+    f32 = np.float32
+    bg = np.asarray(spec.background, f32)
+    part = (np.empty((m, 4), f32), np.empty((m, 3), f32), np.empty(m, f32),
+            np.empty((k, m), f32), np.empty(m, f32))  # fmt: skip
+    _numba_kernels().finish(
+        np.ascontiguousarray(rgba[:m]), np.ascontiguousarray(vis[:, :m]),
+        np.ascontiguousarray(cimg[:m]), bg, *part,
+    )  # fmt: skip
+    rgba32, image, acc = np.zeros((n, 4), f32), np.empty((n, 3), f32), np.zeros(n, f32)
+    vis32, cimg32, bits = np.zeros((k, n), f32), np.zeros(n, f32), np.zeros(n, np.uint32)
+    image[:] = np.clip(bg, 0.0, 1.0)
+    rgba32[subset], image[subset], acc[subset] = part[0], part[1], part[2]
+    vis32[:, subset], cimg32[subset], bits[subset] = part[3], part[4], present[:m]
+    return _analysis(rgba32, image, acc, vis32, asg, bits, cimg32, spec, camera, stats, None,
+                     aimp)  # fmt: skip
 
 
 def _only_rays(seg: dict, rays, camera: Camera) -> dict:
@@ -399,8 +410,6 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
                          walk_cam, build_cache, occlusion_free, locked,
                          report.sub(0.1, 0.9), skip=skip)  # fmt: skip
             rgba, vis, asg, present, cimg, start, count, entries, walked, aimp = res
-            if subset is not None:
-                rgba, vis, present, cimg = _put_in_place(subset, nrays, rgba, vis, present, cimg)
             if entries is not None:
                 c_lut, c_j = entries["lut"], entries["steps"]
                 c_sh, c_curv = entries["shading"], entries["curvature"]
@@ -456,7 +465,9 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
             )
             stats["cache_entries"] = len(c_lut)
             stats["cache_bytes"] = cache.nbytes
-        if isinstance(rgba, tuple):  # the GPU made the float32 outputs and the image
+        if subset is not None:
+            res = _finish_rays(subset, rgba, vis, asg, present, cimg, spec, camera, stats, aimp)
+        elif isinstance(rgba, tuple):  # the GPU made the float32 outputs and the image
             res = _analysis(*rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
         else:
             res = _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
