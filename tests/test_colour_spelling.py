@@ -71,7 +71,7 @@ def test_reevaluate_colors_keyword_warns_and_gives_the_same_picture():
 
     vol, spec = make_phantom(size=16)
     cam = Camera.from_view(vol.bounds, azimuth=30, elevation=20, width=12, height=10)
-    cache = analyze(vol, spec, cam).cache
+    cache = analyze(vol, spec, cam, build_cache=True).cache
     cols = np.tile([0.2, 0.7, 0.4], (len(spec.structures), 1))
     new = reevaluate(cache, colours=cols)
     with pytest.warns(DeprecationWarning, match=r"reevaluate\(colors=\.\.\.\) is deprecated"):

@@ -76,8 +76,9 @@ def optimiser_shares(files: list[Path]) -> Rows:
     return head, rows
 
 
-_BENCH_KEYS = ("frame_s", "vtk_frame_s", "frame_ratio", "render_ratio", "reeval_vtk_frames",
-               "measure_s", "measure_total_s", "measure_vtk_frames")  # fmt: skip
+_BENCH_KEYS = ("frame_s", "vtk_frame_s", "frame_ratio", "frame_cache_ratio", "render_ratio",
+               "reeval_vtk_frames", "measure_s", "measure_total_s",
+               "measure_vtk_frames")  # fmt: skip
 
 
 def bench(files: list[Path]) -> Rows:

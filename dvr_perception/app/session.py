@@ -617,7 +617,7 @@ class Session:
         spec = self.spec if spec is None else spec
         cam = measure_camera(camera)
         curvature = self.curvature(spec)
-        analysis = analyze(self.volume, spec, cam, curvature=curvature, build_cache=True)
+        analysis = analyze(self.volume, spec, cam, curvature=curvature)
         return self.measures_of(analysis, spec)
 
     def measures_of(self, analysis, spec) -> Measures:

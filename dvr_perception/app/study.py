@@ -243,7 +243,7 @@ class RankingTask:
             structures = list(spec.structures)
             structures[k] = replace(target, colour=_brighter(target.colour, level))
             variant = replace(spec, structures=tuple(structures))
-            analysis = analyze(volume, variant, camera, curvature=curvature, build_cache=True)
+            analysis = analyze(volume, variant, camera, curvature=curvature)
             t = transparency(analysis, variant).per_structure.get(target.name, {})
             value = t.get("perceived_transparency")
             image_id = f"img{n + 1}"

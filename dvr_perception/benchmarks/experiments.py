@@ -135,7 +135,8 @@ def measure(volume, spec, cam, curv, composition="importance") -> dict:
     ``S`` is Eq. 13 per pixel with unit weights: the mean over the rays that carry assigned
     opacity of ``(d_v + d_s + d_t)^2`` (the measures' deviation images), as the optimiser's.
     """
-    a = analyze(volume, spec, cam, curvature=curv)  # with the cache: enclosers' default (D7)
+    # enclosers re-walked without a cache (D7); the thickness composition reads the exact walk
+    a = analyze(volume, spec, cam, curvature=curv, exact=composition == "thickness")
     vis = visibility(a, spec, composition=composition)
     shp = shape(a, spec)
     trn = transparency(a, spec)

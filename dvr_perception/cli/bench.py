@@ -15,7 +15,12 @@ Reported figures (seconds unless stated):
   ``vtk_peak_rss_mb`` – that child's peak (``VmHWM``: VTK's renderer with its copy of the
   volume); ``peak_rss_vtk_ratio`` = ``peak_rss_mb / vtk_peak_rss_mb``.
 * ``compile_s`` – the first, warm-up :func:`~dvr_perception.rays.engine.analyze` call (numba
-  compilation included); ``frame_s`` – median of ``--repeat`` further full calls.
+  compilation included); ``frame_s`` – median of ``--repeat`` further full analyses (every
+  buffer the measures read, ``analyze``'s default: no re-evaluation cache, and behind early
+  ray termination only what can change a result is walked, DECISIONS D8);
+  ``frame_cache_s`` – the same analysis building the re-evaluation cache (``build_cache=True``,
+  what an optimiser's or a slider's first frame costs: that walk visits every sample behind
+  early ray termination), ``frame_cache_ratio`` = ``frame_cache_s / vtk_frame_s``.
 * ``vtk_frame_s`` – median of ``--repeat`` warm frames of VTK's fixed-point ray caster, same
   view and size (:func:`~dvr_perception.rays.vtk_reference.vtk_frame_timer`, in the child
   process; the child times its frames), timed alternately with ours so that both see the
@@ -23,10 +28,11 @@ Reported figures (seconds unless stated):
 * ``render_s`` – median frame of the image alone (``analyze(..., build_cache=False,
   occlusion_free=False)``: rays stop at early ray termination as VTK's do; what ``render``
   without ``--buffers`` pays), timed in turn with the two above; ``render_ratio`` =
-  ``render_s / vtk_frame_s``.  ``frame_s - render_s`` is the price of the exact occlusion-free
-  shares (every sample of every ray) and of the cache.
-* ``reeval_s`` – median :func:`~dvr_perception.rays.engine.reevaluate` with perturbed opacities
-  (what one optimiser step costs); ``reeval_vtk_frames`` = ``reeval_s / vtk_frame_s``.
+  ``render_s / vtk_frame_s``.  ``frame_s - render_s`` is the price of the occlusion-free
+  shares behind early ray termination.
+* ``reeval_s`` – median :func:`~dvr_perception.rays.engine.reevaluate` of the cache with
+  perturbed opacities (what one optimiser step costs); ``reeval_vtk_frames`` =
+  ``reeval_s / vtk_frame_s``.
 * ``samples_per_s`` – ray samples per second of a full frame; ``cache_mb`` – size of the
   re-evaluation cache.
 * ``backend`` – the back end that analysed (``--backend``, default ``auto``: ``cuda`` where
@@ -36,8 +42,9 @@ Reported figures (seconds unless stated):
   :func:`~dvr_perception.measures.all_measures` computes them), each run on a fresh analysis
   (the measures remember checked fields and the luminance on the analysis they were given);
   ``measure_total_s`` – median of what ``dvr-perception measure`` pays per view once the
-  curvature volume exists: :func:`~dvr_perception.rays.engine.analyze` without the
-  re-evaluation cache, then the measures, timed in turn with VTK's frames as above;
+  curvature volume exists: :func:`~dvr_perception.rays.engine.analyze` (no re-evaluation
+  cache), then the measures (an enclosing layer's view without it walked again, D7), timed
+  in turn with VTK's frames as above;
   ``measure_vtk_frames`` = ``measure_total_s / vtk_frame_s``.
 * with ``--optimize``: ``optimize_s`` – one whole :func:`~dvr_perception.optimize.optimize`
   run with the default stages (opacity, lighting, colour) and the curvature volume passed in
@@ -50,11 +57,11 @@ Reported figures (seconds unless stated):
   :func:`~dvr_perception.rays.memory.plan`: the whole volume whenever it fits the limit);
   ``bricks`` – per timed analysis (``frame``, ``render``, ``measure``) the bricks it walked,
   0 for the whole volume.  ``samples`` – the ray samples of a full frame (inside the volume);
-  ``samples_walked`` – those its walk visited (the cache-building walk visits every sample
-  behind early ray termination); ``samples_walked_skipping`` – those the ``measure``
-  analysis visited (no cache: behind early ray termination it skips what cannot change a
-  result, DECISIONS D8), ``samples_walked_exact`` – those the same analysis visits with
-  ``exact=True`` (the full walk; one more analysis, not timed).
+  ``samples_walked`` and ``samples_walked_skipping`` – those the full analysis (``frame``)
+  visited (behind early ray termination it skips what cannot change a result, DECISIONS
+  D8); ``samples_walked_cache`` – those the cache-building walk visited (every sample);
+  ``samples_walked_exact`` – those the analysis visits with ``exact=True`` (the full walk;
+  one more analysis, not timed).
 """
 
 from __future__ import annotations
@@ -274,7 +281,7 @@ def run(args: argparse.Namespace) -> int:
     import numba
 
     from dvr_perception.rays.curvature_field import CurvatureField, curvature_source
-    from dvr_perception.rays.engine import analyze, reevaluate
+    from dvr_perception.rays.engine import analyze, reevaluate, release_scratch
 
     analyze = functools.partial(analyze, backend=args.backend)  # every frame on that back end
     with contextlib.ExitStack() as held:
@@ -300,11 +307,12 @@ def run(args: argparse.Namespace) -> int:
     warm = analyze(vol, spec, cam, curvature=curv)
     compile_s = time.perf_counter() - t0
     log.info("%d timed frames, ours and VTK's alternately", args.repeat)
-    analyze(vol, spec, cam, build_cache=False, occlusion_free=False)  # compiles that variant
     from dvr_perception.measures import all_measures
 
-    all_measures(warm, spec)  # compiles the measures' kernels
+    all_measures(warm, spec)  # compiles the measures' kernels (and the re-walk's)
     del warm  # one analysis at a time: the peak memory is a frame's, not two frames'
+    analyze(vol, spec, cam, build_cache=False, occlusion_free=False)  # compiles that variant
+    analyze(vol, spec, cam, curvature=curv, build_cache=True)  # and the cache's
     bricks: dict[str, int] = {}  # per timed analysis: bricks walked (0: the whole volume)
     walked_by: dict[str, int] = {}  # per timed analysis: samples its walk visited
 
@@ -316,6 +324,9 @@ def run(args: argparse.Namespace) -> int:
     frames, vtk_frame_s, vtk_error, vtk_peak = _paired_frames(
         {
             "frame": lambda: counted("frame", analyze(vol, spec, cam, curvature=curv)),
+            "frame_cache": lambda: counted(
+                "frame_cache", analyze(vol, spec, cam, curvature=curv, build_cache=True)
+            ),
             "render": lambda: counted(
                 "render", analyze(vol, spec, cam, build_cache=False, occlusion_free=False)
             ),
@@ -329,8 +340,12 @@ def run(args: argparse.Namespace) -> int:
         args.repeat,
     )
     frame_s, render_s, measure_total_s = frames["frame"], frames["render"], frames["measure"]
+    frame_cache_s = frames["frame_cache"]
 
-    result = analyze(vol, spec, cam, curvature=curv)  # what the re-evaluations start from
+    # what the re-evaluations start from; as the optimiser, once its views are analysed, the
+    # walk's scratch goes back (no cache is built while re-evaluating)
+    result = analyze(vol, spec, cam, curvature=curv, build_cache=True)
+    release_scratch()
     base = np.array([s.render_opacity for s in spec.structures], float)
     rng = np.random.default_rng(args.seed)
 
@@ -341,7 +356,6 @@ def run(args: argparse.Namespace) -> int:
     reeval(result.cache)  # compiles the re-evaluation kernels
     reeval_s = _median_time(functools.partial(reeval, result.cache), args.repeat)
     samples = _samples(result.stats)
-    walked = result.stats.get("samples_walked")
     backend = result.stats.get("backend", "auto")
     cache_mb = _nbytes(result.cache) / 2**20
     del result  # the optimisation below holds its own caches
@@ -366,6 +380,8 @@ def run(args: argparse.Namespace) -> int:
         "frame_s": frame_s,
         "vtk_frame_s": vtk_frame_s,
         "frame_ratio": frame_s / vtk_frame_s if vtk_frame_s else None,
+        "frame_cache_s": frame_cache_s,
+        "frame_cache_ratio": frame_cache_s / vtk_frame_s if vtk_frame_s else None,
         "samples_per_s": samples / frame_s if samples is not None else None,
         "render_s": render_s,
         "render_ratio": render_s / vtk_frame_s if vtk_frame_s else None,
@@ -381,8 +397,9 @@ def run(args: argparse.Namespace) -> int:
         "bricked": any(bricks.values()),
         "bricks": bricks,
         "samples": int(samples) if samples is not None else None,
-        "samples_walked": int(walked) if walked is not None else None,
-        "samples_walked_skipping": walked_by.get("measure"),
+        "samples_walked": walked_by.get("frame"),
+        "samples_walked_skipping": walked_by.get("frame"),
+        "samples_walked_cache": walked_by.get("frame_cache"),
         "samples_walked_exact": walked_exact,
     }
     if vtk_error is not None:

@@ -242,8 +242,7 @@ def _run(args, inputs, t_start: float, staged) -> int:
     log.info("analysing %dx%d rays", inputs.camera.width, inputs.camera.height)
     t0 = time.perf_counter()
     result = analyze(inputs.volume, inputs.spec, inputs.camera, curvature=curvature,
-                     build_cache=True, progress=log_progress("rays"),
-                     backend=args.backend)  # fmt: skip
+                     progress=log_progress("rays"), backend=args.backend)  # fmt: skip
     t_analysis = time.perf_counter() - t0
     log.info("computing the measures")
     t0 = time.perf_counter()

@@ -2,8 +2,9 @@
 
 The command loads its inputs (as ``render`` does), runs
 :func:`~dvr_perception.optimize.optimize` (Eq. 12-15 of the paper; stages ``opacity``,
-``lighting``, ``colour``) with a plain-text progress bar on stderr, then renders and measures
-the spec before and after at the user's resolution and writes into ``--out``, in two steps:
+``lighting``, ``colour``) with a plain-text progress bar on stderr, which also measures the
+spec before and after at the user's resolution (``measures=True``: on its own renderings,
+each measured while the optimiser has it at hand), and writes into ``--out``, in two steps:
 
 1. the result, as soon as it is known, and then printed: ``before.png`` and ``after.png``,
    ``optimized_spec.json`` (a spec for ``render``/``measure --structures``),
@@ -289,15 +290,21 @@ def stop_on_interrupt(progress: Progress):
 
 
 # -- measuring and writing -----------------------------------------------------------------------
-def _measure(volume, spec, camera, curvature, weights, result=None, backend="auto"):
+def _measure(volume, spec, camera, curvature, weights, result=None, backend="auto",
+             measured=None):  # fmt: skip
+    """Return ``(analysis, measures, terms)`` of ``spec`` in ``camera``.
+
+    ``result`` is the analysis when at hand (else analysed afresh), ``measured`` its
+    ``all_measures`` when at hand (the optimiser's ``measures``).
+    """
     from dvr_perception.cli.measure import _structures
     from dvr_perception.measures import all_measures
     from dvr_perception.rays.engine import analyze
 
     if result is None:
-        result = analyze(volume, spec, camera, curvature=curvature, build_cache=True,
-                         backend=backend)  # fmt: skip
-    vis, shp, trn = all_measures(result, spec)
+        result = analyze(volume, spec, camera, curvature=curvature, backend=backend)
+        measured = None
+    vis, shp, trn = all_measures(result, spec) if measured is None else measured
     terms = {"E_v": float(vis.E_v), "E_s": float(shp.E_s), "E_t": float(trn.E_t)}
     terms["E"] = float(sum(w * terms[k] for w, k in zip(weights, TERMS, strict=True)))
     keep = ("visible_share", "target_share", "assigned_share", "perceived_transparency",
@@ -376,6 +383,7 @@ def optimize_result(volume, spec, camera, out_dir, *, stages=("opacity", "lighti
         resolution=resolution,
         coverage_keep=coverage_keep,
         backend=backend,
+        measures=True,
         **({} if objective is None else {"objective": objective}),
     )
     if isinstance(progress, Progress):
@@ -384,9 +392,13 @@ def optimize_result(volume, spec, camera, out_dir, *, stages=("opacity", "lighti
     log.info("measuring before and after")
     # the optimiser's renderings of the view (equal to fresh analyses), else analyse again
     first, last = res.analyses or (None, None)
+    got_before, got_after = res.measures or (None, None)
     curvature = None if res.analyses else curvature_source(volume, spec)
-    before, m_before, initial = _measure(volume, spec, camera, curvature, weights, first, backend)
-    after, m_after, final = _measure(volume, res.spec, camera, curvature, weights, last, backend)
+    # (the optimiser measured both renderings where they were at hand: no second measuring)
+    after, m_after, final = _measure(volume, res.spec, camera, curvature, weights, last, backend,
+                                     got_after)  # fmt: skip
+    before, m_before, initial = _measure(volume, spec, camera, curvature, weights, first,
+                                         backend, got_before)  # fmt: skip
     t_measured = time.perf_counter()
     d = Path(out_dir)
     files = [write_png(d / "before.png", before.image), write_png(d / "after.png", after.image)]

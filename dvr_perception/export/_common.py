@@ -1,9 +1,15 @@
-"""Shared helpers of the exporters: intensity-only check and VTK transfer-function nodes."""
+"""Shared helpers of the exporters: intensity-only check and VTK transfer-function nodes.
+
+The nodes are computed without VTK (importing VTK's rendering module costs about a tenth of a
+second, which ``optimize`` need not pay to write its presets): :func:`transfer_nodes` adds the
+points of :func:`~dvr_perception.export.vtk.transfer_points` the way VTK's ``AddPoint`` and
+``AddRGBPoint`` do, so the lists equal what ``GetNodeValue`` reads from the VTK functions.
+"""
 
 from __future__ import annotations
 
 from dvr_perception.errors import DVRInputError
-from dvr_perception.export.vtk import to_vtk_transfer_functions
+from dvr_perception.export.vtk import transfer_points
 from dvr_perception.structures.spec import StructureSpec
 
 
@@ -30,16 +36,32 @@ def transfer_nodes(
     color : list of [x, r, g, b, midpoint, sharpness]
     opacity : list of [x, y, midpoint, sharpness]
     """
-    ctf, otf = to_vtk_transfer_functions(
+    color, opacity = transfer_points(
         spec, opacities=opacities, samples=samples, scalar_range=scalar_range
     )
-    color, opacity = [], []
-    for i in range(ctf.GetSize()):
-        node = [0.0] * 6
-        ctf.GetNodeValue(i, node)
-        color.append([float(v) for v in node])
-    for i in range(otf.GetSize()):
-        node = [0.0] * 4
-        otf.GetNodeValue(i, node)
-        opacity.append([float(v) for v in node])
-    return color, opacity
+    return _vtk_nodes(color), _vtk_nodes(opacity)
+
+
+#: The midpoint and sharpness VTK gives a point added without them.
+_MIDPOINT, _SHARPNESS = 0.5, 0.0
+
+
+def _vtk_nodes(points) -> list[list[float]]:
+    """Return the nodes a VTK function holds after adding ``points`` in turn.
+
+    As VTK does (duplicate scalars not allowed, its default): a point replaces the node
+    already at its ``x``, then the nodes are sorted by ``x``; each node is the point followed
+    by the default midpoint and sharpness.
+
+    Examples
+    --------
+    >>> _vtk_nodes([(2.0, 0.5), (1.0, 0.0), (2.0, 1.0)])
+    [[1.0, 0.0, 0.5, 0.0], [2.0, 1.0, 0.5, 0.0]]
+    """
+    nodes: list[list[float]] = []
+    for point in points:
+        x = float(point[0])
+        nodes = [n for n in nodes if n[0] != x]
+        nodes.append([x, *(float(v) for v in point[1:]), _MIDPOINT, _SHARPNESS])
+        nodes.sort(key=lambda n: n[0])
+    return nodes

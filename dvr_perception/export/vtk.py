@@ -18,7 +18,13 @@ from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.structures.spec import Lighting, Structure, StructureSpec
 from dvr_perception.structures.transfer import _opacities, _range_structures
 
-__all__ = ["GPU_TABLE_SAMPLES", "spec_from_vtk", "to_vtk_property", "to_vtk_transfer_functions"]
+__all__ = [
+    "GPU_TABLE_SAMPLES",
+    "spec_from_vtk",
+    "to_vtk_property",
+    "to_vtk_transfer_functions",
+    "transfer_points",
+]
 
 #: Table entries a GPU renderer (VTK's GPU ray caster in ParaView) may sample our transfer
 #: functions into (``to_vtk_transfer_functions(..., samples=...)``): its lookup texture is the
@@ -64,6 +70,31 @@ def to_vtk_transfer_functions(
     -------
     (vtkColorTransferFunction, vtkPiecewiseFunction)
     """
+    color, opacity = transfer_points(spec, opacities=opacities, samples=samples,
+                                     scalar_range=scalar_range)  # fmt: skip
+    from dvr_perception import _vtk  # VTK only here: the core imports without it
+
+    ctf = _vtk.vtkColorTransferFunction()
+    otf = _vtk.vtkPiecewiseFunction()
+    for x, y in opacity:
+        otf.AddPoint(x, y)
+    for x, r, g, b in color:
+        ctf.AddRGBPoint(x, r, g, b)
+    return ctf, otf
+
+
+def transfer_points(
+    spec: StructureSpec, *, opacities=None, samples: int | None = None, scalar_range=None
+) -> tuple[list[tuple[float, float, float, float]], list[tuple[float, float]]]:
+    """Return the points :func:`to_vtk_transfer_functions` adds, in its order (no VTK).
+
+    Returns
+    -------
+    color : list of (x, r, g, b)
+        The ``AddRGBPoint`` calls of the colour function.
+    opacity : list of (x, y)
+        The ``AddPoint`` calls of the opacity function.
+    """
     ops = _opacities(spec, opacities)
     if any(s.range is None for s in spec.structures):
         bad = next(s.name for s in spec.structures if s.range is None)
@@ -73,10 +104,7 @@ def to_vtk_transfer_functions(
         )
     ranges = sorted(_range_structures(spec), key=lambda t: t[1])
     gap = _node_gap(ranges, samples, scalar_range)
-    from dvr_perception import _vtk  # VTK only here: the core imports without it
-
-    ctf = _vtk.vtkColorTransferFunction()
-    otf = _vtk.vtkPiecewiseFunction()
+    color, opacity = [], []
     last = None  # the opacity node added last
     for k, lo, hi, edge in ranges:
         width = hi - lo
@@ -88,14 +116,13 @@ def to_vtk_transfer_functions(
             nodes[1:3] = [(0.5 * (lo + hi), o)]
         if gap and last is not None and last[1] == 0.0 and 0.0 < lo - last[0] < gap:
             nodes = nodes[1:]  # zero from the previous structure's end already
-        for x, y in nodes:
-            otf.AddPoint(x, y)
+        opacity.extend((float(x), float(y)) for x, y in nodes)
         last = nodes[-1]
         inset = max(_COLOR_INSET * width, floor)
         r, g, b = (float(c) for c in spec.structures[k].colour)
-        ctf.AddRGBPoint(lo + inset, r, g, b)
-        ctf.AddRGBPoint(hi - inset, r, g, b)
-    return ctf, otf
+        color.append((float(lo + inset), r, g, b))
+        color.append((float(hi - inset), r, g, b))
+    return color, opacity
 
 
 def _node_gap(ranges, samples, scalar_range) -> float:

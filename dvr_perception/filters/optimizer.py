@@ -238,12 +238,12 @@ class TransferFunctionOptimizer(PerceptionMeasures):
         self.UpdateProgress(0.9)
         opt = res.spec
         # the optimiser's rendering of the view with the optimised spec, as 'dvr-perception
-        # optimize' measures it: equal to a fresh analysis, but with its re-evaluation cache,
-        # which the transparency measure reads where an encloser's plain view is missing
+        # optimize' measures it: equal to a fresh analysis (the measures are the same with or
+        # without its re-evaluation cache, DECISIONS D7)
         result = res.analyses[-1] if res.analyses else None
         if result is None:
             curvature, _ = curvature_volume(volume, opt, progress=self.progress_range(0.9, 0.93))
-            result = analyze(volume, opt, camera, curvature=curvature, build_cache=True,
+            result = analyze(volume, opt, camera, curvature=curvature,
                              progress=self.progress_range(0.93, 0.96))  # fmt: skip
         self._fill_result(output, result, res, camera)
 

@@ -188,7 +188,7 @@ class PerceptionMeasures(DVRFilterBase):
         self.UpdateProgress(0.05)
         curvature, _ = curvature_volume(volume, spec, sigma=self.sigma,
                                         progress=self.progress_range(0.05, 0.3))  # fmt: skip
-        result = analyze(volume, spec, camera, curvature=curvature, build_cache=True,
+        result = analyze(volume, spec, camera, curvature=curvature,
                          progress=self.progress_range(0.3, 0.7))  # fmt: skip
         self._fill(output, result, spec, camera)
 
@@ -297,7 +297,7 @@ class PerceptionMeasures(DVRFilterBase):
         part, spec, camera = self.piece_inputs(image, comm, piece, whole)
         # a session (not a one-off walk): the ranks keep their cache entries while rank 0
         # measures, so the transparency measure can re-composite the view without an
-        # enclosing layer (decision D7) as the serial filter does from its cache
+        # enclosing layer (decision D7), as the serial filter does by walking again
         session = RankSession(comm, part, spec, sigma=self.sigma)
         if comm.rank != 0:
             session.serve()

@@ -113,6 +113,27 @@ def transmitted_tap(lum_p: np.ndarray, lum_a: np.ndarray, contrast: str) -> floa
     return _contrast(*_robust(mean_p, max(slope, 0.0) * std_a), contrast) / c_a
 
 
+@dataclass(frozen=True)
+class Carried:
+    """Opacity the structures carry, occlusion ignored (D7): ``min(assigned, cap) * scale``.
+
+    ``assigned`` (K, H, W) is the occlusion-free opacity (float32 or float64, read in
+    float64), capped at :data:`PRESENCE_CAP` and scaled per structure by ``scale`` (K,) (see
+    :func:`~.transparency._carried`).  Read only where needed, on the covered pixels
+    (:meth:`on`), not made for the whole (K, H, W) stack.
+    """
+
+    assigned: np.ndarray
+    scale: np.ndarray
+
+    def on(self, layers, pix: np.ndarray) -> np.ndarray:
+        """Return the carried opacity of ``layers`` on the flat pixels ``pix`` (layers, pixels)."""
+        k = self.assigned.shape[0]
+        layers = np.asarray(layers, np.intp).reshape(-1)
+        on = self.assigned.reshape(k, -1)[np.ix_(layers, pix)].astype(np.float64)
+        return np.minimum(on, PRESENCE_CAP) * self.scale[layers][:, None]
+
+
 def _bits(layers) -> int:
     out = 0
     for k in layers:
@@ -145,12 +166,13 @@ class _LayerSets:
         self._templates: dict[frozenset, tuple] = {}
         #: ``enclosure="unoccluded"``: per enclosing layer, the luminance without it.
         self.without: dict[int, np.ndarray] | None = None
-        #: (K, H, W) visible opacities and carried (occlusion-free, capped) opacities: a
+        #: (K, H, W) visible opacities, and the carried (occlusion-free, capped) opacities
+        #: (:class:`Carried`): a
         #: covered layer whose visible opacity is at most ``HIDDEN_FRACTION`` of what it
         #: carries on a pixel is hidden there (D3, D7); ``None``: footprints are visible
         #: ones, nothing covered is hidden.
         self.visible: np.ndarray | None = None
-        self.carry: np.ndarray | None = None
+        self.carry = None
         #: Luminance of the view without layer ``e`` on the pixels of a mask
         #: (``recomposite(e, mask)``, computed once per layer: exact on ``mask``), or ``None``
         #: when the analysis has no re-evaluation cache; ``prefer``: an
@@ -266,8 +288,19 @@ class _LayerSets:
         opacity they carry there (:func:`~.transparency._carried`).
         """
         k = self.visible.shape[0]
-        vis = self.visible.reshape(k, -1)[np.ix_(layers, pix)].sum(axis=0)
-        carry = self.carry.reshape(k, -1)[np.ix_(layers, pix)].sum(axis=0)
+        nk = kernels("dvr_perception.measures._kernels")
+        if nk is not None:  # the sums below, per pixel, in one pass
+            return nk.seen_on(
+                np.ascontiguousarray(self.visible).reshape(k, -1),
+                np.ascontiguousarray(self.carry.assigned).reshape(k, -1),
+                np.asarray(self.carry.scale, np.float64),
+                np.asarray(layers, np.int64).reshape(-1),
+                np.asarray(pix, np.int64),
+                PRESENCE_CAP,
+                HIDDEN_FRACTION,
+            )
+        vis = self.visible.reshape(k, -1)[np.ix_(layers, pix)].astype(np.float64).sum(axis=0)
+        carry = self.carry.on(layers, pix).sum(axis=0)
         return (vis > HIDDEN_FRACTION * carry) | (carry <= 0.0)
 
     def _encloser_tap(self, e: int, shown: np.ndarray) -> tuple[float, str | None]:

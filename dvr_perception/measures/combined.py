@@ -20,7 +20,6 @@ from dvr_perception.measures.results import (
     VisibilityResult,
     _accumulated,
     _image_luminance,
-    _visible,
 )
 from dvr_perception.measures.shape import shape
 from dvr_perception.measures.transparency import transparency
@@ -102,7 +101,6 @@ def all_measures(
     if engine_made(analysis):
         # what the measures share is remembered for an engine analysis: make it once, here
         accumulated = _accumulated(analysis)
-        _visible(analysis, accumulated)
         _image_luminance(analysis, spec, accumulated.shape)
     pending = _pool().submit(transparency, analysis, spec, calibration=calibration)
     try:

@@ -72,31 +72,49 @@ def has_cache(analysis) -> bool:
     return callable(getattr(cache, "reevaluate", None))
 
 
+def can_recomposite(analysis) -> bool:
+    """Whether the view of ``analysis`` without a layer can be made (DECISIONS D7).
+
+    From a re-evaluation cache (:func:`has_cache`), or, for an engine analysis without one,
+    by walking the affected rays again (:func:`~dvr_perception.rays.engine.rewalk`): both
+    give the same luminance.
+    """
+    from dvr_perception.rays.engine import can_rewalk
+
+    return has_cache(analysis) or can_rewalk(analysis)
+
+
 def _without(analysis, spec, layer: int, pixels=None) -> np.ndarray:
-    """Luminance of the same view with ``layer``'s opacity 0 (from the re-evaluation cache).
+    """Luminance of the same view with ``layer``'s opacity 0 (re-composited, D7).
 
     The other parameters are those the analysis was rendered with (``stats["params"]`` of an
     engine analysis, so a re-evaluated analysis is re-composited with its own opacities,
-    colours, materials and light), else ``spec``'s opacities and colours.  ``pixels`` (an
-    (H, W) bool mask) re-composites only those rays of an engine cache: the luminance is
-    exact there and not meant to be read elsewhere.
+    colours, materials and light), else ``spec``'s opacities and colours.  From the
+    re-evaluation cache where the analysis has one; an engine analysis without one walks
+    those rays again with ``layer``'s opacity 0 (:func:`~dvr_perception.rays.engine.rewalk`,
+    the same luminance).  ``pixels`` (an (H, W) bool mask) re-composites only those rays of
+    an engine analysis: the luminance is exact there and not meant to be read elsewhere.
     """
-    from dvr_perception.rays.engine import RayCache, reevaluate
+    from dvr_perception.rays.engine import RayCache, can_rewalk, reevaluate, rewalk
 
     cache = getattr(analysis, "cache", None)
-    if not has_cache(analysis):
-        raise DVRInputError(
-            "analysis: the view without a layer needs the analysis's re-evaluation cache "
-            "(analyze(..., build_cache=True))"
-        )
     params = getattr(analysis, "stats", {}).get("params")
-    if params is not None:
+    rays = None if pixels is None else np.flatnonzero(pixels)
+    if not has_cache(analysis):
+        if not can_rewalk(analysis):
+            raise DVRInputError(
+                "analysis: the view without a layer needs the analysis's re-evaluation cache "
+                "(analyze(..., build_cache=True)) or an engine analysis to walk again"
+            )
+        ops = list(params["opacities"])
+        ops[layer] = 0.0
+        other = rewalk(analysis, opacities=ops, rays=rays, background=spec.background)
+    elif params is not None:
         ops = list(params["opacities"])
         ops[layer] = 0.0
         kwargs = {"opacities": ops, "colours": params["colours"], "lighting": params["lighting"],
                   "light_direction": params["light_direction"]}  # fmt: skip
         if isinstance(cache, RayCache):
-            rays = None if pixels is None else np.flatnonzero(pixels)
             other = reevaluate(cache, background=spec.background, rays=rays, **kwargs)
         else:  # a stand-in that re-composites itself (the MPI ranks' RankCache)
             other = cache.reevaluate(**kwargs)
@@ -120,7 +138,8 @@ def covered_transmittance(
     Parameters
     ----------
     analysis : RayAnalysis
-        An engine analysis made with ``build_cache=True``.
+        An engine analysis (with a re-evaluation cache, or without one: the affected rays
+        are then walked again, the same luminance).
     spec : StructureSpec
         The spec of the analysis (names must match; its background enters the luminance).
     structure : str
@@ -139,7 +158,7 @@ def covered_transmittance(
     ------
     DVRInputError
         If ``structure`` is not a structure of ``spec``, ``contrast`` is unknown or the analysis
-        has no re-evaluation cache.
+        can be neither re-composited nor walked again (not made by the engine).
 
     Examples
     --------

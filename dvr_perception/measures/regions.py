@@ -20,6 +20,7 @@ import numpy as np
 from scipy import ndimage
 from skimage.measure import label
 
+from dvr_perception._numba import kernels
 from dvr_perception.errors import DVRInputError
 
 __all__ = [
@@ -154,6 +155,36 @@ def layer_footprints(visible, *, threshold: float = 0.05) -> np.ndarray:
     return arr > float(threshold)
 
 
+def _layer_set_bits(visible, threshold: float, assigned=None, limits=None) -> np.ndarray:
+    """(H, W) uint32 layer-set bitmask of footprints, without the (K, H, W) boolean stack.
+
+    Bit ``k`` is set where ``visible[k] > threshold`` (:func:`layer_footprints`) or, with
+    ``assigned`` (K, H, W) and ``limits`` (K,), where ``assigned[k] > limits[k]`` (the
+    transparency measure's occlusion-free footprints, D3): the bitmask :func:`subregions`
+    makes of those footprints.  ``visible`` and ``assigned`` are checked, finite and
+    non-negative (float32 or float64; compared in float64).
+    """
+    if not 0.0 <= float(threshold) < 1.0:
+        raise DVRInputError(f"threshold must lie in [0, 1), got {threshold!r}")
+    k, height, width = visible.shape
+    if k > MAX_LAYERS:
+        raise DVRInputError(f"footprints: at most {MAX_LAYERS} layers are supported, got {k}")
+    nk = kernels("dvr_perception.measures._kernels")
+    if nk is None or k == 0:
+        fp = np.asarray(visible, np.float64) > float(threshold)
+        if assigned is not None:
+            fp |= assigned > np.asarray(limits, np.float64)[:, None, None]
+        return _bitmask(fp)
+    flat = np.ascontiguousarray(visible).reshape(k, -1)
+    if assigned is None:
+        other, limits = flat, np.full(k, np.inf)
+    else:
+        other = np.ascontiguousarray(assigned).reshape(k, -1)
+    out = np.empty(height * width, np.uint32)
+    nk.layer_bits(flat, other, float(threshold), np.asarray(limits, np.float64), out)
+    return out.reshape(height, width)
+
+
 def _as_footprints(footprints) -> np.ndarray:
     arr = np.asarray(footprints)
     if arr.ndim != 3 or arr.shape[1] == 0 or arr.shape[2] == 0:
@@ -214,13 +245,21 @@ def subregions(footprints, *, geometry: bool = True) -> RegionMap:
     array([0, 0, 1, 2], dtype=int32)
     """
     fp = _as_footprints(footprints)
-    height, width = fp.shape[1:]
-    mask = _bitmask(fp)
-    labels = label(mask.astype(np.int64), background=-1, connectivity=2)  # labels 1..n
-    region_id, first = _raster_ordered(labels)
+    return _subregions(_bitmask(fp), fp.shape[0], geometry=geometry)
+
+
+def _subregions(mask: np.ndarray, k: int, *, geometry: bool = True) -> RegionMap:
+    """:func:`subregions` of the ``k`` layers of a (H, W) uint32 layer-set bitmask."""
+    height, width = mask.shape
+    nk = kernels("dvr_perception.measures._kernels")
+    if nk is not None:
+        region_id, first, area = nk.label_regions(np.ascontiguousarray(mask))
+    else:
+        labels = label(mask.astype(np.int64), background=-1, connectivity=2)  # labels 1..n
+        region_id, first = _raster_ordered(labels)
+        area = np.bincount(region_id.ravel(), minlength=first.size)
     flat = region_id.ravel()
     n = first.size
-    area = np.bincount(flat, minlength=n)
     sets = mask.ravel()[first].tolist()
     if geometry:
         rows, cols = np.divmod(np.arange(flat.size), width)
@@ -231,7 +270,7 @@ def subregions(footprints, *, geometry: bool = True) -> RegionMap:
         centroids = list(zip(c_row, c_col, strict=True))
     else:
         boxes = centroids = [None] * n
-    k, n_pix = fp.shape[0], height * width
+    n_pix = height * width
     kinds: dict[int, tuple] = {}  # per layer bitmask: (layers, kind), built once
     for b in set(sets):
         layers = frozenset(q for q in range(k) if b >> q & 1)
@@ -348,12 +387,18 @@ def _relations(layer_set: np.ndarray, k: int, tolerance: float) -> dict:
     area = (member * count[:, None]).sum(axis=0).astype(np.float64)
     inter = (member * count[:, None]).T @ member
     # i and j are adjacent when a pixel of j has layer i within its 8-neighbourhood
-    near = _dilate8(layer_set[None])[0]
     adjacent = np.zeros((k, k), bool)
-    for i in range(k):
-        if area[i]:
-            seen = np.bitwise_or.reduce(flat[(near.ravel() >> np.uint32(i)) & np.uint32(1) == 1])
-            adjacent[i] = (int(seen) >> np.arange(k)) & 1 == 1
+    nk = kernels("dvr_perception.measures._kernels")
+    if nk is not None:
+        for i, seen in enumerate(nk.neighbour_sets(layer_set, k).tolist()):
+            adjacent[i] = (seen >> np.arange(k)) & 1 == 1
+    else:
+        near = _dilate8(layer_set[None])[0]
+        for i in range(k):
+            if area[i]:
+                near_i = (near.ravel() >> np.uint32(i)) & np.uint32(1) == 1
+                seen = np.bitwise_or.reduce(flat[near_i])
+                adjacent[i] = (int(seen) >> np.arange(k)) & 1 == 1
     result: dict[tuple[int, int], Relation] = {}
     for i in range(k):
         for j in range(i + 1, k):

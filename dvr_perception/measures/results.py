@@ -21,6 +21,7 @@ from functools import cached_property
 
 import numpy as np
 
+from dvr_perception._numba import kernels
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.measures.luminance import _composite, composite_luminance, luminance
 from dvr_perception.rays._results import RayAnalysis, engine_made
@@ -244,8 +245,15 @@ def _stack(analysis, name: str, shape: tuple[int, int]) -> np.ndarray:
     return np.maximum(arr, 0.0)
 
 
-def _visible(analysis, accumulated: np.ndarray) -> np.ndarray:
-    """``analysis.visible``, checked against ``accumulated`` (warns when sums disagree)."""
+def _visible(analysis, accumulated: np.ndarray, *, native: bool = False) -> np.ndarray:
+    """``analysis.visible``, checked against ``accumulated`` (warns when sums disagree).
+
+    float64; with ``native``, an engine analysis's own array as it is (float32 from the
+    numba and CUDA back ends, read-only: the same values, without the copy), which the
+    caller reads in float64 (a numba kernel, or ``np.float64`` arithmetic).
+    """
+    if native and engine_made(analysis):
+        return analysis.visible
     return _remembered(analysis, "visible", lambda: _visible_checked(analysis, accumulated))
 
 
@@ -263,20 +271,31 @@ def _visible_checked(analysis, accumulated: np.ndarray) -> np.ndarray:
     return vis
 
 
-def _assigned(analysis, shape: tuple[int, int]) -> np.ndarray:
-    """``analysis.assigned`` (K, H, W), checked like :func:`_stack`; remembered."""
+def _assigned(analysis, shape: tuple[int, int], *, native: bool = False) -> np.ndarray:
+    """``analysis.assigned`` (K, H, W), checked like :func:`_stack`; remembered.
+
+    ``native``: as :func:`_visible`.
+    """
+    if native and engine_made(analysis):
+        _check_occlusion_free(analysis)
+        return analysis.assigned
     return _remembered(analysis, "assigned", lambda: _assigned_checked(analysis, shape))
 
 
 def _assigned_checked(analysis, shape):
     if not engine_made(analysis):
         return _stack(analysis, "assigned", shape)
+    _check_occlusion_free(analysis)
+    return np.asarray(analysis.assigned, np.float64)  # non-negative by construction
+
+
+def _check_occlusion_free(analysis) -> None:
+    """Refuse the NaN ``assigned`` of an engine analysis made with ``occlusion_free=False``."""
     if not analysis.stats.get("occlusion_free", True):
         raise DVRInputError(
             "analysis.assigned must be finite, but this analysis was made with "
             "occlusion_free=False (render only): analyze with occlusion_free=True for it"
         )
-    return np.asarray(analysis.assigned, np.float64)  # non-negative by construction
 
 
 def _curvature(analysis, shape: tuple[int, int]) -> np.ndarray:
@@ -321,13 +340,19 @@ def _check_premultiplied(rgba: np.ndarray, notes: list[str], *, trusted: bool = 
     colour by construction (dim, specular-lit silhouettes may exceed their opacity on many
     pixels), so only the note is made.
     """
-    alpha = rgba[..., 3]
-    brightest = np.maximum(np.maximum(rgba[..., 0], rgba[..., 1]), rgba[..., 2])
-    over = brightest > alpha + _OPACITY_SLACK
-    n_over = int(np.count_nonzero(over))
+    nk = kernels("dvr_perception.measures._kernels")
+    if nk is not None:  # the counts below in one pass
+        n_over, covered = nk.premultiplied_excess(
+            np.ascontiguousarray(rgba).reshape(-1, 4), _OPACITY_SLACK
+        )
+    else:
+        alpha = rgba[..., 3]
+        brightest = np.maximum(np.maximum(rgba[..., 0], rgba[..., 1]), rgba[..., 2])
+        n_over = int(np.count_nonzero(brightest > alpha + _OPACITY_SLACK))
+        covered = int(np.count_nonzero(alpha > _OPACITY_SLACK))
     if n_over == 0:
         return
-    covered = max(int(np.count_nonzero(alpha > _OPACITY_SLACK)), 1)
+    covered = max(covered, 1)
     if not trusted and n_over > _STRAIGHT_FRACTION * covered:
         warnings.warn(
             f"analysis.rgba: colour exceeds opacity on {n_over} of {covered} covered pixels; "

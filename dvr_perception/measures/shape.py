@@ -144,7 +144,71 @@ def _filters(values: np.ndarray, mask: np.ndarray, log_y: np.ndarray, sigma: flo
     """Return the shape measure's Gaussians: ``(num, den)`` and ``|grad log_y|``.
 
     ``(num, den)`` as :func:`_smoothed_over` makes them, the gradient magnitude as
-    ``scipy.ndimage.gaussian_gradient_magnitude``.
+    ``scipy.ndimage.gaussian_gradient_magnitude``, to the bit: :func:`_windowed_filters`
+    pasted into whole images.
+    """
+    window, inner, outside = _windowed_filters(values, mask, log_y, sigma)
+    out = tuple(np.full(mask.shape, f) for f in outside)
+    for o, i in zip(out, inner, strict=True):
+        o[window] = i
+    return out
+
+
+def _filter_window(mask: np.ndarray, log_y: np.ndarray, sigma: float):
+    """Return ``(window, size, constant)``: where :func:`_windowed_filters` filters.
+
+    The window is the bounding box of the pixels where anything varies (the pixels of
+    ``mask``, and those whose ``log_y`` differs from ``constant``, a corner's value, usually
+    the background's; of the corners, the one giving the smallest window), widened by the
+    filters' radius plus one; ``size`` is its pixel count (0: nothing varies).
+    """
+    radius = int(4.0 * float(sigma) + 0.5)  # scipy's kernel radius (truncate=4)
+    best = None
+    for flat in dict.fromkeys(log_y[[0, 0, -1, -1], [0, -1, 0, -1]].tolist()):
+        window = _window(mask | (log_y != flat), radius)
+        size = (window[0].stop - window[0].start) * (window[1].stop - window[1].start)
+        if best is None or size < best[1]:
+            best = (window, size, flat)
+    return best
+
+
+def _windowed_filters(values, mask, log_y, sigma, window=None):
+    """:func:`_filters` on a window: ``(window, (num, den, grad) there, outside values)``.
+
+    Only the window of :func:`_filter_window` (or ``window = (window, size, constant)``
+    found already; ``values`` may then be given on the window only) is filtered: that gives
+    the same bits as filtering the whole image.  Inside the window every sum reads the same
+    values in the same order (the window's edge rows and columns hold the constant that lies
+    beyond them, so clamping at the window's edge repeats what the image holds there), and
+    outside it every output is the filters' response to the constant image (three floats,
+    made once on one pixel).  A rendering covering a third of the image is filtered on about
+    half of it.
+    """
+    window, size, flat = _filter_window(mask, log_y, sigma) if window is None else window
+    one = (np.zeros((1, 1)), np.zeros((1, 1), bool), np.full((1, 1), flat, np.float64))
+    outside = tuple(float(f[0, 0]) for f in _filtered(*one, sigma))
+    if size == 0:
+        return window, tuple(np.empty((0, 0)) for _ in range(3)), outside
+    if values.shape == mask.shape:
+        values = values[window]
+    return window, _filtered(values, mask[window], log_y[window], sigma), outside
+
+
+def _window(varying: np.ndarray, radius: int) -> tuple[slice, slice]:
+    """Bounding box of ``varying`` widened by ``radius + 1`` (empty without such pixels)."""
+    rows = np.flatnonzero(varying.any(axis=1))
+    if rows.size == 0:
+        return slice(0, 0), slice(0, 0)
+    cols = np.flatnonzero(varying.any(axis=0))
+    height, width = varying.shape
+    return (
+        slice(max(int(rows[0]) - radius - 1, 0), min(int(rows[-1]) + radius + 2, height)),
+        slice(max(int(cols[0]) - radius - 1, 0), min(int(cols[-1]) + radius + 2, width)),
+    )
+
+
+def _filtered(values: np.ndarray, mask: np.ndarray, log_y: np.ndarray, sigma: float):
+    """:func:`_filters` on the whole of the images given.
 
     With numba the eight one-dimensional passes run as two parallel kernel calls
     (:func:`~._kernels.correlate_columns`, then :func:`~._kernels.correlate_rows`) and give
@@ -248,25 +312,41 @@ def shape(
 
     nonempty = accumulated > NONEMPTY_OPACITY
     sigma = image_scale(accumulated.shape)
-    curvature = np.where(curvature < CURVATURE_FLOOR, 0.0, curvature)
     log_y = np.log(np.asarray(y, np.float64) + DARK_LUMINANCE)
-    num, den, gradient = _filters(curvature, nonempty, log_y, sigma)
-    curvature = _smoothed_over(curvature, nonempty, sigma, (num, den))
-    v_s = _robust_normalise(curvature, nonempty, p, "curvature", notes)
+    # every pixel that is not empty lies in the filters' window, and outside it the images
+    # hold constants: the rest is worked out on the window (the same numbers, in the same
+    # order, as on the whole image) and pasted into images of those constants
+    found = _filter_window(nonempty, log_y, sigma)
+    window = found[0]
+    curvature = curvature[window]
+    curvature = np.where(curvature < CURVATURE_FLOOR, 0.0, curvature)
+    _, (num, den, gradient), outside = _windowed_filters(curvature, nonempty, log_y, sigma, found)
+    inside = nonempty[window]
+    curvature = _smoothed_over(curvature, inside, sigma, (num, den))
+    v_s = _robust_normalise(curvature, inside, p, "curvature", notes)
+    # outside the window: no non-empty pixel (curvature 0) and the constant image's gradient
+    gradient = np.append(gradient.ravel(), outside[2])  # the last: every pixel outside
     gradient *= sigma
     gradient[gradient < GRADIENT_FLOOR] = 0.0
-    v_i = _robust_normalise(gradient, nonempty, p, "image gradient", notes)
-    delta = np.where(nonempty, -np.expm1(-((v_s - v_i) ** 2) / s), 0.0)
-    if nonempty.any():
-        e_s = float(delta[nonempty].mean())
+    v_i = _robust_normalise(gradient, np.append(inside.ravel(), False), p, "image gradient", notes)
+    v_i, v_i_rest = v_i[:-1].reshape(inside.shape), v_i[-1]
+    delta = np.where(inside, -np.expm1(-((v_s - v_i) ** 2) / s), 0.0)
+    if inside.any():
+        e_s = float(delta[inside].mean())
     else:
         e_s = 0.0
         notes.append("no pixel shows any structure (accumulated opacity <= 1e-3); E_s = 0")
+    images = []
+    for value, rest in ((delta, 0.0), (v_s, 0.0), (v_i, v_i_rest)):
+        image = np.full(nonempty.shape, rest, np.float32)
+        image[window] = value
+        images.append(image)
+    deviation, v_s, v_i = images
     return ShapeResult(
         E_s=e_s,
-        deviation=delta.astype(np.float32),
-        v_s=v_s.astype(np.float32),
-        v_i=v_i.astype(np.float32),
+        deviation=deviation,
+        v_s=v_s,
+        v_i=v_i,
         nonempty=nonempty,
         notes=tuple(notes),
     )

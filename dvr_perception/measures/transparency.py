@@ -44,10 +44,11 @@ Pipeline (all luminances are linear CIE Y of ``rgba`` composited over ``spec.bac
      plain view of ``e`` (layer set ``{e}`` plus the layers enclosing ``e``), which saturates
      at 1 where what ``e`` covers has more contrast than ``e``'s ring (a faint shell around
      contrasted blobs) and is not monotone in ``e``'s opacity; it is reported beside the
-     default.  Each reading is the fallback of the other where it is missing or uniform; an
-     analysis without a cache reads the plain view (with a note: the front ends analyse with
-     ``build_cache=True`` so that every path gives the same ``E_t``), and ``"unoccluded"``
-     demands the re-composite (an error without a cache).
+     default.  Each reading is the fallback of the other where it is missing or uniform.  An
+     engine analysis without a cache makes the same view by walking those pixels again
+     with ``e``'s opacity 0 (:func:`~dvr_perception.rays.engine.rewalk`), so every path gives
+     the same ``E_t`` (D7); only an analysis that is neither (hand-made) reads the plain
+     view, with a note, and ``"unoccluded"`` demands the re-composite (an error there).
 
    The estimate is the mean over ``P``: ``|P'| / |P| * C(P') / C(A)``, so hiding more of what
    it covers makes a layer more opaque, and hiding all of it gives 0 (method ``"hidden"``).
@@ -89,11 +90,11 @@ import numpy as np
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures._estimates import region_estimates, region_table
 from dvr_perception.measures._layer_sets import DENOMINATOR_EPS as DENOMINATOR_EPS  # re-export
-from dvr_perception.measures._layer_sets import PRESENCE_CAP, _LayerSets
+from dvr_perception.measures._layer_sets import Carried, _LayerSets
 from dvr_perception.measures.covered import _without as _luminance_without
-from dvr_perception.measures.covered import has_cache
+from dvr_perception.measures.covered import can_recomposite
 from dvr_perception.measures.psychophysics import calibrate
-from dvr_perception.measures.regions import _relations, layer_footprints, subregions
+from dvr_perception.measures.regions import _layer_set_bits, _relations, _subregions
 from dvr_perception.measures.results import (
     TransparencyResult,
     _accumulated,
@@ -130,16 +131,15 @@ def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure
             f"enclosure must be one of {', '.join(map(repr, ENCLOSURES))}, got {enclosure!r}"
         )
     accumulated = _accumulated(analysis)
-    visible = _visible(analysis, accumulated)
+    visible = _visible(analysis, accumulated, native=True)  # read in float64
     names = _names(analysis, spec, visible.shape[0])
     expected = [float(s.target_opacity) for s in spec.structures]
     y, notes = _image_luminance(analysis, spec, accumulated.shape)
-    footprints = layer_footprints(visible, threshold=threshold)
     assigned = _occlusion_free(analysis, accumulated.shape)
-    if assigned is not None:  # D3: where a structure is, not only where it is visible
-        importance = np.array([float(s.importance) for s in spec.structures])
-        footprints |= assigned > threshold * importance[:, None, None]
-    rmap = subregions(footprints, geometry=False)  # no bounding boxes: not reported
+    # D3: a layer where a structure is (its occlusion-free opacity), not only where it is seen
+    importance = np.array([float(s.importance) for s in spec.structures])
+    bits = _layer_set_bits(visible, threshold, assigned, threshold * importance)
+    rmap = _subregions(bits, len(names), geometry=False)  # no bounding boxes: not reported
     relations = _relations(rmap.layer_set, len(names), tolerance)  # = layer_relations
     layer_sets = _LayerSets(y, rmap, relations, names, contrast)
     if assigned is not None:
@@ -147,26 +147,28 @@ def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure
     if enclosure == "unoccluded":
         enclosers = sorted({r.encloser for r in relations.values() if r.kind == "enclose"})
         layer_sets.without = {e: _luminance_without(analysis, spec, e) for e in enclosers}
-    elif has_cache(analysis):
+    elif can_recomposite(analysis):
         layer_sets.recomposite = partial(_luminance_without, analysis, spec)
         layer_sets.prefer_recomposite = enclosure == "auto"
     elif enclosure == "auto" and any(r.kind == "enclose" for r in relations.values()):
         notes.append(
-            "the analysis has no re-evaluation cache: enclosing layers are read against their "
-            "plain view (analyze(..., build_cache=True) reads them against the view without them)"
+            "the analysis can be neither re-composited nor walked again (no re-evaluation "
+            "cache, not made by analyze): enclosing layers are read against their plain view"
         )
     est = region_estimates(layer_sets, rmap, y, expected, calibration, notes)
     return names, expected, rmap, relations, est, notes
 
 
-def _carried(analysis, spec, assigned: np.ndarray) -> np.ndarray:
-    """(K, H, W) opacity each structure carries on each pixel, occlusion ignored (D7).
+def _carried(analysis, spec, assigned: np.ndarray) -> Carried:
+    """Opacity each structure carries on each pixel, occlusion ignored (D7).
 
     The occlusion-free opacity ``assigned`` (at the importance opacities) capped at
     :data:`~._layer_sets.PRESENCE_CAP`, where presence saturates (D8: the skipping walk is exact
     below it), and scaled by the structure's rendering opacity over its importance, so a
     structure the rendering fades is not taken for a hidden one.  A covered structure whose
     visible opacity is at most :data:`~._layer_sets.HIDDEN_FRACTION` of this is hidden there.
+    Returns a :class:`~._layer_sets.Carried`: the opacities are made only on the covered
+    pixels that are read.
     """
     importance = np.array([float(s.importance) for s in spec.structures])
     params = getattr(analysis, "stats", None)
@@ -176,7 +178,7 @@ def _carried(analysis, spec, assigned: np.ndarray) -> np.ndarray:
     else:
         render = np.array([float(s.render_opacity) for s in spec.structures])
     scale = np.divide(render, importance, out=np.ones_like(render), where=importance > 0)
-    return np.minimum(assigned, PRESENCE_CAP) * scale[:, None, None]
+    return Carried(assigned, scale)
 
 
 def _occlusion_free(analysis, shape) -> np.ndarray | None:
@@ -189,7 +191,7 @@ def _occlusion_free(analysis, shape) -> np.ndarray | None:
         return None
     if engine_made(analysis) and not analysis.stats.get("occlusion_free", True):
         return None
-    return _assigned(analysis, shape)
+    return _assigned(analysis, shape, native=True)  # read in float64
 
 
 def transparency_table(analysis, spec, *, calibration=None):
@@ -241,10 +243,10 @@ def transparency(
         TAP contrast: Michelson (Eq. 7, default) or luminance range (Eq. 6).
     enclosure : {"auto", "plain", "unoccluded"}, optional
         TAP background ``A`` of an enclosing layer: the covered pixels re-composited without
-        the layer when the analysis has a re-evaluation cache (default, decision D7), its
-        plain view otherwise or where the re-composite is uniform; the plain view first
-        (``"plain"``, the paper's Case 2); or always the re-composite (``"unoccluded"``, needs
-        ``analysis.cache``, i.e. an engine analysis made with ``build_cache=True``).  See the
+        the layer (default, decision D7: from the re-evaluation cache, or walked again for an
+        engine analysis without one), its plain view where the re-composite is uniform; the
+        plain view first (``"plain"``, the paper's Case 2); or always the re-composite
+        (``"unoccluded"``, an error for an analysis the engine did not make).  See the
         module docstring, rule 3.
 
     Returns

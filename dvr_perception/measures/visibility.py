@@ -206,7 +206,9 @@ def visibility(
         per-ray ``target`` opacities ``alpha_o`` (K, H, W); per structure the image-wide
         ``visible_share`` (``sum_r visible[s] / sum_r sum_s visible``), ``target_share``
         (``sum_r alpha_o[s] / sum_r sum_s alpha_o``), the thickness ``assigned_share``
-        (``sum_r assigned[s] / sum_r sum_s assigned``), ``visible_opacity`` and
+        (``sum_r assigned[s] / sum_r sum_s assigned``; ``analyze``'s default skipping walk
+        counts ``assigned`` up to saturation per ray, ``stats["assigned_cap"]``, DECISIONS
+        D8: ``exact=True`` or the cache for the share beyond it), ``visible_opacity`` and
         ``target_opacity`` (mean ``alpha_v`` and ``alpha_o`` over the non-empty rays),
         histograms of the per-ray ``alpha_v`` and ``alpha_o`` over the rays where the
         structure is present and their count; the ``bin_edges``, ``composition`` and
@@ -239,8 +241,10 @@ def visibility(
     nbins = _check_bins(bins)
     _check_composition(composition, presence_scale)
     accumulated = _accumulated(analysis)
-    visible = _visible(analysis, accumulated)
-    assigned = _assigned(analysis, accumulated.shape)
+    core = _core_numba if kernels("dvr_perception.measures._kernels") else _core_numpy
+    native = core is _core_numba  # the kernel reads an engine's float32 fields in float64
+    visible = _visible(analysis, accumulated, native=native)
+    assigned = _assigned(analysis, accumulated.shape, native=native)
     if assigned.shape[0] != visible.shape[0]:
         raise DVRInputError(
             f"analysis.assigned has {assigned.shape[0]} structures, "
@@ -264,7 +268,6 @@ def visibility(
     a_imp = _importance_accumulated(analysis, accumulated)
     imp = _importance(spec, len(names))
     edges = np.linspace(0.0, 1.0, nbins + 1)
-    core = _core_numba if kernels("dvr_perception.measures._kernels") else _core_numpy
     target, deviation, nonempty, e_v, sums, hist, rays = core(
         analysis, visible, assigned, a_imp, imp, composition, presence_scale, edges
     )
@@ -329,8 +332,8 @@ def _core_numba(analysis, visible, assigned, a_imp, imp, composition, presence_s
 
     k = visible.shape[0]
     bits = _presence_bits(analysis, assigned)
-    flat = (np.ascontiguousarray(visible.reshape(k, -1), np.float64),
-            np.ascontiguousarray(assigned.reshape(k, -1), np.float64))  # fmt: skip
+    flat = tuple(np.ascontiguousarray(x.reshape(k, -1), _kernel_dtype(x))
+                 for x in (visible, assigned))  # fmt: skip
     target, deviation, nonempty, e_sum, n_on, sums, hist, rays = visibility_core(
         *flat, np.ascontiguousarray(a_imp.reshape(-1), np.float64),
         np.ascontiguousarray(imp, np.float64), float(presence_scale), composition == "thickness",
@@ -340,6 +343,11 @@ def _core_numba(analysis, visible, assigned, a_imp, imp, composition, presence_s
     e_v = float(e_sum) / int(n_on) if n_on else None
     return (target.reshape(k, *shape), deviation.reshape(shape), nonempty.reshape(shape), e_v,
             sums, hist, rays)  # fmt: skip
+
+
+def _kernel_dtype(x: np.ndarray):
+    """float32 stays float32 (the engine's fields, read in float64 inside), else float64."""
+    return np.float32 if x.dtype == np.float32 else np.float64
 
 
 def _presence_bits(analysis, assigned: np.ndarray) -> np.ndarray:

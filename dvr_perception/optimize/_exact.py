@@ -22,6 +22,8 @@ and its early ray termination, so they equal the ``E_v`` and ``coverage`` of
 
 from __future__ import annotations
 
+import types
+
 import numpy as np
 
 from dvr_perception.rays import _tables
@@ -85,8 +87,24 @@ def _composite_grad_body(rays, start, count, lut, ids, alpha, dalpha, k, ert, gr
                 dacc[q, i] = -tr * g[q]
 
 
-_composite_grad = njit(cache=True)(_composite_grad_body)
-_composite_grad_parallel = njit(parallel=True, cache=True)(_composite_grad_body)
+def _compiled(name: str, parallel: bool):
+    """:func:`_composite_grad_body` compiled (cached) under its own name ``name``.
+
+    numba's on-disk cache keys a kernel by its Python function (module, qualified name, first
+    line) and signature, not by the compile options: one function compiled twice, serial and
+    ``parallel=True``, shares one cache entry, and whichever was compiled first is what both
+    load afterwards.  Each variant is therefore a function of its own (the same code).
+    """
+    body = _composite_grad_body
+    func = types.FunctionType(body.__code__, body.__globals__, name, body.__defaults__,
+                              body.__closure__)  # fmt: skip
+    func.__qualname__ = name
+    func.__doc__ = body.__doc__
+    return njit(parallel=parallel, cache=True)(func)
+
+
+_composite_grad = _compiled("_composite_grad", parallel=False)
+_composite_grad_parallel = _compiled("_composite_grad_parallel", parallel=True)
 
 
 def composite_grad(rays, *args) -> None:
@@ -218,6 +236,32 @@ class OpacityModel:
         nv = len(self.views)
         out = (e_v / nv, cov / nv, g_v / nv, g_c / nv)
         return (*out, share / nv, d_share / nv) if shares else out
+
+    def coverage(self, ops) -> float:
+        """Return the coverage at opacities ``ops`` (K,): ``evaluate(ops, grad=False)[1]``.
+
+        The same compositing and the same float32 mean, without ``E_v`` and the shares (the
+        opacity stage's check at the user's resolution needs only this).  Counts as one
+        evaluation.
+        """
+        self.nfev += 1
+        ops = np.clip(np.asarray(ops, np.float64), 0.0, 1.0)
+        k = self.k
+        cov = 0.0
+        for cache, rays, _ in self.views:
+            n = rays.size
+            if n == 0:
+                continue
+            if hasattr(cache, "opacity_pass"):  # entries spread over MPI ranks
+                _, _, acc, _ = cache.opacity_pass(rays, ops, False)
+            else:
+                alpha, dalpha, ids = self._tables(cache, ops)
+                vis, acc = np.empty((k, n)), np.empty(n)
+                dvis, dacc = np.zeros((k, k, 1)), np.zeros((k, 1))
+                composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha,
+                                k, _tables.ERT, False, vis, dvis, acc, dacc)  # fmt: skip
+            cov += float(acc.astype(np.float32).mean())
+        return cov / len(self.views)
 
     def covering(self, ops) -> tuple:
         """Who hides whom, and who shows more than its target, at opacities ``ops``.

@@ -341,7 +341,7 @@ def _run_exact(run, x0, groups, group_structures, max_iter, info, history):
             return 0.0
         ops = ops0.copy()
         ops[idx] = np.exp(np.clip(y, lo, hi))
-        return user[1] - user[0].evaluate(ops, grad=False)[1]
+        return user[1] - user[0].coverage(ops)
 
     def verified(y_from):
         """:func:`local`, then moved up the coverage gradient until the user's floor holds.

@@ -68,7 +68,7 @@ def _floors(vol, spec, cam, curvature) -> dict:
     from dvr_perception.rays.engine import analyze
 
     small = _reduced(cam, DEFAULT_RESOLUTION)
-    cache = analyze(vol, spec, small, curvature=curvature).cache
+    cache = analyze(vol, spec, small, curvature=curvature, build_cache=True).cache
     problem = Problem([cache], [None], spec, np.ones(3), {}, None)
     params = Params.from_spec(spec)
     model = OpacityModel(problem, params)

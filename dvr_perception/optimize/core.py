@@ -9,7 +9,7 @@ import numpy as np
 
 from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError
-from dvr_perception.measures import calibrate
+from dvr_perception.measures import all_measures, calibrate
 from dvr_perception.measures.visibility import COMPOSITIONS
 from dvr_perception.optimize._exact import OpacityModel
 from dvr_perception.optimize._problem import Params, Problem, public_terms
@@ -25,7 +25,7 @@ from dvr_perception.optimize.results import (
 from dvr_perception.optimize.stages import STAGES
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature_field import curvature_source
-from dvr_perception.rays.engine import BACKENDS, analyze_views
+from dvr_perception.rays.engine import BACKENDS, analyze_views, release_scratch
 from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.volume.volume import Volume
 
@@ -154,6 +154,7 @@ def optimize(
     analyzer=None,
     progress=None,
     backend="auto",
+    measures=False,
 ) -> OptimizationResult:
     """Optimise opacity, lighting and colour of ``spec`` for a readable rendering (Eq. 12-15).
 
@@ -247,6 +248,12 @@ def optimize(
     backend : {"auto", "numba", "numpy", "cuda"}
         Back end of the views' ray analyses (:func:`~dvr_perception.rays.engine.analyze`);
         the re-evaluations composite the cached rays on the CPU whatever the back end.
+    measures : bool
+        Also measure the first view at the user's resolution before and after
+        (``all_measures(analysis, spec)`` with the measures' defaults; the result's
+        ``measures``), each while what the measures share with the optimiser's own terms of
+        that rendering is at hand (the start's right after its terms, the result's right
+        after the final check): cheaper than measuring ``analyses`` afterwards, same numbers.
 
     Returns
     -------
@@ -291,9 +298,11 @@ def optimize(
     if analyzer is None:
         if curvature is None:
             curvature = curvature_source(volume, spec, progress=prep.sub(0.0, 0.3))
+        release_scratch(scratch=False)  # the heap that earlier work freed, before the peak
         # every camera in one call: a volume analysed in bricks is read once for all
         found = analyze_views(volume, spec, todo, curvature=curvature, progress=prep.sub(0.3, 1),
-                              backend=backend)  # fmt: skip
+                              backend=backend, build_cache=True)  # fmt: skip
+        release_scratch()  # no more caches are built here: the walk's scratch goes back
     else:
         found = [analyzer(cam) for cam in todo]
     prep(1.0)
@@ -319,6 +328,7 @@ def optimize(
     params = Params.from_spec(spec)
     names = spec.names
     full0 = full_problem.terms(params, analyses=full_analyses)
+    m_before = all_measures(full_analyses[0], spec) if measures else None
     initial = _report(full_problem, params, mask is not None, full0)
     terms = full0 if same else problem.terms(params, analyses=opt_analyses)
     active = problem.present()
@@ -379,8 +389,11 @@ def optimize(
                done[:kept])  # fmt: skip
     nfev = problem.nfev + (0 if same else full_problem.nfev)
     nfev += 0 if coarse is None else coarse.nfev
+    out_spec = params.to_spec(spec)
+    last = full_problem.render(params, 0)
+    kept_measures = () if not measures else (m_before, all_measures(last, out_spec))
     return OptimizationResult(
-        spec=params.to_spec(spec),
+        spec=out_spec,
         initial=initial,
         final=final,
         stages=tuple(records),
@@ -391,7 +404,8 @@ def optimize(
         message=STATUS_MESSAGES[status],
         success=status == 0,
         structures=why,
-        analyses=(full_analyses[0], full_problem.render(params, 0)),
+        analyses=(full_analyses[0], last),
+        measures=kept_measures,
     )
 
 

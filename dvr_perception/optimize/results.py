@@ -127,6 +127,10 @@ class OptimizationResult:
         ``(before, after)``: the first view's :class:`~dvr_perception.rays.engine.RayAnalysis`
         at the user's resolution with the input spec and with ``spec`` (re-composited from
         the optimiser's cache: equal to a fresh ``analyze``); empty when not kept.
+    measures : tuple
+        ``(before, after)``: ``all_measures`` of ``analyses`` with the input spec and with
+        ``spec`` (:class:`~dvr_perception.measures.MeasureSet`), with ``optimize(...,
+        measures=True)``; else empty.
     """
 
     spec: StructureSpec
@@ -141,3 +145,4 @@ class OptimizationResult:
     success: bool
     structures: dict = field(default_factory=dict)
     analyses: tuple = field(default=(), repr=False, compare=False)
+    measures: tuple = field(default=(), repr=False, compare=False)

@@ -12,8 +12,9 @@ by one Python thread per y band (the slice kernels are serial and release the GI
 * :func:`z_pass` finishes the nine derivatives along z on the rows of a slice with boundary
   voxels, and :func:`z_points` gives the numerator of the mean curvature and ``|grad f|^2`` at
   those voxels.
-* :func:`cell_diffs` and :func:`cells_gradient_max` give an upper bound and the exact maximum
-  of ``|grad f|^2`` per cell (the branch and bound of the global gradient maximum).
+* :func:`cell_diffs` and :func:`cells_gradient_max` give what bounds ``|grad f|^2`` per cell
+  (neighbour differences and the value range) and its exact maximum (the branch and bound of
+  the global gradient maximum).
 
 Kernels are passed as their half ``w[r:]`` (``w[r + a]``, ``a = 0..r``); odd orders use
 ``w[r + a] (s[x + a] - s[x - a])``, so a constant field has exactly zero gradient.
@@ -29,7 +30,9 @@ __all__ = [
     "cell_diffs",
     "cells_gradient_max",
     "classify_slice",
+    "mask_points",
     "need_ranges",
+    "write_curvature",
     "xy_pass",
     "z_pass",
     "z_points",
@@ -346,6 +349,52 @@ def z_points(dbuf, ys, xs, inv, num, mag2):
         mag2[p] = m
 
 
+@njit(cache=True, nogil=True)
+def mask_points(mask, y_off, x_off):
+    """Return the rows and columns of the true pixels of ``mask``, as ``numpy.nonzero``.
+
+    Row-major order, offset by ``(y_off, x_off)``, as int64.
+    """
+    ny, nx = mask.shape
+    n = 0
+    for y in range(ny):
+        for x in range(nx):
+            if mask[y, x]:
+                n += 1
+    ys = np.empty(n, np.int64)
+    xs = np.empty(n, np.int64)
+    n = 0
+    for y in range(ny):
+        for x in range(nx):
+            if mask[y, x]:
+                ys[n] = y + y_off
+                xs[n] = x + x_off
+                n += 1
+    return ys, xs
+
+
+@njit(cache=True, nogil=True)
+def write_curvature(num, mag2, ys, xs, thr, thr_hi, out, cand):
+    """Write ``|H| = |num| / (2 |g|^3)`` at the points ``(ys, xs)`` of the slice ``out``.
+
+    Points with ``mag2 <= thr`` are flat (0).  Returns the largest ``mag2``; ``cand`` marks
+    the points that are not flat but whose ``mag2`` is at most ``thr_hi`` (they may be flat
+    against the whole volume's gradient maximum).  The arithmetic of the numpy code in
+    :func:`~dvr_perception.rays._curvature_passes._field_curvature`, point by point.
+    """
+    seen = 0.0
+    for p in range(num.size):
+        m = mag2[p]
+        seen = max(seen, m)
+        flat = m <= thr
+        cand[p] = (not flat) and m <= thr_hi
+        if flat:
+            out[ys[p], xs[p]] = 0.0
+        else:
+            out[ys[p], xs[p]] = np.float32(abs(num[p]) / (2.0 * m * np.sqrt(m)))
+    return seen
+
+
 @njit(inline="always")
 def _value(src, z, y, x, match, offset):
     if match >= 0:
@@ -360,11 +409,14 @@ def cell_diffs(src, match, offset, size, z0, y0, x0, nz, ny, nx, out):
     Cell ``(i, j, k)`` covers voxels ``z0 + size * i ...`` (clipped to ``[z0, z0 + nz)`` and
     so on); the pair ``(v, v + e)`` counts for the cell of ``v`` (the neighbour index is
     clamped to the volume, so pairs leaving it count 0).  The field is ``src - offset``, or
-    ``src == match`` when ``match >= 0``.
+    ``src == match`` when ``match >= 0``.  ``out[..., :3]`` are those differences and
+    ``out[..., 3]``, ``out[..., 4]`` the smallest and largest value of the cell's voxels.
     """
     cz, _, cx = out.shape[:3]
     vz, vy, vx = src.shape
-    out[:, :, :, :] = 0.0
+    out[:, :, :, :3] = 0.0
+    out[:, :, :, 3] = np.inf
+    out[:, :, :, 4] = -np.inf
     for i in prange(cz):
         for z in range(z0 + size * i, min(z0 + size * (i + 1), z0 + nz)):
             zn = min(z + 1, vz - 1)
@@ -375,15 +427,21 @@ def cell_diffs(src, match, offset, size, z0, y0, x0, nz, ny, nx, out):
                     dz = out[i, j, k, 0]
                     dy = out[i, j, k, 1]
                     dx = out[i, j, k, 2]
+                    lo = out[i, j, k, 3]
+                    hi = out[i, j, k, 4]
                     for x in range(x0 + size * k, min(x0 + size * (k + 1), x0 + nx)):
                         v = _value(src, z, y, x, match, offset)
                         dz = max(dz, abs(_value(src, zn, y, x, match, offset) - v))
                         dy = max(dy, abs(_value(src, z, yn, x, match, offset) - v))
                         xn = min(x + 1, vx - 1)
                         dx = max(dx, abs(_value(src, z, y, xn, match, offset) - v))
+                        lo = min(lo, v)
+                        hi = max(hi, v)
                     out[i, j, k, 0] = dz
                     out[i, j, k, 1] = dy
                     out[i, j, k, 2] = dx
+                    out[i, j, k, 3] = lo
+                    out[i, j, k, 4] = hi
 
 
 @njit(parallel=True, cache=True)

@@ -377,7 +377,7 @@ def _field_pass(fld: _Field, geo: _Geometry, nk, rowlo, rowhi, points_of, emit,
 def _cell_diffs_numpy(fld: _Field, org, ncell, size: int) -> np.ndarray:
     """Return what ``cell_diffs`` gives, with numpy (a slab of cells at a time)."""
     vz, vy, vx = fld.src.shape
-    out = np.zeros((*ncell, 3), np.float32)
+    out = np.zeros((*ncell, 5), np.float32)
     ys = slice(org[1], min(vy, org[1] + size * ncell[1]))
     xs = slice(org[2], min(vx, org[2] + size * ncell[2]))
     for i in range(ncell[0]):
@@ -392,11 +392,14 @@ def _cell_diffs_numpy(fld: _Field, org, ncell, size: int) -> np.ndarray:
             np.abs(np.diff(f[: z1 - z0], axis=1))[:, : ys.stop - ys.start],
             np.abs(np.diff(fx, axis=2))[:, :, : xs.stop - xs.start],
         ]
-        for a, d in enumerate(diffs):
-            pad = np.zeros((size, size * ncell[1], size * ncell[2]), np.float32)
+        own = f[: z1 - z0, : ys.stop - ys.start]  # the cells' voxels
+        for a, (d, fill, pick) in enumerate(
+            [(d, 0.0, np.max) for d in diffs] + [(own, np.inf, np.min), (-own, np.inf, np.min)]
+        ):
+            pad = np.full((size, size * ncell[1], size * ncell[2]), fill, np.float32)
             pad[: d.shape[0], : d.shape[1], : d.shape[2]] = d
-            cells = pad.reshape(size, ncell[1], size, ncell[2], size).max(axis=(0, 2, 4))
-            out[i, :, :, a] = cells
+            cells = pick(pad.reshape(size, ncell[1], size, ncell[2], size), axis=(0, 2, 4))
+            out[i, :, :, a] = cells if a < 4 else -cells
     return out
 
 
@@ -422,14 +425,41 @@ def _cells_gradient_max_numpy(fld: _Field, geo: _Geometry, boxes) -> np.ndarray:
     return out
 
 
+def _cell_bounds(diffs: np.ndarray, geo: _Geometry) -> np.ndarray:
+    """Upper bound of ``|grad f|^2`` (world units) in every cell, from :func:`cell_diffs`.
+
+    A voxel's filters reach ``r`` voxels, so the cells' neighbour differences ``D`` and value
+    ranges are dilated over the cells in reach.  The derivative along an axis is ``sum_t
+    w_t (S(v + t) - S(v - t))`` (``t > 0``, ``w_t > 0``, ``S`` the data smoothed across:
+    a convex combination of values), and ``|S(v + t) - S(v - t)|`` is at most the value
+    range ``R`` and at most ``2 t D``: the derivative is at most ``sum_t w_t min(R, 2 t D)``
+    (``D`` itself for a ramp, where ``sum_t 2 t w_t = 1``; about a third of ``R`` across a
+    step, where ``D`` alone would give ``R``).  A margin of ``1e-5`` times the largest
+    magnitude covers the float32 rounding of the filters.
+    """
+    reach = [2 * math.ceil(r / _CELL) + 1 for r in geo.radii]
+    near = ndimage.maximum_filter(diffs[..., :3], size=(*reach, 1), mode="constant", cval=0.0)
+    lo = ndimage.minimum_filter(diffs[..., 3], size=reach, mode="constant", cval=np.inf)
+    hi = ndimage.maximum_filter(diffs[..., 4], size=reach, mode="constant", cval=-np.inf)
+    lo, hi = lo.astype(np.float64), hi.astype(np.float64)
+    span = hi - lo
+    margin = 1e-5 * np.maximum(np.abs(lo), np.abs(hi))
+    bound2 = np.zeros(span.shape)
+    for a in range(3):
+        w = geo.half[a][1].astype(np.float64)  # w[t], t = 0..r (w[0] = 0)
+        d = near[..., a].astype(np.float64)
+        b = sum(w[t] * (np.minimum(span, 2.0 * t * d) + margin) for t in range(1, w.size))
+        bound2 += (b * geo.inv[a]) ** 2
+    return bound2 * (1 + 1e-5)
+
+
 def _gradient_max(fld: _Field, geo: _Geometry, nk, lower: float = 0.0, floor: float = 0.0):
     """Largest ``|grad f|`` over ``geo``'s extent, exact when it is at least ``floor``.
 
     Branch and bound over cells of 16³ voxels: the largest neighbour difference ``D`` along an
-    axis in a cell's reach bounds that derivative (the derivative-of-Gaussian weights ``w_j``
-    have ``sum(w_j j) = 1`` and are positive for ``j > 0``, so ``|sum w_j f_j| <= D``); cells
-    are filtered exactly in order of decreasing bound until the bound is below the best value
-    found (or ``floor``).  ``lower`` is a known lower bound (a gradient seen elsewhere).
+    axis and the value range in a cell's reach bound that derivative (:func:`_cell_bounds`);
+    cells are filtered exactly in order of decreasing bound until the bound is below the best
+    value found (or ``floor``).  ``lower`` is a known lower bound (a gradient seen elsewhere).
     """
     (ez0, ez1), (ey0, ey1), (ex0, ex1) = geo.extent
     c = _CELL
@@ -438,15 +468,12 @@ def _gradient_max(fld: _Field, geo: _Geometry, nk, lower: float = 0.0, floor: fl
     org = lo
     ncell = [math.ceil((h - o) / c) for o, h in zip(org, hi, strict=True)]
     if nk is not None:
-        diffs = np.zeros((*ncell, 3), np.float32)
+        diffs = np.zeros((*ncell, 5), np.float32)
         sizes = [min(h, o + c * n) - o for o, h, n in zip(org, hi, ncell, strict=True)]
         nk.cell_diffs(fld.src, fld.match, np.float32(fld.offset), c, *org, *sizes, diffs)
     else:
         diffs = _cell_diffs_numpy(fld, org, ncell, c)
-    # a voxel's filters reach r voxels: dilate the per-cell differences accordingly
-    reach = [2 * math.ceil(r / c) + 1 for r in geo.radii]
-    bound = ndimage.maximum_filter(diffs, size=(*reach, 1), mode="constant", cval=0.0)
-    bound2 = ((bound.astype(np.float64) * geo.inv) ** 2).sum(axis=-1) * (1 + 1e-5)
+    bound2 = _cell_bounds(diffs, geo)
     cells = []
     for i, j, k in zip(*np.nonzero(bound2 > max(lower, floor) ** 2), strict=True):
         z0, y0, x0 = org[0] + c * i, org[1] + c * j, org[2] + c * k
@@ -504,6 +531,8 @@ def _chunk(volume, spec, geo: _Geometry, nk, fields, out, boundary, tick=None) -
                     for d in label_points.values():
                         if k in d:
                             mask.flat[d[k]] = False
+                if nk is not None:
+                    return nk.mask_points(mask, wy.start, wx.start)
                 ys, xs = np.nonzero(mask)
                 return ys + wy.start, xs + wx.start
 
@@ -539,6 +568,14 @@ def _field_curvature(fld: _Field, geo: _Geometry, nk, ranges, points_of, out, ti
         nonlocal seen
         ys = ys - wy.start
         xs = xs - wx.start
+        if nk is not None:  # the numbers below, point by point
+            cand = np.empty(num.size, np.bool_)
+            top = nk.write_curvature(num, mag2, ys, xs, thr, thr_hi, out[k], cand)
+            if not known:
+                seen = max(seen, top)
+                if cand.any():
+                    maybe.append((k, ys[cand], xs[cand], mag2[cand]))
+            return
         flat = mag2 <= thr
         safe = np.where(flat, 1.0, mag2)
         h = np.abs(num) / (2.0 * safe * np.sqrt(safe))

@@ -16,6 +16,7 @@ Everything here is plain numpy and is shared by the numba and the numpy back end
 from __future__ import annotations
 
 import math
+import mmap
 import weakref
 
 import numpy as np
@@ -35,11 +36,14 @@ __all__ = [
     "clipping_range",
     "code_directions",
     "compact_index",
+    "index_in_records",
+    "index_source",
     "index_volume",
     "normal_codes",
     "ray_segments",
     "scalar_range",
     "skip_maps",
+    "sparse_zeros",
     "structure_blocks",
     "structure_distances",
     "voxel_records",
@@ -69,6 +73,43 @@ def _store(volume) -> dict:
         d = {}
         _STORE[volume] = d
     return d
+
+
+#: Arrays of at least this many bytes are made by :func:`sparse_zeros` without huge pages.
+SPARSE_BYTES = 8 * 2**20
+
+
+def sparse_zeros(shape, dtype) -> np.ndarray:
+    """``np.zeros(shape, dtype)`` whose memory is taken only where it is written.
+
+    For large arrays that are written in part and read little: the cache-building walk's
+    entries (each chunk of rays fills a region sized for all of its samples from its start,
+    then they are copied out once).  Memory is taken page by page as it is written, but
+    numpy asks for transparent huge pages (2 MiB) on large arrays, and every region touched
+    then took whole huge pages (80-100 % of the walk's regions were resident instead of the
+    entries' share).  An anonymous private mapping advised against huge pages keeps the
+    resident part to the 4 KiB pages written; it is unmapped with the last view.  Not for
+    arrays read at random (the ``|H|`` volume, 15 % of it never written, made the cache-
+    building walk about 10 % slower without huge pages).  Small arrays, and systems without
+    ``MADV_NOHUGEPAGE``: ``np.zeros``.
+
+    Examples
+    --------
+    >>> a = sparse_zeros((3, 2**21), np.float32)
+    >>> a.shape, a.dtype.name, bool(a.flags.writeable), float(a[2, 5])
+    ((3, 2097152), 'float32', True, 0.0)
+    """
+    dt = np.dtype(dtype)
+    count = int(np.prod(shape, dtype=np.int64))
+    advice = getattr(mmap, "MADV_NOHUGEPAGE", None)
+    if count * dt.itemsize < SPARSE_BYTES or advice is None or not hasattr(mmap, "MAP_PRIVATE"):
+        return np.zeros(shape, dt)
+    try:
+        buf = mmap.mmap(-1, count * dt.itemsize, flags=mmap.MAP_PRIVATE)
+        buf.madvise(advice)
+    except (OSError, ValueError):  # no such advice here: ordinary memory
+        return np.zeros(shape, dt)
+    return np.frombuffer(buf, dt, count).reshape(shape)
 
 
 def clipping_range(camera, bounds) -> tuple[float, float]:
@@ -194,14 +235,67 @@ def index_volume(volume, lo: float, scale: float, size: int) -> np.ndarray:
 def compact_index(volume, index: np.ndarray) -> np.ndarray:
     """``index`` as uint8 when every entry fits (memoised), else ``index`` itself.
 
-    What the walk reads after early ray termination, where only the table index matters.
+    What the walk reads after early ray termination, where only the table index matters
+    (the low 16 bits of each element): after :func:`index_in_records`, a table too large for
+    uint8 is read from the voxel records.
     """
     key = ("index8", id(index))
     memo = _store(volume)
     if key not in memo:
         small = int(index.max(initial=0)) <= 255
-        memo[key] = index.astype(np.uint8) if small else index
+        memo[key] = index.astype(np.uint8) if small else index_source(index)
     return memo[key]
+
+
+def index_source(index: np.ndarray) -> np.ndarray:
+    """Return the voxel records ``index`` is a view of (:func:`index_in_records`), else ``index``.
+
+    What a walk that masks the low 16 bits reads for the table index: contiguous either way.
+    """
+    base = index.base
+    if (isinstance(base, np.ndarray) and base.dtype == np.uint32 and base.shape == index.shape
+            and not index.flags.c_contiguous):  # fmt: skip
+        return base
+    return index
+
+
+def index_in_records(volume, index: np.ndarray, records: np.ndarray) -> np.ndarray:
+    """Keep ``volume``'s table index only inside its voxel records from now on; return it.
+
+    :func:`voxel_records` holds the table index in the low 16 bits of every record, so a
+    whole-volume analysis with shading had the same numbers twice (2 of its 13 bytes per
+    voxel: 226 MiB on a 512 x 512 x 452 CT).  The memoised ``index`` is replaced by a
+    strided uint16 view of ``records`` (the same values, no memory of its own), and what was
+    memoised for ``index`` (:func:`cell_map`, :func:`voxel_records`, :func:`compact_index`
+    and :func:`structure_blocks`) is kept for the view, so ``index`` is freed as soon as the
+    caller lets it go.  :func:`compact_index` then gives the uint8 index where the table
+    fits it, else ``records`` (the walk masks the low 16 bits).  ``records`` must be
+    ``voxel_records(volume, index, ...)``.
+    """
+    if index.base is records:  # already
+        return index
+    memo = _store(volume)
+    if records.dtype != np.uint32 or records.shape != index.shape:
+        raise ValueError("records: expected the uint32 voxel records of index")
+    halves = records.view(np.uint16)  # (nz, ny, 2 nx): each record's two halves
+    low = 0 if np.little_endian else 1
+    view = halves[..., low::2]
+    old, new = id(index), id(view)
+    for key in [k for k in list(memo) if isinstance(k, tuple) and k and old in k[1:]]:
+        value = memo.pop(key, None)
+        if value is None:  # (another thread dropped it)
+            continue
+        if key[0] == "index8" and value is index:
+            value = records  # the table does not fit uint8: the walk reads the records
+        if key[0] == "sblocks":  # its index is compact_index's: now the records
+            value = (weakref.ref(records), value[1])
+            memo[("sblocks", id(records), *key[2:])] = value
+            continue
+        memo[tuple(new if v == old and i else v for i, v in enumerate(key))] = value
+    for key, value in list(memo.items()):
+        if value is index:
+            memo[key] = view
+    return view
 
 
 #: Cell classes of :func:`cell_map`: no sample in the cell belongs to a structure, or its
@@ -468,7 +562,7 @@ def _structure_blocks_numpy(index, run, run_bits, bits, lab, has, lab_base, last
     for zb, yb, xb in np.ndindex(out.shape):
         box = (slice(b * zb, b * zb + b + 1), slice(b * yb, b * yb + b + 1),
                slice(b * xb, b * xb + b + 1))  # fmt: skip
-        v = index[box]
+        v = index[box] & 0xFFFF  # the table index (also of voxel records)
         klo = min(max(math.floor(int(v.min()) * _W_SCALE + _W_BIAS) - 2, 0), last)
         khi = min(max(math.floor(int(v.max()) * _W_SCALE + _W_BIAS) + 1, 0), last)
         m = np.bitwise_or.reduce(run_bits[run[klo] : run[khi] + 1], initial=np.uint32(0))

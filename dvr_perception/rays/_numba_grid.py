@@ -157,7 +157,7 @@ def structure_blocks(index, run, run_bits, bits, labels, has_labels, lab_base, l
                 for z in range(4 * zb, min(4 * zb + 5, nz)):
                     for y in range(4 * yb, min(4 * yb + 5, ny)):
                         for x in range(4 * xb, min(4 * xb + 5, nx)):
-                            v = np.int64(index[z, y, x])
+                            v = np.int64(index[z, y, x] & 0xFFFF)  # (or a record)
                             lo = min(lo, v)
                             hi = max(hi, v)
                             if has_labels:

@@ -493,14 +493,14 @@ def curvature_volume(
     nk = _curvature_kernels()
     geo = _Geometry(data.shape, volume.spacing, sig, ext)
     fields = _fields(volume, spec, globals_, gradient_max, offset)
-    sum_inv2 = float((geo.inv**2).sum())
     for fld in fields:
         if fld.gradient_max is not None:
             continue  # the bound only serves the flatness test without the maximum
         if fld.key is None:
-            fld.bound2 = (float(data.max()) - float(data.min())) ** 2 * sum_inv2 * (1 + 1e-5)
+            lo, hi = float(data.min()) - fld.offset, float(data.max()) - fld.offset
         else:
-            fld.bound2 = sum_inv2 * (1 + 1e-5)  # an indicator's differences are at most 1
+            lo, hi = -fld.offset, 1.0 - fld.offset  # an indicator's values are 0 and 1
+        fld.bound2 = _range_bound2(geo, hi - lo, max(abs(lo), abs(hi)))
     _, (ey0, ey1), (ex0, ex1) = ext
     # y bands (the ring of a band stays in the processor's cache), run by a pool of threads
     rows = max(_BAND_VOXELS // ((ex1 - ex0) * (2 * geo.radii[0] + 1)), 8)
@@ -554,6 +554,21 @@ def curvature_volume(
         _resolve_flat(fld, geo, nk, seen, maybe, out)
     report(1.0)
     return out, boundary
+
+
+def _range_bound2(geo, span: float, magnitude: float) -> float:
+    """Upper bound of ``|grad f|^2`` (world units) of a field whose values span ``span``.
+
+    Along an axis the derivative is ``sum_t w_t (S(v + t) - S(v - t))`` over ``t > 0``
+    (``w_t > 0``, ``S`` a convex combination of values), at most ``span * sum_t w_t``
+    (about a third of ``span`` at ``sigma = 1``); ``1e-5 * magnitude`` (the largest
+    ``|value|``) covers the float32 rounding of the filters.
+    """
+    total = 0.0
+    for a in range(3):
+        w = geo.half[a][1].astype(np.float64)[1:]
+        total += (float(w.sum()) * (span + 1e-5 * magnitude) * float(geo.inv[a])) ** 2
+    return total * (1 + 1e-5)
 
 
 def _follow(futures, done, total, report, stopped) -> None:

@@ -41,6 +41,7 @@ import functools
 import threading
 import time
 import warnings
+import weakref
 
 import numpy as np
 
@@ -74,7 +75,7 @@ from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.structures.transfer import build_lut
 from dvr_perception.volume.volume import Volume
 
-__all__ = ["RayAnalysis", "RayCache", "analyze", "analyze_views", "reevaluate"]
+__all__ = ["RayAnalysis", "RayCache", "analyze", "analyze_views", "reevaluate", "rewalk"]
 
 
 def _pick_backend(backend: str):
@@ -122,12 +123,13 @@ def analyze(
     opacities=None,
     curvature=None,
     backend: str = "auto",
-    build_cache: bool = True,
+    build_cache: bool = False,
     occlusion_free: bool = True,
     brick=None,
     memory_limit=None,
     progress=None,
     exact: bool = False,
+    rays=None,
 ) -> RayAnalysis:
     """Render ``volume`` with ``spec`` from ``camera`` and measure every structure per pixel.
 
@@ -156,7 +158,11 @@ def analyze(
         :class:`~dvr_perception.errors.DVRInputError`, where ``"auto"`` takes the bricked
         CPU analysis) and its cache re-evaluates on the CPU.
     build_cache : bool
-        Keep the per-ray sample lists for :func:`reevaluate` (costs memory and a little time).
+        Keep the per-ray sample lists for :func:`reevaluate` (an optimiser's or a slider's
+        repeated re-composites).  Off by default: the cache's walk must visit every sample
+        behind early ray termination (a new opacity may move it), which costs 2-3x the
+        analysis on deep volumes and memory; every measure is the same without it (the view
+        without an enclosing layer is then walked again, :func:`rewalk`, DECISIONS D7).
     occlusion_free : bool
         Compute the occlusion-free ``assigned`` opacities, which need every sample of every ray
         (default).  ``False`` renders only: every ray stops at early ray termination as VTK's
@@ -191,6 +197,13 @@ def analyze(
         measure's terms agree within 1e-6, but the thickness composition and
         ``assigned_share`` read ``assigned`` beyond saturation: pass ``exact=True`` (or
         build the cache, whose walk is always exact) for them.
+    rays : array_like of int, optional
+        Flat (row-major) pixel indices: walk only these rays; the other pixels see no volume
+        (background, zeros in every buffer).  Each walked ray equals the whole image's to
+        the last bit.  A partial view for what reads only some pixels, e.g. the view without
+        an enclosing layer that :func:`recomposite` makes by walking again where an analysis
+        has no cache (DECISIONS D7).  On the CPU (a ``"cuda"`` request walks them with
+        numba).
 
     Returns
     -------
@@ -223,7 +236,11 @@ def analyze(
         [s.render_opacity for s in spec.structures] if opacities is None else opacities, k
     )
     curv = _check_curvature(curvature, volume)
+    if rays is not None and _kind(backend, _pick_backend(backend)) == "cuda":
+        backend = "numba"  # a few rays: the CPU's walk (the GPU's rays are made whole)
     scene = _scene(volume, spec, camera, backend)
+    if rays is not None:
+        scene = (*scene[:-1], _only_rays(scene[-1], rays, camera))
     nk, _, _, lut, _, _, memb, seg = scene
     if not seg["n"].any():
         warnings.warn(
@@ -257,23 +274,90 @@ def analyze(
     if need["mode"] == "bricks":  # the bricked walk (imported only when needed)
         from dvr_perception.rays.bricks import analyze_bricked
 
-        return analyze_bricked(
+        res = analyze_bricked(
             volume, spec, camera, brick=need["brick"], opacities=ops, curvature=curv,
             build_cache=build_cache, occlusion_free=occlusion_free, memory_limit=memory_limit,
             progress=report, segments=seg if host_rays else None, exact=exact,
         )  # fmt: skip
-    return _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cache,
-                          occlusion_free, report, t_start, skip)  # fmt: skip
+        return _remember_source(res, volume, spec, backend, memory_limit)
+    # a few rays of the image: walked alone (CPU), then put in place in the image
+    subset = None
+    if rays is not None and kind == "numba" and not build_cache and not occlusion_free:
+        subset = np.flatnonzero(seg["n"])
+    res = _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cache,
+                         occlusion_free, report, t_start, skip, subset)  # fmt: skip
+    return _remember_source(res, volume, spec, backend, memory_limit)
+
+
+class _RayRow:
+    """The shape a subset of ``m`` rays is walked in: one row of ``m`` pixels."""
+
+    def __init__(self, m: int):
+        self.height, self.width = 1, m
+
+
+def _finish_rays(subset, rgba, vis, asg, present, cimg, spec, camera, stats, aimp):
+    """:func:`_finish` of a walk of ``subset`` alone, put in place in the whole image.
+
+    The rays not walked hold zeros and the background, as a ray that sees no volume.
+    """
+    n, k, m = camera.height * camera.width, len(spec.structures), len(subset)
+    f32 = np.float32
+    bg = np.asarray(spec.background, f32)
+    part = (np.empty((m, 4), f32), np.empty((m, 3), f32), np.empty(m, f32),
+            np.empty((k, m), f32), np.empty(m, f32))  # fmt: skip
+    _numba_kernels().finish(
+        np.ascontiguousarray(rgba[:m]), np.ascontiguousarray(vis[:, :m]),
+        np.ascontiguousarray(cimg[:m]), bg, *part,
+    )  # fmt: skip
+    rgba32, image, acc = np.zeros((n, 4), f32), np.empty((n, 3), f32), np.zeros(n, f32)
+    vis32, cimg32, bits = np.zeros((k, n), f32), np.zeros(n, f32), np.zeros(n, np.uint32)
+    image[:] = np.clip(bg, 0.0, 1.0)
+    rgba32[subset], image[subset], acc[subset] = part[0], part[1], part[2]
+    vis32[:, subset], cimg32[subset], bits[subset] = part[3], part[4], present[:m]
+    return _analysis(rgba32, image, acc, vis32, asg, bits, cimg32, spec, camera, stats, None,
+                     aimp)  # fmt: skip
+
+
+def _only_rays(seg: dict, rays, camera: Camera) -> dict:
+    """``seg`` with no samples on every ray but ``rays`` (checked flat pixel indices)."""
+    n_rays = camera.width * camera.height
+    try:
+        sel = np.asarray(rays).ravel()
+        ok = sel.dtype.kind in "iu" and (sel.size == 0 or (sel.min() >= 0 and sel.max() < n_rays))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise DVRInputError(f"rays: expected flat pixel indices in [0, {n_rays}), got {rays!r}")
+    keep = np.zeros(n_rays, bool)
+    keep[sel] = True
+    out = dict(seg)
+    out["n"] = np.where(keep, seg["n"], 0).astype(seg["n"].dtype)
+    return out
+
+
+#: Per analysis without a cache: what :func:`recomposite` walks again (the volume, spec,
+#: back end and memory limit of the call).  Weak keys: dropped with the analysis.
+_SOURCES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _remember_source(res: RayAnalysis, volume, spec, backend, memory_limit) -> RayAnalysis:
+    if res.cache is None:
+        _SOURCES[res] = (volume, spec, backend, memory_limit)
+    return res
 
 
 def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cache,
-                   occlusion_free, report, t_start, skip=False) -> RayAnalysis:  # fmt: skip
+                   occlusion_free, report, t_start, skip=False,
+                   subset=None) -> RayAnalysis:  # fmt: skip
     """Analyse the whole volume at once (:func:`analyze` chose it): walk, cache and result.
 
     ``scene``: :func:`_scene`'s tuple; ``kind``: the back end that runs (:func:`_kind`);
     ``imp`` and ``ops``: the checked importances and opacities; ``curv``: the checked
     curvature array or None; ``skip``: the skipping walk behind early ray termination
-    (``exact=False`` without the cache).
+    (``exact=False`` without the cache); ``subset``: flat indices of the only rays with
+    samples (numba, image only): they are walked as one row of their own, so the set-up and
+    the walk cost what these rays cost, not the whole image.
     """
     nk, step, unit, lut, labmap, ids, memb, seg = scene
     k = len(spec.structures)
@@ -287,7 +371,12 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
     nrays = camera.width * camera.height
     idx = _grid.index_volume(volume, lut.lo, lut.scale, lut.size)
     cells = None if nk is None else _grid.cell_map(volume, idx, ids, memb, labmap)
-    vol = _grid.voxel_records(volume, idx, cells) if shade else idx
+    if shade:
+        vol = _grid.voxel_records(volume, idx, cells)
+        if cells is not None:  # the index lives on in the records only (numba's walk)
+            idx = _grid.index_in_records(volume, idx, vol)
+    else:  # the index, or the records that hold it (a view of them is not contiguous)
+        vol = idx if cells is None else _grid.index_source(idx)
     cv = curv if has_curv else np.zeros((2, 2, 2), np.float32)
     lab = (labmap, lut.size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8), -1)
     tab = _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16)
@@ -313,8 +402,12 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
             walker = _walk_numba
             if kind == "cuda":
                 walker = functools.partial(_walk_cuda, bg=np.asarray(spec.background, np.float32))
-            res = walker(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
-                         camera, build_cache, occlusion_free, locked,
+            walk_seg, walk_cam = seg, camera
+            if subset is not None:
+                walk_seg = {q: np.ascontiguousarray(seg[q][subset]) for q in ("a", "b", "t", "n")}
+                walk_cam = _RayRow(len(subset))
+            res = walker(nk, volume, lab, idx, vol, cv, walk_seg, step, memb, alpha_w, args, k,
+                         walk_cam, build_cache, occlusion_free, locked,
                          report.sub(0.1, 0.9), skip=skip)  # fmt: skip
             rgba, vis, asg, present, cimg, start, count, entries, walked, aimp = res
             if entries is not None:
@@ -372,7 +465,9 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
             )
             stats["cache_entries"] = len(c_lut)
             stats["cache_bytes"] = cache.nbytes
-        if isinstance(rgba, tuple):  # the GPU made the float32 outputs and the image
+        if subset is not None:
+            res = _finish_rays(subset, rgba, vis, asg, present, cimg, spec, camera, stats, aimp)
+        elif isinstance(rgba, tuple):  # the GPU made the float32 outputs and the image
             res = _analysis(*rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
         else:
             res = _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp)
@@ -414,7 +509,7 @@ def analyze_views(
     cameras,
     *,
     curvature=None,
-    build_cache: bool = True,
+    build_cache: bool = False,
     memory_limit=None,
     progress=None,
     backend: str = "auto",
@@ -458,10 +553,11 @@ def analyze_views(
     if shared and _kind(backend, nk) != "cuda":  # bricks are the CPU's (analyze() decides)
         from dvr_perception.rays.bricks import analyze_bricked_views
 
-        return analyze_bricked_views(
+        results = analyze_bricked_views(
             volume, spec, cameras, brick=bricks.pop(), curvature=curv, build_cache=build_cache,
             memory_limit=memory_limit, progress=report, segments=segs, exact=exact,
         )  # fmt: skip
+        return [_remember_source(r, volume, spec, backend, memory_limit) for r in results]
     kw = {
         "curvature": curvature,
         "build_cache": build_cache,
@@ -472,6 +568,69 @@ def analyze_views(
     n = len(cameras)
     return [analyze(volume, spec, cam, progress=report.sub(i / n, (i + 1) / n), **kw)
             for i, cam in enumerate(cameras)]  # fmt: skip
+
+
+def can_rewalk(analysis) -> bool:
+    """Whether :func:`rewalk` can render ``analysis``'s view again.
+
+    True for an analysis :func:`analyze` made without a cache (it remembers its volume).
+    """
+    return isinstance(analysis, RayAnalysis) and analysis in _SOURCES
+
+
+def rewalk(analysis: RayAnalysis, *, opacities, rays=None, background=None) -> RayAnalysis:
+    """Render an analysis's view again with new opacities, walking the volume (no cache).
+
+    What :func:`reevaluate` does from a cache, for an analysis made with
+    ``build_cache=False``: the same volume, spec, camera and back end, the image only (rays
+    stop at early ray termination), on ``rays`` only (flat pixel indices; default all).
+    DECISIONS D7: the transparency of an enclosing layer reads what it covers re-composited
+    without it; where no cache exists, this walk of the affected pixels with that layer's
+    opacity 0 gives the same luminance as the cache's re-composite.
+
+    Parameters
+    ----------
+    analysis : RayAnalysis
+        Made by :func:`analyze` or :func:`analyze_views` with ``build_cache=False``.
+    opacities : array_like of float
+        ``K`` rendering opacities in [0, 1].
+    rays : array_like of int, optional
+        Flat pixel indices to walk (the others are background), as :func:`analyze`'s.
+    background : array_like, optional
+        RGB in [0, 1] behind the volume (default the spec's).
+
+    Returns
+    -------
+    RayAnalysis
+        ``occlusion_free=False``: ``assigned`` is NaN.
+
+    Examples
+    --------
+    >>> from dvr_perception.structures.phantom import make_phantom
+    >>> vol, spec = make_phantom(size=24)
+    >>> cam = Camera.from_view(vol.bounds, width=8, height=8)
+    >>> res = analyze(vol, spec, cam, build_cache=False)
+    >>> ops = [s.render_opacity for s in spec.structures]
+    >>> again = rewalk(res, opacities=ops, rays=[27, 28])
+    >>> bool((again.image[3, 3:5] == res.image[3, 3:5]).all())
+    True
+    """
+    source = _SOURCES.get(analysis) if isinstance(analysis, RayAnalysis) else None
+    if source is None:
+        raise DVRInputError(
+            "analysis: only an analysis made by analyze(..., build_cache=False) can be walked "
+            "again (one with a cache re-composites with reevaluate)"
+        )
+    volume, spec, backend, memory_limit = source
+    if background is not None:
+        bg = np.asarray(background, dtype=np.float64)
+        if bg.shape != (3,) or not np.all((bg >= 0) & (bg <= 1)):
+            raise DVRInputError(f"background: expected 3 numbers in [0, 1], got {background}")
+        spec = StructureSpec(spec.structures, tuple(bg), spec.rendering, spec.view,
+                             spec.labels_file)  # fmt: skip
+    return analyze(volume, spec, analysis.camera, opacities=opacities, build_cache=False,
+                   occlusion_free=False, rays=rays, backend=backend,
+                   memory_limit=memory_limit)  # fmt: skip
 
 
 _SCRATCH: dict = {}
@@ -513,10 +672,12 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
     chunk_base = np.ascontiguousarray(chunk_base[:-1])
     chunk_end = np.zeros(nchunk, np.int64)
     cap = max(total, 1)
-    src_lut = _scratch("lut", cap, (), np.uint16, locked)
-    src_j = _scratch("j", cap if build else 1, (), np.int32, locked)
-    src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked)
-    src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked)
+    # the entries' regions are filled in part: only the pages written take memory
+    src_lut = _scratch("lut", cap, (), np.uint16, locked, sparse=True)
+    src_j = _scratch("j", cap if build else 1, (), np.int32, locked, sparse=True)
+    src_sh = _scratch("sh", cap if build and shade else 1, (2,), np.uint16, locked, sparse=True)
+    src_curv = _scratch("curv", cap if build and has_curv else 1, (), np.float32, locked,
+                        sparse=True)  # fmt: skip
     tail_tables = _tail_tables(ids, memb, alpha_w, rep, k)
     labels = lab[0] if lab[1] >= 0 else None
     maps = (tix, cells, _grid.block_map(volume, cells), rep, *lab, *tail_tables,
@@ -688,19 +849,64 @@ def _cuda_array(shape, dtype):
     return cuda.device_array(shape, dtype)
 
 
-def _scratch(name, n, tail, dtype, shared):
+def _scratch(name, n, tail, dtype, shared, sparse=False):
     """Return ``n`` rows of a reusable module-level scratch array.
 
     Page faults of fresh memory cost several ms per frame.  ``shared`` False (another thread
-    holds the scratch lock): a private array.
+    holds the scratch lock): a private array.  ``sparse``: memory of which the walk writes
+    only a part (:func:`~dvr_perception.rays._grid.sparse_zeros`).
     """
+    make = _grid.sparse_zeros if sparse else np.empty
     if not shared:
-        return np.empty((n, *tail), dtype)
+        return make((n, *tail), dtype)
     a = _SCRATCH.get(name)
     if a is None or len(a) < n:
-        a = np.empty((max(n, int(1.25 * len(a)) if a is not None else n), *tail), dtype)
+        _SCRATCH.pop(name, None)  # freed before the larger one is made
+        a = make((max(n, int(1.25 * len(a)) if a is not None else n), *tail), dtype)
         _SCRATCH[name] = a
     return a[:n]
+
+
+def release_scratch(*, scratch: bool = True) -> None:
+    """Give memory back: the walk's scratch (``scratch``) and the C heap's free memory.
+
+    The scratch (kept to spare the next analysis page faults: the per-ray buffers and the
+    cache-building walk's entries, about the size of the largest cache built) is for a
+    caller that walks no more rays for a while (the optimiser, once its views are
+    analysed); it is skipped while an analysis holds it.  The C library is asked to return
+    the heap memory that earlier analyses and measures freed (glibc's ``malloc_trim``: 85 MiB
+    after the timed frames of a 512 x 512 x 452 CT), e.g. before a large analysis.
+    """
+    if scratch and _SCRATCH_LOCK.acquire(blocking=False):
+        try:
+            _SCRATCH.clear()
+        finally:
+            _SCRATCH_LOCK.release()
+    _trim_heap()
+
+
+@functools.cache
+def _malloc_trim():
+    """Return glibc's ``malloc_trim``, or None (another C library, or none found)."""
+    import ctypes
+    import ctypes.util
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        fn = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes, fn.restype = [ctypes.c_size_t], ctypes.c_int
+    return fn
+
+
+def _trim_heap() -> None:
+    """Return the C heap's free memory to the system where the C library can (glibc)."""
+    fn = _malloc_trim()
+    if fn is not None:
+        fn(0)
 
 
 def _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args, modes,
@@ -794,7 +1000,7 @@ def reevaluate(
     Parameters
     ----------
     cache : RayCache
-        ``analyze(...).cache``.
+        ``analyze(..., build_cache=True).cache``.
     opacities : array_like of float, optional
         ``K`` rendering opacities in [0, 1].
     lighting : sequence of Lighting, optional

@@ -292,12 +292,17 @@ def write_nrrd(volume: Volume, target: Path, *, detached: bool) -> list[Path]:
         "endian: little",
         "encoding: raw",
     ]
-    payload = np.ascontiguousarray(data, dtype=data.dtype.newbyteorder("<")).tobytes()
+    # the data written from the array itself (a view on little-endian machines): a copy of a
+    # large volume's bytes was a transient peak of its size
+    payload = np.ascontiguousarray(data, dtype=data.dtype.newbyteorder("<")).reshape(-1)
     if not detached:
-        target.write_bytes(("\n".join(lines) + "\n\n").encode("ascii") + payload)
+        with target.open("wb") as f:
+            f.write(("\n".join(lines) + "\n\n").encode("ascii"))
+            f.write(payload.view(np.uint8))
         return [target]
     stem = target.name[: -len(".nhdr")]
     raw = target.with_name(f"{stem}_{x}x{y}x{z}_{data.dtype.name}.raw")
-    raw.write_bytes(payload)
+    with raw.open("wb") as f:
+        f.write(payload.view(np.uint8))
     target.write_text("\n".join([*lines, f"data file: {raw.name}"]) + "\n", encoding="ascii")
     return [raw, target]

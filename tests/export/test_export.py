@@ -216,3 +216,77 @@ def test_writes_are_atomic(spec3, tmp_path, monkeypatch, save):
     monkeypatch.undo()
     assert target.read_text() == "previous"
     assert [p.name for p in tmp_path.iterdir()] == ["out.json"]
+
+
+def _vtk_node_values(ctf, otf):
+    """The nodes VTK holds, read back with ``GetNodeValue``."""
+    color, opacity = [], []
+    for i in range(ctf.GetSize()):
+        node = [0.0] * 6
+        ctf.GetNodeValue(i, node)
+        color.append(node)
+    for i in range(otf.GetSize()):
+        node = [0.0] * 4
+        otf.GetNodeValue(i, node)
+        opacity.append(node)
+    return color, opacity
+
+
+def _specs_to_export():
+    """spec3 as made here, the phantom's and every repository preset of range structures."""
+    from dvr_perception.structures.io import load_spec
+    from dvr_perception.structures.phantom import make_phantom
+
+    specs = [make_phantom(size=16)[1]]
+    for path in sorted((Path(__file__).parents[2] / "state_files").glob("*.json")):
+        spec = load_spec(path)
+        if all(s.range is not None for s in spec.structures):
+            specs.append(spec)
+    return specs
+
+
+def test_nodes_without_vtk_equal_vtks_nodes(spec3):
+    """The exporters' nodes (built without VTK) are VTK's own, bit for bit.
+
+    Touching structures (spec3's a | b share x = 100: VTK replaces the node there), the GPU
+    table spacing (triangles, merged zeros) and a wide scalar range are all covered; the
+    exporters write these lists, so ParaView and Slicer get VTK's functions.
+    """
+    from dvr_perception.export._common import transfer_nodes
+
+    specs = [spec3, *_specs_to_export()]
+    assert len(specs) >= 10
+    cases = 0
+    for spec in specs:
+        ops = np.linspace(0.05, 1.0, len(spec.structures))
+        for kwargs in ({}, {"opacities": ops}, {"samples": GPU_TABLE_SAMPLES},
+                       {"samples": 64, "scalar_range": (-1000.0, 5000.0)},
+                       {"samples": 7, "opacities": ops}):  # fmt: skip
+            got = transfer_nodes(spec, kwargs.get("opacities"), kwargs.get("samples"),
+                                 kwargs.get("scalar_range"))  # fmt: skip
+            want = _vtk_node_values(*to_vtk_transfer_functions(spec, **kwargs))
+            assert got == want, (spec.names, kwargs)
+            cases += 1
+    assert cases == 5 * len(specs)
+    # spec3: VTK kept one node at the shared x = 100 (4 + 3 + 4 opacity nodes)
+    assert len(transfer_nodes(spec3, None)[1]) == 11
+
+
+def test_writing_the_presets_imports_no_vtk(tmp_path):
+    code = (
+        "import sys\n"
+        "from dvr_perception.export import save_paraview_preset, save_slicer_vp\n"
+        "from dvr_perception.structures.phantom import make_phantom\n"
+        "vol, spec = make_phantom(size=16)\n"
+        f"save_paraview_preset(spec, {str(tmp_path / 'p.json')!r})\n"
+        f"save_slicer_vp(spec, {str(tmp_path / 's.vp.json')!r}, vol)\n"
+        "print(sorted({m.split('.')[0] for m in sys.modules if m.startswith('vtk')}))\n"
+    )
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-W", "ignore", "-c", code], capture_output=True,
+                          text=True, check=False, timeout=600)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().splitlines()[-1] == "[]"
+    assert json.loads((tmp_path / "p.json").read_text())[0]["Points"]

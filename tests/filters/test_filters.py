@@ -44,7 +44,7 @@ def library(phantom):
     curv, _ = curvature_volume(vol, spec, sigma=1.0)
     az, el, zoom = spec.view or (0.0, 0.0, 1.0)
     cam = Camera.from_view(vol.bounds, azimuth=az, elevation=el, zoom=zoom, width=SIZE, height=SIZE)
-    res = _retry(lambda: analyze(vol, spec, cam, curvature=curv, build_cache=True))
+    res = _retry(lambda: analyze(vol, spec, cam, curvature=curv))  # as the filter: no cache
     return res, visibility(res, spec), shape(res, spec), transparency(res, spec)
 
 

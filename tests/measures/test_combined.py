@@ -63,3 +63,22 @@ def test_all_measures_raise_the_measures_errors():
     render_only = analyze(vol, spec, cam, build_cache=False, occlusion_free=False)
     with pytest.raises(DVRInputError, match="assigned must be finite"):
         all_measures(render_only, spec)
+
+
+def test_an_engine_analysis_measures_the_same_without_numba(monkeypatch):
+    """The kernels read the engine's float32 fields as they are; numpy reads float64 copies."""
+    vol, spec, cam = _scene()
+    one, other = (analyze(vol, spec, cam, build_cache=False) for _ in range(2))
+    assert one.visible.dtype == np.float32
+    fast = all_measures(one, spec)
+    monkeypatch.setenv("DVR_PERCEPTION_NO_NUMBA", "1")
+    slow = all_measures(other, spec)
+    for g, w in zip(fast, slow, strict=True):
+        for f in dataclasses.fields(g):
+            if f.name in ("records", "per_structure", "E_v"):
+                continue  # the kernel's image-wide sums run in chunks: equal to rounding
+            assert _equal(getattr(g, f.name), getattr(w, f.name)), f.name
+    assert fast.visibility.E_v == pytest.approx(slow.visibility.E_v, rel=1e-12)
+    assert fast.transparency.regions == slow.transparency.regions
+    assert fast.transparency.per_structure == slow.transparency.per_structure
+    assert len(fast.transparency.regions) > 1

@@ -141,13 +141,16 @@ def test_hiding_raises_e_t(series):
 
 
 def test_without_the_cache_a_hiding_shell_is_still_opaque():
-    """No re-evaluation cache: "auto" falls back to the plain view, hidden pixels read 0."""
+    """No re-evaluation cache: the view without the shell is walked again (D7), hidden pixels
+    read 0, and E_t is the cache's."""
     results = {}
     for opacity in (EXPECTED, 1.0):
         vol, spec, cam = shell_scene(opacity)
         a = analyze(vol, spec, cam, build_cache=False)
         results[opacity] = transparency(a, spec, enclosure="auto")
         assert transparency(a, spec).E_t == results[opacity].E_t
+        cached = transparency(analyze(vol, spec, cam, build_cache=True), spec)
+        assert results[opacity].E_t == pytest.approx(cached.E_t, abs=1e-6)
     assert results[1.0].per_structure["shell"]["perceived_transparency"] == 0.0
     assert results[1.0].E_t == pytest.approx(0.49, abs=1e-12)
     assert results[EXPECTED].per_structure["shell"]["perceived_transparency"] > 0.5

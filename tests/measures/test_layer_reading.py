@@ -97,7 +97,7 @@ def shells():
         row = []
         for opacity in SHELL_OPACITIES:
             vol, spec, cam = shell_scene(opacity, kind, view)
-            a = analyze(vol, spec, cam)
+            a = analyze(vol, spec, cam, build_cache=True)
             row.append((a, spec, transparency(a, spec)))
         out[(kind, view)] = row
     return out
@@ -131,8 +131,10 @@ def test_measure_and_the_optimisers_first_evaluation_agree(kind):
     optimiser's first evaluation (re-composited from the same kind of cache) give one E_t."""
     for opacity in (0.15, 0.5):
         vol, spec, cam = shell_scene(opacity, kind, VIEWS[1])
-        measured = all_measures(analyze(vol, spec, cam), spec).transparency.E_t
-        problem = Problem([analyze(vol, spec, cam).cache], [None], spec, np.ones(3), {}, None)
+        measured = all_measures(analyze(vol, spec, cam, build_cache=True), spec).transparency.E_t
+        problem = Problem(
+            [analyze(vol, spec, cam, build_cache=True).cache], [None], spec, np.ones(3), {}, None
+        )
         first = problem.terms(Params.from_spec(spec), whole=True)
         assert first["E_t"] == pytest.approx(measured, abs=1e-6)
         assert measured > 0.0
@@ -143,7 +145,7 @@ def slabs():
     out = []
     for opacity in SLAB_OPACITIES:
         vol, spec, cam = slab_scene(opacity)
-        a = analyze(vol, spec, cam)
+        a = analyze(vol, spec, cam, build_cache=True)
         out.append((a, spec, transparency(a, spec)))
     return out
 

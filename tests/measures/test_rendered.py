@@ -339,7 +339,7 @@ def test_luminance_is_shared_by_the_measures_of_one_analysis_but_follows_the_bac
     vol = base_volume()
     spec = make_spec(structure("slab", 0.5, (0.8, 0.8, 0.8), LOW))
     cam = parallel_camera(vol)
-    a = analyze(vol, spec, cam)
+    a = analyze(vol, spec, cam, build_cache=True)
     y, _ = _image_luminance(a, spec, a.accumulated.shape)
     again, _ = _image_luminance(a, spec, a.accumulated.shape)
     assert again is y
@@ -350,7 +350,9 @@ def test_luminance_is_shared_by_the_measures_of_one_analysis_but_follows_the_bac
     assert empty.any()
     assert np.all(y[empty] == 0.0)
     assert np.allclose(y_white[empty], 1.0)
-    b = analyze(vol, spec, cam)  # a new analysis is computed afresh, equal to the old one
+    b = analyze(
+        vol, spec, cam, build_cache=True
+    )  # a new analysis is computed afresh, equal to the old one
     y_b, _ = _image_luminance(b, spec, b.accumulated.shape)
     assert y_b is not y
     assert np.array_equal(y_b, y)
@@ -366,7 +368,7 @@ def test_checked_fields_are_shared_by_the_measures_and_give_the_same_answers():
     spec = make_spec(
         structure("low", 0.4, (0.9, 0.3, 0.2), LOW), structure("high", 0.9, (0.2, 0.4, 1.0), HIGH)
     )
-    a = analyze(vol, spec, parallel_camera(vol))
+    a = analyze(vol, spec, parallel_camera(vol), build_cache=True)
     acc = _accumulated(a)
     assert _accumulated(a) is acc
     assert _visible(a, acc) is _visible(a, acc)
@@ -456,7 +458,7 @@ def test_unoccluded_enclosure_gives_the_tap_of_what_the_layer_covers(grey):
     vol = shell_volume()
     spec = shell_spec(grey)
     cam = parallel_camera(vol)
-    a = analyze(vol, spec, cam)
+    a = analyze(vol, spec, cam, build_cache=True)
     n = samples_in(vol, cam, 18, 20, 16, 12)
     t = (1.0 - sample_opacity(0.5)) ** n
     expected = 0.2 * t / (0.2 * t + grey * (1.0 - t))
@@ -477,7 +479,8 @@ def test_unoccluded_enclosure_gives_the_tap_of_what_the_layer_covers(grey):
 def test_unoccluded_enclosure_needs_the_cache():
     vol = shell_volume()
     spec = shell_spec(0.6)
-    a = analyze(vol, spec, parallel_camera(vol), build_cache=False)
+    # a copy the engine did not make: no cache and no volume to walk again
+    a = dataclasses.replace(analyze(vol, spec, parallel_camera(vol), build_cache=False))
     with pytest.raises(DVRInputError, match="build_cache=True"):
         transparency(a, spec, enclosure="unoccluded")
     with pytest.raises(DVRInputError, match="enclosure"):

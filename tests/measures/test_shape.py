@@ -1,5 +1,6 @@
 """Tests for dvr_perception.measures.shape on hand-built ray analyses."""
 
+import importlib
 from types import SimpleNamespace
 
 import numpy as np
@@ -121,3 +122,64 @@ def test_negative_curvature_is_rejected():
         shape(grey_analysis(np.zeros((2, 2)), -np.ones((2, 2))))
     with pytest.raises(DVRInputError, match="curvature"):
         shape(grey_analysis(np.zeros((2, 2)), np.ones((3, 2))))
+
+
+def _shape_on_the_whole_image(analysis, steepness=0.05, percentile=None):
+    """The measure as written before it worked on the filters' window: scipy, whole images."""
+    mod = importlib.import_module("dvr_perception.measures.shape")
+    acc = np.asarray(analysis.accumulated, float)
+    y = np.clip(np.asarray(analysis.image, float) @ np.array([0.2126, 0.7152, 0.0722]), 0, 1)
+    nonempty = acc > mod.NONEMPTY_OPACITY
+    sigma = mod.image_scale(acc.shape)
+    curv = np.asarray(analysis.curvature, float)
+    curv = np.where(curv < mod.CURVATURE_FLOOR, 0.0, curv)
+    log_y = np.log(y + mod.DARK_LUMINANCE)
+    weight = nonempty.astype(float)
+    num = ndimage.gaussian_filter(curv * weight, sigma, mode="nearest")
+    den = ndimage.gaussian_filter(weight, sigma, mode="nearest")
+    smooth = np.divide(num, den, out=np.zeros_like(num), where=nonempty & (den > 0))
+    smooth[smooth < mod.CURVATURE_FLOOR] = 0.0
+    grad = ndimage.gaussian_gradient_magnitude(log_y, sigma, mode="nearest") * sigma
+    grad[grad < mod.GRADIENT_FLOOR] = 0.0
+
+    def normalise(v):
+        if not nonempty.any():
+            return np.zeros_like(v)
+        if percentile is None:
+            scale = mod.MEAN_FACTOR * float(v[nonempty].mean())
+        else:
+            scale = float(np.percentile(v[nonempty], percentile))
+        return np.zeros_like(v) if scale <= 0 else np.clip(v / scale, 0.0, 1.0)
+
+    v_s, v_i = normalise(smooth), normalise(grad)
+    delta = np.where(nonempty, -np.expm1(-((v_s - v_i) ** 2) / steepness), 0.0)
+    e_s = float(delta[nonempty].mean()) if nonempty.any() else 0.0
+    return e_s, delta.astype(np.float32), v_s.astype(np.float32), v_i.astype(np.float32)
+
+
+@pytest.mark.parametrize("percentile", [None, 95.0])
+@pytest.mark.parametrize(
+    "box", [(20, 50, 30, 70), (0, 12, 0, 15), (40, 64, 60, 96), (0, 64, 0, 96), None]
+)
+def test_shape_read_on_the_filters_window_equals_the_whole_image(box, percentile):
+    """Only the window around the rendering is worked on: the same bits as the whole image."""
+    rng = np.random.default_rng(11)
+    acc = np.zeros((64, 96))
+    grey = np.full((64, 96), 0.3)  # a uniform background
+    if box is not None:
+        y0, y1, x0, x1 = box
+        acc[y0:y1, x0:x1] = rng.random((y1 - y0, x1 - x0))
+        grey[y0:y1, x0:x1] = rng.random((y1 - y0, x1 - x0))
+    scene = SimpleNamespace(accumulated=acc, curvature=rng.random((64, 96)) * 0.2,
+                            image=np.repeat(grey[..., None], 3, axis=-1))  # fmt: skip
+    got = shape(scene, percentile=percentile)
+    e_s, delta, v_s, v_i = _shape_on_the_whole_image(scene, percentile=percentile)
+    assert got.E_s == e_s
+    np.testing.assert_array_equal(got.deviation, delta)
+    np.testing.assert_array_equal(got.v_s, v_s)
+    np.testing.assert_array_equal(got.v_i, v_i)
+    for image in (got.deviation, got.v_s, got.v_i):
+        assert image.dtype == np.float32
+        assert image.shape == (64, 96)
+    if box is not None:
+        assert 0.0 < got.E_s < 1.0

@@ -292,7 +292,9 @@ def test_covering_is_directional_on_two_slabs():
     """Only the slab in front hides the one behind: its entry is positive, the reverse 0."""
     vol, spec = _slabs()
     cam = Camera.from_view(vol.bounds, width=16, height=16)
-    problem = Problem([analyze(vol, spec, cam).cache], [None], spec, np.ones(3), {}, None)
+    problem = Problem(
+        [analyze(vol, spec, cam, build_cache=True).cache], [None], spec, np.ones(3), {}, None
+    )
     params = Params.from_spec(spec)
     covers, own = OpacityModel(problem, params).covering(params.opacities)
     front, back = (0, 1) if covers[0, 1] > covers[1, 0] else (1, 0)

@@ -45,7 +45,7 @@ def test_bricked_equals_whole_on_the_phantom(phantom, brick, view):
     if view[2]:
         cam = Camera(cam.position, cam.focal_point, cam.view_up, parallel_projection=True,
                      parallel_scale=30.0, width=48, height=40)  # fmt: skip
-    whole = analyze(vol, spec, cam, curvature=curv)
+    whole = analyze(vol, spec, cam, curvature=curv, build_cache=True)
     parts = bricks.analyze_bricked(vol, spec, cam, brick=brick, curvature=curv)
     assert whole.accumulated.max() > 0.5  # the view sees the phantom
     assert _max_diff(whole, parts) <= 1e-6
@@ -69,7 +69,7 @@ def test_a_new_light_reshades_from_what_memory_allows(phantom, monkeypatch, room
     if room == "none":
         monkeypatch.setattr(bricks, "KEEP_CODES_SHARE", 0.0)
     cam = Camera.from_view(vol.bounds, width=40, height=40, azimuth=-20.0, elevation=35.0)
-    whole = analyze(vol, spec, cam, curvature=curv)
+    whole = analyze(vol, spec, cam, curvature=curv, build_cache=True)
     for _ in range(2):  # the second analysis reuses the memo when there is one
         parts = bricks.analyze_bricked(vol, spec, cam, brick=(9, 13, 20), curvature=curv)
         assert _max_diff(whole, parts) <= 1e-6
@@ -103,7 +103,7 @@ def test_several_cameras_share_one_pass_and_equal_their_own_analyses(phantom, mo
     together = bricks.analyze_bricked_views(vol, spec, cams, brick=(9, 13, 20), curvature=curv)
     light = (0.3, 0.5, 0.8)
     for cam, got in zip(cams, together, strict=True):
-        whole = analyze(vol, spec, cam, curvature=curv)
+        whole = analyze(vol, spec, cam, curvature=curv, build_cache=True)
         assert _max_diff(whole, got) <= 1e-6
         assert np.array_equal(whole.cache.lut, got.cache.lut)
         assert _max_diff(reevaluate(whole.cache, light_direction=light),
@@ -128,7 +128,7 @@ def test_the_memo_serves_analyses_with_and_without_curvature(phantom, monkeypatc
     a3 = bricks.analyze_bricked(vol, spec, cam, brick=(13, 13, 13), curvature=field)
     assert len(calls) == first  # derived once, for all three analyses
     assert len(bricks._MEMO[vol]["curvature"]) == first  # the pieces survived the second
-    whole = analyze(vol, spec, cam, curvature=curv)
+    whole = analyze(vol, spec, cam, curvature=curv, build_cache=True)
     assert _max_diff(whole, a1) <= 1e-6
     assert _max_diff(whole, a3) <= 1e-6
     assert np.array_equal(whole.rgba, a2.rgba)
@@ -223,7 +223,7 @@ def test_bricked_equals_whole_on_shared_volumes(shared_data, name):
     sizes = ((z, y // 2, x), (64, 64, 64), (23, 29, 31))
     for az, el in VIEWS:
         cam = Camera.from_view(vol.bounds, width=64, height=64, azimuth=az, elevation=el)
-        whole = analyze(vol, spec, cam, curvature=curv)
+        whole = analyze(vol, spec, cam, curvature=curv, build_cache=True)
         e_whole = all_measures(whole, spec)
         for size in sizes:
             parts = bricks.analyze_bricked(vol, spec, cam, brick=size, curvature=curv)

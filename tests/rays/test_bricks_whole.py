@@ -137,7 +137,7 @@ def test_bricked_equals_whole_at_three_brick_sizes(scene, view):
     if view[2]:
         cam = Camera(cam.position, cam.focal_point, cam.view_up, parallel_projection=True,
                      parallel_scale=24.0, width=40, height=36)  # fmt: skip
-    whole = analyze(vol, spec, cam, curvature=curv)
+    whole = analyze(vol, spec, cam, curvature=curv, build_cache=True)
     assert whole.stats.get("bricks", 0) == 0  # the whole volume at once
     assert (whole.visible.reshape(3, -1).max(axis=1) > 0.05).all()  # every structure seen
     assert whole.curvature.max() > 0.0
@@ -145,7 +145,7 @@ def test_bricked_equals_whole_at_three_brick_sizes(scene, view):
     measured = analyze(vol, spec, cam, curvature=curv, build_cache=False)
     ops = (0.2, 0.9, 0.5)
     for size in SIZES:
-        parts = analyze(vol, spec, cam, curvature=curv, brick=size)
+        parts = analyze(vol, spec, cam, curvature=curv, brick=size, build_cache=True)
         assert parts.stats["bricks"] == len(bricks.split(vol.data.shape, size)) > 1
         assert _max_diff(whole, parts) <= 1e-6, size
         assert np.array_equal(whole.cache.count, parts.cache.count)
@@ -188,8 +188,8 @@ def test_a_lazily_shaded_bricked_cache_reevaluates_as_the_whole_one(scene):
 
     vol, spec, curv = scene
     cam = Camera.from_view(vol.bounds, width=36, height=36, azimuth=-70.0, elevation=30.0)
-    whole = analyze(vol, spec, cam, curvature=curv)
-    parts = analyze(vol, spec, cam, curvature=curv, brick=SIZES[0])
+    whole = analyze(vol, spec, cam, curvature=curv, build_cache=True)
+    parts = analyze(vol, spec, cam, curvature=curv, brick=SIZES[0], build_cache=True)
     z = parts.cache.lazy
     assert z["fill"] is not None  # the codes are kept: shaded lazily
     unset = int(np.count_nonzero(parts.cache.shading[:, 0] == _UNSET))
@@ -216,12 +216,14 @@ def test_a_later_bricked_analysis_leaves_an_earlier_cache_alone(scene):
     vol, spec, curv = scene
     cams = [Camera.from_view(vol.bounds, width=30, height=30, azimuth=a, elevation=10.0)
             for a in (20.0, 200.0)]  # fmt: skip
-    first = analyze(vol, spec, cam := cams[0], curvature=curv, brick=SIZES[1])
+    first = analyze(vol, spec, cam := cams[0], curvature=curv, brick=SIZES[1], build_cache=True)
     lut = first.cache.lut.copy()
-    analyze(vol, spec, cams[1], curvature=curv, brick=SIZES[1])  # reuses the memory
-    analyze(vol, spec, cams[1], curvature=curv, brick=SIZES[0])
+    analyze(
+        vol, spec, cams[1], curvature=curv, brick=SIZES[1], build_cache=True
+    )  # reuses the memory
+    analyze(vol, spec, cams[1], curvature=curv, brick=SIZES[0], build_cache=True)
     assert np.array_equal(first.cache.lut, lut)
-    whole = analyze(vol, spec, cam, curvature=curv)
+    whole = analyze(vol, spec, cam, curvature=curv, build_cache=True)
     ops = (0.6, 0.1, 0.3)
     assert _max_diff(reevaluate(whole.cache, opacities=ops),
                      reevaluate(first.cache, opacities=ops)) <= 1e-6  # fmt: skip

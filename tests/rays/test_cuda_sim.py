@@ -133,8 +133,8 @@ curv = rng.random(vol.data.shape).astype(np.float32) * (rng.random(vol.data.shap
 out["curvature"] = compare(vol, spec, side, curvature=curv)
 out["render_only"] = compare(vol, spec, cam, build_cache=False, occlusion_free=False)
 views = [cam, side]
-va = analyze_views(vol, spec, views, backend="numba")
-vb = analyze_views(vol, spec, views, backend="cuda")
+va = analyze_views(vol, spec, views, backend="numba", build_cache=True)
+vb = analyze_views(vol, spec, views, backend="cuda", build_cache=True)
 out["views"] = {"backend": [v.stats["backend"] for v in vb],
                 "buffers": [diff(a, b) for a, b in zip(va, vb)],
                 "E": [{k: abs(x - y) for (k, x), y in zip(e_terms(a, spec).items(),
@@ -165,7 +165,7 @@ from dvr_perception.errors import DVRWarning
 away = Camera(position=(500, 500, 500), focal_point=(1000, 1000, 1000), width=6, height=5)
 with warnings.catch_warnings(record=True) as seen:
     warnings.simplefilter("always", DVRWarning)
-    e = analyze(vol, spec, away, backend="cuda")
+    e = analyze(vol, spec, away, backend="cuda", build_cache=True)
 out["empty"] = {"warned": [str(w.message)[:40] for w in seen], "backend": e.stats["backend"],
                 "image": e.image.reshape(-1, 3)[0].tolist(), "any": bool(e.accumulated.any()),
                 "entries": int(len(e.cache.lut)),
@@ -195,9 +195,9 @@ out["reuse"] = {"uploads": uploads, "work": sorted(kept),
                 "hit": int(np.count_nonzero(a.accumulated > 0.05))}
 # a volume the CPU analyses in bricks (forced: the plan bricks only what does not fit the
 # limit, issue 31) is analysed whole on the GPU, with the same buffers
-a = analyze(vol, spec, side, backend="numba", brick=(8, 8, 8))
-b = analyze(vol, spec, side, backend="cuda")
-p = analyze_views(vol, spec, [side, cam], backend="cuda")
+a = analyze(vol, spec, side, backend="numba", brick=(8, 8, 8), build_cache=True)
+b = analyze(vol, spec, side, backend="cuda", build_cache=True)
+p = analyze_views(vol, spec, [side, cam], backend="cuda", build_cache=True)
 out["large"] = {"cpu_bricks": a.stats.get("bricks", 0), "backend": b.stats["backend"],
                 "buffers": diff(a, b), "views": [v.stats["backend"] for v in p]}
 from dvr_perception.rays import engine
@@ -209,12 +209,12 @@ cap = int(whole * 0.9)  # too small for the whole volume, enough for bricks of 3
 plan = engine._plan(big, bspec, side, seg, lut, memb, False, True, cap, None)
 assert plan["mode"] == "bricks", plan
 try:  # fits in bricks only: cuda says so
-    analyze(big, bspec, side, backend="cuda", memory_limit=cap)
+    analyze(big, bspec, side, backend="cuda", memory_limit=cap, build_cache=True)
     out["too_large"] = "no error"
 except DVRInputError as exc:
     out["too_large"] = str(exc)
 try:
-    analyze(vol, spec, cam, backend="cuda", brick=(8, 8, 8))
+    analyze(vol, spec, cam, backend="cuda", brick=(8, 8, 8), build_cache=True)
     out["brick"] = "no error"
 except DVRInputError as exc:
     out["brick"] = str(exc)
@@ -413,14 +413,14 @@ def test_cuda_without_a_device_is_one_clear_error(monkeypatch):
     vol, spec = make_phantom(size=16)
     cam = Camera.from_view(vol.bounds, width=4, height=4)
     with pytest.raises(DVRInputError, match=r"^backend: 'cuda' ") as err:
-        analyze(vol, spec, cam, backend="cuda")
+        analyze(vol, spec, cam, backend="cuda", build_cache=True)
     assert "dvr-perception[gpu]" in str(err.value)
     from dvr_perception.optimize import optimize
 
     with pytest.raises(DVRInputError, match=r"^backend: 'cuda' "):
         optimize(vol, spec, cam, backend="cuda", max_iter=1)
     with pytest.raises(DVRInputError, match=r"^backend: expected one of"):
-        analyze(vol, spec, cam, backend="gpu")
+        analyze(vol, spec, cam, backend="gpu", build_cache=True)
 
 
 def test_auto_prefers_a_device_and_falls_back(monkeypatch):
@@ -509,7 +509,7 @@ cuda.device_array = lambda shape, dtype: np.zeros(shape, dtype).view(Host)
 engine._pick_backend = lambda backend: engine._numba_kernels()
 vol, spec = make_phantom(size=16)
 cam = Camera.from_view(vol.bounds, width=12, height=10)
-engine.analyze(vol, spec, cam, backend="cuda")
+engine.analyze(vol, spec, cam, backend="cuda", build_cache=True)
 engine.analyze(vol, spec, cam, backend="cuda", build_cache=False, occlusion_free=False,
                curvature=np.ones(vol.data.shape, np.float32))
 print(json.dumps(lowered))
@@ -589,7 +589,7 @@ path = os.path.join(tempfile.mkdtemp(), "phantom.nhdr")  # NRRD: read and writte
 save_volume(vol, path)
 assert (load_volume(path).data == vol.data).all()
 cam = Camera.from_view(vol.bounds, width=12, height=10)
-m = all_measures(analyze(vol, spec, cam), spec)
+m = all_measures(analyze(vol, spec, cam, build_cache=True), spec)
 r = optimize(vol, spec, cam, stages=("opacity",), max_iter=1)
 print(sorted(m for m in sys.modules if m.startswith(("vtk", "pyvista"))), m.visibility.E_v > 0,
       r.final["E"] <= r.initial["E"])

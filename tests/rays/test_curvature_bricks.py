@@ -276,3 +276,64 @@ def test_many_threads_cut_more_bands_with_the_same_bits(backend, monkeypatch):
     np.testing.assert_array_equal(many_bnd, one_bnd)
     np.testing.assert_array_equal(many, one)
     assert one_bnd.sum() > 500
+
+
+@pytest.mark.parametrize("step", [False, True])
+def test_cell_bounds_bound_every_cells_exact_gradient_maximum(backend, step):
+    """The branch and bound's per-cell bound lies above the cell's exact maximum, and the
+    value range makes it tighter than the neighbour differences alone across a step."""
+    from dvr_perception.rays import _curvature_passes as P
+
+    vol = _blobs(shape=(36, 40, 34))
+    if step:  # a sharp edge: neighbour differences alone bound it by the full step
+        data = np.full(vol.data.shape, 100, np.uint16)
+        data[:, :, 17:] = 2100
+        vol = Volume(data, spacing=vol.spacing)
+    spec = _spec((500, 1500))
+    fld = C._fields(vol, spec, None, None, None)[0]
+    geo = P._Geometry(vol.data.shape, vol.spacing, 1.0, tuple((0, n) for n in vol.data.shape))
+    nk = C._curvature_kernels()
+    c = P._CELL
+    ncell = [-(-n // c) for n in vol.data.shape]
+    if nk is not None:
+        diffs = np.zeros((*ncell, 5), np.float32)
+        nk.cell_diffs(fld.src, fld.match, np.float32(fld.offset), c, 0, 0, 0,
+                      *vol.data.shape, diffs)  # fmt: skip
+        np.testing.assert_array_equal(diffs, P._cell_diffs_numpy(fld, [0, 0, 0], ncell, c))
+    else:
+        diffs = P._cell_diffs_numpy(fld, [0, 0, 0], ncell, c)
+    bound2 = P._cell_bounds(diffs, geo)
+    boxes = []
+    for i, j, k in np.ndindex(*ncell):
+        z0, y0, x0 = c * i, c * j, c * k
+        zz, yy, xx = vol.data.shape
+        boxes.append((z0, min(z0 + c, zz), y0, min(y0 + c, yy), x0, min(x0 + c, xx)))
+    exact = P._cells_gradient_max_numpy(fld, geo, boxes).reshape(ncell)
+    assert np.all(exact <= bound2)
+    assert exact.max() > 0
+    if step:  # at the step: about a third of what the differences alone allow
+        old = ((diffs[..., :3].max(axis=(0, 1, 2)).astype(np.float64) * geo.inv) ** 2).sum()
+        assert bound2.max() < 0.25 * old
+        assert bound2.max() < 2.0 * exact.max()
+
+
+@pytest.mark.parametrize("step", [False, True])
+def test_range_bound_lies_above_the_gradient_maximum(step):
+    """The flatness test's bound from the data range bounds the exact maximum, well below the
+    plain ``range * |inv|`` (a third of it at sigma 1, where a step nearly reaches it)."""
+    from dvr_perception.rays import _curvature_passes as P
+
+    vol = _blobs(shape=(24, 30, 28))
+    if step:
+        data = np.full(vol.data.shape, 100, np.uint16)
+        data[:, 14:] = 2100
+        vol = Volume(data, spacing=vol.spacing)
+    spec = _spec((500, 1500))
+    gmax = curvature_globals(vol, spec).gradient_max
+    geo = P._Geometry(vol.data.shape, vol.spacing, 1.0, tuple((0, n) for n in vol.data.shape))
+    span = float(vol.data.max()) - float(vol.data.min())
+    bound2 = C._range_bound2(geo, span, float(vol.data.max()))
+    assert 0 < gmax**2 <= bound2
+    assert bound2 < 0.2 * span**2 * float((geo.inv**2).sum())
+    if step:  # one axis reaches its term of the three-axis sum
+        assert bound2 < 3.0 * gmax**2

@@ -57,7 +57,7 @@ def test_opaque_front_slab_hides_everything_behind_it():
     vol = _two_slabs()
     front = Structure("front", 1.0, (1, 1, 1), range=(180, 255), edge=0.0)
     back = Structure("back", 0.5, (1, 0, 0), range=(50, 150), edge=0.0)
-    res = analyze(vol, _spec(back, front), _top_camera(vol))
+    res = analyze(vol, _spec(back, front), _top_camera(vol), build_cache=True)
     assert np.allclose(res.accumulated, 1.0)
     assert np.allclose(res.visible[1], res.accumulated)
     assert np.all(res.visible_share[0] == 0.0)
@@ -70,7 +70,7 @@ def test_opaque_front_slab_hides_everything_behind_it():
 def test_single_structure_has_full_visible_and_assigned_share():
     vol = _two_slabs()
     only = Structure("front", 0.4, (0, 1, 0), range=(180, 255))
-    res = analyze(vol, _spec(only), _top_camera(vol))
+    res = analyze(vol, _spec(only), _top_camera(vol), build_cache=True)
     assert np.all(res.present == 1)
     assert np.allclose(res.visible_share[0], 1.0)
     assert np.allclose(res.assigned_share[0], 1.0)
@@ -86,7 +86,7 @@ def test_homogeneous_slab_follows_the_opacity_law(sample_distance):
         sample_distance=sample_distance,
         opacity_unit_distance=1.0,
     )
-    res = analyze(vol, spec, _top_camera(vol, size=8))
+    res = analyze(vol, spec, _top_camera(vol, size=8), build_cache=True)
     length = 20.0
     expect = 1 - (1 - o) ** length
     one_step = o * (1 - o) ** (length - 1) * sample_distance  # one sample more or less
@@ -99,7 +99,7 @@ def test_camera_that_sees_nothing_warns_and_returns_background():
     spec = replace(_spec(*BLOB_STRUCTURES), background=(0.2, 0.3, 0.4))
     cam = Camera(position=(500, 500, 500), focal_point=(1000, 1000, 1000), width=9, height=7)
     with pytest.warns(DVRWarning, match="sees none"):
-        res = analyze(vol, spec, cam)
+        res = analyze(vol, spec, cam, build_cache=True)
     assert res.image.shape == (7, 9, 3)
     assert np.allclose(res.image, (0.2, 0.3, 0.4))
     assert not res.accumulated.any()
@@ -124,18 +124,18 @@ def _assert_same(a, b):
 
 def test_reevaluate_opacities_equals_fresh_analysis():
     vol, spec, cam, curv = _shaded_case()
-    base = analyze(vol, spec, cam, curvature=curv)
+    base = analyze(vol, spec, cam, curvature=curv, build_cache=True)
     new = [0.9, 0.05]
     _assert_same(
         reevaluate(base.cache, opacities=new),
-        analyze(vol, spec, cam, opacities=new, curvature=curv),
+        analyze(vol, spec, cam, opacities=new, curvature=curv, build_cache=True),
     )
     assert not np.allclose(base.rgba, reevaluate(base.cache, opacities=new).rgba)
 
 
 def test_reevaluate_colours_lighting_light_and_background():
     vol, spec, cam, _ = _shaded_case()
-    base = analyze(vol, spec, cam)
+    base = analyze(vol, spec, cam, build_cache=True)
     cols = [(0.0, 0.0, 1.0), (1.0, 1.0, 0.0)]
     mats = [Lighting(0.5, 0.4, 0.6, 8.0), Lighting(0.1, 0.9, 0.0, 30.0)]
     new_structs = tuple(
@@ -149,7 +149,7 @@ def test_reevaluate_colours_lighting_light_and_background():
         background=(0.1, 0.2, 0.3),
         rendering=replace(spec.rendering, light_direction=light),
     )
-    fresh = analyze(vol, fresh_spec, cam)
+    fresh = analyze(vol, fresh_spec, cam, build_cache=True)
     again = reevaluate(
         base.cache, colours=cols, lighting=mats, light_direction=light, background=(0.1, 0.2, 0.3)
     )
@@ -160,8 +160,8 @@ def test_reevaluate_colours_lighting_light_and_background():
 def test_numba_and_numpy_backends_agree():
     pytest.importorskip("numba")
     vol, spec, cam, curv = _shaded_case()
-    a = analyze(vol, spec, cam, curvature=curv, backend="numba")
-    b = analyze(vol, spec, cam, curvature=curv, backend="numpy")
+    a = analyze(vol, spec, cam, curvature=curv, backend="numba", build_cache=True)
+    b = analyze(vol, spec, cam, curvature=curv, backend="numpy", build_cache=True)
     c = analyze(vol, spec, cam, curvature=curv, backend="numba", build_cache=False, exact=True)
     _assert_same(a, b)
     _assert_same(a, c)
@@ -185,16 +185,22 @@ def test_numba_and_numpy_backends_agree():
 def test_env_variable_forces_numpy(monkeypatch):
     monkeypatch.setenv("DVR_PERCEPTION_NO_NUMBA", "1")
     vol = _blob()
-    res = analyze(vol, _spec(*BLOB_STRUCTURES), _top_camera(vol, size=6))
+    res = analyze(vol, _spec(*BLOB_STRUCTURES), _top_camera(vol, size=6), build_cache=True)
     assert res.stats["backend"] == "numpy"
     with pytest.raises(DVRInputError, match="backend"):
-        analyze(vol, _spec(*BLOB_STRUCTURES), _top_camera(vol, size=6), backend="numba")
+        analyze(
+            vol,
+            _spec(*BLOB_STRUCTURES),
+            _top_camera(vol, size=6),
+            backend="numba",
+            build_cache=True,
+        )
 
 
 def test_assigned_and_present_do_not_depend_on_opacities():
     vol, spec, cam, _ = _shaded_case()
-    a = analyze(vol, spec, cam, opacities=[1.0, 1.0])
-    b = analyze(vol, spec, cam, opacities=[0.0, 0.2])
+    a = analyze(vol, spec, cam, opacities=[1.0, 1.0], build_cache=True)
+    b = analyze(vol, spec, cam, opacities=[0.0, 0.2], build_cache=True)
     np.testing.assert_array_equal(a.assigned, b.assigned)
     np.testing.assert_array_equal(a.present, b.present)
     assert np.all(b.visible[0] == 0.0)  # zero opacity: never visible
@@ -205,7 +211,7 @@ def test_assigned_and_present_do_not_depend_on_opacities():
 def test_constant_curvature_is_reported_where_visible():
     vol = _blob()
     curv = np.full(vol.data.shape, 0.25, np.float32)
-    res = analyze(vol, _spec(*BLOB_STRUCTURES), _top_camera(vol), curvature=curv)
+    res = analyze(vol, _spec(*BLOB_STRUCTURES), _top_camera(vol), curvature=curv, build_cache=True)
     seen = res.accumulated > 0
     assert seen.any()
     np.testing.assert_allclose(res.curvature[seen], 0.25, rtol=1e-6)
@@ -216,12 +222,14 @@ def test_constant_curvature_is_reported_where_visible():
     ("dtype", "scale"), [(np.uint8, 1.0), (np.uint16, 10.0), (np.float32, 0.01)]
 )
 def test_volume_dtypes_render_alike(dtype, scale):
-    ref = analyze(_blob(), _spec(*BLOB_STRUCTURES), _top_camera(_blob(), scale=0.45))
+    ref = analyze(
+        _blob(), _spec(*BLOB_STRUCTURES), _top_camera(_blob(), scale=0.45), build_cache=True
+    )
     vol = _blob(dtype, scale)
     structs = tuple(
         replace(s, range=(s.range[0] * scale, s.range[1] * scale)) for s in BLOB_STRUCTURES
     )
-    res = analyze(vol, _spec(*structs), _top_camera(vol, scale=0.45))
+    res = analyze(vol, _spec(*structs), _top_camera(vol, scale=0.45), build_cache=True)
     assert res.accumulated.max() > 0.5
     np.testing.assert_allclose(res.accumulated, ref.accumulated, atol=0.03)
 
@@ -230,18 +238,18 @@ def test_bad_inputs_raise_one_clear_error():
     vol = _blob()
     cam = _top_camera(vol, size=4)
     with pytest.raises(DVRInputError, match="structures"):
-        analyze(vol, StructureSpec(()), cam)
+        analyze(vol, StructureSpec(()), cam, build_cache=True)
     spec = _spec(*BLOB_STRUCTURES)
     for bad in ([0.5], [0.5, 1.5], [0.5, float("nan")], "x"):
         with pytest.raises(DVRInputError, match="opacities"):
-            analyze(vol, spec, cam, opacities=bad)
+            analyze(vol, spec, cam, opacities=bad, build_cache=True)
     with pytest.raises(DVRInputError, match="curvature"):
-        analyze(vol, spec, cam, curvature=np.zeros((2, 2, 2)))
+        analyze(vol, spec, cam, curvature=np.zeros((2, 2, 2)), build_cache=True)
     with pytest.raises(DVRInputError, match="backend"):
-        analyze(vol, spec, cam, backend="cuda")
+        analyze(vol, spec, cam, backend="cuda", build_cache=True)
     with pytest.raises(DVRInputError, match="volume"):
-        analyze(vol.data, spec, cam)
-    cache = analyze(vol, spec, cam).cache
+        analyze(vol.data, spec, cam, build_cache=True)
+    cache = analyze(vol, spec, cam, build_cache=True).cache
     with pytest.raises(DVRInputError, match="opacities"):
         reevaluate(cache, opacities=[0.1, 0.2, 0.3])
     with pytest.raises(DVRInputError, match="colours"):
@@ -258,7 +266,7 @@ def test_no_warning_for_normal_render():
     vol = _blob()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        res = analyze(vol, _spec(*BLOB_STRUCTURES), _top_camera(vol, size=6))
+        res = analyze(vol, _spec(*BLOB_STRUCTURES), _top_camera(vol, size=6), build_cache=True)
     assert res.stats["samples"] > 0
     assert res.names == ("outer", "inner")
 
@@ -286,7 +294,7 @@ def test_render_only_stops_at_early_termination_and_leaves_assigned_undefined(ba
     with pytest.raises(DVRInputError, match="assigned must be finite"):
         visibility(image, spec)
     with pytest.raises(DVRInputError, match="build_cache=False"):
-        analyze(vol, spec, cam, backend=backend, occlusion_free=False)
+        analyze(vol, spec, cam, backend=backend, occlusion_free=False, build_cache=True)
 
 
 def test_importance_accumulated_is_the_rendering_at_the_importances():
@@ -296,12 +304,12 @@ def test_importance_accumulated_is_the_rendering_at_the_importances():
     vol = _blob()
     spec = _spec(*BLOB_STRUCTURES)
     cam = Camera.from_view(vol.bounds, azimuth=20, elevation=10, width=24, height=20)
-    at_importance = analyze(vol, spec, cam)
+    at_importance = analyze(vol, spec, cam, build_cache=True)
     np.testing.assert_array_equal(at_importance.importance_accumulated, at_importance.accumulated)
-    faded = analyze(vol, spec, cam, opacities=[0.05, 0.1])
+    faded = analyze(vol, spec, cam, opacities=[0.05, 0.1], build_cache=True)
     assert faded.accumulated.max() < at_importance.accumulated.max() - 0.1
     np.testing.assert_array_equal(faded.importance_accumulated, at_importance.accumulated)
-    numpy = analyze(vol, spec, cam, opacities=[0.05, 0.1], backend="numpy")
+    numpy = analyze(vol, spec, cam, opacities=[0.05, 0.1], backend="numpy", build_cache=True)
     np.testing.assert_allclose(numpy.importance_accumulated, faded.importance_accumulated,
                                atol=1e-6)  # fmt: skip
     again = reevaluate(faded.cache, opacities=[0.9, 0.2])

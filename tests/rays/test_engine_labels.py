@@ -34,8 +34,8 @@ def _scene(shade=True):
 @pytest.mark.parametrize("shade", [True, False])
 def test_numba_and_numpy_agree_with_labels(shade):
     vol, spec, cam = _scene(shade)
-    a = analyze(vol, spec, cam, backend="numba")
-    b = analyze(vol, spec, cam, backend="numpy")
+    a = analyze(vol, spec, cam, backend="numba", build_cache=True)
+    b = analyze(vol, spec, cam, backend="numpy", build_cache=True)
     np.testing.assert_array_equal(a.image, b.image)
     np.testing.assert_array_equal(a.visible_share, b.visible_share)
     np.testing.assert_allclose(a.assigned_share, b.assigned_share, atol=1e-6)
@@ -44,7 +44,7 @@ def test_numba_and_numpy_agree_with_labels(shade):
 def test_label_box_shows_only_where_its_voxels_project():
     vol, spec, cam = _scene()
     only = StructureSpec((spec.structures[1],), rendering=spec.rendering)
-    res = analyze(vol, only, cam)
+    res = analyze(vol, only, cam, build_cache=True)
     hit = res.accumulated > 0
     # front view: pixel columns/rows map to x/y; the box spans x 12..20 and y 11..19
     xs = (np.nonzero(hit.any(axis=0))[0] + 0.5) * 33 / 40
@@ -69,7 +69,7 @@ def test_label_wins_over_intensity_range():
         ),
         rendering=RenderSettings(shade=False),
     )
-    res = analyze(vol, spec2, cam)
+    res = analyze(vol, spec2, cam, build_cache=True)
     centre = (20, 20)
     assert res.assigned_share[1][centre] > 0.5  # the box takes its voxels from "all"
     beside = (res.accumulated > 0) & (res.assigned_share[1] == 0)
@@ -79,9 +79,9 @@ def test_label_wins_over_intensity_range():
 
 def test_reevaluation_with_labels_equals_fresh_analysis():
     vol, spec, cam = _scene()
-    base = analyze(vol, spec, cam)
+    base = analyze(vol, spec, cam, build_cache=True)
     for ops in ([0.05, 0.5], [0.9, 0.02]):
-        fresh = analyze(vol, spec, cam, opacities=ops)
+        fresh = analyze(vol, spec, cam, opacities=ops, build_cache=True)
         again = reevaluate(base.cache, opacities=ops)
         np.testing.assert_array_equal(again.image, fresh.image)
         np.testing.assert_array_equal(again.visible_share, fresh.visible_share)
@@ -91,7 +91,7 @@ def test_label_structures_need_a_label_volume():
     vol, spec, cam = _scene()
     bare = Volume(vol.data)
     with pytest.raises(DVRInputError, match=r"volume\.labels"):
-        analyze(bare, spec, cam)
+        analyze(bare, spec, cam, build_cache=True)
 
 
 def test_cells_with_a_labelled_corner_are_mixed():

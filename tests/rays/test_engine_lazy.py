@@ -38,17 +38,19 @@ def test_deeper_reevaluations_equal_fresh_analyses(backend):
     # built with near-opaque structures: deeper entries are only reached (and their normals
     # computed) by later re-evaluations with lower opacities
     vol, spec, cam, curv = _case()
-    base = analyze(vol, spec, cam, curvature=curv, backend=backend)
+    base = analyze(vol, spec, cam, curvature=curv, backend=backend, build_cache=True)
     for ops in ([0.2, 0.95], [0.02, 0.1], [0.9, 0.0], [0.02, 0.1]):
-        fresh = analyze(vol, spec, cam, opacities=ops, curvature=curv, backend=backend)
+        fresh = analyze(
+            vol, spec, cam, opacities=ops, curvature=curv, backend=backend, build_cache=True
+        )
         _assert_same(reevaluate(base.cache, opacities=ops), fresh)
     _assert_same(reevaluate(base.cache), base)
 
 
 def test_negative_curvature_input_is_used_as_its_absolute_value():
     vol, spec, cam, curv = _case()
-    a = analyze(vol, spec, cam, curvature=curv, backend="numba")
-    b = analyze(vol, spec, cam, curvature=np.abs(curv), backend="numba")
+    a = analyze(vol, spec, cam, curvature=curv, backend="numba", build_cache=True)
+    b = analyze(vol, spec, cam, curvature=np.abs(curv), backend="numba", build_cache=True)
     _assert_same(a, b)
     assert curv.min() < 0  # the caller's array is not modified
 
@@ -58,9 +60,9 @@ def test_reevaluating_some_rays_equals_the_whole_image_there(light):
     # a fresh cache per call: the subset's rays fill their own shading and curvature
     vol, spec, cam, curv = _case()
     ops = [0.1, 0.7]
-    whole = reevaluate(analyze(vol, spec, cam, curvature=curv).cache, opacities=ops,
-                       light_direction=light)  # fmt: skip
-    cache = analyze(vol, spec, cam, curvature=curv).cache
+    fresh = analyze(vol, spec, cam, curvature=curv, build_cache=True).cache
+    whole = reevaluate(fresh, opacities=ops, light_direction=light)
+    cache = analyze(vol, spec, cam, curvature=curv, build_cache=True).cache
     mask = np.zeros((cam.height, cam.width), bool)
     mask[3:17, 5:21] = True
     mask[20, ::3] = True
@@ -84,7 +86,7 @@ def test_reevaluating_some_rays_equals_the_whole_image_there(light):
 
 def test_reevaluating_rays_outside_the_image_is_one_clear_error():
     vol, spec, cam, curv = _case()
-    cache = analyze(vol, spec, cam, curvature=curv).cache
+    cache = analyze(vol, spec, cam, curvature=curv, build_cache=True).cache
     with pytest.raises(DVRInputError, match="rays"):
         reevaluate(cache, rays=[0, cam.width * cam.height])
 
@@ -95,7 +97,7 @@ def test_a_change_of_specular_powers_alone_recomputes_only_those_structures(monk
     vol, spec, cam, curv = _case()
     mats = [Lighting(0.2, 0.7, 0.5, 10.0), Lighting(0.3, 0.6, 0.4, 40.0)]
     shiny = [mats[0], Lighting(0.3, 0.6, 0.4, 3.0)]  # the inner structure's power only
-    cache = analyze(vol, spec, cam, curvature=curv).cache
+    cache = analyze(vol, spec, cam, curvature=curv, build_cache=True).cache
     reevaluate(cache, lighting=mats, opacities=[0.3, 0.9])
     calls = []
     for name in ("invalidate", "invalidate_structures"):
@@ -103,8 +105,8 @@ def test_a_change_of_specular_powers_alone_recomputes_only_those_structures(monk
         monkeypatch.setattr(nk, name, lambda *a, _r=real, _n=name: calls.append(_n) or _r(*a))
     got = reevaluate(cache, lighting=shiny, opacities=[0.3, 0.9])
     assert calls == ["invalidate_structures"]
-    fresh = reevaluate(analyze(vol, spec, cam, curvature=curv).cache, lighting=shiny,
-                       opacities=[0.3, 0.9])  # fmt: skip
+    other = analyze(vol, spec, cam, curvature=curv, build_cache=True).cache
+    fresh = reevaluate(other, lighting=shiny, opacities=[0.3, 0.9])
     for field in ("rgba", "image", "visible", "curvature"):
         assert np.array_equal(np.asarray(getattr(got, field)), np.asarray(getattr(fresh, field)))
     assert not np.array_equal(np.asarray(got.rgba), np.asarray(reevaluate(cache).rgba))

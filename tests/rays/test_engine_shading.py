@@ -37,7 +37,7 @@ def _assert_same(a, b):
 @pytest.mark.parametrize("backend", ["numba", "numpy"])
 def test_light_changes_back_and_forth_equal_fresh_analyses(backend):
     vol, spec, cam = _case()
-    base = analyze(vol, spec, cam, backend=backend)
+    base = analyze(vol, spec, cam, backend=backend, build_cache=True)
     mats = [Lighting(0.2, 0.6, 0.5, 5.0), Lighting(0.3, 0.5, 0.4, 40.0)]
     for light, lighting, ops in (
         ((0.5, -0.4, 0.8), None, None),
@@ -54,7 +54,7 @@ def test_light_changes_back_and_forth_equal_fresh_analyses(backend):
             structures=structs,
             rendering=replace(rs, light_direction=light or rs.light_direction),
         )
-        fresh = analyze(vol, fresh_spec, cam, opacities=ops, backend=backend)
+        fresh = analyze(vol, fresh_spec, cam, opacities=ops, backend=backend, build_cache=True)
         again = reevaluate(base.cache, light_direction=light, lighting=lighting, opacities=ops)
         _assert_same(again, fresh)
 

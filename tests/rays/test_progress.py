@@ -82,9 +82,11 @@ def test_curvature_stops_when_the_callback_raises_stop_iteration(scene, monkeypa
 @pytest.mark.parametrize(("brick", "inner"), [(None, 3), ((9, 13, 20), 20), ((20, 39, 39), 3)])
 def test_analysis_reports_inside_and_gives_the_same_bits(scene, brick, inner):
     vol, spec, cam, curv = scene
-    plain = analyze(vol, spec, cam, curvature=curv, brick=brick)
+    plain = analyze(vol, spec, cam, curvature=curv, brick=brick, build_cache=True)
     got: list[float] = []
-    res = analyze(vol, spec, cam, curvature=curv, brick=brick, progress=got.append)
+    res = analyze(
+        vol, spec, cam, curvature=curv, brick=brick, progress=got.append, build_cache=True
+    )
     # whole: set-up, then 4 groups of 16 chunks (128 x 128 pixels: 64 tiles); 30 bricks: after
     # each; 2 bricks: also inside each, after each group of chunks (one brick alone gives 1)
     _check_fractions(got, inner=inner)
@@ -98,18 +100,22 @@ def test_bricked_analysis_with_a_curvature_field_reports_each_brick(scene):
     vol, spec, cam, curv = scene
     field = CurvatureField(vol, spec)
     got: list[float] = []
-    res = analyze(vol, spec, cam, curvature=field, brick=(13, 13, 13), progress=got.append)
+    res = analyze(
+        vol, spec, cam, curvature=field, brick=(13, 13, 13), progress=got.append, build_cache=True
+    )
     _check_fractions(got, inner=20)  # 27 bricks, each with its curvature piece
-    _same(analyze(vol, spec, cam, curvature=curv, brick=(13, 13, 13)), res)
+    _same(analyze(vol, spec, cam, curvature=curv, brick=(13, 13, 13), build_cache=True), res)
 
 
 def test_several_views_share_one_bar(scene):
     vol, spec, cam, curv = scene
     small = Camera.from_view(vol.bounds, width=32, height=32, azimuth=30.0, elevation=20.0)
     got: list[float] = []
-    res = analyze_views(vol, spec, [cam, small], curvature=curv, progress=got.append)
+    res = analyze_views(
+        vol, spec, [cam, small], curvature=curv, progress=got.append, build_cache=True
+    )
     _check_fractions(got, inner=4)
-    _same(analyze(vol, spec, small, curvature=curv), res[1])
+    _same(analyze(vol, spec, small, curvature=curv, build_cache=True), res[1])
 
 
 @pytest.mark.parametrize("brick", [None, (9, 13, 20)])
@@ -121,16 +127,16 @@ def test_analysis_stops_when_the_callback_raises_stop_iteration(scene, brick):
             raise StopIteration
 
     with pytest.raises(DVRCancelled, match="cancelled"):
-        analyze(vol, spec, cam, curvature=curv, brick=brick, progress=stop)
+        analyze(vol, spec, cam, curvature=curv, brick=brick, progress=stop, build_cache=True)
     # the engine's scratch and lock were released: the next analysis runs and is right
-    _same(analyze(vol, spec, cam, curvature=curv, brick=brick),
+    _same(analyze(vol, spec, cam, curvature=curv, brick=brick, build_cache=True),
           analyze(vol, spec, cam, curvature=curv, brick=brick, build_cache=False))  # fmt: skip
 
 
 def test_progress_must_be_callable(scene):
     vol, spec, cam, _ = scene
     with pytest.raises(DVRInputError, match="progress: expected a callable"):
-        analyze(vol, spec, cam, progress=0.5)
+        analyze(vol, spec, cam, progress=0.5, build_cache=True)
     with pytest.raises(DVRInputError, match="progress: expected a callable"):
         curvature_volume(vol, spec, progress="yes")
 

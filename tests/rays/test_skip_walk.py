@@ -132,7 +132,7 @@ def test_the_cache_building_walk_is_always_exact():
     vol = _slab_and_layer()
     spec = _spec(LAYER, SLAB)
     cam = _top_camera(vol)
-    built = analyze(vol, spec, cam)
+    built = analyze(vol, spec, cam, build_cache=True)
     exact = analyze(vol, spec, cam, build_cache=False, exact=True)
     assert built.stats["assigned_cap"] is None
     assert built.stats["samples_walked"] == exact.stats["samples_walked"]
