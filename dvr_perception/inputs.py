@@ -151,9 +151,9 @@ def add_input_args(
     parser.add_argument(
         "--memory-limit",
         metavar="SIZE",
-        help="memory the analysis may use, e.g. 8G or 512M (default: half the machine's "
-        "memory); larger volumes are analysed in bricks, and a run that cannot fit stops "
-        "before it starts",
+        help="memory the analysis may use, e.g. 8G or 512M (default: a quarter of the "
+        "machine's memory); larger volumes are analysed in bricks, and a run that cannot "
+        "fit stops before it starts",
     )
     parser.add_argument(
         "--allow-data-root",

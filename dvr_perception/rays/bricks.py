@@ -25,6 +25,7 @@ The pieces are public so that ParaView's MPI ranks can each walk their own piece
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
@@ -36,7 +37,7 @@ import numpy as np
 from dvr_perception._numba import kernels
 from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError
-from dvr_perception.rays import _grid, _tables
+from dvr_perception.rays import _grid, _tables, memory
 from dvr_perception.rays._results import RayAnalysis, RayCache
 from dvr_perception.rays._walk_setup import (
     _check_curvature,
@@ -354,6 +355,16 @@ def derive(piece: Volume, state: RayState) -> tuple:
     return vol, _grid.compact_index(piece, idx), cells, _grid.block_map(piece, cells), labmap
 
 
+def _records(piece: Volume, state: RayState) -> np.ndarray:
+    """Return the brick's voxel records only (:func:`derive`'s first, when shading)."""
+    t = state.tables
+    lut = t["lut"]
+    idx = _grid.index_volume(piece, lut.lo, lut.scale, lut.size)
+    labmap = _grid.label_map(piece, t["labels"]) if t["labels"] else None
+    cells = _grid.cell_map(piece, idx, t["ids"], t["memb"], labmap)
+    return _grid.voxel_records(piece, idx, cells)
+
+
 def _piece_arrays(piece: Volume, state: RayState, curvature, derived=None, skip=False):
     """Per-brick arrays the walk reads: ``vol``, the ``maps`` tuple and the curvature.
 
@@ -397,7 +408,7 @@ def _check_piece(piece, brick, offset, state, curvature):
 
 #: Keep the bricks' sample runs (for re-shading after a change of light, and for the next
 #: analyses of the same camera and bricks) up to this many bytes.
-RUNS_BYTES = 256 * 2**20
+RUNS_BYTES = memory.RUNS_BYTES
 #: Runs of recent analyses: (camera pack, volume shape, brick) -> (j0, j1), oldest first.
 _RUNS: dict = {}
 _RUNS_LOCK = threading.Lock()
@@ -497,9 +508,12 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     order, chunk_ptr = ray_order(cam.height, cam.width)
     if report:
         order, chunk_ptr = _interleaved(order, chunk_ptr, _group())
+    order, chunk_ptr = _crossing(order, chunk_ptr, j0, j1)
     nchunk = len(chunk_ptr) - 1
     runs = (j1 - j0)[order]
-    per_chunk = np.add.reduceat(runs, chunk_ptr[:-1]) if build_cache else np.zeros(nchunk, int)
+    per_chunk = np.zeros(nchunk, np.int64)
+    if build_cache and nchunk:
+        per_chunk = np.add.reduceat(runs, chunk_ptr[:-1])
     chunk_base = np.ascontiguousarray(np.concatenate([[0], np.cumsum(per_chunk)])[:-1])
     cap = max(int(per_chunk.sum()), 1)
     mine = build_cache and _SRC_LOCK.acquire(blocking=False)
@@ -510,6 +524,26 @@ def walk(state: RayState, piece: Volume, brick: Brick, *, offset=(0, 0, 0), curv
     finally:
         if mine:
             _SRC_LOCK.release()
+
+
+def _crossing(order, chunk_ptr, j0, j1) -> tuple[np.ndarray, np.ndarray]:
+    """Return the rays of ``order``'s chunks that cross the brick (``j1 > j0``), chunk by chunk.
+
+    Empty chunks are dropped; each keeps its rays in their order, so the walk visits only the
+    brick's rays and its threads share them as they share the image's tiles; every ray's
+    result is the same (each ray is computed on its own).
+
+    Examples
+    --------
+    >>> order, ptr = np.array([3, 0, 1, 2]), np.array([0, 2, 4])
+    >>> o, p = _crossing(order, ptr, np.zeros(4, int), np.array([0, 1, 0, 0]))
+    >>> o.tolist(), p.tolist()
+    ([1], [0, 1])
+    """
+    keep = (j1 > j0)[order]
+    ptr = np.zeros(len(keep) + 1, np.int64)
+    np.cumsum(keep, out=ptr[1:])
+    return np.ascontiguousarray(order[keep]), np.unique(ptr[chunk_ptr])
 
 
 #: The walk's entries before compaction, reused from brick to brick (fresh memory costs page
@@ -547,11 +581,14 @@ def _walk_src(state, brick, vol, maps, cv, j0, j1, order, chunk_ptr, chunk_base,
         _src("sh", cap if shade else 1, (2,), np.uint16, shared),
         _src("curv", cap if has_curv else 1, (), np.float32, shared),
     )
-    start = np.empty(nrays, np.int64)
-    count = np.empty(nrays, np.int64)
-    walked = np.empty(nrays, np.int64)
+    # the walk sets them for the brick's rays only (``order``: those crossing it)
+    start = np.zeros(nrays, np.int64)
+    count = np.zeros(nrays, np.int64)
+    walked = np.zeros(nrays, np.int64)
     geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
-    per = _group() if report else nchunk  # groups of chunks: see progress
+    per = max(_group() if report else nchunk, 1)  # groups of chunks: see progress
+    if not nchunk:
+        report(1.0)  # no ray crosses the brick
     for c0 in range(0, nchunk, per):
         c1 = min(c0 + per, nchunk)
         nb.walk_brick(
@@ -576,8 +613,8 @@ def _walk_src(state, brick, vol, maps, cv, j0, j1, order, chunk_ptr, chunk_base,
         take("sh", e if shade else 0, (2,), np.uint16),
         take("curv", e if has_curv else 0, (), np.float32),
     )
-    rows, row_ptr = ray_order(cam.height, cam.width, tile=(1, cam.width))
-    nk.compact(rows, row_ptr, len(row_ptr) - 1, start, count, dest, *src, *out, shade, has_curv)
+    # the brick's rays, chunk by chunk (a ray's entries go to the same place in any order)
+    nk.compact(order, chunk_ptr, nchunk, start, count, dest, *src, *out, shade, has_curv)
     del src
     fill_shade = shade and shade_all
     fill_curv = has_curv and (curvature_all or not shade)
@@ -783,6 +820,45 @@ _MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 MEMO_SHARE = 0.5
 
 
+def _memo_bytes(volume) -> int:
+    try:
+        return memory.array_bytes(_MEMO.get(volume))
+    except TypeError:  # not weak-referenceable: nothing memoised
+        return 0
+
+
+def _memo_drop(volume) -> None:
+    with contextlib.suppress(TypeError):  # not weak-referenceable: nothing memoised
+        _MEMO.pop(volume, None)
+
+
+def _buffers_bytes(_volume=None) -> int:
+    """Bytes of the buffers every bricked analysis reuses (kept between analyses)."""
+    return memory.array_bytes(dict(_SRC), dict(_ARENA_BUFFERS), dict(_CURV_SCRATCH))
+
+
+def _buffers_drop(_volume=None) -> None:
+    """Free the reused buffers (those in use by a running analysis live on until it ends)."""
+    for d in (_SRC, _ARENA_BUFFERS, _CURV_SCRATCH):
+        d.clear()
+
+
+def _runs_bytes(_volume=None) -> int:
+    with _RUNS_LOCK:
+        return memory.array_bytes(list(_RUNS.values()))
+
+
+def _runs_drop(_volume=None) -> None:
+    with _RUNS_LOCK:
+        _RUNS.clear()
+
+
+#: :func:`~dvr_perception.rays.memory.plan` counts (and may drop) the memos and buffers.
+memory.keeps("bricks", _memo_bytes, _memo_drop)
+memory.keeps("bricks_buffers", _buffers_bytes, _buffers_drop, per_volume=False)
+memory.keeps("bricks_runs", _runs_bytes, _runs_drop, per_volume=False)
+
+
 def _curvature_key(curvature):
     """Return what identifies the curvature pieces a memo holds.
 
@@ -842,27 +918,34 @@ def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dic
 def _refiller(volume_ref, bricks, kept, state):
     """Recompute every entry's shading brick by brick (after a change of light).
 
-    ``kept``: per brick its normal codes and offset (:func:`walk`'s ``keep_codes``), or
-    ``None`` to re-derive them from the volume (slow: done on every change of light).
+    ``kept``: per brick its normal codes (or voxel records), their shift and offset
+    (:func:`walk`'s ``keep_codes``), ``None`` for a brick to re-derive from the volume (slow:
+    done on every change of light), or ``None`` for all of them.
     """
+    kept = [None] * len(bricks) if kept is None else list(kept)
 
-    def refill(cache, tab):
-        _, nb = _kernels()
-        seg, t = state.seg, state.tables
-        gz, gy, gx = state.geometry.shape
-        if kept is not None:  # (codes or records, their shift, offset) per brick
-            todo = [(br, *k) for br, k in zip(bricks, kept, strict=True)]
-        else:
+    def todo():
+        missing = [br for br, k in zip(bricks, kept, strict=True) if k is None]
+        pieces = iter(())
+        if missing:
             volume = volume_ref()
             if volume is None:
                 raise DVRInputError(
                     "cache: the volume of this bricked analysis is gone; a new light needs it"
                 )
-            todo = (
-                (br, derive(piece, state)[0], 16, off)
-                for br, piece, off, _ in _pieces(volume, bricks, None)
-            )
-        for br, vol, shift, off in todo:
+            pieces = _pieces(volume, missing, None)
+        for br, k in zip(bricks, kept, strict=True):
+            if k is None:  # the next missing brick, derived one at a time
+                _, piece, off, _ = next(pieces)
+                yield br, _records(piece, state), 16, off
+            else:  # (codes or records, their shift, offset)
+                yield (br, *k)
+
+    def refill(cache, tab):
+        _, nb = _kernels()
+        seg, t = state.seg, state.tables
+        gz, gy, gx = state.geometry.shape
+        for br, vol, shift, off in todo():
             j0, j1 = _runs(state, br)
             geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
             nb.fill_range(cache.start, cache.count, cache.lut, cache.lazy["steps"], cache.shading,
@@ -873,8 +956,8 @@ def _refiller(volume_ref, bricks, kept, state):
     return refill
 
 
-#: Keep the bricks' normal codes for a change of light while they take at most this share
-#: of the memory limit.
+#: Keep the bricks' normal codes for a change of light (front bricks first) while they take at
+#: most this share of the memory limit (and of the room the memo rule leaves).
 KEEP_CODES_SHARE = 0.25
 
 
@@ -942,8 +1025,6 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
     >>> bool(np.array_equal(both[1].rgba, one.rgba))
     True
     """
-    from dvr_perception.rays import memory
-
     t0 = time.perf_counter()
     cameras = list(cameras)
     for cam in cameras:
@@ -969,8 +1050,7 @@ def analyze_bricked_views(volume: Volume, spec: StructureSpec, cameras, *, brick
     for n, st in enumerate(states):
         groups.setdefault(tuple(view_order(every, st)), []).append(n)
     cap = memory.limit(memory_limit)
-    room = MEMO_SHARE * max(cap - sum(_peak(volume, st, brick, curv, build_cache, cap)
-                                      for st in states), 0)  # fmt: skip
+    room = _room(volume, states, brick, curv, build_cache, cap)
     report(0.0)
     arena = _Arena() if build_cache and _ARENA_LOCK.acquire(blocking=False) else None
     try:
@@ -1012,19 +1092,34 @@ def _views(volume, states, every, groups, curv, cap, build_cache, report, room, 
 INNER_PROGRESS_BRICKS = 16
 
 
-def _peak(volume, state, brick, curv, build_cache, cap) -> float:
-    """Bytes the bricked analysis of ``state``'s camera holds at its peak (the memos aside)."""
-    from dvr_perception.rays import memory
+def _room(volume, states, brick, curv, build_cache, cap) -> float:
+    """Bytes the memos (or the kept normal codes) may take: :data:`MEMO_SHARE` of the room.
 
+    The room is what the limit leaves beside the bricked analyses of ``states`` (each one's
+    :func:`~dvr_perception.rays.memory.plan` estimate, the memos aside; what every analysis
+    of the volume holds, the volume itself first, counted once).
+    """
+    peaks = [_peak(volume, st, brick, curv, build_cache, cap) for st in states]
+    held = max(h for _, h in peaks)
+    return MEMO_SHARE * max(cap - held - sum(p - h for p, h in peaks), 0)
+
+
+def _peak(volume, state, brick, curv, build_cache, cap) -> tuple[float, float]:
+    """Bytes the bricked analysis of ``state``'s camera holds at its peak (the memos aside).
+
+    And of those what every analysis of the volume holds (``plan``'s ``held``).
+    """
     t = state.tables
     try:
-        return memory.plan(
+        p = memory.plan(
             volume, len(state.st), int(state.seg["n"].sum()), k=len(state.spec.structures),
             shade=t["shade"], curvature=curv is not None, build_cache=build_cache, lut=t["lut"],
             membership=t["memb"], memory_limit=max(int(cap), 2**20), brick=brick,
-        )["bricked"]  # fmt: skip
+            curvature_array=isinstance(curv, np.ndarray),
+        )  # fmt: skip
     except DVRInputError:  # more than the limit even in bricks: no room for memos
-        return float(cap)
+        return float(cap), 0.0
+    return p["bricked"] - p["memo"], p["held"]
 
 
 def _alive(states, brick) -> bool:
@@ -1048,8 +1143,9 @@ def _pass(volume, states, bricks, curv, cap, build_cache, report=None, room=0.0,
     ``room``: bytes the memos may take; ``arena``: where the bricks' entries go.
     """
     memo, cmemo = _memo(volume, states[0], bricks, room, curv)
-    held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
-    keep = build_cache and memo is None and 2 * held <= KEEP_CODES_SHARE * cap
+    # the codes stay with the cache (counted as the memo would be: within the room), brick by
+    # brick in view order while they fit (a change of light re-derives the others)
+    keep = min(KEEP_CODES_SHARE * cap, room) if build_cache and memo is None else 0.0
     known = set(memo) if memo is not None else set()
     locked = _CURV_SCRATCH_LOCK.acquire(blocking=False)
     try:
@@ -1072,7 +1168,11 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
     kept = [[] for _ in states]
     # with every brick's normal codes kept (memo or codes), entries behind early ray
     # termination are shaded only when a re-evaluation can reach them (_filler)
-    lazy = build_cache and states[0].tables["shade"] and (memo is not None or keep)
+    shape = volume.data.shape
+    sizes = [2 * math.prod(b - a for a, b in br.voxels(shape)) for br in bricks]  # their codes
+    keep_all = bool(keep) and sum(sizes) <= keep
+    lazy = build_cache and states[0].tables["shade"] and (memo is not None or keep_all)
+    used = 0  # bytes of the codes kept
     # and their curvature too while the memo keeps the bricks' curvature pieces
     lazy_curv = lazy and curv is not None and cmemo is not None
     pieces_kept = []
@@ -1095,19 +1195,21 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
         if derived is None and len(states) > 1:
             derived = derive(piece, states[0])  # once for every state
         codes = None
+        keep_br = bool(keep) and used + sizes[done - 1] <= keep
+        used += sizes[done - 1] if keep_br else 0
         for n, st in enumerate(states):
             part = None  # this state's share of the brick's part of the bar
             if report and len(bricks) < INNER_PROGRESS_BRICKS:
                 part = report.sub((done - 1 + n / len(states)) / len(bricks),
                                   (done - 1 + (n + 1) / len(states)) / len(bricks))  # fmt: skip
             c = walk(st, piece, br, offset=off, curvature=cv, build_cache=build_cache,
-                     keep_codes=keep and codes is None, derived=derived,
+                     keep_codes=keep_br and codes is None, derived=derived,
                      progress=part, shade_all=not lazy,
                      curvature_all=not lazy_curv, arena=arena)  # fmt: skip
             if not build_cache or c is None:
                 continue
             caches[n].append(c)
-            if keep:
+            if keep_br:
                 codes = c.codes if codes is None else codes
                 c.codes = None
                 k = (codes, 0)
@@ -1120,7 +1222,7 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
     for st, cs, kp in zip(states, caches, kept, strict=True):
         refill = fill = None
         if build_cache and st.tables["shade"]:
-            kp = None if any(k is None for k in kp) else kp
+            kp = None if all(k is None for k in kp) else kp
             refill = _refiller(weakref.ref(volume), bricks, kp, st)
             if lazy:
                 fill = _filler(bricks, kp, st, pieces_kept if lazy_curv else None)
