@@ -28,6 +28,13 @@ pytest.importorskip("numba")
 OLD_RULE = 64 * 2**20
 
 
+@pytest.fixture(autouse=True)
+def _no_reused_buffers():
+    """Each test plans from a clean slate: the buffers earlier bricked runs of the process left
+    for reuse count in every plan (and a plan that must fit drops them), whatever the volume."""
+    memory.drop_kept(None, ("bricks_buffers", "bricks_runs"))
+
+
 def _ct(shape):
     """A uint16 CT of ``shape`` (z, y, x) that takes no memory, and the phantom's spec."""
     _, spec = make_phantom(size=16)
