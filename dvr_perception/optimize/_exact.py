@@ -207,15 +207,7 @@ class OpacityModel:
             n = rays.size
             if n == 0:
                 continue
-            if hasattr(cache, "opacity_pass"):  # entries spread over MPI ranks
-                vis, dvis, acc, dacc = cache.opacity_pass(rays, ops, grad)
-            else:
-                alpha, dalpha, ids = self._tables(cache, ops)
-                vis, acc = np.empty((k, n)), np.empty(n)
-                m = n if grad else 1
-                dvis, dacc = np.zeros((k, k, m)), np.zeros((k, m))
-                composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha,
-                                k, _tables.ERT, grad, vis, dvis, acc, dacc)  # fmt: skip
+            vis, dvis, acc, dacc = self._pass(cache, rays, ops, grad)
             acc32, vis32 = acc.astype(np.float32), vis.astype(np.float32)  # as the engine's
             diff = target - vis32.astype(np.float64)
             e_v += float(np.abs(diff).sum(axis=0).mean())
@@ -246,22 +238,29 @@ class OpacityModel:
         """
         self.nfev += 1
         ops = np.clip(np.asarray(ops, np.float64), 0.0, 1.0)
-        k = self.k
         cov = 0.0
         for cache, rays, _ in self.views:
-            n = rays.size
-            if n == 0:
+            if rays.size == 0:
                 continue
-            if hasattr(cache, "opacity_pass"):  # entries spread over MPI ranks
-                _, _, acc, _ = cache.opacity_pass(rays, ops, False)
-            else:
-                alpha, dalpha, ids = self._tables(cache, ops)
-                vis, acc = np.empty((k, n)), np.empty(n)
-                dvis, dacc = np.zeros((k, k, 1)), np.zeros((k, 1))
-                composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha,
-                                k, _tables.ERT, False, vis, dvis, acc, dacc)  # fmt: skip
+            acc = self._pass(cache, rays, ops, False)[2]
             cov += float(acc.astype(np.float32).mean())
         return cov / len(self.views)
+
+    def _pass(self, cache, rays, ops, grad: bool) -> tuple:
+        """``(visible, d visible, accumulated, d accumulated)`` of one view's ``rays`` at ``ops``.
+
+        The derivatives (in the opacities) are zeros of one column without ``grad``.
+        """
+        if hasattr(cache, "opacity_pass"):  # entries spread over MPI ranks
+            return cache.opacity_pass(rays, ops, grad)
+        k, n = self.k, rays.size
+        alpha, dalpha, ids = self._tables(cache, ops)
+        vis, acc = np.empty((k, n)), np.empty(n)
+        m = n if grad else 1
+        dvis, dacc = np.zeros((k, k, m)), np.zeros((k, m))
+        composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha, k,
+                       _tables.ERT, grad, vis, dvis, acc, dacc)  # fmt: skip
+        return vis, dvis, acc, dacc
 
     def covering(self, ops) -> tuple:
         """Who hides whom, and who shows more than its target, at opacities ``ops``.
