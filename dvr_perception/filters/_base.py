@@ -26,7 +26,6 @@ that do not depend on the computation:
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 
@@ -43,7 +42,7 @@ from dvr_perception._vtk import (
     vtkStringArray,
 )
 from dvr_perception.errors import DVRCancelled, DVRInputError
-from dvr_perception.structures.io import load_spec, spec_from_dict
+from dvr_perception.structures.io import load_spec, loads_json, spec_from_dict
 from dvr_perception.volume.convert import from_vtk_image
 
 __all__ = ["DVRFilterBase", "Parameter", "check_range", "engine_luminance"]
@@ -296,9 +295,7 @@ class DVRFilterBase(VTKPythonAlgorithmBase):
         if self.spec_file:
             return load_spec(self.spec_file)
         if self.spec_json:
-            return spec_from_dict(
-                parse_json(self.spec_json, "spec_json", "a structure spec"), source="spec_json"
-            )
+            return spec_from_dict(loads_json(self.spec_json, "spec_json"), source="spec_json")
         raise DVRInputError(
             f"{self.label}: no structure spec; set spec_file (a spec JSON file) or spec_json"
         )
@@ -351,16 +348,6 @@ class DVRFilterBase(VTKPythonAlgorithmBase):
 
 
 # -- small conversions shared by the filters -----------------------------------------------------
-def parse_json(text: str, name: str, what: str):
-    """Parse JSON ``text`` or raise :class:`DVRInputError` naming ``name`` and the position."""
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise DVRInputError(
-            f"{name}: not valid JSON for {what} (line {exc.lineno}, column {exc.colno}: {exc.msg})"
-        ) from None
-
-
 def point_array(values: np.ndarray, name: str):
     """Return a named VTK array holding a copy of ``values`` (``(N,)`` or ``(N, C)``)."""
     values = np.ascontiguousarray(values)

@@ -64,7 +64,6 @@ from dvr_perception.filters._base import (
     as_text,
     double_array,
     engine_luminance,
-    parse_json,
     point_array,
     string_array,
 )
@@ -72,7 +71,7 @@ from dvr_perception.measures import all_measures
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.curvature import curvature_volume
 from dvr_perception.rays.engine import analyze
-from dvr_perception.structures.io import attach_labels, check_spec_for_volume
+from dvr_perception.structures.io import attach_labels, check_spec_for_volume, loads_json
 from dvr_perception.volume.convert import has_identity_direction
 
 __all__ = ["PerceptionMeasures", "piece_extent"]
@@ -141,7 +140,7 @@ class PerceptionMeasures(DVRFilterBase):
     def _camera_dict(self) -> dict | None:
         if not self.camera_json.strip():
             return None
-        d = parse_json(self.camera_json, "camera_json", "a camera")
+        d = loads_json(self.camera_json, "camera_json")
         if not isinstance(d, dict):
             raise DVRInputError(f"camera_json: expected a JSON object, got {type(d).__name__}")
         d = dict(d)
