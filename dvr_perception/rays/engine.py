@@ -622,15 +622,20 @@ def rewalk(analysis: RayAnalysis, *, opacities, rays=None, background=None) -> R
             "again (one with a cache re-composites with reevaluate)"
         )
     volume, spec, backend, memory_limit = source
-    if background is not None:
-        bg = np.asarray(background, dtype=np.float64)
-        if bg.shape != (3,) or not np.all((bg >= 0) & (bg <= 1)):
-            raise DVRInputError(f"background: expected 3 numbers in [0, 1], got {background}")
-        spec = StructureSpec(spec.structures, tuple(bg), spec.rendering, spec.view,
-                             spec.labels_file)  # fmt: skip
+    spec = _with_background(spec, background)
     return analyze(volume, spec, analysis.camera, opacities=opacities, build_cache=False,
                    occlusion_free=False, rays=rays, backend=backend,
                    memory_limit=memory_limit)  # fmt: skip
+
+
+def _with_background(spec: StructureSpec, background) -> StructureSpec:
+    """``spec`` with ``background`` (checked RGB in [0, 1]) behind the volume; None: as is."""
+    if background is None:
+        return spec
+    bg = np.asarray(background, dtype=np.float64)
+    if bg.shape != (3,) or not np.all((bg >= 0) & (bg <= 1)):
+        raise DVRInputError(f"background: expected 3 numbers in [0, 1], got {background}")
+    return StructureSpec(spec.structures, tuple(bg), spec.rendering, spec.view, spec.labels_file)
 
 
 _SCRATCH: dict = {}
@@ -1037,11 +1042,7 @@ def reevaluate(
     rs = spec.rendering
     direction = rs.light_direction if light_direction is None else light_direction
     light = _tables.light_array(camera, mats, direction, rs.light_intensity)
-    if background is not None:
-        bg = np.asarray(background, dtype=np.float64)
-        if bg.shape != (3,) or not np.all((bg >= 0) & (bg <= 1)):
-            raise DVRInputError(f"background: expected 3 numbers in [0, 1], got {background}")
-        spec = StructureSpec(spec.structures, tuple(bg), rs, spec.view, spec.labels_file)
+    spec = _with_background(spec, background)
     alpha_r = _tables.alpha_table(cache.ids, cache.membership, ops, cache.ratio)
     shade = bool(rs.shade)
     has_curv = cache.curvature.size > 0
