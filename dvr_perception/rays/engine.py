@@ -1086,10 +1086,11 @@ def reevaluate(
         else:
             # specular powers alone changed: only those structures' entries are recomputed
             stale = None if z.get("refill") else _tables.stale_structures(z["shading_key"], key)
-            if stale is None:
-                nk.invalidate(cache.shading)
-            else:
-                nk.invalidate_structures(cache.shading, cache.lut, cache.ids, stale)
+            with serial_below(len(cache.shading)):
+                if stale is None:
+                    nk.invalidate(cache.shading)
+                else:
+                    nk.invalidate_structures(cache.shading, cache.lut, cache.ids, stale)
             if z.get("fill") is not None:  # a lazily shaded bricked cache: shaded below
                 z["filled"] = None
             elif z.get("refill") is not None:  # a bricked cache: no whole volume to fill from
