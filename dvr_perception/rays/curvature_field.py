@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dvr_perception._numba import kernels
 from dvr_perception._progress import reporter
 from dvr_perception.rays.curvature import curvature_globals, curvature_volume
 
@@ -65,25 +66,18 @@ class CurvaturePages:
 
     @classmethod
     def from_dense(cls, dense: np.ndarray) -> CurvaturePages:
-        """Page ``dense`` (float32 ``(Z, Y, X)``), one slab of 8 planes at a time."""
-        dense = np.asarray(dense, np.float32)
-        ny, nx = dense.shape[1:]
-        pz, py, px = (-(-n // PAGE) for n in dense.shape)
-        index = np.full((pz, py, px), -1, np.int32)
-        slab = np.zeros((PAGE, py * PAGE, px * PAGE), np.float32)
-        kept, n = [], 0
-        for z in range(pz):
-            part = dense[z * PAGE : (z + 1) * PAGE]
-            slab[...] = 0.0
-            slab[: part.shape[0], :ny, :nx] = part
-            blocks = slab.reshape(PAGE, py, PAGE, px, PAGE).transpose(1, 3, 0, 2, 4)
-            full = blocks.reshape(py, px, -1).any(axis=2)
-            m = int(full.sum())
-            if m:
-                index[z][full] = np.arange(n, n + m, dtype=np.int32)
-                kept.append(blocks[full])  # (m, 8, 8, 8), a copy
-                n += m
-        pages = np.concatenate(kept) if kept else np.zeros((0, PAGE, PAGE, PAGE), np.float32)
+        """Page ``dense`` (float32 ``(Z, Y, X)``)."""
+        dense = np.ascontiguousarray(dense, np.float32)
+        nk = kernels("dvr_perception.rays._numba_grid")
+        if nk is None:
+            return cls(*_paged(dense), dense.shape)
+        flags = np.zeros([-(-n // PAGE) for n in dense.shape], np.uint8)
+        nk.page_flags(dense, flags)
+        kept = flags.reshape(-1).view(bool)
+        index = np.full(flags.shape, -1, np.int32)
+        index.reshape(-1)[kept] = np.arange(int(kept.sum()), dtype=np.int32)
+        pages = np.zeros((int(kept.sum()), PAGE, PAGE, PAGE), np.float32)
+        nk.page_fill(dense, index, pages)
         return cls(index, pages, dense.shape)
 
     def kernel_arg(self) -> tuple:
@@ -93,12 +87,16 @@ class CurvaturePages:
     def piece(self, extent) -> np.ndarray:
         """Dense float32 values on the voxels ``extent = ((z0, z1), (y0, y1), (x0, x1))``."""
         (z0, z1), (y0, y1), (x0, x1) = ((int(a), int(b)) for a, b in extent)
-        lo = [a // PAGE for a in (z0, y0, x0)]
-        hi = [-(-b // PAGE) for b in (z1, y1, x1)]
-        sub = self.index[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
         out = np.zeros((z1 - z0, y1 - y0, x1 - x0), np.float32)
         if self.pages.shape[0] == 0 or out.size == 0:
             return out
+        nk = kernels("dvr_perception.rays._numba_grid")
+        if nk is not None:
+            nk.page_read(self.index, self.pages, z0, y0, x0, out)
+            return out
+        lo = [a // PAGE for a in (z0, y0, x0)]
+        hi = [-(-b // PAGE) for b in (z1, y1, x1)]
+        sub = self.index[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
         stored = np.zeros((*sub.shape, PAGE, PAGE, PAGE), np.float32)
         there = sub >= 0
         stored[there] = self.pages[sub[there]]
@@ -160,6 +158,28 @@ class CurvatureField:
             self.volume, self.spec, sigma=self.sigma, gradient_max=self.globals
         )
         return out if dtype is None else out.astype(dtype)
+
+
+def _paged(dense: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(index, pages)`` of ``dense`` without numba, one slab of 8 planes at a time."""
+    ny, nx = dense.shape[1:]
+    pz, py, px = (-(-n // PAGE) for n in dense.shape)
+    index = np.full((pz, py, px), -1, np.int32)
+    slab = np.zeros((PAGE, py * PAGE, px * PAGE), np.float32)
+    kept, n = [], 0
+    for z in range(pz):
+        part = dense[z * PAGE : (z + 1) * PAGE]
+        slab[...] = 0.0
+        slab[: part.shape[0], :ny, :nx] = part
+        blocks = slab.reshape(PAGE, py, PAGE, px, PAGE).transpose(1, 3, 0, 2, 4)
+        full = blocks.reshape(py, px, -1).any(axis=2)
+        m = int(full.sum())
+        if m:
+            index[z][full] = np.arange(n, n + m, dtype=np.int32)
+            kept.append(blocks[full])  # (m, 8, 8, 8), a copy
+            n += m
+    pages = np.concatenate(kept) if kept else np.zeros((0, PAGE, PAGE, PAGE), np.float32)
+    return index, pages
 
 
 def curvature_source(volume, spec, *, sigma: float = 1.0, memory_limit=None, progress=None):

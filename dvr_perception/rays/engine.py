@@ -146,9 +146,11 @@ def analyze(
         View and image size.
     opacities : array_like of float, optional
         ``K`` rendering opacities in [0, 1]; default each structure's ``render_opacity``.
-    curvature : numpy.ndarray, optional
+    curvature : numpy.ndarray, CurvaturePages or CurvatureField, optional
         ``|mean curvature|`` per voxel ``[z, y, x]`` (0 off boundaries), e.g. from
-        :func:`dvr_perception.rays.curvature.curvature_volume`; looked up at the nearest voxel.
+        :func:`dvr_perception.rays.curvature_field.curvature_source` (pages, or a field
+        computed brick by brick) or :func:`dvr_perception.rays.curvature.curvature_volume`
+        (dense); looked up at the nearest voxel.
     backend : {"auto", "numba", "numpy", "cuda"}
         Kernel implementation; "auto" uses the GPU when numba finds a CUDA device (not with
         ``DVR_PERCEPTION_NO_CUDA=1``), else numba unless it is missing or

@@ -93,3 +93,16 @@ def test_bad_pages_are_refused_by_name():
     got = analyze(vol, spec, cam, curvature=negative)
     want = analyze(vol, spec, cam, curvature=dense)
     np.testing.assert_array_equal(got.curvature, want.curvature)
+
+
+def test_numpy_and_numba_page_alike(monkeypatch):
+    rng = np.random.default_rng(1)
+    shape = (19, 9, 26)
+    dense = np.where(rng.random(shape) < 0.03, rng.random(shape), 0).astype(np.float32)
+    fast = CurvaturePages.from_dense(dense)
+    monkeypatch.setenv("DVR_PERCEPTION_NO_NUMBA", "1")
+    slow = CurvaturePages.from_dense(dense)
+    np.testing.assert_array_equal(slow.index, fast.index)
+    np.testing.assert_array_equal(slow.pages, fast.pages)
+    extent = ((2, 17), (1, 9), (5, 25))
+    np.testing.assert_array_equal(slow.piece(extent), dense[2:17, 1:9, 5:25])
