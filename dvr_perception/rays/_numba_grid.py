@@ -202,10 +202,12 @@ def page_fill(dense, index, pages):
         for z in range(q * 8, min(q * 8 + 8, nz)):
             dz = z - q * 8
             for y in range(ny):
-                for x in range(nx):
-                    p = index[q, y >> 3, x >> 3]
+                r, dy = y >> 3, y & 7
+                for c in range(index.shape[2]):
+                    p = index[q, r, c]
                     if p >= 0:
-                        pages[p, dz, y & 7, x & 7] = dense[z, y, x]
+                        for x in range(c * 8, min(c * 8 + 8, nx)):
+                            pages[p, dz, dy, x - c * 8] = dense[z, y, x]
 
 
 @njit(parallel=True, cache=True)
