@@ -53,6 +53,7 @@ def _device_twins() -> dict:
     functions (resolved when the kernel is compiled).
     """
     glb = dict(vars(_nk))
+    glb["_curv_at"] = cuda.jit(device=True)(_nk._dense_at)  # the GPU reads a dense |H|
     twins = {}
     for name in _SHARED:
         py = getattr(_nk, name).py_func

@@ -14,7 +14,16 @@ import math
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["cell_classes", "index_volume", "normal_codes", "records_where", "structure_blocks"]
+__all__ = [
+    "cell_classes",
+    "index_volume",
+    "normal_codes",
+    "page_fill",
+    "page_flags",
+    "page_read",
+    "records_where",
+    "structure_blocks",
+]
 
 _W_SCALE = 32765.0 / 32768.0
 _W_BIAS = 32767.0 / 32768.0
@@ -170,3 +179,45 @@ def structure_blocks(index, run, run_bits, bits, labels, has_labels, lab_base, l
                     for q in range(run[klo], run[khi] + 1):
                         m |= run_bits[q]
                 out[zb, yb, xb] = m
+
+
+@njit(parallel=True, cache=True)
+def page_flags(dense, flags):
+    """``flags[q, r, c] = 1`` where the 8^3 page ``(q, r, c)`` of ``dense`` holds a non-zero."""
+    nz, ny, nx = dense.shape
+    for q in prange(flags.shape[0]):
+        for z in range(q * 8, min(q * 8 + 8, nz)):
+            for y in range(ny):
+                r = y >> 3
+                for x in range(nx):
+                    if dense[z, y, x] != 0.0:
+                        flags[q, r, x >> 3] = 1
+
+
+@njit(parallel=True, cache=True)
+def page_fill(dense, index, pages):
+    """Copy ``dense`` into its numbered pages (``index`` -1: not kept)."""
+    nz, ny, nx = dense.shape
+    for q in prange(index.shape[0]):
+        for z in range(q * 8, min(q * 8 + 8, nz)):
+            dz = z - q * 8
+            for y in range(ny):
+                r, dy = y >> 3, y & 7
+                for c in range(index.shape[2]):
+                    p = index[q, r, c]
+                    if p >= 0:
+                        for x in range(c * 8, min(c * 8 + 8, nx)):
+                            pages[p, dz, dy, x - c * 8] = dense[z, y, x]
+
+
+@njit(parallel=True, cache=True)
+def page_read(index, pages, z0, y0, x0, out):
+    """``out`` = the paged volume on the voxels from ``(z0, y0, x0)`` on (0 off the pages)."""
+    for i in prange(out.shape[0]):
+        z = z0 + i
+        for j in range(out.shape[1]):
+            y = y0 + j
+            for k in range(out.shape[2]):
+                x = x0 + k
+                p = index[z >> 3, y >> 3, x >> 3]
+                out[i, j, k] = pages[p, z & 7, y & 7, x & 7] if p >= 0 else 0.0

@@ -35,7 +35,8 @@ analysis composited from the cache equals one composited during the walk.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
+from numba.extending import overload
 
 __all__ = ["compact", "composite", "invalidate", "invalidate_structures", "segments", "walk"]
 
@@ -55,6 +56,39 @@ _CELL_EMPTY = 0
 _CELL_MIXED = 255
 #: Side of :func:`_grid.block_map`'s blocks (= ``_grid.BLOCK``, tested; ``>> 2`` below).
 _BLOCK = 4
+
+
+def _dense_at(curv, z, y, x):
+    """``curv[z, y, x]`` of a dense ``|H|`` volume."""
+    return curv[z, y, x]
+
+
+def _paged_at(curv, z, y, x):
+    """``|H|`` at voxel ``(z, y, x)`` of 8^3 pages ``curv = (index, pages)``."""
+    index, pages = curv
+    p = index[z >> 3, y >> 3, x >> 3]
+    if p < 0:
+        return np.float32(0.0)
+    return pages[p, z & 7, y & 7, x & 7]
+
+
+def _curv_at(curv, z, y, x):
+    """``|H|`` at voxel ``(z, y, x)``: ``curv`` dense ``(Z, Y, X)`` or pages ``(index, pages)``.
+
+    The walk of the whole volume reads pages
+    (:class:`~dvr_perception.rays.curvature_field.CurvaturePages`), a brick its dense piece;
+    numba picks the reader by ``curv``'s type.
+    """
+    if isinstance(curv, tuple):
+        return _paged_at(curv, z, y, x)
+    return _dense_at(curv, z, y, x)
+
+
+@overload(_curv_at, inline="always")
+def _curv_at_numba(curv, z, y, x):
+    if isinstance(curv, types.BaseTuple):
+        return _paged_at
+    return _dense_at
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
@@ -484,7 +518,7 @@ def _walk_ray(
             spec = ks[s] * (sp * _IQS)
         hc = 0.0
         if has_curv:
-            hc = curv[int(pz + 0.5) - oz, int(py + 0.5) - oy, int(px + 0.5) - ox]
+            hc = _curv_at(curv, int(pz + 0.5) - oz, int(py + 0.5) - oy, int(px + 0.5) - ox)
             if build:
                 c_curv[e] = hc
         w = al * tr
@@ -535,7 +569,7 @@ def _fill(e, j, ax, ay, az, bx, by, bz, t_first, step, vol, curv, tab, s, shade,
         c_sh[e, 0] = dl
         c_sh[e, 1] = sp
     if has_curv:
-        c_curv[e] = curv[int(pz + 0.5) - oz, int(py + 0.5) - oy, int(px + 0.5) - ox]
+        c_curv[e] = _curv_at(curv, int(pz + 0.5) - oz, int(py + 0.5) - oy, int(px + 0.5) - ox)
 
 
 @njit(cache=True, fastmath=_FM, inline="always")

@@ -48,17 +48,19 @@ def _check_inputs(volume, spec, camera, backend) -> None:
         raise DVRInputError(f"backend: expected one of {BACKENDS}, got {backend!r}")
 
 
-def _check_curvature(curvature, volume) -> np.ndarray | None:
+def _check_curvature(curvature, volume):
     if curvature is None:
         return None
-    from dvr_perception.rays.curvature_field import CurvatureField
+    from dvr_perception.rays.curvature_field import CurvatureField, CurvaturePages
 
-    if isinstance(curvature, CurvatureField):
+    if isinstance(curvature, (CurvatureField, CurvaturePages)):
         if curvature.shape != volume.data.shape:
             raise DVRInputError(
                 f"curvature: a field of shape {curvature.shape}, the volume is "
                 f"{volume.data.shape} (z, y, x)"
             )
+        if isinstance(curvature, CurvaturePages):
+            return _checked_pages(curvature)
         return curvature  # computed piece by piece (bricks) or whole (below)
     try:
         c = np.asarray(curvature, dtype=np.float32)
@@ -79,6 +81,54 @@ def _check_curvature(curvature, volume) -> np.ndarray | None:
     if not np.all(np.isfinite(c)):
         raise DVRInputError("curvature: values must be finite")
     return np.ascontiguousarray(np.abs(c))
+
+
+def _checked_pages(paged):
+    """``paged`` with finite values checked (|values| when some are negative)."""
+    nk = _numba_kernels()
+    flat = paged.pages.reshape(-1)
+    state = _checked_curvature(nk, paged.pages) if nk is not None else None
+    if state is None:
+        state = 2 if not np.all(np.isfinite(flat)) else int(bool((flat < 0).any()))
+    if state == 2:
+        raise DVRInputError("curvature: values must be finite")
+    if state == 1:
+        return type(paged)(paged.index, np.abs(paged.pages), paged.shape)
+    return paged
+
+
+#: A whole-volume walk's pages of a dense ``|H|`` array given by a caller, by array.
+_PAGED: dict = {}
+#: What the numba walk reads without curvature (the pages' types: one compiled variant).
+_NO_PAGES = (np.full((1, 1, 1), -1, np.int32), np.zeros((0, 8, 8, 8), np.float32))
+
+
+def walk_curvature(curv, kind: str):
+    """Return the ``|H|`` argument of back end ``kind``'s walk kernels for checked ``curv``.
+
+    numba reads pages (``(index, pages)``; a dense array is paged once and remembered while
+    it lives), the NumPy and CUDA walks a dense array; without curvature a stand-in of the
+    same type.
+    """
+    from dvr_perception.rays.curvature_field import CurvaturePages
+
+    if kind != "numba":
+        if curv is None:
+            return np.zeros((2, 2, 2), np.float32)
+        return np.asarray(curv, np.float32) if isinstance(curv, CurvaturePages) else curv
+    if curv is None:
+        return _NO_PAGES
+    if isinstance(curv, CurvaturePages):
+        return curv.kernel_arg()
+    key = (id(curv), curv.ctypes.data, curv.shape)
+    hit = _PAGED.get(key)
+    if hit is not None and hit[0]() is curv:
+        return hit[1].kernel_arg()
+    paged = CurvaturePages.from_dense(curv)
+    for k in [k for k, v in _PAGED.items() if v[0]() is None]:
+        _PAGED.pop(k, None)
+    _PAGED[key] = (weakref.ref(curv), paged)
+    return paged.kernel_arg()
 
 
 _CURV_CHECKED: dict = {}

@@ -50,6 +50,7 @@ from dvr_perception.rays._walk_setup import (
     _segments,
     _tail_tables,
     ray_order,
+    walk_curvature,
 )
 from dvr_perception.rays.camera import Camera
 from dvr_perception.structures.spec import StructureSpec
@@ -749,7 +750,7 @@ def finish(state: RayState, caches=None, *, refill=None, seconds=None, fill=None
             "t": state.seg["t"],
             "step": t["step"],
             "volume": dummy,  # every entry is filled: compositing never reads it
-            "curvature_volume": np.zeros((2, 2, 2), np.float32),
+            "curvature_volume": walk_curvature(None, "numba"),
             "shading_key": _tables.shading_key(t["light"], k) if t["shade"] else b"",
             "refill": refill,
             "fill": fill,
@@ -863,13 +864,15 @@ def _curvature_key(curvature):
     """Return what identifies the curvature pieces a memo holds.
 
     A field of the same volume, sigma and structure ranges/labels gives the same pieces; a
-    whole-volume array gives them while it lives (its identity; like the checked curvature,
-    an array is assumed not to change in place).
+    whole-volume array (or its pages) gives them while it lives (its identity; like the
+    checked curvature, an array is assumed not to change in place).
     """
     if curvature is None:
         return None
     if isinstance(curvature, np.ndarray):
         return ("array", id(curvature), curvature.ctypes.data, curvature.shape)
+    if not hasattr(curvature, "spec"):  # pages of a whole-volume array (CurvaturePages)
+        return ("pages", id(curvature), curvature.shape)
     structures = tuple((s.range, s.label) for s in curvature.spec.structures)
     return (curvature.sigma, structures)
 
@@ -907,7 +910,7 @@ def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dic
         hit["curvature"], hit["curvature_key"] = {}, None
         return hit["bricks"], None
     ckey = (_curvature_key(curvature), tuple(br.cells for br in bricks))
-    array = isinstance(curvature, np.ndarray)
+    array = not hasattr(curvature, "spec")  # an array or its pages, not a field
     same = hit["curvature_key"] == ckey and (not array or hit["curvature_ref"]() is curvature)
     if not same:  # (an array of the same id and address is a new one once the old died)
         hit["curvature"], hit["curvature_key"] = {}, ckey

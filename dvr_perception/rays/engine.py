@@ -70,6 +70,7 @@ from dvr_perception.rays._walk_setup import (  # noqa: F401 - also engine's name
     _threads,
     _with_labels,
     ray_order,
+    walk_curvature,
 )
 from dvr_perception.rays.camera import Camera
 from dvr_perception.structures.spec import StructureSpec
@@ -146,9 +147,11 @@ def analyze(
         View and image size.
     opacities : array_like of float, optional
         ``K`` rendering opacities in [0, 1]; default each structure's ``render_opacity``.
-    curvature : numpy.ndarray, optional
+    curvature : numpy.ndarray, CurvaturePages or CurvatureField, optional
         ``|mean curvature|`` per voxel ``[z, y, x]`` (0 off boundaries), e.g. from
-        :func:`dvr_perception.rays.curvature.curvature_volume`; looked up at the nearest voxel.
+        :func:`dvr_perception.rays.curvature_field.curvature_source` (pages, or a field
+        computed brick by brick) or :func:`dvr_perception.rays.curvature.curvature_volume`
+        (dense); looked up at the nearest voxel.
     backend : {"auto", "numba", "numpy", "cuda"}
         Kernel implementation; "auto" uses the GPU when numba finds a CUDA device (not with
         ``DVR_PERCEPTION_NO_CUDA=1``), else numba unless it is missing or
@@ -269,8 +272,11 @@ def analyze(
                 "'numba', or raise memory_limit"
             )
         kind = "numba"
-    if need["mode"] == "whole" and curv is not None and not isinstance(curv, np.ndarray):
-        curv = _check_curvature(np.asarray(curv), volume)  # a field, read whole
+    if need["mode"] == "whole" and curv is not None and not hasattr(curv, "kernel_arg"):
+        from dvr_perception.rays.curvature_field import CurvatureField, CurvaturePages
+
+        if isinstance(curv, CurvatureField):  # a field, read whole
+            curv = _check_curvature(CurvaturePages.from_dense(np.asarray(curv)), volume)
     report(0.0)
     if need["mode"] == "bricks":  # the bricked walk (imported only when needed)
         from dvr_perception.rays.bricks import analyze_bricked
@@ -378,7 +384,7 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
             idx = _grid.index_in_records(volume, idx, vol)
     else:  # the index, or the records that hold it (a view of them is not contiguous)
         vol = idx if cells is None else _grid.index_source(idx)
-    cv = curv if has_curv else np.zeros((2, 2, 2), np.float32)
+    cv = walk_curvature(curv, "numpy" if nk is None else kind)
     lab = (labmap, lut.size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8), -1)
     tab = _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16)
     args = (ids, alpha_r, cols, light, tab, shade, has_curv, _tables.ERT)
@@ -422,7 +428,8 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
                 "t": seg["t"],
                 "step": float(step),
                 "volume": vol,
-                "curvature_volume": cv,
+                # the re-composite (numba, CPU) fills unset entries from the pages
+                "curvature_volume": cv if nk is None else walk_curvature(curv, "numba"),
                 "shading_key": _tables.shading_key(light, k) if shade else b"",
             }
         seconds = time.perf_counter() - t_start

@@ -17,7 +17,7 @@ import pytest
 from dvr_perception import _memory
 from dvr_perception.rays import memory
 from dvr_perception.rays.camera import Camera
-from dvr_perception.rays.curvature_field import CurvatureField, curvature_source
+from dvr_perception.rays.curvature_field import CurvatureField, CurvaturePages, curvature_source
 from dvr_perception.rays.engine import analyze
 from dvr_perception.structures.phantom import make_phantom
 from dvr_perception.structures.transfer import build_lut
@@ -114,5 +114,5 @@ def test_curvature_is_whole_exactly_when_the_volumes_share_fits():
     assert need == 64**3 * (1 + 2 + 4 + 1 + 1 + 1 + 4)
     # with the uint8 label volume and the temporaries made beside the derived volumes
     need += 64**3 * (1 + memory.TRANSIENT_VOXEL_BYTES)
-    assert isinstance(curvature_source(vol, spec, memory_limit=need), np.ndarray)
+    assert isinstance(curvature_source(vol, spec, memory_limit=need), CurvaturePages)
     assert isinstance(curvature_source(vol, spec, memory_limit=need - 1), CurvatureField)
