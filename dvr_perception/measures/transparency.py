@@ -101,7 +101,6 @@ from dvr_perception.measures.results import (
     _assigned,
     _image_luminance,
     _names,
-    _remembered,
     _visible,
 )
 from dvr_perception.rays._results import engine_made
@@ -160,29 +159,6 @@ def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure
     return names, expected, rmap, relations, est, notes
 
 
-def _core_kept(analysis, spec, threshold, calibration, tolerance, contrast, enclosure):
-    """:func:`_core`, remembered for an engine analysis (without a calibration curve).
-
-    The optimiser computes ``E_t`` of the user's view (:func:`transparency_table`) and then
-    measures the same rendering (:func:`transparency`): the layers, regions and estimates,
-    with an enclosing layer's re-composites, are made once.  They are only read afterwards;
-    the notes are a new list each time (:func:`transparency` adds to them).
-    """
-    if calibration is not None or not engine_made(analysis):
-        return _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure)
-    try:
-        key = ("transparency", spec, threshold, tolerance, contrast, enclosure)
-        hash(key)
-    except TypeError:  # an option that cannot be a key: nothing kept
-        return _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure)
-    names, expected, rmap, relations, est, notes = _remembered(
-        analysis,
-        key,
-        lambda: _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure),
-    )
-    return names, expected, rmap, relations, est, list(notes)
-
-
 def _carried(analysis, spec, assigned: np.ndarray) -> Carried:
     """Opacity each structure carries on each pixel, occlusion ignored (D7).
 
@@ -226,7 +202,7 @@ def transparency_table(analysis, spec, *, calibration=None):
     mask of the regions left out of ``E_t`` (empty, or all their layers undetermined); the
     other options are :func:`transparency`'s defaults.
     """
-    names, _, rmap, _, est, _ = _core_kept(
+    names, _, rmap, _, est, _ = _core(
         analysis, spec, 0.05, calibration, 0.02, "michelson", "auto"
     )  # fmt: skip
     alpha, empty = region_table(est, rmap, len(names))
@@ -291,7 +267,7 @@ def transparency(
     DVRWarning
         If ``visible`` does not sum to ``accumulated`` or ``rgba`` is not premultiplied.
     """
-    names, expected, rmap, relations, est, notes = _core_kept(
+    names, expected, rmap, relations, est, notes = _core(
         analysis, spec, threshold, calibration, tolerance, contrast, enclosure
     )
     deltas = est.deltas
