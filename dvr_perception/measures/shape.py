@@ -63,7 +63,9 @@ from dvr_perception.measures.results import (
     _curvature,
     _image_luminance,
     _names,
+    _remembered,
 )
+from dvr_perception.rays._results import engine_made
 
 __all__ = ["shape"]
 
@@ -304,6 +306,27 @@ def shape(
     0.8916
     """
     s, p = _check_options(steepness, percentile)
+    if engine_made(analysis):  # the optimiser's terms and measures read one rendering: once
+        # what the spec gives the measure: the names (checked) and the background (luminance)
+        seen = None if spec is None else (tuple(spec.names), tuple(spec.background))
+        try:
+            key = ("shape", seen, s, p)
+            hash(key)
+        except (TypeError, AttributeError):  # not a spec that can be a key: nothing kept
+            return _shape(analysis, spec, s, p)
+        return _remembered(analysis, key, lambda: _frozen(_shape(analysis, spec, s, p)))
+    return _shape(analysis, spec, s, p)
+
+
+def _frozen(result: ShapeResult) -> ShapeResult:
+    """Return ``result`` with its arrays read-only (every caller that asks again gets it)."""
+    for arr in (result.deviation, result.v_s, result.v_i, result.nonempty):
+        arr.flags.writeable = False
+    return result
+
+
+def _shape(analysis, spec, s: float, p: float | None) -> ShapeResult:
+    """:func:`shape` after its options are checked (``s`` the steepness, ``p`` the percentile)."""
     accumulated = _accumulated(analysis)
     curvature = _curvature(analysis, accumulated.shape)
     if getattr(analysis, "names", None) is not None and spec is not None:

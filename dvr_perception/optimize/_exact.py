@@ -43,48 +43,65 @@ __all__ = ["OpacityModel"]
 #: From this many selected rays on, the rays are composited on all threads
 #: (:func:`_composite_grad_parallel`; every ray's numbers are the same either way).
 PARALLEL_RAYS = 4096
+#: Rays per block of :func:`_composite_grad_body` (one scratch per block).
+BLOCK = 64
 
 
-def _composite_grad_body(rays, start, count, lut, ids, alpha, dalpha, k, ert, grad, vis, dvis,
-                         acc, dacc):  # fmt: skip
+def _composite_grad_body(rays, start, count, lut, ids, alpha, dalpha, dlog, k, ert, grad, vis,
+                         dvis, acc, dacc):  # fmt: skip
     """Per selected ray: visible opacity per structure, accumulated opacity, and gradients.
 
     Without ``grad`` only ``vis`` and ``acc`` are written (``dvis`` and ``dacc`` are not
     touched and may be any arrays of the right dimensions).  Compiled twice: serial
     (:func:`_composite_grad`, few rays) and over the rays in parallel
     (:func:`_composite_grad_parallel`); each ray is independent of the others, so both give
-    the same numbers.
+    the same numbers.  ``dlog`` is :func:`log_step`'s ``d log(1 - a) / d o`` per table entry
+    (``dalpha / max(1 - alpha, 1e-9)``, the quotient the loop would take per sample).  The
+    rays go in blocks of :data:`BLOCK`: each block has its scratch
+    (the running ``G``, one ray's ``visible`` and ``d visible``), so a ray's sums stay in a few
+    cache lines and are written out once, with the same operations in the same order.
     """
-    for i in prange(rays.shape[0]):
-        r = rays[i]
-        g = np.zeros(k)
-        tr = 1.0
-        for s in range(k):
-            vis[s, i] = 0.0
+    n = rays.shape[0]
+    nblock = (n + BLOCK - 1) // BLOCK
+    for b in prange(nblock):
+        g = np.empty(k)
+        lv = np.empty(k)
+        ld = np.empty(k * k if grad else 1)
+        for i in range(b * BLOCK, min((b + 1) * BLOCK, n)):
+            r = rays[i]
+            tr = 1.0
+            for s in range(k):
+                g[s] = 0.0
+                lv[s] = 0.0
             if grad:
-                for q in range(k):
-                    dvis[s, q, i] = 0.0
-        for e in range(start[r], start[r] + count[r]):
-            idx = lut[e]
-            al = alpha[idx]
-            if al <= 0.0:
-                continue
-            s = ids[idx]
-            w = al * tr
-            vis[s, i] += w
+                for q in range(k * k):
+                    ld[q] = 0.0
+            for e in range(start[r], start[r] + count[r]):
+                idx = lut[e]
+                al = alpha[idx]
+                if al <= 0.0:
+                    continue
+                s = ids[idx]
+                w = al * tr
+                lv[s] += w
+                if grad:
+                    row = s * k
+                    for q in range(k):
+                        ld[row + q] += w * g[q]
+                    ld[row + s] += dalpha[idx] * tr
+                    g[s] -= dlog[idx]
+                tr *= 1.0 - al
+                if tr < ert:
+                    break
+            acc[i] = 1.0 - tr
+            for s in range(k):
+                vis[s, i] = lv[s]
             if grad:
+                for s in range(k):
+                    for q in range(k):
+                        dvis[s, q, i] = ld[s * k + q]
                 for q in range(k):
-                    dvis[s, q, i] += w * g[q]
-                da = dalpha[idx]
-                dvis[s, s, i] += da * tr
-                g[s] -= da / max(1.0 - al, 1e-9)
-            tr *= 1.0 - al
-            if tr < ert:
-                break
-        acc[i] = 1.0 - tr
-        if grad:
-            for q in range(k):
-                dacc[q, i] = -tr * g[q]
+                    dacc[q, i] = -tr * g[q]
 
 
 def _compiled(name: str, parallel: bool):
@@ -147,6 +164,15 @@ def composite_grad_part(rays, start, count, lut, ids, alpha, dalpha, k, ert, gra
             if t < ert:
                 break
         tr[i] = t
+
+
+def log_step(alpha, dalpha) -> np.ndarray:
+    """Per table entry, ``-d log(1 - a) / d o = dalpha / max(1 - alpha, 1e-9)`` (float64).
+
+    What :func:`composite_grad_part` computes per sample (the same IEEE quotient), once per
+    entry for :func:`_composite_grad_body`.
+    """
+    return dalpha / np.maximum(1.0 - alpha, 1e-9)
 
 
 def opacity_tables(ids, membership, ratio, ops) -> tuple:
@@ -258,8 +284,9 @@ class OpacityModel:
         vis, acc = np.empty((k, n)), np.empty(n)
         m = n if grad else 1
         dvis, dacc = np.zeros((k, k, m)), np.zeros((k, m))
-        composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha, k,
-                       _tables.ERT, grad, vis, dvis, acc, dacc)  # fmt: skip
+        composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha,
+                       log_step(alpha, dalpha), k, _tables.ERT, grad, vis, dvis, acc,
+                       dacc)  # fmt: skip
         return vis, dvis, acc, dacc
 
     def covering(self, ops) -> tuple:
@@ -289,7 +316,8 @@ class OpacityModel:
                 vis, acc = np.empty((k, n)), np.empty(n)
                 dvis, dacc = np.zeros((k, k, n)), np.zeros((k, n))
                 composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha,
-                                k, _tables.ERT, True, vis, dvis, acc, dacc)  # fmt: skip
+                               log_step(alpha, dalpha), k, _tables.ERT, True, vis, dvis, acc,
+                               dacc)  # fmt: skip
             vis = np.asarray(vis, np.float64)
             dvis = np.asarray(dvis, np.float64)
             total = float(vis.sum())

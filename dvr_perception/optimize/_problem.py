@@ -46,6 +46,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from dvr_perception._deprecation import renamed_keyword
+from dvr_perception._numba import serial_below
 from dvr_perception.errors import DVRWarning
 from dvr_perception.measures import shape
 from dvr_perception.measures.luminance import LUMA_WEIGHTS
@@ -344,7 +345,8 @@ class Problem:
         bad_v = np.where(cnt > 0, (dev * present).sum(axis=1) / np.maximum(cnt, 1), 0.0)
         if "E_s" in need:
             v_share = np.clip(np.asarray(analysis.visible_share, float), 0.0, 1.0)
-            e_s, bad_s, d_s = self._shape(analysis, m, v_share)
+            with serial_below(acc.size):  # the optimiser's small images: no thread wake-ups
+                e_s, bad_s, d_s = self._shape(analysis, m, v_share)
         else:
             e_s, bad_s, d_s = np.nan, np.full(k, np.nan), np.full(acc.shape, np.nan)
         if "E_t" in need:

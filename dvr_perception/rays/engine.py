@@ -46,6 +46,7 @@ import weakref
 import numpy as np
 
 from dvr_perception._deprecation import renamed_keyword
+from dvr_perception._numba import serial_below
 from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError, DVRWarning
 from dvr_perception.rays import _grid, _tables, memory
@@ -986,6 +987,31 @@ def _subset_order(rays, n: int) -> tuple[np.ndarray, np.ndarray]:
     return order, chunk_ptr
 
 
+def _lighting(z: dict, camera, mats, direction, intensity, shade: bool, k: int) -> tuple:
+    """``(light, shading table, shading key)`` of a re-evaluation, the latest one kept in ``z``.
+
+    The same materials, light direction and intensity for the same cache (one camera) give
+    the same arrays: the transparency measure re-composites a rendering several times
+    (without each enclosing layer) with its lighting unchanged.
+    """
+    try:  # the bits of every number (0.0 and -0.0 differ)
+        d = np.asarray(direction, np.float64)
+        m = [(x.ambient, x.diffuse, x.specular, x.specular_power) for x in mats]
+        memo_key = (np.array(m, np.float64).tobytes(), d.tobytes(), d.shape,
+                    np.float64(intensity).tobytes(), shade, k)  # fmt: skip
+    except (TypeError, ValueError, AttributeError):
+        memo_key = None  # light_array says what is wrong
+    hit = z.get("lighting_memo")
+    if memo_key is not None and hit is not None and hit[0] == memo_key:
+        return hit[1]
+    light = _tables.light_array(camera, mats, direction, intensity)
+    tab = _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16)
+    out = (light, tab, _tables.shading_key(light, k) if shade else b"")
+    if memo_key is not None:
+        z["lighting_memo"] = (memo_key, out)
+    return out
+
+
 @renamed_keyword("colors", "colours")
 def reevaluate(
     cache: RayCache,
@@ -1048,17 +1074,15 @@ def reevaluate(
     cols, mats = _tables.material(spec, colours=colours, lighting=lighting)
     rs = spec.rendering
     direction = rs.light_direction if light_direction is None else light_direction
-    light = _tables.light_array(camera, mats, direction, rs.light_intensity)
     spec = _with_background(spec, background)
     alpha_r = _tables.alpha_table(cache.ids, cache.membership, ops, cache.ratio)
     shade = bool(rs.shade)
     has_curv = cache.curvature.size > 0
     z = cache.lazy
-    tab = _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16)
+    light, tab, key = _lighting(z, camera, mats, direction, rs.light_intensity, shade, k)
     args = (cache.ids, alpha_r, cols, light, tab, shade, has_curv, _tables.ERT)
     h, w = camera.height, camera.width
     nk = _numba_kernels() if cache.backend in ("numba", "cuda") else None
-    key = _tables.shading_key(light, k) if shade else b""
     if key != z["shading_key"]:  # new light or specular powers: shading tables changed
         if nk is None:
             seg = {"a": z["a"], "b": z["b"], "t": z["t"]}
@@ -1069,10 +1093,11 @@ def reevaluate(
         else:
             # specular powers alone changed: only those structures' entries are recomputed
             stale = None if z.get("refill") else _tables.stale_structures(z["shading_key"], key)
-            if stale is None:
-                nk.invalidate(cache.shading)
-            else:
-                nk.invalidate_structures(cache.shading, cache.lut, cache.ids, stale)
+            with serial_below(len(cache.shading)):
+                if stale is None:
+                    nk.invalidate(cache.shading)
+                else:
+                    nk.invalidate_structures(cache.shading, cache.lut, cache.ids, stale)
             if z.get("fill") is not None:  # a lazily shaded bricked cache: shaded below
                 z["filled"] = None
             elif z.get("refill") is not None:  # a bricked cache: no whole volume to fill from
@@ -1096,15 +1121,18 @@ def reevaluate(
         )
         if rays is None:
             order, chunk_ptr = ray_order(h, w, tile=(1, w))
+            work = len(cache.lut)
         else:
             order, chunk_ptr = _subset_order(rays, h * w)
             out[2][:] = np.clip(out[0], 0.0, 1.0)
-        nk.composite(
-            cache.start, cache.count, cache.lut, z["steps"], cache.shading, cache.curvature,
-            z["a"], z["b"], z["t"], z["step"], z["volume"], z["curvature_volume"], order,
-            chunk_ptr, len(chunk_ptr) - 1, cache.ids, alpha_r, cols, light, tab, shade, has_curv,
-            _tables.ERT, out,
-        )  # fmt: skip
+            work = int(cache.count[order].sum())
+        with serial_below(work):  # few entries: numba's threads cost more than they save
+            nk.composite(
+                cache.start, cache.count, cache.lut, z["steps"], cache.shading,
+                cache.curvature, z["a"], z["b"], z["t"], z["step"], z["volume"],
+                z["curvature_volume"], order, chunk_ptr, len(chunk_ptr) - 1, cache.ids, alpha_r,
+                cols, light, tab, shade, has_curv, _tables.ERT, out,
+            )  # fmt: skip
         stats = {"backend": cache.backend, "rays": h * w, "reevaluated": True}
         if rays is not None:
             stats.update(rays=len(order), partial=True)

@@ -194,8 +194,8 @@ start, count = np.zeros(n, np.int64), np.ones(n, np.int64)
 lut, ids = np.zeros(1, np.uint16), np.zeros(4, np.int64)
 alpha, dalpha = np.full(4, 0.5), np.ones(4)
 vis, acc, dvis, dacc = np.empty((k, n)), np.empty(n), np.zeros((k, k, n)), np.zeros((k, n))
-getattr(_exact, sys.argv[1])(rays, start, count, lut, ids, alpha, dalpha, k, 0.01, True, vis,
-                             dvis, acc, dacc)
+getattr(_exact, sys.argv[1])(rays, start, count, lut, ids, alpha, dalpha, dalpha, k, 0.01, True,
+                             vis, dvis, acc, dacc)
 assert np.all(acc == 0.5) and np.all(vis[0] == 0.5), (acc, vis)
 try:
     print(numba.threading_layer())
