@@ -90,7 +90,7 @@ def segments(cam, a, b, t_first, nsteps):
             _segment(cam, row, col, r, a, b, t_first, nsteps)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def segments_at(cam, rays, a, b, t_first, nsteps):
     """:func:`segments` of the flat pixel indices ``rays`` only: row ``i`` is ray ``rays[i]``.
 
@@ -715,7 +715,7 @@ def walk(
         chunk_end[c] = e
 
 
-@njit(parallel=True, cache=True, fastmath=_FM)
+@njit(parallel=True, cache=True, fastmath=_FM, nogil=True)
 def walk_variants(
     vol, cells, blocks, rep, lab, lab_base, smask, sdist, a, b, t_first, nsteps, step, want,
     ids, memb, alpha_v, visible, col, light, tab, shade, ert, rgba,
