@@ -106,6 +106,17 @@ def segments_at(cam, rays, a, b, t_first, nsteps):
             _segment(cam, p // width, p % width, i, a, b, t_first, nsteps)
 
 
+@njit(cache=True, nogil=True)
+def _segment_of(cam, p, a, b, t_first, nsteps):
+    """:func:`_segment` of flat pixel ``p``, into row 0.
+
+    Compiled alone: it is called from kernels with fastmath, whose flags must not reach these
+    operations, so the rays stay the bits of :func:`segments`.
+    """
+    width = int(cam[14])
+    _segment(cam, p // width, p % width, 0, a, b, t_first, nsteps)
+
+
 @njit(cache=True, inline="always")
 def _segment(cam, row, col, r, a, b, t_first, nsteps):
     """Set up pixel ``(row, col)``'s ray in row ``r`` of ``a``, ``b``, ``t_first``, ``nsteps``."""
@@ -717,13 +728,14 @@ def walk(
 
 @njit(parallel=True, cache=True, fastmath=_FM, nogil=True)
 def walk_variants(
-    vol, cells, blocks, rep, lab, lab_base, smask, sdist, a, b, t_first, nsteps, step, want,
+    vol, cells, blocks, rep, lab, lab_base, smask, sdist, cam, rays, step, want,
     ids, memb, alpha_v, visible, col, light, tab, shade, ert, rgba,
 ):  # fmt: skip
     """Image-only walks of rays with several opacity tables at once (``V`` variants).
 
-    Row ``i`` of the rays (``a``, ``b``, ``t_first``, ``nsteps``: :func:`segments_at`) is
-    wanted in variant ``v`` where bit ``v`` of ``want[i]`` is set; ``alpha_v[v]`` is that
+    Row ``i`` is the ray of flat pixel ``rays[i]`` (set up here as :func:`segments` sets it
+    up, ``cam``: :func:`dvr_perception.rays._grid.camera_pack`), wanted in variant ``v``
+    where bit ``v`` of ``want[i]`` is set; ``alpha_v[v]`` is that
     variant's opacity table and ``visible[v]`` the bits of the structures it gives any
     opacity.  Every sample is read and classified once for all the variants of its ray (and
     shaded once, where one needs it); each variant composites front to back until its own
@@ -761,7 +773,12 @@ def walk_variants(
         isz = np.uint64(nxy)
         lab_end = (lab_base if lab_base >= 0 else len(ids)) - 1
         ka, kd, ks = light[0], light[1], light[2]
+        a = np.empty((1, 3))
+        b = np.empty((1, 3))
+        t_first = np.empty(1)
+        nsteps = np.empty(1, np.int32)
         for i in range(c * m // nchunk, (c + 1) * m // nchunk):
+            _segment_of(cam, rays[i], a, b, t_first, nsteps)
             alive = np.uint64(want[i])
             seen = np.uint64(0)
             for v in range(nvar):
@@ -771,10 +788,10 @@ def walk_variants(
                     st[v, 2] = 0.0
                     st[v, 3] = 1.0
                     seen |= np.uint64(visible[v])
-            ax, ay, az = a[i, 0], a[i, 1], a[i, 2]
-            bx, by, bz = b[i, 0], b[i, 1], b[i, 2]
-            tf = t_first[i]
-            n = np.int64(nsteps[i])
+            ax, ay, az = a[0, 0], a[0, 1], a[0, 2]
+            bx, by, bz = b[0, 0], b[0, 1], b[0, 2]
+            tf = t_first[0]
+            n = np.int64(nsteps[0])
             binv = _jump_scale(bx, by, bz, step) * _BLOCK
             j = np.int64(0)
             while j < n and alive != 0:

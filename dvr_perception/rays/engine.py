@@ -704,8 +704,9 @@ def rewalk_rgba(analysis: RayAnalysis, variants) -> list[np.ndarray]:
         step, unit = _tables.step_and_unit(spec, volume)
         lut = build_lut(spec, scalar_range=_grid.scalar_range(volume), dtype=volume.data.dtype)
         labmap, ids, memb = _with_labels(volume, spec, lut)
-        seg = _segments_at(nk, camera, volume, step, union)
-        plan = _plan(volume, spec, camera, seg, lut, memb, False, False, memory_limit, None)
+        # the kernel sets up its rays itself; without a cache the plan needs no sample count
+        none = {"n": np.zeros(1, np.int64)}
+        plan = _plan(volume, spec, camera, none, lut, memb, False, False, memory_limit, None)
     if plan is None or plan["mode"] != "whole" or len(checked) > 63:
         alone = (rewalk(analysis, opacities=ops, rays=rays) for ops, rays in checked)
         return [np.ascontiguousarray(res.rgba.reshape(-1, 4)[rays])
@@ -740,9 +741,9 @@ def rewalk_rgba(analysis: RayAnalysis, variants) -> list[np.ndarray]:
         rows.append(pos)
     rgba = np.empty((len(checked), len(union), 4), np.float32)
     nk.walk_variants(
-        vol, cells, _grid.block_map(volume, cells), rep, *lab, smask, sdist, seg["a"], seg["b"],
-        seg["t"], seg["n"], step, want, ids, memb, alpha_v, visible, cols, light, tab, shade,
-        _tables.ERT, rgba,
+        vol, cells, _grid.block_map(volume, cells), rep, *lab, smask, sdist,
+        _grid.camera_pack(camera, volume, step), union, step, want, ids, memb, alpha_v, visible,
+        cols, light, tab, shade, _tables.ERT, rgba,
     )  # fmt: skip
     return [rgba[v, pos] for v, pos in enumerate(rows)]
 
