@@ -179,8 +179,12 @@ class _LayerSets:
         #: encloser's TAP background is that view first (D3), else only when its plain view
         #: is missing or uniform.
         self.recomposite = None
+        #: ``recomposite`` of several layers at once (``{layer: mask}`` to ``{layer:
+        #: luminance}``, :meth:`prefetch`), or ``None``.
+        self.recomposite_many = None
         self.prefer_recomposite = False
         self._recomposited: dict[int, np.ndarray] = {}
+        self._covers: dict[int, tuple | None] = {}
         # per layer set: pixel count, mean and (two-pass) population std of the luminance
         flat = self.layer_set.ravel()
         if k <= 16:  # layer sets index a table directly: no sort
@@ -251,13 +255,38 @@ class _LayerSets:
         the mean over ``P``: ``|P'| / |P| * TAP``, and 0 (method ``"hidden"``) when everything
         covered is hidden or only the hidden part can be read.
         """
+        head = f"enclosing layer {self.names[e]}: "
+        covered = self._covered(e)
+        if covered is None:
+            return _Estimate(reason=head + "no pixel shows it with a layer it encloses")
+        covered, n_covered, shown, n_shown = covered
+        if n_shown == 0:
+            return _Estimate(alpha=0.0, method="hidden")
+        alpha, why = self._encloser_tap(e, shown)
+        if why is not None:
+            if n_shown < n_covered:  # only the hidden part can be read: opaque there
+                return _Estimate(alpha=0.0, method="hidden")
+            return _Estimate(reason=head + why)
+        return _Estimate(alpha=alpha * (n_shown / n_covered), method="tap")
+
+    def _covered(self, e: int):
+        """``(P, |P|, P', |P'|)`` of encloser ``e`` (see :meth:`_encloser`), or None without P.
+
+        ``P`` (covered) and ``P'`` (shown: what ``e`` covers is seen there) as (H, W) masks;
+        worked out once per layer.
+        """
+        if e not in self._covers:
+            self._covers[e] = self._covered_pixels(e)
+        return self._covers[e]
+
+    def _covered_pixels(self, e: int):
+        """:meth:`_covered`, worked out."""
         inner_layers = np.flatnonzero(self.encloses[e])
         inner = _bits(inner_layers)
         # the layer sets with e and an enclosed layer, looked up among the sets in the image
         sets = [b for b in self._stats if b >> e & 1 and b & inner]
-        head = f"enclosing layer {self.names[e]}: "
         if not sets:
-            return _Estimate(reason=head + "no pixel shows it with a layer it encloses")
+            return None
         if len(self.names) <= 16:  # layer sets index a table directly
             table = np.zeros(1 << len(self.names), bool)
             table[sets] = True
@@ -271,15 +300,29 @@ class _LayerSets:
             seen = self.seen(inner_layers, pix)
             shown = np.zeros(covered.shape, bool)
             shown.ravel()[pix[seen]] = True
-        n_shown = int(np.count_nonzero(shown))
-        if n_shown == 0:
-            return _Estimate(alpha=0.0, method="hidden")
-        alpha, why = self._encloser_tap(e, shown)
-        if why is not None:
-            if n_shown < n_covered:  # only the hidden part can be read: opaque there
-                return _Estimate(alpha=0.0, method="hidden")
-            return _Estimate(reason=head + why)
-        return _Estimate(alpha=alpha * (n_shown / n_covered), method="tap")
+        return covered, n_covered, shown, int(np.count_nonzero(shown))
+
+    def prefetch(self, layer_sets) -> None:
+        """Make at once the re-composites that the estimates of ``layer_sets`` will read first.
+
+        With ``prefer_recomposite`` every enclosing layer of these sets (:meth:`_plan`) reads
+        its TAP against its shown pixels re-composited without it (:meth:`_tap_without`);
+        ``recomposite_many`` makes them all in one call (one walk of the union of their
+        pixels for an analysis without a cache): the same luminance as one
+        ``recomposite`` per layer.
+        """
+        if self.recomposite_many is None or not self.prefer_recomposite or self.without:
+            return
+        enclosers = sorted(set().union(*(self._plan(frozenset(ls))[0] for ls in layer_sets)))
+        wanted = {}
+        for e in enclosers:
+            if e in self._recomposited:
+                continue
+            covered = self._covered(e)
+            if covered is not None and covered[3] > 0:
+                wanted[e] = covered[2]
+        if wanted:
+            self._recomposited.update(self.recomposite_many(wanted))
 
     def seen(self, layers, pix: np.ndarray) -> np.ndarray:
         """Whether ``layers`` (together) are seen on the flat pixels ``pix`` (D3, D7).

@@ -23,6 +23,7 @@ import numpy as np
 
 from dvr_perception.errors import DVRInputError
 from dvr_perception.measures._layer_sets import DENOMINATOR_EPS, transmitted_tap
+from dvr_perception.measures.luminance import _composite
 from dvr_perception.measures.psychophysics import luminance_range
 from dvr_perception.measures.regions import layer_footprints
 from dvr_perception.measures.results import _accumulated, _image_luminance, _names, _visible
@@ -128,6 +129,34 @@ def _without(analysis, spec, layer: int, pixels=None) -> np.ndarray:
             other = cache.reevaluate(opacities=ops, colours=colours)
     y, _ = _image_luminance(other, spec, analysis.accumulated.shape)
     return y
+
+
+def _without_many(analysis, spec, pixels: dict) -> dict:
+    """:func:`_without` of several layers at once: ``{layer: luminance}`` for ``{layer: mask}``.
+
+    Each luminance is exact on its mask (an (H, W) bool array) and 0 elsewhere.  An engine
+    analysis without a cache walks the masks' rays once for all the layers
+    (:func:`~dvr_perception.rays.engine.rewalk_rgba`: the same colour as :func:`_without`'s
+    walk, to the bit, and the same luminance); otherwise each layer is :func:`_without`.
+    """
+    from dvr_perception.rays.engine import rewalk_rgba
+
+    params = getattr(analysis, "stats", {}).get("params")
+    if has_cache(analysis) or not can_recomposite(analysis) or params is None:
+        return {e: _without(analysis, spec, e, mask) for e, mask in pixels.items()}
+    variants, shape = [], analysis.accumulated.shape
+    for e, mask in pixels.items():
+        ops = list(params["opacities"])
+        ops[e] = 0.0
+        variants.append((ops, np.flatnonzero(mask)))
+    bg = np.asarray(tuple(spec.background), np.float64)
+    out = {}
+    for (e, _), (_, rays), rgba in zip(pixels.items(), variants, rewalk_rgba(analysis, variants),
+                                       strict=True):  # fmt: skip
+        y = np.zeros(shape[0] * shape[1])
+        y[rays] = np.clip(_composite(np.asarray(rgba, np.float64), bg), 0.0, 1.0)
+        out[e] = y.reshape(shape)
+    return out
 
 
 def covered_transmittance(

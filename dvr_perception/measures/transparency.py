@@ -92,7 +92,7 @@ from dvr_perception.measures._estimates import region_estimates, region_table
 from dvr_perception.measures._layer_sets import DENOMINATOR_EPS as DENOMINATOR_EPS  # re-export
 from dvr_perception.measures._layer_sets import Carried, _LayerSets
 from dvr_perception.measures.covered import _without as _luminance_without
-from dvr_perception.measures.covered import can_recomposite
+from dvr_perception.measures.covered import _without_many, can_recomposite
 from dvr_perception.measures.psychophysics import calibrate
 from dvr_perception.measures.regions import _layer_set_bits, _relations, _subregions
 from dvr_perception.measures.results import (
@@ -149,7 +149,9 @@ def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure
         layer_sets.without = {e: _luminance_without(analysis, spec, e) for e in enclosers}
     elif can_recomposite(analysis):
         layer_sets.recomposite = partial(_luminance_without, analysis, spec)
+        layer_sets.recomposite_many = partial(_without_many, analysis, spec)
         layer_sets.prefer_recomposite = enclosure == "auto"
+        layer_sets.prefetch({r.layers for r in rmap.regions})  # every encloser in one walk
     elif enclosure == "auto" and any(r.kind == "enclose" for r in relations.values()):
         notes.append(
             "the analysis can be neither re-composited nor walked again (no re-evaluation "

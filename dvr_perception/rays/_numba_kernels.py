@@ -38,7 +38,16 @@ import numpy as np
 from numba import njit, prange, types
 from numba.extending import overload
 
-__all__ = ["compact", "composite", "invalidate", "invalidate_structures", "segments", "walk"]
+__all__ = [
+    "compact",
+    "composite",
+    "invalidate",
+    "invalidate_structures",
+    "segments",
+    "segments_at",
+    "walk",
+    "walk_variants",
+]
 
 # VTK's fixed-point trilinear weights sum to 32765/32768 and the index is rounded up.
 _W_SCALE = 32765.0 / 32768.0
@@ -109,63 +118,98 @@ def segments(cam, a, b, t_first, nsteps):
     """
     width = int(cam[14])
     height = int(cam[15])
+    for row in prange(height):
+        for col in range(width):
+            r = row * width + col
+            _segment(cam, row, col, r, a, b, t_first, nsteps)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def segments_at(cam, rays, a, b, t_first, nsteps):
+    """:func:`segments` of the flat pixel indices ``rays`` only: row ``i`` is ray ``rays[i]``.
+
+    Each row equals the whole image's row of that pixel to the bit (the same arithmetic), so
+    a walk of a few rays (the view without an enclosing layer, DECISIONS D7) sets up only them.
+    """
+    width = int(cam[14])
+    m = rays.shape[0]
+    nchunk = min(max(m // 256, 1), 64)
+    for c in prange(nchunk):
+        for i in range(c * m // nchunk, (c + 1) * m // nchunk):
+            p = rays[i]
+            _segment(cam, p // width, p % width, i, a, b, t_first, nsteps)
+
+
+@njit(cache=True, nogil=True)
+def _segment_of(cam, p, a, b, t_first, nsteps):
+    """:func:`_segment` of flat pixel ``p``, into row 0.
+
+    Compiled alone: it is called from kernels with fastmath, whose flags must not reach these
+    operations, so the rays stay the bits of :func:`segments`.
+    """
+    width = int(cam[14])
+    _segment(cam, p // width, p % width, 0, a, b, t_first, nsteps)
+
+
+@njit(cache=True, inline="always")
+def _segment(cam, row, col, r, a, b, t_first, nsteps):
+    """Set up pixel ``(row, col)``'s ray in row ``r`` of ``a``, ``b``, ``t_first``, ``nsteps``."""
+    width = int(cam[14])
+    height = int(cam[15])
     par = cam[13] != 0.0
     half = cam[12]
     aspect = cam[14] / cam[15]
     step = cam[27]
     lo = cam[28]
-    for row in prange(height):
-        ys = 1.0 - 2.0 * (row + 0.5) / height
-        for col in range(width):
-            r = row * width + col
-            xs = 2.0 * (col + 0.5) / width - 1.0
-            u = xs * (half * aspect)
-            v = ys * half
-            if par:
-                o0 = cam[0] + u * cam[6] + v * cam[9]
-                o1 = cam[1] + u * cam[7] + v * cam[10]
-                o2 = cam[2] + u * cam[8] + v * cam[11]
-                d0, d1, d2 = cam[3], cam[4], cam[5]
-                cos = 1.0
-            else:
-                o0, o1, o2 = cam[0], cam[1], cam[2]
-                d0 = cam[3] + u * cam[6] + v * cam[9]
-                d1 = cam[4] + u * cam[7] + v * cam[10]
-                d2 = cam[5] + u * cam[8] + v * cam[11]
-                nrm = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-                d0 /= nrm
-                d1 /= nrm
-                d2 /= nrm
-                cos = max(d0 * cam[3] + d1 * cam[4] + d2 * cam[5], 1e-12)
-            t_near = cam[25] / cos
-            t_in = t_near
-            t_out = cam[26] / cos
-            hit = True
-            for i in range(3):
-                oi = o0 if i == 0 else (o1 if i == 1 else o2)
-                di = d0 if i == 0 else (d1 if i == 1 else d2)
-                ai = (oi - cam[16 + i]) / cam[19 + i]
-                bi = di / cam[19 + i]
-                a[r, i] = ai
-                b[r, i] = bi
-                if bi != 0.0:
-                    t1 = (lo - ai) / bi
-                    t2 = (cam[22 + i] - ai) / bi
-                    t_in = max(t_in, min(t1, t2))
-                    t_out = min(t_out, max(t1, t2))
-                elif ai < lo or ai > cam[22 + i]:
-                    hit = False
-            nsteps[r] = 0
-            t_first[r] = 0.0
-            if hit and t_out > t_in:
-                length = t_out - t_in
-                t_in += 0.001 * length
-                t_out -= 0.001 * length
-                k0 = np.floor((t_in - t_near) / step) + 1.0
-                k1 = np.floor((t_out - t_near) / step)
-                if k1 >= k0:
-                    nsteps[r] = int(k1 - k0 + 1.0)
-                    t_first[r] = t_near + k0 * step
+    ys = 1.0 - 2.0 * (row + 0.5) / height
+    xs = 2.0 * (col + 0.5) / width - 1.0
+    u = xs * (half * aspect)
+    v = ys * half
+    if par:
+        o0 = cam[0] + u * cam[6] + v * cam[9]
+        o1 = cam[1] + u * cam[7] + v * cam[10]
+        o2 = cam[2] + u * cam[8] + v * cam[11]
+        d0, d1, d2 = cam[3], cam[4], cam[5]
+        cos = 1.0
+    else:
+        o0, o1, o2 = cam[0], cam[1], cam[2]
+        d0 = cam[3] + u * cam[6] + v * cam[9]
+        d1 = cam[4] + u * cam[7] + v * cam[10]
+        d2 = cam[5] + u * cam[8] + v * cam[11]
+        nrm = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        d0 /= nrm
+        d1 /= nrm
+        d2 /= nrm
+        cos = max(d0 * cam[3] + d1 * cam[4] + d2 * cam[5], 1e-12)
+    t_near = cam[25] / cos
+    t_in = t_near
+    t_out = cam[26] / cos
+    hit = True
+    for i in range(3):
+        oi = o0 if i == 0 else (o1 if i == 1 else o2)
+        di = d0 if i == 0 else (d1 if i == 1 else d2)
+        ai = (oi - cam[16 + i]) / cam[19 + i]
+        bi = di / cam[19 + i]
+        a[r, i] = ai
+        b[r, i] = bi
+        if bi != 0.0:
+            t1 = (lo - ai) / bi
+            t2 = (cam[22 + i] - ai) / bi
+            t_in = max(t_in, min(t1, t2))
+            t_out = min(t_out, max(t1, t2))
+        elif ai < lo or ai > cam[22 + i]:
+            hit = False
+    nsteps[r] = 0
+    t_first[r] = 0.0
+    if hit and t_out > t_in:
+        length = t_out - t_in
+        t_in += 0.001 * length
+        t_out -= 0.001 * length
+        k0 = np.floor((t_in - t_near) / step) + 1.0
+        k1 = np.floor((t_out - t_near) / step)
+        if k1 >= k0:
+            nsteps[r] = int(k1 - k0 + 1.0)
+            t_first[r] = t_near + k0 * step
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
@@ -714,6 +758,149 @@ def walk(
             aimp[r] = 1.0 - state[r, 4]
             e += cnt
         chunk_end[c] = e
+
+
+@njit(parallel=True, cache=True, fastmath=_FM, nogil=True)
+def walk_variants(
+    vol, cells, blocks, rep, lab, lab_base, smask, sdist, cam, rays, step, want,
+    ids, memb, alpha_v, visible, col, light, tab, shade, ert, rgba,
+):  # fmt: skip
+    """Image-only walks of rays with several opacity tables at once (``V`` variants).
+
+    Row ``i`` is the ray of flat pixel ``rays[i]`` (set up here as :func:`segments` sets it
+    up, ``cam``: :func:`dvr_perception.rays._grid.camera_pack`), wanted in variant ``v``
+    where bit ``v`` of ``want[i]`` is set; ``alpha_v[v]`` is that
+    variant's opacity table and ``visible[v]`` the bits of the structures it gives any
+    opacity.  Every sample is read and classified once for all the variants of its ray (and
+    shaded once, where one needs it); each variant composites front to back until its own
+    early ray termination, the ray until the last has terminated.  ``rgba[v, i]`` (float32)
+    is what :func:`walk` composites for that ray with that table (``occlusion_free=False``,
+    as the engine's float32 result): the same arithmetic in the same order, so the same
+    numbers to the bit.  Rows not wanted are not written.
+
+    Samples that no variant still walking can see are passed over by whole blocks: blocks
+    of empty space (:func:`_grid.block_map`) and blocks whose cells reach only structures
+    of opacity 0 in every such variant (``smask``, :func:`_grid.structure_blocks`, as far as
+    ``sdist``, :func:`_grid.structure_distances`, allows; a ``(k, 1, 1, 1)`` ``sdist``: to
+    the block's exit).  They add nothing to any image: the view of an analysis without an
+    enclosing layer (opacity 0, DECISIONS D7) does not step through that layer sample by
+    sample.
+    """
+    m = want.shape[0]
+    nvar = alpha_v.shape[0]
+    nchunk = min(max(m // 16, 1), 64)
+    nz, ny, nx = vol.shape
+    for c in prange(nchunk):
+        st = np.empty((nvar, 4), np.float64)  # per variant: cr, cg, cb, tr
+        volf = vol.reshape(vol.size)
+        clf = cells.reshape(cells.size)
+        sf = smask.reshape(smask.size)
+        sd = sdist.reshape(sdist.size)
+        nblk = blocks.size
+        has_dist = (sdist.shape[1] == blocks.shape[0] and sdist.shape[2] == blocks.shape[1]
+                    and sdist.shape[3] == blocks.shape[2])  # fmt: skip
+        nstruct = sdist.shape[0]
+        bnx = blocks.shape[2]
+        bnxy = blocks.shape[1] * bnx
+        isy = np.uint64(nx)
+        nxy = nx * ny
+        isz = np.uint64(nxy)
+        lab_end = (lab_base if lab_base >= 0 else len(ids)) - 1
+        ka, kd, ks = light[0], light[1], light[2]
+        a = np.empty((1, 3))
+        b = np.empty((1, 3))
+        t_first = np.empty(1)
+        nsteps = np.empty(1, np.int32)
+        for i in range(c * m // nchunk, (c + 1) * m // nchunk):
+            _segment_of(cam, rays[i], a, b, t_first, nsteps)
+            alive = np.uint64(want[i])
+            seen = np.uint64(0)
+            for v in range(nvar):
+                if (alive >> np.uint64(v)) & _U1:
+                    st[v, 0] = 0.0
+                    st[v, 1] = 0.0
+                    st[v, 2] = 0.0
+                    st[v, 3] = 1.0
+                    seen |= np.uint64(visible[v])
+            ax, ay, az = a[0, 0], a[0, 1], a[0, 2]
+            bx, by, bz = b[0, 0], b[0, 1], b[0, 2]
+            tf = t_first[0]
+            n = np.int64(nsteps[0])
+            binv = _jump_scale(bx, by, bz, step) * _BLOCK
+            j = np.int64(0)
+            while j < n and alive != 0:
+                px, py, pz, x, y, z = _sample_at(j, tf, step, ax, ay, az, bx, by, bz, nx, ny, nz)
+                skip = _block_skip(blocks, x, y, z, binv)
+                if skip:
+                    j += skip
+                    continue
+                ob = (z >> 2) * bnxy + (y >> 2) * bnx + (x >> 2)
+                if (np.uint64(sf[ob]) & seen) == 0:  # only what no variant here can see
+                    if has_dist:
+                        dmin = 255
+                        for q in range(nstruct):
+                            if (seen >> np.uint64(q)) & _U1:
+                                dmin = min(dmin, sd[q * nblk + ob])
+                        if dmin > 1:
+                            j += max(int((dmin - 1) * binv), 1)
+                            continue
+                    j = _block_exit(j, n, tf, step, ax, ay, az, bx, by, bz, (x >> 2) << 2,
+                                    (y >> 2) << 2, (z >> 2) << 2)  # fmt: skip
+                    continue
+                o = np.uint64(z * nxy + y * nx + x)
+                cl = clf[o]
+                if cl == _CELL_EMPTY:
+                    j += 1
+                    continue
+                fx = min(max(px - x, 0.0), 1.0)
+                fy = min(max(py - y, 0.0), 1.0)
+                fz = min(max(pz - z, 0.0), 1.0)
+                lv = 0
+                if cl != _CELL_MIXED:
+                    k = rep[cl - 1]
+                elif lab_base >= 0:
+                    lv = lab[int(pz + 0.5), int(py + 0.5), int(px + 0.5)]
+                    k = lab_base + lv - 1
+                if cl == _CELL_MIXED and lv == 0:
+                    k = _table_index(volf, o, isy, isz, _U1, fx, fy, fz, lab_end)
+                j += 1
+                if memb[k] <= 0.0:
+                    continue
+                s = ids[k]
+                shaded = False
+                dfac = 1.0
+                spec = 0.0
+                for v in range(nvar):
+                    if ((alive >> np.uint64(v)) & _U1) == 0:
+                        continue
+                    al = alpha_v[v, k]
+                    if al <= 0.0:
+                        continue
+                    if shade and not shaded:
+                        dl, sp = _shade_at(volf, o, isy, isz, fx, fy, fz, tab, s, _U16)
+                        dfac = ka[s] + kd[s] * (dl * _IQS)
+                        spec = ks[s] * (sp * _IQS)
+                        shaded = True
+                    tr = st[v, 3]
+                    w = al * tr
+                    st[v, 0] += w * (col[s, 0] * dfac + spec)
+                    st[v, 1] += w * (col[s, 1] * dfac + spec)
+                    st[v, 2] += w * (col[s, 2] * dfac + spec)
+                    tr *= 1.0 - al
+                    st[v, 3] = tr
+                    if tr < ert:
+                        alive &= ~(_U1 << np.uint64(v))
+                        seen = np.uint64(0)
+                        for q in range(nvar):
+                            if (alive >> np.uint64(q)) & _U1:
+                                seen |= np.uint64(visible[q])
+            wanted = np.uint64(want[i])
+            for v in range(nvar):
+                if (wanted >> np.uint64(v)) & _U1:
+                    rgba[v, i, 0] = np.float32(min(st[v, 0], 1.0))
+                    rgba[v, i, 1] = np.float32(min(st[v, 1], 1.0))
+                    rgba[v, i, 2] = np.float32(min(st[v, 2], 1.0))
+                    rgba[v, i, 3] = np.float32(1.0 - st[v, 3])
 
 
 @njit(parallel=True, cache=True)

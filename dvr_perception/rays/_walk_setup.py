@@ -166,6 +166,19 @@ def _segments(nk, camera, volume, step: float) -> dict:
     return seg
 
 
+def _segments_at(nk, camera, volume, step: float, rays: np.ndarray) -> dict:
+    """:func:`_segments` of the flat pixel indices ``rays`` (numba): row ``i`` is ``rays[i]``.
+
+    Each row equals the whole image's to the bit; a walk of a few rays sets up only them.
+    """
+    m = len(rays)
+    seg = {"a": np.empty((m, 3)), "b": np.empty((m, 3)), "t": np.empty(m),
+           "n": np.empty(m, np.int32)}  # fmt: skip
+    nk.segments_at(_grid.camera_pack(camera, volume, step), np.ascontiguousarray(rays, np.int64),
+                   seg["a"], seg["b"], seg["t"], seg["n"])  # fmt: skip
+    return seg
+
+
 def _finish(rgba, vis, asg, present, cimg, spec, camera, stats, cache, aimp) -> RayAnalysis:
     h, w = camera.height, camera.width
     k = len(spec.structures)

@@ -66,6 +66,7 @@ from dvr_perception.rays._walk_setup import (  # noqa: F401 - also engine's name
     _params,
     _plateau_entries,
     _segments,
+    _segments_at,
     _tail_tables,
     _threads,
     _with_labels,
@@ -77,7 +78,15 @@ from dvr_perception.structures.spec import StructureSpec
 from dvr_perception.structures.transfer import build_lut
 from dvr_perception.volume.volume import Volume
 
-__all__ = ["RayAnalysis", "RayCache", "analyze", "analyze_views", "reevaluate", "rewalk"]
+__all__ = [
+    "RayAnalysis",
+    "RayCache",
+    "analyze",
+    "analyze_views",
+    "reevaluate",
+    "rewalk",
+    "rewalk_rgba",
+]
 
 
 def _pick_backend(backend: str):
@@ -242,8 +251,15 @@ def analyze(
     curv = _check_curvature(curvature, volume)
     if rays is not None and _kind(backend, _pick_backend(backend)) == "cuda":
         backend = "numba"  # a few rays: the CPU's walk (the GPU's rays are made whole)
-    scene = _scene(volume, spec, camera, backend)
+    # a few rays of the image, image only: set up and walked alone (numba), then put in
+    # place in the image; otherwise every ray is set up and those not asked for see nothing
+    subset = None
     if rays is not None:
+        rays = _checked_rays(rays, camera)
+        if not build_cache and not occlusion_free and brick is None:
+            subset = rays if _pick_backend(backend) is not None else None
+    scene = _scene(volume, spec, camera, backend, subset)
+    if rays is not None and subset is None:
         scene = (*scene[:-1], _only_rays(scene[-1], rays, camera))
     nk, _, _, lut, _, _, memb, seg = scene
     if not seg["n"].any():
@@ -278,6 +294,9 @@ def analyze(
         if isinstance(curv, CurvatureField):  # a field, read whole
             curv = _check_curvature(CurvaturePages.from_dense(np.asarray(curv)), volume)
     report(0.0)
+    if need["mode"] == "bricks" and subset is not None:  # the bricked walk sets up every ray
+        seg = _only_rays(_segments(nk, camera, volume, scene[1]), subset, camera)
+        subset = None
     if need["mode"] == "bricks":  # the bricked walk (imported only when needed)
         from dvr_perception.rays.bricks import analyze_bricked
 
@@ -287,10 +306,6 @@ def analyze(
             progress=report, segments=seg if host_rays else None, exact=exact,
         )  # fmt: skip
         return _remember_source(res, volume, spec, backend, memory_limit)
-    # a few rays of the image: walked alone (CPU), then put in place in the image
-    subset = None
-    if rays is not None and kind == "numba" and not build_cache and not occlusion_free:
-        subset = np.flatnonzero(seg["n"])
     res = _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cache,
                          occlusion_free, report, t_start, skip, subset)  # fmt: skip
     return _remember_source(res, volume, spec, backend, memory_limit)
@@ -326,8 +341,8 @@ def _finish_rays(subset, rgba, vis, asg, present, cimg, spec, camera, stats, aim
                      aimp)  # fmt: skip
 
 
-def _only_rays(seg: dict, rays, camera: Camera) -> dict:
-    """``seg`` with no samples on every ray but ``rays`` (checked flat pixel indices)."""
+def _checked_rays(rays, camera: Camera) -> np.ndarray:
+    """``rays`` as sorted, unique int64 flat pixel indices of ``camera``'s image (checked)."""
     n_rays = camera.width * camera.height
     try:
         sel = np.asarray(rays).ravel()
@@ -336,8 +351,17 @@ def _only_rays(seg: dict, rays, camera: Camera) -> dict:
         ok = False
     if not ok:
         raise DVRInputError(f"rays: expected flat pixel indices in [0, {n_rays}), got {rays!r}")
+    sel = sel.astype(np.int64)
+    if sel.size > 1 and not np.all(sel[1:] > sel[:-1]):  # flatnonzero's already are
+        sel = np.unique(sel)
+    return sel
+
+
+def _only_rays(seg: dict, rays: np.ndarray, camera: Camera) -> dict:
+    """``seg`` with no samples on every ray but ``rays`` (:func:`_checked_rays`)."""
+    n_rays = camera.width * camera.height
     keep = np.zeros(n_rays, bool)
-    keep[sel] = True
+    keep[rays] = True
     out = dict(seg)
     out["n"] = np.where(keep, seg["n"], 0).astype(seg["n"].dtype)
     return out
@@ -362,9 +386,10 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
     ``scene``: :func:`_scene`'s tuple; ``kind``: the back end that runs (:func:`_kind`);
     ``imp`` and ``ops``: the checked importances and opacities; ``curv``: the checked
     curvature array or None; ``skip``: the skipping walk behind early ray termination
-    (``exact=False`` without the cache); ``subset``: flat indices of the only rays with
-    samples (numba, image only): they are walked as one row of their own, so the set-up and
-    the walk cost what these rays cost, not the whole image.
+    (``exact=False`` without the cache); ``subset``: the sorted flat indices of the only
+    rays walked (numba, image only), whose rays ``scene`` holds (row ``i``: pixel
+    ``subset[i]``, :func:`_segments_at`): they are walked as one row of their own, so the
+    set-up and the walk cost what these rays cost, not the whole image.
     """
     nk, step, unit, lut, labmap, ids, memb, seg = scene
     k = len(spec.structures)
@@ -409,11 +434,8 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
             walker = _walk_numba
             if kind == "cuda":
                 walker = functools.partial(_walk_cuda, bg=np.asarray(spec.background, np.float32))
-            walk_seg, walk_cam = seg, camera
-            if subset is not None:
-                walk_seg = {q: np.ascontiguousarray(seg[q][subset]) for q in ("a", "b", "t", "n")}
-                walk_cam = _RayRow(len(subset))
-            res = walker(nk, volume, lab, idx, vol, cv, walk_seg, step, memb, alpha_w, args, k,
+            walk_cam = camera if subset is None else _RayRow(len(subset))
+            res = walker(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
                          walk_cam, build_cache, occlusion_free, locked,
                          report.sub(0.1, 0.9), skip=skip)  # fmt: skip
             rgba, vis, asg, present, cimg, start, count, entries, walked, aimp = res
@@ -486,13 +508,19 @@ def _analyze_whole(volume, spec, camera, scene, kind, imp, ops, curv, build_cach
             _SCRATCH_LOCK.release()
 
 
-def _scene(volume: Volume, spec: StructureSpec, camera: Camera, backend: str) -> tuple:
-    """Backend, sample distance, unit, lookup table, label map, ids, membership and rays."""
+def _scene(volume: Volume, spec: StructureSpec, camera: Camera, backend: str,
+           subset=None) -> tuple:  # fmt: skip
+    """Backend, sample distance, unit, lookup table, label map, ids, membership and rays.
+
+    ``subset``: the rays of these flat pixel indices only (:func:`_segments_at`, numba).
+    """
     nk = _pick_backend(backend)
     step, unit = _tables.step_and_unit(spec, volume)
     lut = build_lut(spec, scalar_range=_grid.scalar_range(volume), dtype=volume.data.dtype)
     labmap, ids, memb = _with_labels(volume, spec, lut)
-    if _kind(backend, nk) == "cuda":  # the rays of a camera are made (and uploaded) once
+    if subset is not None:
+        seg = _segments_at(nk, camera, volume, step, subset)
+    elif _kind(backend, nk) == "cuda":  # the rays of a camera are made (and uploaded) once
         from dvr_perception.rays import _cuda
 
         pack = _grid.camera_pack(camera, volume, step)
@@ -634,6 +662,98 @@ def rewalk(analysis: RayAnalysis, *, opacities, rays=None, background=None) -> R
     return analyze(volume, spec, analysis.camera, opacities=opacities, build_cache=False,
                    occlusion_free=False, rays=rays, backend=backend,
                    memory_limit=memory_limit)  # fmt: skip
+
+
+def rewalk_rgba(analysis: RayAnalysis, variants) -> list[np.ndarray]:
+    """:func:`rewalk`'s premultiplied colour for several opacity sets, each on its own rays.
+
+    For each ``(opacities, rays)`` of ``variants``, the float32 ``(len(rays), 4)`` ``rgba``
+    of ``rewalk(analysis, opacities=opacities, rays=rays)`` on those pixels, in ascending
+    pixel order (``rays`` sorted, repeats dropped): the same numbers to the bit.  With numba
+    and a whole-volume plan the variants are walked together, in one pass over the union of
+    their rays (:func:`~dvr_perception.rays._numba_kernels.walk_variants`: every sample read
+    once, each variant composited until its own early ray termination), and what no variant
+    still walking a ray can see (blocks of structures of opacity 0 in them, e.g. an
+    enclosing layer made transparent) is passed over.  Otherwise (numpy, a bricked plan)
+    :func:`rewalk` is called per variant.  What DECISIONS D7's view without each enclosing
+    layer needs, for all the enclosers of an analysis at once.
+
+    Examples
+    --------
+    >>> from dvr_perception.structures.phantom import make_phantom
+    >>> vol, spec = make_phantom(size=24)
+    >>> cam = Camera.from_view(vol.bounds, width=8, height=8)
+    >>> res = analyze(vol, spec, cam)
+    >>> ops = [s.render_opacity for s in spec.structures]
+    >>> both = rewalk_rgba(res, [(ops, [28, 27]), ([0.0] + ops[1:], [27])])
+    >>> bool((both[0] == res.rgba[3, 3:5]).all()), both[1].shape
+    (True, (1, 4))
+    """
+    source = _SOURCES.get(analysis) if isinstance(analysis, RayAnalysis) else None
+    if source is None:
+        raise DVRInputError(
+            "analysis: only an analysis made by analyze(..., build_cache=False) can be walked "
+            "again (one with a cache re-composites with reevaluate)"
+        )
+    volume, spec, backend, memory_limit = source
+    camera = analysis.camera
+    k = len(spec.structures)
+    checked = [(_tables.check_opacities(ops, k), _checked_rays(rays, camera))
+               for ops, rays in variants]  # fmt: skip
+    nk = _pick_backend(backend)
+    if not checked:
+        return []
+    mark = np.zeros(camera.width * camera.height, bool)  # (cheaper than np.unique)
+    for _, rays in checked:
+        mark[rays] = True
+    union = np.flatnonzero(mark)
+    plan = None
+    if nk is not None:
+        step, unit = _tables.step_and_unit(spec, volume)
+        lut = build_lut(spec, scalar_range=_grid.scalar_range(volume), dtype=volume.data.dtype)
+        labmap, ids, memb = _with_labels(volume, spec, lut)
+        # the kernel sets up its rays itself; without a cache the plan needs no sample count
+        none = {"n": np.zeros(1, np.int64)}
+        plan = _plan(volume, spec, camera, none, lut, memb, False, False, memory_limit, None)
+    if plan is None or plan["mode"] != "whole" or len(checked) > 63:
+        alone = (rewalk(analysis, opacities=ops, rays=rays) for ops, rays in checked)
+        return [np.ascontiguousarray(res.rgba.reshape(-1, 4)[rays])
+                for res, (_, rays) in zip(alone, checked, strict=True)]  # fmt: skip
+    rs = spec.rendering
+    shade = bool(rs.shade)
+    idx = _grid.index_volume(volume, lut.lo, lut.scale, lut.size)
+    cells = _grid.cell_map(volume, idx, ids, memb, labmap)
+    if shade:  # the volumes _analyze_whole derives (memoised on the volume)
+        vol = _grid.voxel_records(volume, idx, cells)
+        idx = _grid.index_in_records(volume, idx, vol)
+    else:
+        vol = _grid.index_source(idx)
+    tix = _grid.compact_index(volume, idx)
+    rep = _plateau_entries(ids, memb, k)
+    t_bit = _tail_tables(ids, memb, np.zeros(len(ids)), rep, k)[3]
+    lab = (labmap, lut.size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8), -1)
+    smask, sdist, _ = _grid.skip_maps(volume, tix, t_bit, labmap, lab[1], True, k)
+    cols, mats = _tables.material(spec)
+    light = _tables.light_array(camera, mats, rs.light_direction, rs.light_intensity)
+    tab = _tables.shading_table(light, k) if shade else np.zeros((1, 1, 2), np.uint16)
+    ratio = step / unit
+    alpha_v = np.stack([_tables.alpha_table(ids, memb, ops, ratio) for ops, _ in checked])
+    bit = np.where(memb > 0, np.left_shift(1, np.clip(ids, 0, 31)), 0).astype(np.uint64)
+    visible = np.array([np.bitwise_or.reduce(np.where(al > 0.0, bit, 0)) for al in alpha_v],
+                       np.uint64)  # fmt: skip
+    want = np.zeros(len(union), np.uint64)
+    rows = []
+    for v, (_, rays) in enumerate(checked):
+        pos = np.searchsorted(union, rays)
+        want[pos] |= np.uint64(1) << np.uint64(v)
+        rows.append(pos)
+    rgba = np.empty((len(checked), len(union), 4), np.float32)
+    nk.walk_variants(
+        vol, cells, _grid.block_map(volume, cells), rep, *lab, smask, sdist,
+        _grid.camera_pack(camera, volume, step), union, step, want, ids, memb, alpha_v, visible,
+        cols, light, tab, shade, _tables.ERT, rgba,
+    )  # fmt: skip
+    return [rgba[v, pos] for v, pos in enumerate(rows)]
 
 
 def _with_background(spec: StructureSpec, background) -> StructureSpec:

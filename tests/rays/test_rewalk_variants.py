@@ -1,0 +1,177 @@
+"""Walks of a few rays, several opacity sets at once (DECISIONS D7 without a cache).
+
+The view without an enclosing layer is walked again on the pixels it covers.  A few rays are
+set up alone (``segments_at``) and all the enclosers' views are walked together
+(:func:`~dvr_perception.rays.engine.rewalk_rgba`, the ``walk_variants`` kernel): each must be
+what :func:`~dvr_perception.rays.engine.rewalk` gives for that layer, to the bit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dvr_perception.errors import DVRInputError
+from dvr_perception.measures import transparency
+from dvr_perception.measures.covered import _without, _without_many
+from dvr_perception.rays import _grid, engine
+from dvr_perception.rays._walk_setup import _numba_kernels
+from dvr_perception.rays.camera import Camera
+from dvr_perception.rays.engine import analyze, rewalk, rewalk_rgba
+from dvr_perception.structures.phantom import make_phantom
+from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
+from dvr_perception.volume.volume import Volume
+
+
+def _shell_volume(shade: bool):
+    """A faint shell (label 1) around two blobs (labels 2, 3): an encloser over contrast."""
+    n = 24
+    z, y, x = np.mgrid[:n, :n, :n].astype(float) - (n - 1) / 2
+    r = np.sqrt(x * x + y * y + z * z)
+    lab = np.zeros((n, n, n), np.uint8)
+    lab[(r > 6.5) & (r < 10.5)] = 1
+    lab[(np.abs(z) < 4) & (np.abs(y) < 4) & (x > -6) & (x < -1)] = 2
+    lab[(np.abs(z) < 4) & (np.abs(y) < 4) & (x > 1) & (x < 6)] = 3
+    data = (lab * 40 + 10).astype(np.uint8)
+    spec = StructureSpec(
+        (
+            Structure("shell", 0.3, (0.9, 0.8, 0.7), label=1),
+            Structure("light", 1.0, (0.9, 0.9, 0.9), label=2),
+            Structure("dark", 1.0, (0.2, 0.2, 0.3), label=3),
+        ),
+        rendering=RenderSettings(shade=shade),
+    )
+    return Volume(data, labels=lab), spec
+
+
+def _rewalked(analysis, ops, rays) -> np.ndarray:
+    """:func:`rewalk`'s rgba on ``rays`` (sorted, unique), one variant at a time."""
+    return rewalk(analysis, opacities=ops, rays=rays).rgba.reshape(-1, 4)[np.unique(rays)]
+
+
+@pytest.mark.parametrize("parallel", [False, True])
+def test_segments_of_a_few_rays_are_the_whole_images_rows(parallel):
+    nk = _numba_kernels()
+    vol, _ = make_phantom(size=20)
+    cam = Camera.from_view(vol.bounds, width=23, height=17, azimuth=35, elevation=-20)
+    if parallel:
+        cam = Camera(cam.position, cam.focal_point, cam.view_up, parallel_projection=True,
+                     parallel_scale=14.0, width=23, height=17)  # fmt: skip
+    pack = _grid.camera_pack(cam, vol, 0.7)
+    n = cam.width * cam.height
+    whole = {"a": np.empty((n, 3)), "b": np.empty((n, 3)), "t": np.empty(n),
+             "n": np.empty(n, np.int32)}  # fmt: skip
+    nk.segments(pack, whole["a"], whole["b"], whole["t"], whole["n"])
+    rays = np.array([0, 1, 22, 23, 200, 201, 390, n - 1], np.int64)
+    part = {"a": np.empty((8, 3)), "b": np.empty((8, 3)), "t": np.empty(8),
+            "n": np.empty(8, np.int32)}  # fmt: skip
+    nk.segments_at(pack, rays, part["a"], part["b"], part["t"], part["n"])
+    for q in ("a", "b", "t", "n"):
+        assert np.array_equal(part[q], whole[q][rays]), q
+    assert whole["n"][rays].any()  # rays in and out of the box
+    assert not whole["n"][rays].all()
+
+
+@pytest.mark.parametrize("shade", [False, True])
+def test_every_variant_equals_its_own_rewalk_to_the_bit(shade):
+    vol, spec = _shell_volume(shade)
+    cam = Camera.from_view(vol.bounds, width=36, height=30, azimuth=25, elevation=15)
+    res = analyze(vol, spec, cam)
+    n = cam.width * cam.height
+    hit = np.flatnonzero(res.accumulated.ravel() > 0)
+    rng = np.random.default_rng(3)
+    variants = [
+        ([0.0, 1.0, 1.0], rng.choice(n, 400)),  # the shell left out: what it covers
+        ([0.3, 0.0, 1.0], rng.choice(n, 250)),
+        ([0.3, 1.0, 1.0], np.arange(n)),  # as rendered: the analysis's own image
+        ([0.0, 0.0, 0.0], hit[:2]),  # nothing to see
+        ([0.3, 0.4, 0.0], hit[len(hit) // 2 :][:1]),
+    ]
+    got = rewalk_rgba(res, variants)
+    assert len(got) == len(variants)
+    for (ops, rays), rgba in zip(variants, got, strict=True):
+        assert rgba.dtype == np.float32
+        assert rgba.shape == (len(np.unique(rays)), 4)
+        assert np.array_equal(rgba, _rewalked(res, ops, rays))
+    assert np.array_equal(got[2], res.rgba.reshape(-1, 4))
+    assert not got[3].any()
+    assert got[0][:, 3].any()
+    assert got[1][:, 3].any()
+
+
+def test_intensity_structures_each_left_out_in_turn():
+    vol, spec = make_phantom(size=32)
+    cam = Camera.from_view(vol.bounds, width=40, height=40, azimuth=-30)
+    res = analyze(vol, spec, cam)
+    base = [s.render_opacity for s in spec.structures]
+    variants = []
+    for e in range(len(spec.structures)):
+        ops = list(base)
+        ops[e] = 0.0
+        variants.append((ops, np.arange(e, 1600, e + 2)))
+    got = rewalk_rgba(res, variants)
+    for (ops, rays), rgba in zip(variants, got, strict=True):
+        assert np.array_equal(rgba, _rewalked(res, ops, rays))
+    # leaving a structure out changes what is seen somewhere (else the test shows nothing)
+    whole = res.rgba.reshape(-1, 4)
+    assert any(
+        not np.array_equal(rgba, whole[r]) for (_, r), rgba in zip(variants, got, strict=True)
+    )
+
+
+def test_numpy_and_bricked_analyses_walk_each_variant_alone():
+    vol, spec = make_phantom(size=64)
+    cam = Camera.from_view(vol.bounds, width=16, height=16, azimuth=30.0)
+    base = [s.render_opacity for s in spec.structures]
+    variants = [([0.0, *base[1:]], np.arange(0, 256, 3)), (base, [17, 18, 100])]
+    want = rewalk_rgba(analyze(vol, spec, cam), variants)
+    for made in (analyze(vol, spec, cam, backend="numpy"),
+                 analyze(vol, spec, cam, memory_limit="2M")):  # fmt: skip
+        got = rewalk_rgba(made, variants)
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
+    assert analyze(vol, spec, cam, memory_limit="2M").stats["bricks"] >= 1
+
+
+def test_bad_variants_name_the_parameter():
+    vol, spec = make_phantom(size=16)
+    cam = Camera.from_view(vol.bounds, width=8, height=8)
+    res = analyze(vol, spec, cam)
+    ok = [s.render_opacity for s in spec.structures]
+    with pytest.raises(DVRInputError, match="rays"):
+        rewalk_rgba(res, [(ok, [64])])
+    with pytest.raises(DVRInputError, match="opacities"):
+        rewalk_rgba(res, [([2.0] * len(ok), [3])])
+    with pytest.raises(DVRInputError, match="analysis"):
+        rewalk_rgba(analyze(vol, spec, cam, build_cache=True), [(ok, [3])])
+    assert rewalk_rgba(res, []) == []
+
+
+def test_many_layers_luminance_equals_one_layer_at_a_time():
+    vol, spec = _shell_volume(True)
+    cam = Camera.from_view(vol.bounds, width=32, height=28, azimuth=10)
+    res = analyze(vol, spec, cam)
+    rng = np.random.default_rng(5)
+    masks = {e: rng.random((cam.height, cam.width)) < 0.4 for e in range(3)}
+    many = _without_many(res, spec, masks)
+    for e, mask in masks.items():
+        assert np.array_equal(many[e][mask], _without(res, spec, e, mask)[mask])
+        assert not many[e][~mask].any()
+
+
+def test_transparency_walks_all_its_enclosers_once(monkeypatch):
+    vol, spec = make_phantom(size=32)
+    cam = Camera.from_view(vol.bounds, width=48, height=48)
+    calls = []
+    original = engine.rewalk_rgba
+
+    def counting(analysis, variants):
+        calls.append(len(variants))
+        return original(analysis, variants)
+
+    monkeypatch.setattr(engine, "rewalk_rgba", counting)
+    plain = transparency(analyze(vol, spec, cam), spec)
+    cached = transparency(analyze(vol, spec, cam, build_cache=True), spec)
+    assert len(calls) == 1  # the phantom's nested shells: one walk for all
+    assert calls[0] >= 2
+    assert plain.E_t == pytest.approx(cached.E_t, abs=1e-6)
