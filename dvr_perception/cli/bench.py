@@ -45,7 +45,10 @@ Reported figures (seconds unless stated):
   curvature volume exists: :func:`~dvr_perception.rays.engine.analyze` (no re-evaluation
   cache), then the measures (an enclosing layer's view without it walked again, D7), timed
   in turn with VTK's frames as above;
-  ``measure_vtk_frames`` = ``measure_total_s / vtk_frame_s``.
+  ``measure_vtk_frames`` = ``measure_total_s / vtk_frame_s``; ``recomposite_s`` – inside it,
+  the walk of the enclosing layers' pixels without them (D7's extra cost; every encloser of
+  the view in one walk, run beside visibility and shape), ``recomposite_vtk_frames``, and the
+  ``recomposite_layers``, ``recomposite_rays`` and ``recomposite_mb`` it walked and returned.
 * with ``--optimize``: ``optimize_s`` – one whole :func:`~dvr_perception.optimize.optimize`
   run with the default stages (opacity, lighting, colour) and the curvature volume passed in
   (it is ``curvature_s`` above and does not depend on the optimised parameters);
@@ -233,6 +236,26 @@ def _measure_times(make_analysis, spec, repeat: int) -> float:
     return float(statistics.median(times))
 
 
+def _recomposite_report(runs: list, vtk_frame_s) -> dict:
+    """D7's extra cost in ``measure``: the walks of the enclosers' pixels without them.
+
+    ``runs``: per timed measure, :func:`~dvr_perception.rays.engine.recomposites` of its
+    analysis.  Median seconds over the runs (all the enclosers of a view walk together),
+    and the layers, rays and bytes of the last run.
+    """
+    if not runs:
+        return {}
+    last = runs[-1]
+    seconds = float(statistics.median([sum(r["seconds"] for r in run) for run in runs]))
+    return {
+        "recomposite_s": seconds,
+        "recomposite_vtk_frames": seconds / vtk_frame_s if vtk_frame_s else None,
+        "recomposite_layers": int(sum(r["layers"] for r in last)),
+        "recomposite_rays": int(sum(r["rays"] for r in last)),
+        "recomposite_mb": sum(r["bytes"] for r in last) / 2**20,
+    }
+
+
 def _optimize_report(vol, spec, cam, curv, seed: int, backend: str = "auto") -> dict:
     """Time one default :func:`~dvr_perception.optimize.optimize` run (see the module doc)."""
     from dvr_perception.optimize import optimize
@@ -281,7 +304,7 @@ def run(args: argparse.Namespace) -> int:
     import numba
 
     from dvr_perception.rays.curvature_field import CurvatureField, curvature_source
-    from dvr_perception.rays.engine import analyze, reevaluate, release_scratch
+    from dvr_perception.rays.engine import analyze, recomposites, reevaluate, release_scratch
 
     analyze = functools.partial(analyze, backend=args.backend)  # every frame on that back end
     with contextlib.ExitStack() as held:
@@ -316,6 +339,14 @@ def run(args: argparse.Namespace) -> int:
     bricks: dict[str, int] = {}  # per timed analysis: bricks walked (0: the whole volume)
     walked_by: dict[str, int] = {}  # per timed analysis: samples its walk visited
 
+    walked_again: list[list[dict]] = []  # per timed measure: D7's walks without enclosers
+
+    def measure_once():
+        analysis = counted("measure", analyze(vol, spec, cam, curvature=curv, build_cache=False))
+        out = all_measures(analysis, spec)
+        walked_again.append(recomposites(analysis))
+        return out
+
     def counted(name, analysis):
         bricks[name] = int(analysis.stats.get("bricks", 0))
         walked_by[name] = int(analysis.stats.get("samples_walked", 0))
@@ -331,10 +362,7 @@ def run(args: argparse.Namespace) -> int:
                 "render", analyze(vol, spec, cam, build_cache=False, occlusion_free=False)
             ),
             # what ``dvr-perception measure`` pays per view once the curvature volume exists
-            "measure": lambda: all_measures(
-                counted("measure", analyze(vol, spec, cam, curvature=curv, build_cache=False)),
-                spec,
-            ),
+            "measure": measure_once,
         },
         inputs,
         args.repeat,
@@ -391,6 +419,7 @@ def run(args: argparse.Namespace) -> int:
         "measure_s": measure_s,
         "measure_total_s": measure_total_s,
         "measure_vtk_frames": measure_total_s / vtk_frame_s if vtk_frame_s else None,
+        **_recomposite_report(walked_again, vtk_frame_s),
         "repeat": args.repeat,
         "resample": list(parse_factors(args.resample)) if args.resample is not None else None,
         "curvature_vtk_frames": curvature_s / vtk_frame_s if vtk_frame_s else None,

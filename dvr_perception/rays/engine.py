@@ -689,6 +689,33 @@ def rewalk_rgba(analysis: RayAnalysis, variants) -> list[np.ndarray]:
     >>> bool((both[0] == res.rgba[3, 3:5]).all()), both[1].shape
     (True, (1, 4))
     """
+    t0 = time.perf_counter()
+    out = _rewalk_rgba(analysis, variants)
+    done = _RECOMPOSITES.setdefault(analysis, [])
+    done.append({
+        "layers": len(out),
+        "rays": int(sum(len(v) for v in out)),
+        "seconds": time.perf_counter() - t0,
+        "bytes": int(sum(v.nbytes for v in out)),
+    })  # fmt: skip
+    return out
+
+
+#: Per analysis, what :func:`rewalk_rgba` cost on it (:func:`recomposites`).
+_RECOMPOSITES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def recomposites(analysis) -> list[dict]:
+    """Return the walks :func:`rewalk_rgba` made of ``analysis``'s view without some layers.
+
+    DECISIONS D7's extra cost of reading enclosing layers without a cache, one dict per call:
+    ``layers`` (views walked), ``rays`` (pixels over all views), ``seconds`` and ``bytes``
+    (the colours returned).  Empty for an analysis not walked again.
+    """
+    return [dict(r) for r in _RECOMPOSITES.get(analysis, ())]
+
+
+def _rewalk_rgba(analysis, variants) -> list[np.ndarray]:
     source = _SOURCES.get(analysis) if isinstance(analysis, RayAnalysis) else None
     if source is None:
         raise DVRInputError(

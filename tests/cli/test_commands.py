@@ -171,6 +171,13 @@ def test_bench_reports_keys(capsys, vtk_can_render):
     assert report["samples_walked"] <= report["samples_walked_cache"] <= report["samples"]
     assert report["render_ratio"] == pytest.approx(report["render_s"] / report["vtk_frame_s"])
     assert report["cache_mb"] > 0
+    # the phantom's skin encloses the skull: measure walks its pixels without it (D7)
+    assert report["recomposite_layers"] >= 1
+    assert report["recomposite_rays"] > 0
+    assert 0 < report["recomposite_s"] < report["measure_total_s"]
+    assert report["recomposite_vtk_frames"] == pytest.approx(
+        report["recomposite_s"] / report["vtk_frame_s"]
+    )
     # VTK rendered in a child process: its memory is reported apart from the engine's
     assert report["vtk_peak_rss_mb"] > 30
     assert report["peak_rss_vtk_ratio"] == pytest.approx(

@@ -175,3 +175,18 @@ def test_transparency_walks_all_its_enclosers_once(monkeypatch):
     assert len(calls) == 1  # the phantom's nested shells: one walk for all
     assert calls[0] >= 2
     assert plain.E_t == pytest.approx(cached.E_t, abs=1e-6)
+
+
+def test_the_walks_without_layers_are_recorded_per_analysis():
+    from dvr_perception.rays.engine import recomposites, rewalk_rgba
+
+    vol, spec = make_phantom(size=24)
+    cam = Camera.from_view(vol.bounds, width=8, height=8)
+    res = analyze(vol, spec, cam)
+    assert recomposites(res) == []
+    ops = [s.render_opacity for s in spec.structures]
+    rewalk_rgba(res, [(ops, [28, 27]), ([0.0, *ops[1:]], [27])])
+    (rec,) = recomposites(res)
+    assert (rec["layers"], rec["rays"], rec["bytes"]) == (2, 3, 3 * 4 * 4)
+    assert rec["seconds"] > 0
+    assert recomposites(analyze(vol, spec, cam)) == []  # another analysis: its own record
