@@ -9,7 +9,8 @@ sample of a ray belongs to exactly one brick.  :func:`walk_brick` walks those sa
 :func:`_numba_kernels._walk_ray`, continuing the per-ray state handed on from the bricks in
 front; :func:`fill_range` computes the shading and curvature of cache entries in a brick's
 runs (the bricked cache has no whole volume to fill them from later); :func:`place` copies a
-brick's cache entries behind the entries of the bricks in front of it; :func:`composite_part`
+brick's cache entries behind the entries of the bricks in front of it (:func:`place_all`: every
+brick's at once, when they share one buffer); :func:`composite_part`
 re-composites a brick's cache entries, continuing the rays' state from the bricks in front
 (the re-evaluation over MPI ranks, :class:`~dvr_perception.distributed.RankSession`).
 """
@@ -22,7 +23,15 @@ from numba import njit, prange
 
 from dvr_perception.rays._numba_kernels import _FM, _IQS, _UNSET, _fill, _sample_at, _walk_ray
 
-__all__ = ["brick_ranges", "composite_part", "fill_range", "place", "reach", "walk_brick"]
+__all__ = [
+    "brick_ranges",
+    "composite_part",
+    "fill_range",
+    "place",
+    "place_all",
+    "reach",
+    "walk_brick",
+]
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
@@ -184,6 +193,32 @@ def place(dest, fill, start, count, lut, j_, sh, curv, m_lut, m_j, m_sh, m_curv,
             if has_curv:
                 m_curv[d0 + q] = curv[s0 + q]
         fill[r] += count[r]
+
+
+@njit(parallel=True, cache=True)
+def place_all(dest, starts, counts, lut, j_, sh, curv, m_lut, m_j, m_sh, m_curv, shade, has_curv):
+    """Every brick's entries of every ray, one after another (:func:`place` for all bricks).
+
+    ``starts``/``counts`` (B, R): per brick (in view order) each ray's first entry in the
+    buffers ``lut``, ``j_``, ``sh``, ``curv`` that hold every brick's entries, and their
+    number.  A ray's entries are written once, front to back, instead of one pass over the
+    merged arrays per brick.
+    """
+    nb = starts.shape[0]
+    for r in prange(len(dest)):
+        d = dest[r]
+        for q in range(nb):
+            s0 = starts[q, r]
+            n = counts[q, r]
+            for i in range(n):
+                m_lut[d + i] = lut[s0 + i]
+                m_j[d + i] = j_[s0 + i]
+                if shade:
+                    m_sh[d + i, 0] = sh[s0 + i, 0]
+                    m_sh[d + i, 1] = sh[s0 + i, 1]
+                if has_curv:
+                    m_curv[d + i] = curv[s0 + i]
+            d += n
 
 
 @njit(parallel=True, cache=True, fastmath=_FM)

@@ -690,12 +690,67 @@ def _merge(caches, state) -> dict:
         "shading": np.empty((e if shade else 0, 2), np.uint16),
         "curvature": np.empty(e if has_curv else 0, np.float32),
     }
+    shared = _shared_buffers(caches, shade, has_curv)
+    if shared is not None:  # every brick's entries in one buffer each: one pass
+        bufs, offsets = shared
+        used = [(c, o) for c, o in zip(caches, offsets, strict=True) if o is not None]
+        starts = np.empty((len(used), nrays), np.int64)
+        counts = np.empty((len(used), nrays), np.int64)
+        for q, (c, o) in enumerate(used):
+            np.add(c.start, o, out=starts[q])
+            counts[q] = c.count
+        caches.clear()
+        nb.place_all(dest, starts, counts, *bufs, m["lut"], m["steps"], m["shading"],
+                     m["curvature"], shade, has_curv)  # fmt: skip
+        return {"start": dest, "count": total, **m}
     fill = np.zeros(nrays, np.int64)
     while caches:
         c = caches.pop(0)  # dropped as soon as copied
         nb.place(dest, fill, c.start, c.count, c.lut, c.steps, c.shading, c.curvature, m["lut"],
                  m["steps"], m["shading"], m["curvature"], shade, has_curv)  # fmt: skip
     return {"start": dest, "count": total, **m}
+
+
+def _base(a: np.ndarray) -> np.ndarray:
+    while isinstance(a.base, np.ndarray):
+        a = a.base
+    return a
+
+
+def _shared_buffers(caches, shade, has_curv):
+    """Return the buffers of every brick's entries and each one's offset in them, or None.
+
+    The bricks' entries come one after another from the arena's buffers (:class:`_Arena`):
+    then one pass of :func:`_numba_bricks.place_all` merges them.  ``None`` when some brick's
+    entries are elsewhere (fresh arrays) or not at the same row of every buffer; a brick
+    without entries has offset ``None``.
+    """
+    names = ["lut", "steps"] + (["shading"] if shade else []) + (["curvature"] if has_curv else [])
+    bases: dict = {}
+    offsets = []
+    for c in caches:
+        if not len(c.lut):
+            offsets.append(None)
+            continue
+        off = None
+        for name in names:
+            a = getattr(c, name)
+            base = bases.setdefault(name, _base(a))
+            if _base(a) is not base or not a.flags.c_contiguous or len(a) != len(c.lut):
+                return None
+            rows, rem = divmod(a.ctypes.data - base.ctypes.data, a.strides[0])
+            if rem or (off is not None and rows != off):
+                return None
+            off = rows
+        offsets.append(off)
+    if not bases:
+        return None
+    none = {"shading": np.zeros((1, 2), np.uint16), "curvature": np.zeros(1, np.float32)}
+    bufs = []
+    for name in ("lut", "steps", "shading", "curvature"):
+        b = bases.get(name)
+        bufs.append(none[name] if b is None else b)
+    return bufs, offsets
 
 
 def finish(state: RayState, caches=None, *, refill=None, seconds=None, fill=None) -> RayAnalysis:

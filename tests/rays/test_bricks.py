@@ -240,3 +240,36 @@ def test_bricked_equals_whole_on_shared_volumes(shared_data, name):
 
 
 _RESULT = {"E_v": "visibility", "E_s": "shape", "E_t": "transparency"}
+
+
+def test_the_one_pass_merge_of_the_arena_equals_brick_by_brick(phantom, monkeypatch):
+    """Entries taken from the arena are merged in one pass (``place_all``), as brick by brick."""
+    vol, spec, curv = phantom
+    cam = Camera.from_view(vol.bounds, width=40, height=32, azimuth=30.0, elevation=20.0)
+    whole = analyze(vol, spec, cam, curvature=curv, build_cache=True)
+    calls = {"all": 0, "one": 0}
+    nb = bricks._kernels()[1]
+    real_all, real_one = nb.place_all, nb.place
+
+    def place_all(*args):
+        calls["all"] += 1
+        return real_all(*args)
+
+    def place(*args):
+        calls["one"] += 1
+        return real_one(*args)
+
+    monkeypatch.setattr(nb, "place_all", place_all)
+    monkeypatch.setattr(nb, "place", place)
+    bricks._ARENA_BUFFERS.clear()  # the first analysis: fresh arrays, merged brick by brick
+    first = bricks.analyze_bricked(vol, spec, cam, brick=(9, 13, 20), curvature=curv)
+    assert calls == {"all": 0, "one": 30}
+    second = bricks.analyze_bricked(vol, spec, cam, brick=(9, 13, 20), curvature=curv)
+    assert calls == {"all": 1, "one": 30}  # the arena holds them now: one pass
+    for parts in (first, second):
+        assert _max_diff(whole, parts) <= 1e-6
+        for name in ("start", "count", "lut"):
+            assert np.array_equal(getattr(whole.cache, name), getattr(parts.cache, name)), name
+        assert np.array_equal(whole.cache.lazy["steps"], parts.cache.lazy["steps"])
+    for name in ("shading", "curvature"):  # (lazily shaded: the same entries set in both)
+        assert np.array_equal(getattr(first.cache, name), getattr(second.cache, name)), name
