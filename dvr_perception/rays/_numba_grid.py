@@ -14,7 +14,14 @@ import math
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["cell_classes", "index_volume", "normal_codes", "records_where", "structure_blocks"]
+__all__ = [
+    "cell_classes",
+    "empty_blocks",
+    "index_volume",
+    "normal_codes",
+    "records_where",
+    "structure_blocks",
+]
 
 _W_SCALE = 32765.0 / 32768.0
 _W_BIAS = 32767.0 / 32768.0
@@ -170,3 +177,29 @@ def structure_blocks(index, run, run_bits, bits, labels, has_labels, lab_base, l
                     for q in range(run[klo], run[khi] + 1):
                         m |= run_bits[q]
                 out[zb, yb, xb] = m
+
+
+@njit(parallel=True, cache=True)
+def empty_blocks(cells, block, out):
+    """Whether every cell of each block of ``block**3`` cells is empty (``_grid.block_map``).
+
+    The last plane of each axis holds no cells; a block reaching past the grid counts only its
+    cells inside it.
+    """
+    nz, ny, nx = cells.shape[0] - 1, cells.shape[1] - 1, cells.shape[2] - 1
+    bz, by, bx = out.shape
+    for zb in prange(bz):
+        for yb in range(by):
+            for xb in range(bx):
+                empty = True
+                for z in range(block * zb, min(block * zb + block, nz)):
+                    for y in range(block * yb, min(block * yb + block, ny)):
+                        for x in range(block * xb, min(block * xb + block, nx)):
+                            if cells[z, y, x] != 0:
+                                empty = False
+                                break
+                        if not empty:
+                            break
+                    if not empty:
+                        break
+                out[zb, yb, xb] = empty

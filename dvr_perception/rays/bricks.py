@@ -871,7 +871,9 @@ _MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 #: curvature pieces (4 bytes a voxel; of a field, or of a whole-volume array while it lives)
 #: too while both fit.  A volume bricked only because it
 #: is a little too large for the whole-volume analysis then costs what the whole volume costs
-#: from its second analysis on.
+#: from its second analysis on.  When not all of them fit, the front bricks of the analyses
+#: without a cache are kept while they fit (:class:`_PartialMemo`): the rest are derived again
+#: each time.
 MEMO_SHARE = 0.5
 
 
@@ -929,6 +931,29 @@ def _curvature_key(curvature):
     return (curvature.sigma, structures)
 
 
+class _PartialMemo(dict):
+    """The derived volumes of the bricks that fit ``budget`` bytes (all of them do not).
+
+    Bricks are added as they are walked (front to back) until the budget is spent; the
+    others are derived again by every analysis.  A render of a volume too large for the
+    memo then re-derives only the bricks behind those kept.
+    """
+
+    def __init__(self, budget: float) -> None:
+        super().__init__()
+        self.budget = float(budget)
+        self.used = 0
+
+    def offer(self, brick, derived) -> bool:
+        """Keep ``derived`` for ``brick`` when it fits the budget; return whether it was kept."""
+        size = memory.array_bytes(derived)
+        if self.used + size > self.budget:
+            return False
+        self[brick] = derived
+        self.used += size
+        return True
+
+
 def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dict | None]:
     """Return the memos of ``volume``'s brick-derived volumes and curvature pieces, or None.
 
@@ -943,8 +968,10 @@ def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dic
         t["labels"], t["shade"], tuple(br.cells for br in bricks),
     )  # fmt: skip
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
-    if 7 * held > room:
-        _MEMO.pop(volume, None)
+    partial = 7 * held > room
+    if partial and room < 7 * max(math.prod(b - a for a, b in br.voxels(volume.data.shape))
+                                  for br in bricks):  # fmt: skip
+        _MEMO.pop(volume, None)  # not even one brick
         return None, None
     hit = _MEMO.get(volume)
     if hit is None or hit["key"] != key:
@@ -956,6 +983,16 @@ def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dic
             "curvature_ref": None,
         }
         _MEMO[volume] = hit  # the newest tables only
+    if partial != isinstance(hit["bricks"], _PartialMemo):  # (a memo of the other kind)
+        hit["bricks"] = _PartialMemo(room) if partial else {}
+    if partial:
+        memo = hit["bricks"]
+        memo.budget = room
+        if memo.used > room:  # less room than when they were kept: start again
+            memo.clear()
+            memo.used = 0
+        hit["curvature"], hit["curvature_key"] = {}, None
+        return memo, None
     if curvature is None:
         return hit["bricks"], None
     if 11 * held > room:
@@ -1200,7 +1237,9 @@ def _pass(volume, states, bricks, curv, cap, build_cache, report=None, room=0.0,
     memo, cmemo = _memo(volume, states[0], bricks, room, curv)
     # the codes stay with the cache (counted as the memo would be: within the room), brick by
     # brick in view order while they fit (a change of light re-derives the others)
-    keep = min(KEEP_CODES_SHARE * cap, room) if build_cache and memo is None else 0.0
+    # (a partial memo's bricks keep their records; codes for the others, as without a memo)
+    codes_kept = memo is None or isinstance(memo, _PartialMemo)
+    keep = min(KEEP_CODES_SHARE * cap, room) if build_cache and codes_kept else 0.0
     known = set(memo) if memo is not None else set()
     locked = _CURV_SCRATCH_LOCK.acquire(blocking=False)
     try:
@@ -1226,7 +1265,9 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
     shape = volume.data.shape
     sizes = [2 * math.prod(b - a for a, b in br.voxels(shape)) for br in bricks]  # their codes
     keep_all = bool(keep) and sum(sizes) <= keep
-    lazy = build_cache and states[0].tables["shade"] and (memo is not None or keep_all)
+    partial = isinstance(memo, _PartialMemo)  # some bricks only: re-derived after a new light
+    full = memo is not None and not partial
+    lazy = build_cache and states[0].tables["shade"] and (full or keep_all)
     used = 0  # bytes of the codes kept
     # and their curvature too while the memo keeps the bricks' curvature pieces
     lazy_curv = lazy and curv is not None and cmemo is not None
@@ -1245,12 +1286,17 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
             cv = cmemo.setdefault(br, cv)
         pieces_kept.append(cv if lazy_curv else None)
         derived = memo.get(br) if memo is not None else None
-        if memo is not None and derived is None:
+        if full and derived is None:
             derived = memo[br] = derive(piece, states[0])
+        elif partial and derived is None:
+            derived = derive(piece, states[0])
+            if not build_cache:  # (a cache keeps codes within the same room instead)
+                memo.offer(br, derived)
         if derived is None and len(states) > 1:
             derived = derive(piece, states[0])  # once for every state
         codes = None
-        keep_br = bool(keep) and used + sizes[done - 1] <= keep
+        in_memo = partial and br in memo  # its records serve a new light
+        keep_br = bool(keep) and not in_memo and used + sizes[done - 1] <= keep
         used += sizes[done - 1] if keep_br else 0
         for n, st in enumerate(states):
             part = None  # this state's share of the brick's part of the bar
@@ -1269,7 +1315,7 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
                 c.codes = None
                 k = (codes, 0)
             else:
-                k = (derived[0], 16) if derived is not None and memo is not None else None
+                k = (derived[0], 16) if memo is not None and br in memo else None
             kept[n].append(None if k is None else (*k, off))
         if report:
             report(done / len(bricks))

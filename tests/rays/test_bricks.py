@@ -273,3 +273,38 @@ def test_the_one_pass_merge_of_the_arena_equals_brick_by_brick(phantom, monkeypa
         assert np.array_equal(whole.cache.lazy["steps"], parts.cache.lazy["steps"])
     for name in ("shading", "curvature"):  # (lazily shaded: the same entries set in both)
         assert np.array_equal(getattr(first.cache, name), getattr(second.cache, name)), name
+
+
+def test_a_partial_memo_keeps_the_front_bricks_of_renders(phantom, monkeypatch):
+    """Too little room for every brick: the front ones are kept, the others derived again."""
+    vol, spec, _ = phantom
+    cam = Camera.from_view(vol.bounds, width=32, height=32, azimuth=-35.0, elevation=15.0)
+    size = (13, 13, 13)
+    every = bricks.split(vol.data.shape, size)
+    one = max(np.prod([b - a for a, b in br.voxels(vol.data.shape)]) for br in every)
+    bricks._MEMO.pop(vol, None)
+    monkeypatch.setattr(bricks, "_room", lambda *a: 7.5 * 5 * one)  # about 5 of 27 bricks
+    calls = []
+    real = bricks.derive
+    monkeypatch.setattr(bricks, "derive", lambda *a: calls.append(1) or real(*a))
+    whole = analyze(vol, spec, cam, build_cache=False, occlusion_free=False)
+    kw = {"brick": size, "build_cache": False, "occlusion_free": False}
+    first = bricks.analyze_bricked(vol, spec, cam, **kw)
+    walked = len(calls)
+    memo = bricks._MEMO[vol]["bricks"]
+    assert isinstance(memo, bricks._PartialMemo)
+    assert 0 < len(memo) < walked
+    assert memo.used <= memo.budget
+    second = bricks.analyze_bricked(vol, spec, cam, **kw)
+    assert len(calls) - walked == walked - len(memo)  # the kept bricks are not derived again
+    for got in (first, second):
+        assert np.array_equal(whole.rgba, got.rgba)
+    # an analysis with a cache reads the kept bricks but adds none (its codes use the room)
+    frame = bricks.analyze_bricked(vol, spec, cam, brick=size)
+    assert len(memo) == len(bricks._MEMO[vol]["bricks"])
+    full = analyze(vol, spec, cam, build_cache=True)
+    assert _max_diff(full, frame) <= 1e-6
+    light = (0.2, -0.6, 0.7)
+    assert _max_diff(reevaluate(full.cache, light_direction=light),
+                     reevaluate(frame.cache, light_direction=light)) <= 1e-6  # fmt: skip
+    bricks._MEMO.pop(vol, None)
