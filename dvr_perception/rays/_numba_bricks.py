@@ -19,9 +19,25 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit, prange
 
-from dvr_perception.rays._numba_kernels import _FM, _IQS, _UNSET, _fill, _sample_at, _walk_ray
+from dvr_perception.rays._numba_grid import _ZERO_CODE, _code
+from dvr_perception.rays._numba_kernels import (
+    _BLOCK,
+    _CELL_EMPTY,
+    _CELL_MIXED,
+    _FM,
+    _IQS,
+    _U1,
+    _UNSET,
+    _block_skip,
+    _fill,
+    _jump_scale,
+    _sample_at,
+    _table_index,
+    _walk_ray,
+)
 
 __all__ = [
     "brick_ranges",
@@ -30,6 +46,8 @@ __all__ = [
     "place",
     "place_all",
     "reach",
+    "reached_blocks",
+    "records_reached",
     "walk_brick",
 ]
 
@@ -301,3 +319,93 @@ def reach(start, count, c_lut, alpha, ert, out):
                 if tr < half:
                     break
         out[r] = min(q + 1, n)
+
+
+@njit(parallel=True, cache=True, fastmath=_FM)
+def reached_blocks(index, cells, blocks, rep, lab, lab_base, memb, alpha_r, a, b, t_first, j0,
+                   j1, step, tr0, ert, geo, mask):  # fmt: skip
+    """Mark the blocks of cells where a render's walk of this brick can shade a sample.
+
+    A walk without a cache shades a sample only while its ray is short of early ray
+    termination (:func:`_numba_kernels._walk_ray`): here every ray's run ``[j0, j1)`` is
+    stepped as the walk steps it (the same sample positions, empty-space jumps and table
+    entries; ``tr0`` its transmittance on entering the brick) with the rendering opacities
+    ``alpha_r`` only, and the block (``_grid.BLOCK`` cells a side, the brick's block map's)
+    of every non-empty cell met is marked in ``mask`` until the transmittance falls below
+    ``ert / 2`` (below the walk's stop, so rounding cannot take the walk further).
+    ``index``: the brick's table index per voxel; ``geo`` as :func:`walk_brick`'s.
+    """
+    gnx, gny, gnz, ox, oy, oz = geo[0], geo[1], geo[2], geo[3], geo[4], geo[5]
+    ny, nx = index.shape[1], index.shape[2]
+    flat = index.reshape(index.size)
+    clf = cells.reshape(cells.size)
+    isy = np.uint64(nx)
+    nxy = nx * ny
+    isz = np.uint64(nxy)
+    lab_end = (lab_base if lab_base >= 0 else len(memb)) - 1
+    half = 0.5 * ert
+    for r in prange(len(j0)):
+        j = j0[r]
+        n = j1[r]
+        tr = tr0[r]
+        if n <= j or tr < ert:
+            continue
+        ax, ay, az = a[r, 0], a[r, 1], a[r, 2]
+        bx, by, bz = b[r, 0], b[r, 1], b[r, 2]
+        tf = t_first[r]
+        binv = _jump_scale(bx, by, bz, step) * _BLOCK
+        while j < n:
+            px, py, pz, x, y, z = _sample_at(j, tf, step, ax, ay, az, bx, by, bz, gnx, gny, gnz)
+            skip = _block_skip(blocks, x - ox, y - oy, z - oz, binv)
+            if skip:
+                j += skip
+                continue
+            o = np.uint64((z - oz) * nxy + (y - oy) * nx + (x - ox))
+            cl = clf[o]
+            j += 1
+            if cl == _CELL_EMPTY:
+                continue
+            mask[(z - oz) >> 2, (y - oy) >> 2, (x - ox) >> 2] = True
+            lv = 0
+            if cl != _CELL_MIXED:
+                k = rep[cl - 1]
+            elif lab_base >= 0:
+                lv = lab[int(pz + 0.5) - oz, int(py + 0.5) - oy, int(px + 0.5) - ox]
+                k = lab_base + lv - 1
+            if cl == _CELL_MIXED and lv == 0:
+                fx = min(max(px - x, 0.0), 1.0)
+                fy = min(max(py - y, 0.0), 1.0)
+                fz = min(max(pz - z, 0.0), 1.0)
+                k = _table_index(flat, o, isy, isz, _U1, fx, fy, fz, lab_end)
+            if memb[k] <= 0.0:
+                continue
+            al = alpha_r[k]
+            if al > 0.0:
+                tr *= 1.0 - al
+                if tr < half:
+                    break
+
+
+@njit(parallel=True, cache=True)
+def records_reached(data, aspect, index, mask, out):
+    """``index | code << 16`` per voxel, the code only at the corners of cells in ``mask``'s blocks.
+
+    :func:`_numba_grid.records_where`'s records where a render can shade
+    (:func:`reached_blocks`); every other voxel gets the zero-gradient code.
+    """
+    nz, ny, nx = data.shape
+    ax, ay, az = aspect[0], aspect[1], aspect[2]
+    for zz in prange(nz):
+        z = np.int64(zz)
+        for y in range(ny):
+            for x in range(nx):
+                need = False
+                for cz in range(max(z - 1, 0), min(z, nz - 2) + 1):
+                    for cy in range(max(y - 1, 0), min(y, ny - 2) + 1):
+                        for cx in range(max(x - 1, 0), min(x, nx - 2) + 1):
+                            if mask[cz >> 2, cy >> 2, cx >> 2]:
+                                need = True
+                code = _ZERO_CODE
+                if need:
+                    code = _code(data, z, y, x, nz, ny, nx, ax, ay, az)
+                out[z, y, x] = np.uint32(index[z, y, x]) | (np.uint32(code) << np.uint32(16))

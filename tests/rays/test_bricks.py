@@ -308,3 +308,30 @@ def test_a_partial_memo_keeps_the_front_bricks_of_renders(phantom, monkeypatch):
     assert _max_diff(reevaluate(full.cache, light_direction=light),
                      reevaluate(frame.cache, light_direction=light)) <= 1e-6  # fmt: skip
     bricks._MEMO.pop(vol, None)
+
+
+@pytest.mark.parametrize("brick", [(7, 9, 11), (20, 39, 39)])
+@pytest.mark.parametrize("view", [(35.0, 25.0), (-150.0, -40.0), (90.0, 80.0)])
+def test_codes_only_where_a_walk_without_a_cache_shades_equal_every_code(phantom, monkeypatch,
+                                                                          brick, view):  # fmt: skip
+    """A render or measure derives the normal codes only where it can shade: the same result."""
+    vol, spec, curv = phantom
+    cam = Camera.from_view(vol.bounds, width=40, height=36, azimuth=view[0], elevation=view[1])
+    monkeypatch.setattr(bricks, "_memo", lambda *a, **kw: (None, None))  # derived every time
+    calls = []
+    real = bricks._derive_reached
+    monkeypatch.setattr(bricks, "_derive_reached", lambda *a: calls.append(1) or real(*a))
+    for kw in ({"build_cache": False, "occlusion_free": False},
+               {"build_cache": False, "curvature": curv}):  # fmt: skip
+        got = {}
+        for reached in (False, True):
+            monkeypatch.setattr(bricks, "REACHED_CODES", reached)
+            got[reached] = bricks.analyze_bricked(vol, spec, cam, brick=brick, **kw)
+        whole = analyze(vol, spec, cam, **kw)
+        assert whole.accumulated.max() > 0.5
+        for name in BUFFERS:
+            a, b = getattr(got[False], name), getattr(got[True], name)
+            if a is not None:
+                assert np.array_equal(a, b, equal_nan=True), name
+        assert _max_diff(whole, got[True]) <= 1e-6
+    assert calls  # the reached codes were used
