@@ -285,8 +285,9 @@ def test_a_partial_memo_keeps_the_front_bricks_of_renders(phantom, monkeypatch):
     bricks._MEMO.pop(vol, None)
     monkeypatch.setattr(bricks, "_room", lambda *a: 7.5 * 5 * one)  # about 5 of 27 bricks
     calls = []
-    real = bricks.derive
+    real, reached = bricks.derive, bricks._derive_reached
     monkeypatch.setattr(bricks, "derive", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(bricks, "_derive_reached", lambda *a: calls.append(1) or reached(*a))
     whole = analyze(vol, spec, cam, build_cache=False, occlusion_free=False)
     kw = {"brick": size, "build_cache": False, "occlusion_free": False}
     first = bricks.analyze_bricked(vol, spec, cam, **kw)
