@@ -332,7 +332,7 @@ def reached_blocks(index, cells, blocks, rep, lab, lab_base, memb, alpha_r, a, b
     entries; ``tr0`` its transmittance on entering the brick) with the rendering opacities
     ``alpha_r`` only, and the block (``_grid.BLOCK`` cells a side, the brick's block map's)
     of every non-empty cell met is marked in ``mask`` until the transmittance falls below
-    ``ert / 2`` (below the walk's stop, so rounding cannot take the walk further).
+    ``0.99 ert`` (below the walk's stop: the same products, and a margin).
     ``index``: the brick's table index per voxel; ``geo`` as :func:`walk_brick`'s.
     """
     gnx, gny, gnz, ox, oy, oz = geo[0], geo[1], geo[2], geo[3], geo[4], geo[5]
@@ -343,7 +343,7 @@ def reached_blocks(index, cells, blocks, rep, lab, lab_base, memb, alpha_r, a, b
     nxy = nx * ny
     isz = np.uint64(nxy)
     lab_end = (lab_base if lab_base >= 0 else len(memb)) - 1
-    half = 0.5 * ert
+    half = 0.99 * ert
     for r in prange(len(j0)):
         j = j0[r]
         n = j1[r]
@@ -386,6 +386,17 @@ def reached_blocks(index, cells, blocks, rep, lab, lab_base, memb, alpha_r, a, b
                     break
 
 
+@njit(cache=True)
+def _corner_blocks(n):
+    """Per voxel ``v`` of an axis of ``n``, the blocks of cells ``v - 1`` and ``v`` (clamped)."""
+    b0 = np.empty(n, np.int64)
+    b1 = np.empty(n, np.int64)
+    for v in range(n):
+        b0[v] = max(min(v - 1, n - 2), 0) >> 2
+        b1[v] = max(min(v, n - 2), 0) >> 2
+    return b0, b1
+
+
 @njit(parallel=True, cache=True)
 def records_reached(data, aspect, index, mask, out):
     """``index | code << 16`` per voxel, the code only at the corners of cells in ``mask``'s blocks.
@@ -395,16 +406,20 @@ def records_reached(data, aspect, index, mask, out):
     """
     nz, ny, nx = data.shape
     ax, ay, az = aspect[0], aspect[1], aspect[2]
+    # per axis, the blocks of the cells a voxel is a corner of (cells v - 1 and v, clamped)
+    zb0, zb1 = _corner_blocks(nz)
+    yb0, yb1 = _corner_blocks(ny)
+    xb0, xb1 = _corner_blocks(nx)
     for zz in prange(nz):
         z = np.int64(zz)
         for y in range(ny):
             for x in range(nx):
-                need = False
-                for cz in range(max(z - 1, 0), min(z, nz - 2) + 1):
-                    for cy in range(max(y - 1, 0), min(y, ny - 2) + 1):
-                        for cx in range(max(x - 1, 0), min(x, nx - 2) + 1):
-                            if mask[cz >> 2, cy >> 2, cx >> 2]:
-                                need = True
+                need = (
+                    mask[zb0[z], yb0[y], xb0[x]] or mask[zb0[z], yb0[y], xb1[x]]
+                    or mask[zb0[z], yb1[y], xb0[x]] or mask[zb0[z], yb1[y], xb1[x]]
+                    or mask[zb1[z], yb0[y], xb0[x]] or mask[zb1[z], yb0[y], xb1[x]]
+                    or mask[zb1[z], yb1[y], xb0[x]] or mask[zb1[z], yb1[y], xb1[x]]
+                )  # fmt: skip
                 code = _ZERO_CODE
                 if need:
                     code = _code(data, z, y, x, nz, ny, nx, ax, ay, az)
