@@ -40,8 +40,10 @@ from dvr_perception.rays._numba_kernels import (
 )
 
 __all__ = [
+    "any_alive",
     "brick_ranges",
     "composite_part",
+    "crossing",
     "fill_range",
     "place",
     "place_all",
@@ -424,3 +426,38 @@ def records_reached(data, aspect, index, mask, out):
                 if need:
                     code = _code(data, z, y, x, nz, ny, nx, ax, ay, az)
                 out[z, y, x] = np.uint32(index[z, y, x]) | (np.uint32(code) << np.uint32(16))
+
+
+@njit(cache=True)
+def crossing(order, chunk_ptr, j0, j1, out_order, out_ptr, out_runs):
+    """Keep the rays of ``order``'s chunks with ``j1 > j0``, chunk by chunk (no empty chunks).
+
+    Writes the rays to ``out_order``, the chunks' bounds to ``out_ptr`` and each kept chunk's
+    samples (``sum(j1 - j0)``) to ``out_runs``; returns ``(rays, chunks)`` kept.
+    """
+    m = 0
+    nc = 0
+    out_ptr[0] = 0
+    for c in range(len(chunk_ptr) - 1):
+        first = m
+        runs = 0
+        for i in range(chunk_ptr[c], chunk_ptr[c + 1]):
+            r = order[i]
+            if j1[r] > j0[r]:
+                out_order[m] = r
+                m += 1
+                runs += j1[r] - j0[r]
+        if m > first:
+            out_runs[nc] = runs
+            nc += 1
+            out_ptr[nc] = m
+    return m, nc
+
+
+@njit(cache=True)
+def any_alive(j0, j1, st, ert):
+    """Return whether a ray with samples in ``[j0, j1)`` has ``st[r, 3] >= ert``."""
+    for r in range(len(j0)):  # noqa: SIM110 (numba: a loop that stops at the first)
+        if j1[r] > j0[r] and st[r, 3] >= ert:
+            return True
+    return False
