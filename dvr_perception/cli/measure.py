@@ -123,12 +123,14 @@ def _relations(trans) -> list[dict]:
 def _notes(curvature, ray_curvature, vis, shp, trans) -> list[str]:
     """Return the measures' notes, each prefixed with the measure it comes from.
 
-    ``curvature`` is what the analysis was given: the whole ``|H|`` volume, or a
+    ``curvature`` is what the analysis was given: the whole ``|H|`` volume (dense, or its
+    pages: :class:`~dvr_perception.rays.curvature_field.CurvaturePages`), or a
     :class:`~dvr_perception.rays.curvature_field.CurvatureField` (a bricked analysis, whose
     whole volume is never held); ``ray_curvature`` the analysis' per-ray curvature image.
     """
     notes = []
-    if isinstance(curvature, np.ndarray) and not np.any(curvature > 0):
+    held = getattr(curvature, "pages", curvature)  # the dense volume, or its non-zero pages
+    if isinstance(held, np.ndarray) and not np.any(held > 0):
         notes.append(
             "shape: the curvature volume is 0 everywhere (no curved structure boundary), so "
             "v_s = 0 and E_s measures only the image variation (silhouettes, shading)"

@@ -1260,7 +1260,7 @@ def _peak(volume, state, brick, curv, build_cache, cap) -> tuple[float, float]:
             volume, len(state.st), int(state.seg["n"].sum()), k=len(state.spec.structures),
             shade=t["shade"], curvature=curv is not None, build_cache=build_cache, lut=t["lut"],
             membership=t["memb"], memory_limit=max(int(cap), 2**20), brick=brick,
-            curvature_array=isinstance(curv, np.ndarray),
+            curvature_array=isinstance(curv, np.ndarray) or hasattr(curv, "kernel_arg"),
         )  # fmt: skip
     except DVRInputError:  # more than the limit even in bricks: no room for memos
         return float(cap), 0.0

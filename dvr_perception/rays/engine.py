@@ -532,15 +532,16 @@ def _scene(volume: Volume, spec: StructureSpec, camera: Camera, backend: str,
 def _plan(volume, spec, camera, seg, lut, memb, curv, build_cache, memory_limit, brick):
     """:func:`~dvr_perception.rays.memory.plan` of one analysis (``curv``: the checked curvature).
 
-    A whole-volume ``|H|`` array stays alive beside a bricked run too: the plan counts it.
-    ``curv`` may also be a bool (with curvature or not; not a whole array).
+    A whole-volume ``|H|`` array (dense or its pages, counted as dense) stays alive beside a
+    bricked run too: the plan counts it.  ``curv`` may also be a bool (with curvature or
+    not; not a whole array).
     """
     has = curv if isinstance(curv, bool) else curv is not None
     return memory.plan(
         volume, camera.width * camera.height, int(seg["n"].sum()), k=len(spec.structures),
         shade=bool(spec.rendering.shade), curvature=has, build_cache=build_cache,
         lut=lut, membership=memb, memory_limit=memory_limit, brick=brick,
-        curvature_array=isinstance(curv, np.ndarray),
+        curvature_array=isinstance(curv, np.ndarray) or hasattr(curv, "kernel_arg"),
     )  # fmt: skip
 
 
