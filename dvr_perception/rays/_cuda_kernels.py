@@ -54,6 +54,7 @@ def _device_twins() -> dict:
     """
     glb = dict(vars(_nk))
     glb["_curv_at"] = cuda.jit(device=True)(_nk._dense_at)  # the GPU reads a dense |H|
+    glb["_flat"] = cuda.jit(device=True)(_nk._flat)  # its reshape: the Python
     twins = {}
     for name in _SHARED:
         py = getattr(_nk, name).py_func
