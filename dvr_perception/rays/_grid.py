@@ -420,11 +420,17 @@ def block_map(volume, cells: np.ndarray) -> np.ndarray:
         return hit[1]
     from scipy import ndimage
 
-    c = cells[:-1, :-1, :-1] == CELL_EMPTY  # the last plane of each axis: no cells
-    pad = [(0, -n % BLOCK) for n in c.shape]
-    c = np.pad(c, pad, constant_values=True)
-    bz, by, bx = (n // BLOCK for n in c.shape)
-    empty = c.reshape(bz, BLOCK, by, BLOCK, bx, BLOCK).all(axis=(1, 3, 5))
+    fast = _fast()
+    if fast is not None:  # (the numpy below: 4 s of a 1024 x 1024 x 904 CT's 22 s of maps)
+        shape = tuple(-(-max(n - 1, 0) // BLOCK) for n in cells.shape)
+        empty = np.empty(shape, np.bool_)
+        fast.empty_blocks(cells, BLOCK, empty)
+    else:
+        c = cells[:-1, :-1, :-1] == CELL_EMPTY  # the last plane of each axis: no cells
+        pad = [(0, -n % BLOCK) for n in c.shape]
+        c = np.pad(c, pad, constant_values=True)
+        bz, by, bx = (n // BLOCK for n in c.shape)
+        empty = c.reshape(bz, BLOCK, by, BLOCK, bx, BLOCK).all(axis=(1, 3, 5))
     if empty.all():
         dist = np.full(empty.shape, 255, np.int64)
     else:

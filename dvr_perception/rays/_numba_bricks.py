@@ -9,7 +9,8 @@ sample of a ray belongs to exactly one brick.  :func:`walk_brick` walks those sa
 :func:`_numba_kernels._walk_ray`, continuing the per-ray state handed on from the bricks in
 front; :func:`fill_range` computes the shading and curvature of cache entries in a brick's
 runs (the bricked cache has no whole volume to fill them from later); :func:`place` copies a
-brick's cache entries behind the entries of the bricks in front of it; :func:`composite_part`
+brick's cache entries behind the entries of the bricks in front of it (:func:`place_all`: every
+brick's at once, when they share one buffer); :func:`composite_part`
 re-composites a brick's cache entries, continuing the rays' state from the bricks in front
 (the re-evaluation over MPI ranks, :class:`~dvr_perception.distributed.RankSession`).
 """
@@ -18,11 +19,39 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit, prange
 
-from dvr_perception.rays._numba_kernels import _FM, _IQS, _UNSET, _fill, _sample_at, _walk_ray
+from dvr_perception.rays._numba_grid import _ZERO_CODE, _code
+from dvr_perception.rays._numba_kernels import (
+    _BLOCK,
+    _CELL_EMPTY,
+    _CELL_MIXED,
+    _FM,
+    _IQS,
+    _U1,
+    _UNSET,
+    _block_skip,
+    _fill,
+    _jump_scale,
+    _sample_at,
+    _table_index,
+    _walk_ray,
+)
 
-__all__ = ["brick_ranges", "composite_part", "fill_range", "place", "reach", "walk_brick"]
+__all__ = [
+    "any_alive",
+    "brick_ranges",
+    "composite_part",
+    "crossing",
+    "fill_range",
+    "place",
+    "place_all",
+    "reach",
+    "reached_blocks",
+    "records_reached",
+    "walk_brick",
+]
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
@@ -186,6 +215,32 @@ def place(dest, fill, start, count, lut, j_, sh, curv, m_lut, m_j, m_sh, m_curv,
         fill[r] += count[r]
 
 
+@njit(parallel=True, cache=True)
+def place_all(dest, starts, counts, lut, j_, sh, curv, m_lut, m_j, m_sh, m_curv, shade, has_curv):
+    """Every brick's entries of every ray, one after another (:func:`place` for all bricks).
+
+    ``starts``/``counts`` (B, R): per brick (in view order) each ray's first entry in the
+    buffers ``lut``, ``j_``, ``sh``, ``curv`` that hold every brick's entries, and their
+    number.  A ray's entries are written once, front to back, instead of one pass over the
+    merged arrays per brick.
+    """
+    nb = starts.shape[0]
+    for r in prange(len(dest)):
+        d = dest[r]
+        for q in range(nb):
+            s0 = starts[q, r]
+            n = counts[q, r]
+            for i in range(n):
+                m_lut[d + i] = lut[s0 + i]
+                m_j[d + i] = j_[s0 + i]
+                if shade:
+                    m_sh[d + i, 0] = sh[s0 + i, 0]
+                    m_sh[d + i, 1] = sh[s0 + i, 1]
+                if has_curv:
+                    m_curv[d + i] = curv[s0 + i]
+            d += n
+
+
 @njit(parallel=True, cache=True, fastmath=_FM)
 def composite_part(start, count, c_lut, c_sh, c_curv, ids, alpha_r, col, light, shade, has_curv,
                    ert, st, vis):  # fmt: skip
@@ -266,3 +321,143 @@ def reach(start, count, c_lut, alpha, ert, out):
                 if tr < half:
                     break
         out[r] = min(q + 1, n)
+
+
+@njit(parallel=True, cache=True, fastmath=_FM)
+def reached_blocks(index, cells, blocks, rep, lab, lab_base, memb, alpha_r, a, b, t_first, j0,
+                   j1, step, tr0, ert, geo, mask):  # fmt: skip
+    """Mark the blocks of cells where a render's walk of this brick can shade a sample.
+
+    A walk without a cache shades a sample only while its ray is short of early ray
+    termination (:func:`_numba_kernels._walk_ray`): here every ray's run ``[j0, j1)`` is
+    stepped as the walk steps it (the same sample positions, empty-space jumps and table
+    entries; ``tr0`` its transmittance on entering the brick) with the rendering opacities
+    ``alpha_r`` only, and the block (``_grid.BLOCK`` cells a side, the brick's block map's)
+    of every non-empty cell met is marked in ``mask`` until the transmittance falls below
+    ``0.99 ert`` (below the walk's stop: the same products, and a margin).
+    ``index``: the brick's table index per voxel; ``geo`` as :func:`walk_brick`'s.
+    """
+    gnx, gny, gnz, ox, oy, oz = geo[0], geo[1], geo[2], geo[3], geo[4], geo[5]
+    ny, nx = index.shape[1], index.shape[2]
+    flat = index.reshape(index.size)
+    clf = cells.reshape(cells.size)
+    isy = np.uint64(nx)
+    nxy = nx * ny
+    isz = np.uint64(nxy)
+    lab_end = (lab_base if lab_base >= 0 else len(memb)) - 1
+    half = 0.99 * ert
+    for r in prange(len(j0)):
+        j = j0[r]
+        n = j1[r]
+        tr = tr0[r]
+        if n <= j or tr < ert:
+            continue
+        ax, ay, az = a[r, 0], a[r, 1], a[r, 2]
+        bx, by, bz = b[r, 0], b[r, 1], b[r, 2]
+        tf = t_first[r]
+        binv = _jump_scale(bx, by, bz, step) * _BLOCK
+        while j < n:
+            px, py, pz, x, y, z = _sample_at(j, tf, step, ax, ay, az, bx, by, bz, gnx, gny, gnz)
+            skip = _block_skip(blocks, x - ox, y - oy, z - oz, binv)
+            if skip:
+                j += skip
+                continue
+            o = np.uint64((z - oz) * nxy + (y - oy) * nx + (x - ox))
+            cl = clf[o]
+            j += 1
+            if cl == _CELL_EMPTY:
+                continue
+            mask[(z - oz) >> 2, (y - oy) >> 2, (x - ox) >> 2] = True
+            lv = 0
+            if cl != _CELL_MIXED:
+                k = rep[cl - 1]
+            elif lab_base >= 0:
+                lv = lab[int(pz + 0.5) - oz, int(py + 0.5) - oy, int(px + 0.5) - ox]
+                k = lab_base + lv - 1
+            if cl == _CELL_MIXED and lv == 0:
+                fx = min(max(px - x, 0.0), 1.0)
+                fy = min(max(py - y, 0.0), 1.0)
+                fz = min(max(pz - z, 0.0), 1.0)
+                k = _table_index(flat, o, isy, isz, _U1, fx, fy, fz, lab_end)
+            if memb[k] <= 0.0:
+                continue
+            al = alpha_r[k]
+            if al > 0.0:
+                tr *= 1.0 - al
+                if tr < half:
+                    break
+
+
+@njit(cache=True)
+def _corner_blocks(n):
+    """Per voxel ``v`` of an axis of ``n``, the blocks of cells ``v - 1`` and ``v`` (clamped)."""
+    b0 = np.empty(n, np.int64)
+    b1 = np.empty(n, np.int64)
+    for v in range(n):
+        b0[v] = max(min(v - 1, n - 2), 0) >> 2
+        b1[v] = max(min(v, n - 2), 0) >> 2
+    return b0, b1
+
+
+@njit(parallel=True, cache=True)
+def records_reached(data, aspect, index, mask, out):
+    """``index | code << 16`` per voxel, the code only at the corners of cells in ``mask``'s blocks.
+
+    :func:`_numba_grid.records_where`'s records where a render can shade
+    (:func:`reached_blocks`); every other voxel gets the zero-gradient code.
+    """
+    nz, ny, nx = data.shape
+    ax, ay, az = aspect[0], aspect[1], aspect[2]
+    # per axis, the blocks of the cells a voxel is a corner of (cells v - 1 and v, clamped)
+    zb0, zb1 = _corner_blocks(nz)
+    yb0, yb1 = _corner_blocks(ny)
+    xb0, xb1 = _corner_blocks(nx)
+    for zz in prange(nz):
+        z = np.int64(zz)
+        for y in range(ny):
+            for x in range(nx):
+                need = (
+                    mask[zb0[z], yb0[y], xb0[x]] or mask[zb0[z], yb0[y], xb1[x]]
+                    or mask[zb0[z], yb1[y], xb0[x]] or mask[zb0[z], yb1[y], xb1[x]]
+                    or mask[zb1[z], yb0[y], xb0[x]] or mask[zb1[z], yb0[y], xb1[x]]
+                    or mask[zb1[z], yb1[y], xb0[x]] or mask[zb1[z], yb1[y], xb1[x]]
+                )  # fmt: skip
+                code = _ZERO_CODE
+                if need:
+                    code = _code(data, z, y, x, nz, ny, nx, ax, ay, az)
+                out[z, y, x] = np.uint32(index[z, y, x]) | (np.uint32(code) << np.uint32(16))
+
+
+@njit(cache=True)
+def crossing(order, chunk_ptr, j0, j1, out_order, out_ptr, out_runs):
+    """Keep the rays of ``order``'s chunks with ``j1 > j0``, chunk by chunk (no empty chunks).
+
+    Writes the rays to ``out_order``, the chunks' bounds to ``out_ptr`` and each kept chunk's
+    samples (``sum(j1 - j0)``) to ``out_runs``; returns ``(rays, chunks)`` kept.
+    """
+    m = 0
+    nc = 0
+    out_ptr[0] = 0
+    for c in range(len(chunk_ptr) - 1):
+        first = m
+        runs = 0
+        for i in range(chunk_ptr[c], chunk_ptr[c + 1]):
+            r = order[i]
+            if j1[r] > j0[r]:
+                out_order[m] = r
+                m += 1
+                runs += j1[r] - j0[r]
+        if m > first:
+            out_runs[nc] = runs
+            nc += 1
+            out_ptr[nc] = m
+    return m, nc
+
+
+@njit(cache=True)
+def any_alive(j0, j1, st, ert):
+    """Return whether a ray with samples in ``[j0, j1)`` has ``st[r, 3] >= ert``."""
+    for r in range(len(j0)):  # noqa: SIM110 (numba: a loop that stops at the first)
+        if j1[r] > j0[r] and st[r, 3] >= ert:
+            return True
+    return False

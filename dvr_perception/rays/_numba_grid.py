@@ -16,6 +16,7 @@ from numba import njit, prange
 
 __all__ = [
     "cell_classes",
+    "empty_blocks",
     "index_volume",
     "normal_codes",
     "page_fill",
@@ -221,3 +222,29 @@ def page_read(index, pages, z0, y0, x0, out):
                 x = x0 + k
                 p = index[z >> 3, y >> 3, x >> 3]
                 out[i, j, k] = pages[p, z & 7, y & 7, x & 7] if p >= 0 else 0.0
+
+
+@njit(parallel=True, cache=True)
+def empty_blocks(cells, block, out):
+    """Whether every cell of each block of ``block**3`` cells is empty (``_grid.block_map``).
+
+    The last plane of each axis holds no cells; a block reaching past the grid counts only its
+    cells inside it.
+    """
+    nz, ny, nx = cells.shape[0] - 1, cells.shape[1] - 1, cells.shape[2] - 1
+    bz, by, bx = out.shape
+    for zb in prange(bz):
+        for yb in range(by):
+            for xb in range(bx):
+                empty = True
+                for z in range(block * zb, min(block * zb + block, nz)):
+                    for y in range(block * yb, min(block * yb + block, ny)):
+                        for x in range(block * xb, min(block * xb + block, nx)):
+                            if cells[z, y, x] != 0:
+                                empty = False
+                                break
+                        if not empty:
+                            break
+                    if not empty:
+                        break
+                out[zb, yb, xb] = empty

@@ -277,8 +277,7 @@ def analyze(
                 "is CPU only (backend='numba' or 'auto')"
             )
         kind = "numba"
-    has_curv = curv is not None
-    need = _plan(volume, spec, camera, seg, lut, memb, has_curv, build_cache, memory_limit, brick)
+    need = _plan(volume, spec, camera, seg, lut, memb, curv, build_cache, memory_limit, brick)
     skip = occlusion_free and not build_cache and not exact
     if kind == "cuda" and need["mode"] == "bricks":
         if backend == "cuda":
@@ -573,12 +572,18 @@ def _camera_rays(nk, camera, volume, step) -> dict:
     return seg
 
 
-def _plan(volume, spec, camera, seg, lut, memb, has_curv, build_cache, memory_limit, brick):
-    """:func:`~dvr_perception.rays.memory.plan` of one analysis."""
+def _plan(volume, spec, camera, seg, lut, memb, curv, build_cache, memory_limit, brick):
+    """:func:`~dvr_perception.rays.memory.plan` of one analysis (``curv``: the checked curvature).
+
+    A whole-volume ``|H|`` array stays alive beside a bricked run too: the plan counts it.
+    ``curv`` may also be a bool (with curvature or not; not a whole array).
+    """
+    has = curv if isinstance(curv, bool) else curv is not None
     return memory.plan(
         volume, camera.width * camera.height, int(seg["n"].sum()), k=len(spec.structures),
-        shade=bool(spec.rendering.shade), curvature=has_curv, build_cache=build_cache, lut=lut,
-        membership=memb, memory_limit=memory_limit, brick=brick,
+        shade=bool(spec.rendering.shade), curvature=has, build_cache=build_cache,
+        lut=lut, membership=memb, memory_limit=memory_limit, brick=brick,
+        curvature_array=isinstance(curv, np.ndarray),
     )  # fmt: skip
 
 
@@ -624,7 +629,7 @@ def analyze_views(
     nk, step, _, lut, _, _, memb, _ = _scene(volume, spec, cameras[0], backend)
     segs = [_segments(nk, cam, volume, step) for cam in cameras]
     plans = [
-        _plan(volume, spec, cam, seg, lut, memb, curv is not None, build_cache, memory_limit, None)
+        _plan(volume, spec, cam, seg, lut, memb, curv, build_cache, memory_limit, None)
         for cam, seg in zip(cameras, segs, strict=True)
     ]
     bricks = {tuple(p["brick"]) for p in plans if p["mode"] == "bricks"}

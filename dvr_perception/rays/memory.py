@@ -32,7 +32,7 @@ The limit (:mod:`dvr_perception._memory`, read by the volume readers too) is, in
 :data:`DEFAULT_FRACTION` (a quarter) of the machine's physical memory; the rest is left to
 Python and its libraries, VTK's renderer (its own copy of the volume) and the machine's other
 programs.  Sizes here are binary (GB = 2**30 bytes).  The whole-volume estimate
-(:func:`whole_volume_bytes`) counts the volume's own bytes, about 11 a voxel for the
+(:func:`whole_volume_bytes`) counts the volume's own bytes, about 10 a voxel for the
 derived volumes and ``|H|``, and 348 a pixel; a volume is analysed whole whenever that fits
 the limit, else in bricks.
 """
@@ -77,8 +77,8 @@ __all__ = [
 #: A brick's derived volumes and scratch may take this share of the limit.
 BRICK_SHARE = 0.125
 #: Bytes a voxel of the temporaries made beside the derived volumes while they are built
-#: (the block map's empty-cell mask and its padded copy, :func:`~dvr_perception.rays._grid.
-#: block_map`).
+#: (the table index beside the voxel records being built from it; without numba, the block
+#: map's empty-cell mask and its padded copy, :func:`~dvr_perception.rays._grid.block_map`).
 TRANSIENT_VOXEL_BYTES = 2
 #: Bytes a voxel of the temporaries of a brick's curvature piece computed from the volume
 #: (:class:`~dvr_perception.rays.curvature_field.CurvatureField`: smoothed planes with their
@@ -248,11 +248,13 @@ def check_image(width: int, height: int, k: int = 1, *, source: str = "--size",
 def _voxel_bytes(volume, *, shade: bool, curvature: bool, compact: bool) -> int:
     """Bytes per voxel of the derived volumes a whole-volume analysis builds (and reads).
 
-    The table index (2), the voxel records with their normal codes (4, shaded), the compact
-    index (1, tables of at most 256 entries), the cell map (1), the label map (1, with
-    labels) and the float32 ``|H|`` volume (4, with curvature).
+    The voxel records with the table index and the normal codes (4, shaded; else the table
+    index, 2: :func:`~dvr_perception.rays._grid.index_in_records` keeps the index only inside
+    the records), the compact index (1, tables of at most 256 entries), the cell map (1), the
+    label map (1, with labels) and the float32 ``|H|`` volume (4, with curvature).  The
+    index's own 2 bytes while the records are built count as :data:`TRANSIENT_VOXEL_BYTES`.
     """
-    n = 2 + (4 if shade else 0) + (1 if compact else 0) + 1
+    n = (4 if shade else 2) + (1 if compact else 0) + 1
     n += 1 if getattr(volume, "labels", None) is not None else 0
     return n + (4 if curvature else 0)
 
@@ -268,8 +270,8 @@ def whole_volume_bytes(volume, *, shade: bool = True, curvature: bool = True,
     --------
     >>> import numpy as np
     >>> vol = np.broadcast_to(np.uint16(0), (452, 512, 512))  # a CT's shape, no memory
-    >>> round(whole_volume_bytes(type("V", (), {"data": vol})()) / 2**30, 2)  # 2 + 11 B
-    1.54
+    >>> round(whole_volume_bytes(type("V", (), {"data": vol})()) / 2**30, 2)  # 2 + 10 B
+    1.32
     """
     data = volume.data
     per = _voxel_bytes(volume, shade=shade, curvature=curvature, compact=compact)

@@ -240,3 +240,99 @@ def test_bricked_equals_whole_on_shared_volumes(shared_data, name):
 
 
 _RESULT = {"E_v": "visibility", "E_s": "shape", "E_t": "transparency"}
+
+
+def test_the_one_pass_merge_of_the_arena_equals_brick_by_brick(phantom, monkeypatch):
+    """Entries taken from the arena are merged in one pass (``place_all``), as brick by brick."""
+    vol, spec, curv = phantom
+    cam = Camera.from_view(vol.bounds, width=40, height=32, azimuth=30.0, elevation=20.0)
+    whole = analyze(vol, spec, cam, curvature=curv, build_cache=True)
+    calls = {"all": 0, "one": 0}
+    nb = bricks._kernels()[1]
+    real_all, real_one = nb.place_all, nb.place
+
+    def place_all(*args):
+        calls["all"] += 1
+        return real_all(*args)
+
+    def place(*args):
+        calls["one"] += 1
+        return real_one(*args)
+
+    monkeypatch.setattr(nb, "place_all", place_all)
+    monkeypatch.setattr(nb, "place", place)
+    bricks._ARENA_BUFFERS.clear()  # the first analysis: fresh arrays, merged brick by brick
+    first = bricks.analyze_bricked(vol, spec, cam, brick=(9, 13, 20), curvature=curv)
+    assert calls == {"all": 0, "one": 30}
+    second = bricks.analyze_bricked(vol, spec, cam, brick=(9, 13, 20), curvature=curv)
+    assert calls == {"all": 1, "one": 30}  # the arena holds them now: one pass
+    for parts in (first, second):
+        assert _max_diff(whole, parts) <= 1e-6
+        for name in ("start", "count", "lut"):
+            assert np.array_equal(getattr(whole.cache, name), getattr(parts.cache, name)), name
+        assert np.array_equal(whole.cache.lazy["steps"], parts.cache.lazy["steps"])
+    for name in ("shading", "curvature"):  # (lazily shaded: the same entries set in both)
+        assert np.array_equal(getattr(first.cache, name), getattr(second.cache, name)), name
+
+
+def test_a_partial_memo_keeps_the_front_bricks_of_renders(phantom, monkeypatch):
+    """Too little room for every brick: the front ones are kept, the others derived again."""
+    vol, spec, _ = phantom
+    cam = Camera.from_view(vol.bounds, width=32, height=32, azimuth=-35.0, elevation=15.0)
+    size = (13, 13, 13)
+    every = bricks.split(vol.data.shape, size)
+    one = max(np.prod([b - a for a, b in br.voxels(vol.data.shape)]) for br in every)
+    bricks._MEMO.pop(vol, None)
+    monkeypatch.setattr(bricks, "_room", lambda *a: 7.5 * 5 * one)  # about 5 of 27 bricks
+    calls = []
+    real, reached = bricks.derive, bricks._derive_reached
+    monkeypatch.setattr(bricks, "derive", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(bricks, "_derive_reached", lambda *a: calls.append(1) or reached(*a))
+    whole = analyze(vol, spec, cam, build_cache=False, occlusion_free=False)
+    kw = {"brick": size, "build_cache": False, "occlusion_free": False}
+    first = bricks.analyze_bricked(vol, spec, cam, **kw)
+    walked = len(calls)
+    memo = bricks._MEMO[vol]["bricks"]
+    assert isinstance(memo, bricks._PartialMemo)
+    assert 0 < len(memo) < walked
+    assert memo.used <= memo.budget
+    second = bricks.analyze_bricked(vol, spec, cam, **kw)
+    assert len(calls) - walked == walked - len(memo)  # the kept bricks are not derived again
+    for got in (first, second):
+        assert np.array_equal(whole.rgba, got.rgba)
+    # an analysis with a cache reads the kept bricks but adds none (its codes use the room)
+    frame = bricks.analyze_bricked(vol, spec, cam, brick=size)
+    assert len(memo) == len(bricks._MEMO[vol]["bricks"])
+    full = analyze(vol, spec, cam, build_cache=True)
+    assert _max_diff(full, frame) <= 1e-6
+    light = (0.2, -0.6, 0.7)
+    assert _max_diff(reevaluate(full.cache, light_direction=light),
+                     reevaluate(frame.cache, light_direction=light)) <= 1e-6  # fmt: skip
+    bricks._MEMO.pop(vol, None)
+
+
+@pytest.mark.parametrize("brick", [(7, 9, 11), (20, 39, 39)])
+@pytest.mark.parametrize("view", [(35.0, 25.0), (-150.0, -40.0), (90.0, 80.0)])
+def test_codes_only_where_a_walk_without_a_cache_shades_equal_every_code(phantom, monkeypatch,
+                                                                          brick, view):  # fmt: skip
+    """A render or measure derives the normal codes only where it can shade: the same result."""
+    vol, spec, curv = phantom
+    cam = Camera.from_view(vol.bounds, width=40, height=36, azimuth=view[0], elevation=view[1])
+    monkeypatch.setattr(bricks, "_memo", lambda *a, **kw: (None, None))  # derived every time
+    calls = []
+    real = bricks._derive_reached
+    monkeypatch.setattr(bricks, "_derive_reached", lambda *a: calls.append(1) or real(*a))
+    for kw in ({"build_cache": False, "occlusion_free": False},
+               {"build_cache": False, "curvature": curv}):  # fmt: skip
+        got = {}
+        for reached in (False, True):
+            monkeypatch.setattr(bricks, "REACHED_CODES", reached)
+            got[reached] = bricks.analyze_bricked(vol, spec, cam, brick=brick, **kw)
+        whole = analyze(vol, spec, cam, **kw)
+        assert whole.accumulated.max() > 0.5
+        for name in BUFFERS:
+            a, b = getattr(got[False], name), getattr(got[True], name)
+            if a is not None:
+                assert np.array_equal(a, b, equal_nan=True), name
+        assert _max_diff(whole, got[True]) <= 1e-6
+    assert calls  # the reached codes were used

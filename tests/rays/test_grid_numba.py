@@ -75,3 +75,19 @@ def test_normal_codes_do_not_follow_numpys_arctan2_and_arcsin_rounding(
     assert np.array_equal(off, exact)
     nb = _grid.normal_codes(Volume(vol.data, vol.spacing, vol.origin))  # the C library's angles
     assert np.array_equal(nb, exact)
+
+
+@pytest.mark.parametrize("shape", [(9, 6, 13), (5, 5, 5), (2, 17, 4), (2, 2, 3)])
+def test_the_block_map_of_numba_equals_numpys(monkeypatch, shape):
+    """Blocks of 4^3 cells, those reaching past the grid too (issue 31: numba's empty blocks)."""
+    rng = np.random.default_rng(sum(shape))
+    for density in (0.0, 0.01, 0.2):
+        cells = np.where(rng.random(shape) < density, 255, 0).astype(np.uint8)
+        got = {}
+        for numba in (False, True):
+            monkeypatch.setenv("DVR_PERCEPTION_NO_NUMBA", "" if numba else "1")
+            vol = Volume(np.zeros(shape, np.uint8))  # an empty memo
+            got[numba] = _grid.block_map(vol, cells)
+        assert got[True].shape == got[False].shape
+        assert np.array_equal(got[True], got[False])
+    assert got[True].shape == tuple(-(-(n - 1) // 4) for n in shape)

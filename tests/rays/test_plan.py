@@ -55,12 +55,13 @@ def test_a_ct_over_the_old_voxel_rule_is_whole_when_it_fits():
     assert vol.data.size > OLD_RULE  # the old rule bricked it whatever the limit
     need = _plan(vol, spec, lut, memb, "16G")
     assert need["mode"] == "whole"
-    # the estimate is the run's peak: the volume (2 B), the table index (2), records (4),
+    # the estimate is the run's peak: the volume (2 B), records (4, the table index inside),
     # cell map (1) and |H| (4) a voxel (a table of over 256 entries: no compact index), and
-    # the per-ray buffers, and 2 a voxel of temporaries while the derived volumes are made;
-    # 1.5-2 GB, as measured (issue 31: 1.9 GB peak RSS)
+    # the per-ray buffers, and 2 a voxel of temporaries while the derived volumes are made
+    # (the index beside the records being built); 1.5-2 GB, as measured (issue 31: 1.9 GB
+    # peak RSS with the curvature's own temporaries)
     assert lut.size > 256
-    per_voxel = 2 + 2 + 4 + 1 + 4 + memory.TRANSIENT_VOXEL_BYTES
+    per_voxel = 2 + 4 + 1 + 4 + memory.TRANSIENT_VOXEL_BYTES
     assert need["whole"] == pytest.approx(vol.data.size * per_voxel + 512 * 512
                                           * memory.ray_bytes(len(spec.structures)))  # fmt: skip
     assert 1.5 * 2**30 < need["whole"] < 2 * 2**30
@@ -80,7 +81,7 @@ def test_the_default_limit_is_a_quarter_of_the_machine(monkeypatch):
     memory.set_limit(None)
     big, spec, lut, memb = _ct((904, 1024, 1024))  # the 1024 x 1024 x 904 CT
     whole = int(_plan(big, spec, lut, memb, "64G")["whole"])
-    assert 13 * 2**30 < whole < 14 * 2**30  # 15 bytes a voxel
+    assert 11 * 2**30 < whole < 12 * 2**30  # 13 bytes a voxel
     monkeypatch.setattr(_memory, "machine_memory", lambda: 4 * whole)
     assert memory.limit() == whole
     assert _plan(big, spec, lut, memb, None)["mode"] == "whole"
@@ -110,8 +111,9 @@ def test_curvature_is_whole_exactly_when_the_volumes_share_fits():
     vol, spec = make_phantom(size=64)
     need = memory.whole_volume_bytes(vol)
     assert vol.labels is not None
-    # the uint8 volume, table index, records, compact index, cell map, label map and |H|
-    assert need == 64**3 * (1 + 2 + 4 + 1 + 1 + 1 + 4)
+    # the uint8 volume, records (the table index inside them), compact index, cell map,
+    # label map and |H|
+    assert need == 64**3 * (1 + 4 + 1 + 1 + 1 + 4)
     # with the uint8 label volume and the temporaries made beside the derived volumes
     need += 64**3 * (1 + memory.TRANSIENT_VOXEL_BYTES)
     assert isinstance(curvature_source(vol, spec, memory_limit=need), CurvaturePages)
