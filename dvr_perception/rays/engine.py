@@ -299,8 +299,6 @@ def analyze(
     if need["mode"] == "bricks":  # the bricked walk (imported only when needed)
         from dvr_perception.rays.bricks import analyze_bricked
 
-        seg = _own_rays(seg)
-
         res = analyze_bricked(
             volume, spec, camera, brick=need["brick"], opacities=ops, curvature=curv,
             build_cache=build_cache, occlusion_free=occlusion_free, memory_limit=memory_limit,
@@ -538,19 +536,6 @@ def _scene(volume: Volume, spec: StructureSpec, camera: Camera, backend: str,
 _RAYS: list = []
 _RAYS_LOCK = threading.Lock()
 _KEEP_RAYS_BYTES = 64 << 20
-
-
-def _own_rays(seg: dict) -> dict:
-    """``seg``, its arrays copied where they are :func:`_camera_rays`' kept ones.
-
-    The bricked walk gets rays of its own, as before the rays were kept: its memos of a
-    run hold them (weakly) and must not outlive it through the kept copy.
-    """
-    with _RAYS_LOCK:
-        kept = _RAYS[0][1] if _RAYS else {}
-    if any(kept.get(q) is v for q, v in seg.items()):
-        return {q: v.copy() for q, v in seg.items()}
-    return seg
 
 
 def _camera_rays(nk, camera, volume, step) -> dict:
