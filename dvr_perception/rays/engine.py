@@ -524,37 +524,9 @@ def _scene(volume: Volume, spec: StructureSpec, camera: Camera, backend: str,
 
         pack = _grid.camera_pack(camera, volume, step)
         seg = _cuda.rays_for(pack, lambda: _segments(nk, camera, volume, step))
-    elif nk is not None:
-        seg = _camera_rays(nk, camera, volume, step)
     else:
         seg = _segments(nk, camera, volume, step)
     return nk, step, unit, lut, labmap, ids, memb, seg
-
-
-#: The rays of the last camera (numba): ``(camera pack bytes, rays)``, at most
-#: :data:`_KEEP_RAYS_BYTES`; :func:`release_scratch` drops them.
-_RAYS: list = []
-_RAYS_LOCK = threading.Lock()
-_KEEP_RAYS_BYTES = 64 << 20
-
-
-def _camera_rays(nk, camera, volume, step) -> dict:
-    """:func:`_segments` of the numba engine, made once per camera (the last one kept).
-
-    The camera pack (:func:`_grid.camera_pack`: camera, volume geometry, sample distance)
-    determines the rays entirely, so the next analysis of the same view (every frame of a
-    benchmark, every evaluation of an optimisation) reuses them: the same arrays, never
-    written by the walk.  A new dict each time (callers may add keys to theirs).
-    """
-    key = np.ascontiguousarray(_grid.camera_pack(camera, volume, step), np.float64).tobytes()
-    with _RAYS_LOCK:
-        if _RAYS and _RAYS[0][0] == key:
-            return dict(_RAYS[0][1])
-    seg = _segments(nk, camera, volume, step)
-    if sum(v.nbytes for v in seg.values()) <= _KEEP_RAYS_BYTES:
-        with _RAYS_LOCK:
-            _RAYS[:] = [(key, dict(seg))]
-    return seg
 
 
 def _plan(volume, spec, camera, seg, lut, memb, curv, build_cache, memory_limit, brick):
@@ -1064,16 +1036,12 @@ def release_scratch(*, scratch: bool = True) -> None:
     """Give memory back: the walk's scratch (``scratch``) and the C heap's free memory.
 
     The scratch (kept to spare the next analysis page faults: the per-ray buffers and the
-    cache-building walk's entries, about the size of the largest cache built; and the last
-    camera's rays) is for a
+    cache-building walk's entries, about the size of the largest cache built) is for a
     caller that walks no more rays for a while (the optimiser, once its views are
     analysed); it is skipped while an analysis holds it.  The C library is asked to return
     the heap memory that earlier analyses and measures freed (glibc's ``malloc_trim``: 85 MiB
     after the timed frames of a 512 x 512 x 452 CT), e.g. before a large analysis.
     """
-    if scratch:
-        with _RAYS_LOCK:
-            _RAYS.clear()
     if scratch and _SCRATCH_LOCK.acquire(blocking=False):
         try:
             _SCRATCH.clear()
