@@ -50,3 +50,38 @@ def vtk_can_render() -> bool:
     if not ok:
         _missing(why)
     return True
+
+
+def _shell_scene(shade: bool, inner: float = 8.5):
+    """A faint shell (label 1) around two blobs of different grey: an encloser over contrast.
+
+    24^3 labels: the shell between radii ``inner`` and 10.5, a light and a dark box inside.
+    """
+    import numpy as np
+
+    from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
+    from dvr_perception.volume.volume import Volume
+
+    n = 24
+    z, y, x = np.mgrid[:n, :n, :n].astype(float) - (n - 1) / 2
+    r = np.sqrt(x * x + y * y + z * z)
+    lab = np.zeros((n, n, n), np.uint8)
+    lab[(r > inner) & (r < 10.5)] = 1
+    lab[(np.abs(z) < 4) & (np.abs(y) < 4) & (x > -6) & (x < -1)] = 2
+    lab[(np.abs(z) < 4) & (np.abs(y) < 4) & (x > 1) & (x < 6)] = 3
+    data = (lab * 40 + 10).astype(np.uint8)
+    spec = StructureSpec(
+        (
+            Structure("shell", 0.3, (0.9, 0.8, 0.7), label=1),
+            Structure("light", 1.0, (0.9, 0.9, 0.9), label=2),
+            Structure("dark", 1.0, (0.2, 0.2, 0.3), label=3),
+        ),
+        rendering=RenderSettings(shade=shade),
+    )
+    return Volume(data, labels=lab), spec
+
+
+@pytest.fixture
+def shell_scene():
+    """``shell_scene(shade, inner=8.5)``: (volume, spec) of a shell around two blobs."""
+    return _shell_scene

@@ -657,13 +657,7 @@ def rewalk(analysis: RayAnalysis, *, opacities, rays=None, background=None) -> R
     >>> bool((again.image[3, 3:5] == res.image[3, 3:5]).all())
     True
     """
-    source = _SOURCES.get(analysis) if isinstance(analysis, RayAnalysis) else None
-    if source is None:
-        raise DVRInputError(
-            "analysis: only an analysis made by analyze(..., build_cache=False) can be walked "
-            "again (one with a cache re-composites with reevaluate)"
-        )
-    volume, spec, backend, memory_limit = source
+    volume, spec, backend, memory_limit = _source(analysis)
     spec = _with_background(spec, background)
     return analyze(volume, spec, analysis.camera, opacities=opacities, build_cache=False,
                    occlusion_free=False, rays=rays, backend=backend,
@@ -721,14 +715,19 @@ def recomposites(analysis) -> list[dict]:
     return [dict(r) for r in _RECOMPOSITES.get(analysis, ())]
 
 
-def _rewalk_rgba(analysis, variants) -> list[np.ndarray]:
+def _source(analysis) -> tuple:
+    """``(volume, spec, backend, memory_limit)`` :func:`analyze` made ``analysis`` from."""
     source = _SOURCES.get(analysis) if isinstance(analysis, RayAnalysis) else None
     if source is None:
         raise DVRInputError(
             "analysis: only an analysis made by analyze(..., build_cache=False) can be walked "
             "again (one with a cache re-composites with reevaluate)"
         )
-    volume, spec, backend, memory_limit = source
+    return source
+
+
+def _rewalk_rgba(analysis, variants) -> list[np.ndarray]:
+    volume, spec, backend, memory_limit = _source(analysis)
     camera = analysis.camera
     k = len(spec.structures)
     checked = [(_tables.check_opacities(ops, k), _checked_rays(rays, camera))

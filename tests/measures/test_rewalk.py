@@ -18,36 +18,13 @@ from dvr_perception.measures.covered import covered_transmittance
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.engine import analyze, can_rewalk, reevaluate, rewalk
 from dvr_perception.structures.phantom import make_phantom
-from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
-from dvr_perception.volume.volume import Volume
 
 TERMS = ("E_v", "E_s", "E_t")
 
 
-def _shell_volume(shade: bool):
-    """A faint shell (label 1) around two blobs of different grey: an encloser over contrast."""
-    n = 24
-    z, y, x = np.mgrid[:n, :n, :n].astype(float) - (n - 1) / 2
-    r = np.sqrt(x * x + y * y + z * z)
-    lab = np.zeros((n, n, n), np.uint8)
-    lab[(r > 8.5) & (r < 10.5)] = 1
-    lab[(np.abs(z) < 4) & (np.abs(y) < 4) & (x > -6) & (x < -1)] = 2
-    lab[(np.abs(z) < 4) & (np.abs(y) < 4) & (x > 1) & (x < 6)] = 3
-    data = (lab * 40 + 10).astype(np.uint8)
-    spec = StructureSpec(
-        (
-            Structure("shell", 0.3, (0.9, 0.8, 0.7), label=1),
-            Structure("light", 1.0, (0.9, 0.9, 0.9), label=2),
-            Structure("dark", 1.0, (0.2, 0.2, 0.3), label=3),
-        ),
-        rendering=RenderSettings(shade=shade),
-    )
-    return Volume(data, labels=lab), spec
-
-
 @pytest.mark.parametrize("shade", [False, True])
-def test_e_t_is_the_same_with_and_without_the_cache(shade):
-    vol, spec = _shell_volume(shade)
+def test_e_t_is_the_same_with_and_without_the_cache(shade, shell_scene):
+    vol, spec = shell_scene(shade)
     cam = Camera.from_view(vol.bounds, width=40, height=36)
     cached = analyze(vol, spec, cam, build_cache=True)
     plain = analyze(vol, spec, cam)  # the default: no cache
@@ -77,8 +54,8 @@ def test_the_phantom_reads_the_same_e_t_without_the_cache():
     )
 
 
-def test_covered_transmittance_works_without_the_cache():
-    vol, spec = _shell_volume(False)
+def test_covered_transmittance_works_without_the_cache(shell_scene):
+    vol, spec = shell_scene(False)
     cam = Camera.from_view(vol.bounds, width=32, height=32)
     a = covered_transmittance(analyze(vol, spec, cam, build_cache=True), spec, "shell")
     b = covered_transmittance(analyze(vol, spec, cam), spec, "shell")
@@ -86,8 +63,8 @@ def test_covered_transmittance_works_without_the_cache():
     assert a.alpha == pytest.approx(b.alpha, abs=1e-9)
 
 
-def test_rewalk_equals_the_cache_re_composite_on_its_rays():
-    vol, spec = _shell_volume(True)
+def test_rewalk_equals_the_cache_re_composite_on_its_rays(shell_scene):
+    vol, spec = shell_scene(True)
     cam = Camera.from_view(vol.bounds, width=20, height=18)
     cached = analyze(vol, spec, cam, build_cache=True)
     plain = analyze(vol, spec, cam)
@@ -150,9 +127,9 @@ def test_rewalk_needs_an_engine_analysis_without_cache():
 
 
 @pytest.mark.parametrize("shade", [False, True])
-def test_a_few_rays_walked_alone_equal_the_whole_image_there(shade):
+def test_a_few_rays_walked_alone_equal_the_whole_image_there(shade, shell_scene):
     """Image-only walks of a subset (the re-walk's path) are the whole image's to the bit."""
-    vol, spec = _shell_volume(shade)
+    vol, spec = shell_scene(shade)
     cam = Camera.from_view(vol.bounds, width=30, height=26, azimuth=20, elevation=10)
     whole = analyze(vol, spec, cam, occlusion_free=False)
     rays = np.array([0, 31, 200, 201, 202, 390, 399, 500, 779])

@@ -19,29 +19,6 @@ from dvr_perception.rays._walk_setup import _numba_kernels
 from dvr_perception.rays.camera import Camera
 from dvr_perception.rays.engine import analyze, rewalk, rewalk_rgba
 from dvr_perception.structures.phantom import make_phantom
-from dvr_perception.structures.spec import RenderSettings, Structure, StructureSpec
-from dvr_perception.volume.volume import Volume
-
-
-def _shell_volume(shade: bool):
-    """A faint shell (label 1) around two blobs (labels 2, 3): an encloser over contrast."""
-    n = 24
-    z, y, x = np.mgrid[:n, :n, :n].astype(float) - (n - 1) / 2
-    r = np.sqrt(x * x + y * y + z * z)
-    lab = np.zeros((n, n, n), np.uint8)
-    lab[(r > 6.5) & (r < 10.5)] = 1
-    lab[(np.abs(z) < 4) & (np.abs(y) < 4) & (x > -6) & (x < -1)] = 2
-    lab[(np.abs(z) < 4) & (np.abs(y) < 4) & (x > 1) & (x < 6)] = 3
-    data = (lab * 40 + 10).astype(np.uint8)
-    spec = StructureSpec(
-        (
-            Structure("shell", 0.3, (0.9, 0.8, 0.7), label=1),
-            Structure("light", 1.0, (0.9, 0.9, 0.9), label=2),
-            Structure("dark", 1.0, (0.2, 0.2, 0.3), label=3),
-        ),
-        rendering=RenderSettings(shade=shade),
-    )
-    return Volume(data, labels=lab), spec
 
 
 def _rewalked(analysis, ops, rays) -> np.ndarray:
@@ -73,8 +50,8 @@ def test_segments_of_a_few_rays_are_the_whole_images_rows(parallel):
 
 
 @pytest.mark.parametrize("shade", [False, True])
-def test_every_variant_equals_its_own_rewalk_to_the_bit(shade):
-    vol, spec = _shell_volume(shade)
+def test_every_variant_equals_its_own_rewalk_to_the_bit(shade, shell_scene):
+    vol, spec = shell_scene(shade, inner=6.5)
     cam = Camera.from_view(vol.bounds, width=36, height=30, azimuth=25, elevation=15)
     res = analyze(vol, spec, cam)
     n = cam.width * cam.height
@@ -147,8 +124,8 @@ def test_bad_variants_name_the_parameter():
     assert rewalk_rgba(res, []) == []
 
 
-def test_many_layers_luminance_equals_one_layer_at_a_time():
-    vol, spec = _shell_volume(True)
+def test_many_layers_luminance_equals_one_layer_at_a_time(shell_scene):
+    vol, spec = shell_scene(True, inner=6.5)
     cam = Camera.from_view(vol.bounds, width=32, height=28, azimuth=10)
     res = analyze(vol, spec, cam)
     rng = np.random.default_rng(5)
