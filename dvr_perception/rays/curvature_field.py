@@ -15,6 +15,7 @@ import numpy as np
 
 from dvr_perception._numba import kernels
 from dvr_perception._progress import reporter
+from dvr_perception.errors import DVRInputError
 from dvr_perception.rays.curvature import curvature_globals, curvature_volume
 
 __all__ = ["CurvatureField", "CurvaturePages", "curvature_source"]
@@ -58,6 +59,20 @@ class CurvaturePages:
         self.pages = np.ascontiguousarray(pages, np.float32)
         self.shape = tuple(int(n) for n in shape)
         self.dtype = np.dtype(np.float32)
+        # the walk reads through the index unchecked: every page number must exist
+        grid = tuple(-(-n // PAGE) for n in self.shape)
+        if self.index.shape != grid or self.pages.shape[1:] != (PAGE, PAGE, PAGE):
+            raise DVRInputError(
+                f"curvature: pages of a {self.shape} volume need an index of shape {grid} "
+                f"and pages of shape (n, {PAGE}, {PAGE}, {PAGE}), got {self.index.shape} "
+                f"and {self.pages.shape}"
+            )
+        if self.index.size and not -1 <= int(self.index.min()) <= int(self.index.max()) < len(
+            self.pages
+        ):
+            raise DVRInputError(
+                f"curvature: page numbers must be -1 (empty) or below {len(self.pages)}"
+            )
 
     @property
     def nbytes(self) -> int:

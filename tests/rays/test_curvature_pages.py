@@ -106,3 +106,15 @@ def test_numpy_and_numba_page_alike(monkeypatch):
     np.testing.assert_array_equal(slow.pages, fast.pages)
     extent = ((2, 17), (1, 9), (5, 25))
     np.testing.assert_array_equal(slow.piece(extent), dense[2:17, 1:9, 5:25])
+
+
+def test_pages_whose_index_points_outside_them_are_refused():
+    dense = np.zeros((9, 9, 9), np.float32)
+    dense[0, 0, 0] = 1.0
+    good = CurvaturePages.from_dense(dense)
+    bad_index = good.index.copy()
+    bad_index[1, 1, 1] = len(good.pages)  # one past the last page
+    with pytest.raises(DVRInputError, match="page numbers"):
+        CurvaturePages(bad_index, good.pages, good.shape)
+    with pytest.raises(DVRInputError, match="need an index of shape"):
+        CurvaturePages(good.index[:1], good.pages, good.shape)
