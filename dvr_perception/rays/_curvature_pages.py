@@ -81,7 +81,7 @@ class BandPages:
         self.touched: set[int] = set()
 
     def __getitem__(self, k: int) -> np.ndarray:
-        """The plane of extent slice ``k`` to write to."""
+        """Return the plane of extent slice ``k`` to write to."""
         if self.whole:
             return self.buf[k]
         q = k // PAGE
@@ -106,7 +106,7 @@ class BandPages:
         self.buf = None
 
     def pages(self, q: int) -> np.ndarray:
-        """The pages of slab ``q`` (a view of the arena)."""
+        """Return the pages of slab ``q`` (a view of the arena)."""
         _, start, count = self.slabs[q]
         return self.arena[start : start + count]
 
@@ -191,7 +191,7 @@ class BandPages:
 
 
 def assemble(bands: list[BandPages], shape) -> tuple[np.ndarray, np.ndarray]:
-    """Number and gather the bands' pages: ``(index, pages)`` of a ``shape`` volume.
+    """Gather the bands' pages, numbered, into ``(index, pages)`` of a ``shape`` volume.
 
     Pages in C order of the page grid (slab by slab, the bands in y order within a slab), as
     :meth:`~dvr_perception.rays.curvature_field.CurvaturePages.from_dense` numbers them;

@@ -470,7 +470,7 @@ def curvature_volume(
 def curvature_pages(
     volume, spec, *, sigma: float = 1.0, gradient_max=None, offset=None, progress=None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The whole volume's :func:`curvature_volume` in 8^3 pages, without the dense array.
+    """Compute the whole volume's :func:`curvature_volume` in 8^3 pages, never dense.
 
     Parameters
     ----------
