@@ -453,7 +453,8 @@ def curvature_volume(
     Temporaries are a few slices of a band (about 1/4 M voxels of ring per thread), besides
     the two outputs.  The filters are the same as :func:`mean_curvature`'s, in float32 (sums
     in a fixed order, so a brick gives exactly the bits of the full result); the numerator is
-    formed in float64.
+    formed in float64.  :func:`curvature_pages` gives the whole volume's result in 8^3 pages
+    without either output.
 
     Where ``|grad f| <= 1e-4 * gradient_max`` the iso-surface is undefined and ``|H|`` is 0
     (``gradient_max`` is the whole volume's, as in :func:`mean_curvature`).  Without

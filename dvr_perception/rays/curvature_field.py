@@ -29,6 +29,8 @@ class CurvaturePages:
     (``(n, 8, 8, 8)``), or -1 where every value of that page is 0.  The walk reads a voxel
     through the index (:func:`~dvr_perception.rays._numba_kernels._curv_at`); ``np.asarray``
     gives the dense volume back, :meth:`piece` a dense part of it (what a brick reads).
+    :meth:`from_volume` computes a volume's ``|H|`` straight into pages (no dense array),
+    :meth:`from_dense` pages an array.
 
     Parameters
     ----------
