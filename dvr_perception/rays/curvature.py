@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import queue
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
@@ -570,8 +571,14 @@ def _compute(volume, spec, sigma, extent, gradient_max, offset, progress, *, pag
     per_band = (ext[0][1] - ext[0][0]) * (1 + len(fields))
     done = [0] * len(chunks)
     stopped: list = []
-    # paged: each band's pages (label fields write a band's voxels in turn, over every slice)
+    # paged: each band's pages (label fields write a band's voxels in turn, over every slice),
+    # and a boundary mask per worker, made here (the workers' heaps would keep their memory)
     sinks = [None] * len(chunks)
+    masks = queue.SimpleQueue()
+    if paged:
+        rows_max = max(b - a for a, b in itertools.pairwise(cuts))
+        for _ in range(workers):
+            masks.put(np.empty(shape[0] * rows_max * shape[2], bool))
     report(0.0)
 
     def run(n):
@@ -589,8 +596,13 @@ def _compute(volume, spec, sigma, extent, gradient_max, offset, progress, *, pag
         if paged:
             shape_n = (shape[0], wy.stop - wy.start, shape[2])
             sink = BandPages(*shape_n, chunk[1][0], nk, whole=len(fields) > 1)
-            res = _chunk(volume, spec, sub, nk, fields, sink, np.empty(shape_n, bool),
-                         tick if report else None)  # fmt: skip
+            mask = masks.get()
+            try:
+                bnd = mask[: math.prod(shape_n)].reshape(shape_n)  # contiguous
+                res = _chunk(volume, spec, sub, nk, fields, sink, bnd,
+                             tick if report else None)  # fmt: skip
+            finally:
+                masks.put(mask)
             sink.finish()
             sinks[n] = sink
         else:
@@ -626,6 +638,7 @@ def _compute(volume, spec, sigma, extent, gradient_max, offset, progress, *, pag
 
         _resolve_flat(fld, geo, nk, seen, maybe, zero)
     if paged:
+        del masks
         pages = assemble(sinks, shape)
         report(1.0)
         return pages
