@@ -12,6 +12,8 @@ by one Python thread per y band (the slice kernels are serial and release the GI
 * :func:`z_pass` finishes the nine derivatives along z on the rows of a slice with boundary
   voxels, and :func:`z_points` gives the numerator of the mean curvature and ``|grad f|^2`` at
   those voxels.
+* :func:`mark_pages` and :func:`slab_fill` keep a band's ``|H|`` in 8^3 pages as it is
+  computed, eight z slices at a time (:mod:`dvr_perception.rays._curvature_pages`).
 * :func:`cell_diffs` and :func:`cells_gradient_max` give what bounds ``|grad f|^2`` per cell
   (neighbour differences and the value range) and its exact maximum (the branch and bound of
   the global gradient maximum).
@@ -30,8 +32,10 @@ __all__ = [
     "cell_diffs",
     "cells_gradient_max",
     "classify_slice",
+    "mark_pages",
     "mask_points",
     "need_ranges",
+    "slab_fill",
     "write_curvature",
     "xy_pass",
     "z_pass",
@@ -393,6 +397,54 @@ def write_curvature(num, mag2, ys, xs, thr, thr_hi, out, cand):
         else:
             out[ys[p], xs[p]] = np.float32(abs(num[p]) / (2.0 * m * np.sqrt(m)))
     return seen
+
+
+@njit(cache=True, nogil=True)
+def mark_pages(plane, ys, xs, flags):
+    """``flags[y >> 3, x >> 3] = 1`` for the points ``(ys, xs)`` of ``plane`` that are not 0."""
+    for p in range(ys.size):
+        y = ys[p]
+        x = xs[p]
+        if plane[y, x] != 0.0:
+            flags[y >> 3, x >> 3] = 1
+
+
+@njit(cache=True, nogil=True)
+def slab_fill(slab, depth, index, pages):
+    """Copy the first ``depth`` planes of ``slab`` into its numbered pages, and zero them.
+
+    ``index[r, c]`` is the page of rows ``8 r ...`` and columns ``8 c ...`` in ``pages``
+    (``(n, 8, 8, 8)``; every value is written, 0 where the slab does not reach), -1 where it
+    holds only zeros (left as it is).  The slab is all zero afterwards.
+    """
+    _, ny, nx = slab.shape
+    zero = np.float32(0.0)
+    for r in range(index.shape[0]):
+        y0 = r * 8
+        for c in range(index.shape[1]):
+            p = index[r, c]
+            if p < 0:
+                continue
+            x0 = c * 8
+            if depth == 8 and y0 + 8 <= ny and x0 + 8 <= nx:
+                for z in range(8):
+                    for j in range(8):
+                        row = slab[z, y0 + j]
+                        dst = pages[p, z, j]
+                        for i in range(8):
+                            dst[i] = row[x0 + i]
+                            row[x0 + i] = zero
+                continue
+            for z in range(8):
+                for j in range(8):
+                    y = y0 + j
+                    for i in range(8):
+                        x = x0 + i
+                        if z < depth and y < ny and x < nx:
+                            pages[p, z, j, i] = slab[z, y, x]
+                            slab[z, y, x] = zero
+                        else:
+                            pages[p, z, j, i] = zero
 
 
 @njit(inline="always")

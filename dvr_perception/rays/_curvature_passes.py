@@ -513,7 +513,11 @@ def _gradient_max(fld: _Field, geo: _Geometry, nk, lower: float = 0.0, floor: fl
 
 
 def _chunk(volume, spec, geo: _Geometry, nk, fields, out, boundary, tick=None) -> list:
-    """Boundary and ``|H|`` of one z chunk; per field, what :func:`_field_curvature` returns."""
+    """Boundary and ``|H|`` of one z chunk; per field, what :func:`_field_curvature` returns.
+
+    ``out[k]`` is the plane of extent slice ``k`` that ``|H|`` is written to (an array's,
+    or a :class:`~dvr_perception.rays._curvature_pages.BandPages`'); ``boundary`` is filled.
+    """
     rowlo, rowhi, label_points = _pass_boundary(volume, spec, geo, nk, boundary, tick)
     res = [(0.0, []) for _ in fields]
     if not boundary.any():
@@ -563,6 +567,7 @@ def _field_curvature(fld: _Field, geo: _Geometry, nk, ranges, points_of, out, ti
     thr_hi = max(_MIN_GRADIENT**2 * fld.bound2, _TINY)
     seen = 0.0
     maybe = []
+    mark = getattr(out, "mark", None)  # a band's pages note the values they are given
 
     def emit(k, ys, xs, num, mag2):
         nonlocal seen
@@ -571,6 +576,8 @@ def _field_curvature(fld: _Field, geo: _Geometry, nk, ranges, points_of, out, ti
         if nk is not None:  # the numbers below, point by point
             cand = np.empty(num.size, np.bool_)
             top = nk.write_curvature(num, mag2, ys, xs, thr, thr_hi, out[k], cand)
+            if mark is not None:
+                mark(k, ys, xs)
             if not known:
                 seen = max(seen, top)
                 if cand.any():
@@ -580,7 +587,7 @@ def _field_curvature(fld: _Field, geo: _Geometry, nk, ranges, points_of, out, ti
         safe = np.where(flat, 1.0, mag2)
         h = np.abs(num) / (2.0 * safe * np.sqrt(safe))
         h[flat] = 0.0
-        out[k, ys, xs] = h
+        out[k][ys, xs] = h  # out[k]: a plane of an array, or of a band's pages
         if not known:
             seen = max(seen, float(mag2.max()))
             cand = (mag2 <= thr_hi) & ~flat
@@ -591,8 +598,11 @@ def _field_curvature(fld: _Field, geo: _Geometry, nk, ranges, points_of, out, ti
     return seen, maybe
 
 
-def _resolve_flat(fld: _Field, geo: _Geometry, nk, seen: float, maybe: list, out) -> None:
+def _resolve_flat(fld: _Field, geo: _Geometry, nk, seen: float, maybe: list, zero) -> None:
     """Zero the possibly flat points that are flat: ``|grad f| <= 1e-4 * gradient_max``.
+
+    ``zero(k, ys, xs)`` sets the points ``(ys, xs)`` of extent slice ``k`` to 0 (they come
+    from one band of :func:`~dvr_perception.rays.curvature.curvature_volume`).
 
     ``seen`` (the largest ``|grad f|^2`` of the points) is a lower bound of the maximum; only
     when a point lies above ``1e-4`` times it is the maximum itself searched for, and only as
@@ -610,4 +620,5 @@ def _resolve_flat(fld: _Field, geo: _Geometry, nk, seen: float, maybe: list, out
     thr = max(_MIN_GRADIENT**2 * gmax2, _TINY)
     for k, ys, xs, m in maybe:
         flat = m <= thr
-        out[k, ys[flat], xs[flat]] = 0.0
+        if flat.any():
+            zero(k, ys[flat], xs[flat])

@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import queue
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
@@ -26,6 +27,7 @@ from scipy import ndimage
 from dvr_perception._numba import kernels
 from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRCancelled, DVRInputError
+from dvr_perception.rays._curvature_pages import BandPages, assemble, page_cuts
 from dvr_perception.rays._curvature_passes import (
     _axis_sigmas,
     _check_extent,
@@ -44,6 +46,7 @@ __all__ = [
     "classify_structures",
     "curvature_ghost",
     "curvature_globals",
+    "curvature_pages",
     "curvature_volume",
     "mean_curvature",
 ]
@@ -451,7 +454,8 @@ def curvature_volume(
     Temporaries are a few slices of a band (about 1/4 M voxels of ring per thread), besides
     the two outputs.  The filters are the same as :func:`mean_curvature`'s, in float32 (sums
     in a fixed order, so a brick gives exactly the bits of the full result); the numerator is
-    formed in float64.
+    formed in float64.  :func:`curvature_pages` gives the whole volume's result in 8^3 pages
+    without either output.
 
     Where ``|grad f| <= 1e-4 * gradient_max`` the iso-surface is undefined and ``|H|`` is 0
     (``gradient_max`` is the whole volume's, as in :func:`mean_curvature`).  Without
@@ -461,6 +465,51 @@ def curvature_volume(
     maximum be searched for, and only as far as it decides them (branch and bound, see
     :func:`curvature_globals`).  Results are the same either way.
     """
+    out, boundary = _compute(volume, spec, sigma, extent, gradient_max, offset, progress)
+    return out, boundary
+
+
+def curvature_pages(
+    volume, spec, *, sigma: float = 1.0, gradient_max=None, offset=None, progress=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Compute the whole volume's :func:`curvature_volume` in 8^3 pages, never dense.
+
+    Parameters
+    ----------
+    volume, spec, sigma, gradient_max, offset, progress
+        As :func:`curvature_volume` (of the whole volume: no ``extent``).
+
+    Returns
+    -------
+    index : numpy.ndarray
+        int32 ``(ceil(Z / 8), ceil(Y / 8), ceil(X / 8))`` page numbers, -1 where every
+        value of the page is 0.
+    pages : numpy.ndarray
+        float32 ``(n, 8, 8, 8)`` (0 outside the volume).  Bit for bit what
+        :meth:`CurvaturePages.from_dense
+        <dvr_perception.rays.curvature_field.CurvaturePages.from_dense>` makes of
+        ``curvature_volume(volume, spec, ...)[0]``, page numbers included.
+
+    Notes
+    -----
+    The y bands of :func:`curvature_volume` are cut on page edges, and each keeps its values
+    in pages as they are computed (:mod:`dvr_perception.rays._curvature_pages`): what is held
+    besides the pages is a few slices per band (a band's slices with label structures)
+    instead of the float32 ``|H|`` and bool boundary volumes.
+
+    Examples
+    --------
+    >>> from dvr_perception.structures.phantom import make_phantom
+    >>> vol, spec = make_phantom(size=20)
+    >>> index, pages = curvature_pages(vol, spec)
+    >>> index.shape, pages.shape[1:]
+    ((3, 3, 3), (8, 8, 8))
+    """
+    return _compute(volume, spec, sigma, None, gradient_max, offset, progress, paged=True)
+
+
+def _compute(volume, spec, sigma, extent, gradient_max, offset, progress, *, paged=False):
+    """:func:`curvature_volume` (``paged``: :func:`curvature_pages`, of the whole volume)."""
     sig = _check_sigma(sigma)
     _check_labels(volume, spec)
     report = reporter(progress)
@@ -488,8 +537,9 @@ def curvature_volume(
     ):
         raise DVRInputError(f"curvature_volume: offset must be a finite number, got {offset!r}")
     shape = tuple(b - a for a, b in ext)
-    out = np.zeros(shape, dtype=np.float32)
-    boundary = np.zeros(shape, dtype=bool)
+    if not paged:
+        out = np.zeros(shape, dtype=np.float32)
+        boundary = np.zeros(shape, dtype=bool)
     nk = _curvature_kernels()
     geo = _Geometry(data.shape, volume.spacing, sig, ext)
     fields = _fields(volume, spec, globals_, gradient_max, offset)
@@ -510,7 +560,10 @@ def curvature_volume(
     bands = max(1, round((ey1 - ey0) / rows))
     if (ext[0][1] - ext[0][0]) * (ey1 - ey0) * (ex1 - ex0) >= _SPLIT_VOXELS:
         bands = max(bands, min(_threads(), (ey1 - ey0) // _MIN_ROWS))
-    cuts = [ey0 + ((ey1 - ey0) * i) // bands for i in range(bands + 1)]
+    if paged:  # a page in one band only
+        cuts = page_cuts(ey0, ey1, bands)
+    else:
+        cuts = [ey0 + ((ey1 - ey0) * i) // bands for i in range(bands + 1)]
     chunks = [(ext[0], (a, b), ext[2]) for a, b in itertools.pairwise(cuts)]
 
     workers = min(_threads(), len(chunks))
@@ -518,6 +571,14 @@ def curvature_volume(
     per_band = (ext[0][1] - ext[0][0]) * (1 + len(fields))
     done = [0] * len(chunks)
     stopped: list = []
+    # paged: each band's pages (label fields write a band's voxels in turn, over every slice),
+    # and a boundary mask per worker, made here (the workers' heaps would keep their memory)
+    sinks = [None] * len(chunks)
+    masks = queue.SimpleQueue()
+    if paged:
+        rows_max = max(b - a for a, b in itertools.pairwise(cuts))
+        for _ in range(workers):
+            masks.put(np.empty(shape[0] * rows_max * shape[2], bool))
     report(0.0)
 
     def run(n):
@@ -532,8 +593,21 @@ def curvature_volume(
             if workers == 1:
                 report(0.95 * sum(done) / (per_band * len(chunks)))
 
-        res = _chunk(volume, spec, sub, nk, fields, out[:, wy], boundary[:, wy],
-                     tick if report else None)  # fmt: skip
+        if paged:
+            shape_n = (shape[0], wy.stop - wy.start, shape[2])
+            sink = BandPages(*shape_n, chunk[1][0], nk, whole=len(fields) > 1)
+            mask = masks.get()
+            try:
+                bnd = mask[: math.prod(shape_n)].reshape(shape_n)  # contiguous
+                res = _chunk(volume, spec, sub, nk, fields, sink, bnd,
+                             tick if report else None)  # fmt: skip
+            finally:
+                masks.put(mask)
+            sink.finish()
+            sinks[n] = sink
+        else:
+            res = _chunk(volume, spec, sub, nk, fields, out[:, wy], boundary[:, wy],
+                         tick if report else None)  # fmt: skip
         done[n] = per_band
         return res
 
@@ -551,7 +625,23 @@ def curvature_volume(
             for r, chunk in zip(results, chunks, strict=True)
             for k, ys, xs, mag2 in r[n][1]
         ]
-        _resolve_flat(fld, geo, nk, seen, maybe, out)
+        if paged:
+
+            def zero(k, ys, xs):
+                n = int(np.searchsorted(cuts, ys[0], side="right")) - 1  # maybe: one band
+                sinks[n].zero(k, ys, xs)
+
+        else:
+
+            def zero(k, ys, xs):
+                out[k, ys, xs] = 0.0
+
+        _resolve_flat(fld, geo, nk, seen, maybe, zero)
+    if paged:
+        del masks
+        pages = assemble(sinks, shape)
+        report(1.0)
+        return pages
     report(1.0)
     return out, boundary
 

@@ -16,12 +16,10 @@ import numpy as np
 from dvr_perception._numba import kernels
 from dvr_perception._progress import reporter
 from dvr_perception.errors import DVRInputError
-from dvr_perception.rays.curvature import curvature_globals, curvature_volume
+from dvr_perception.rays._curvature_pages import PAGE
+from dvr_perception.rays.curvature import curvature_globals, curvature_pages, curvature_volume
 
-__all__ = ["CurvatureField", "CurvaturePages", "curvature_source"]
-
-#: Side of a :class:`CurvaturePages` page (a power of two: the walk reads ``z >> 3``, ``z & 7``).
-PAGE = 8
+__all__ = ["PAGE", "CurvatureField", "CurvaturePages", "curvature_source"]
 
 
 class CurvaturePages:
@@ -31,6 +29,8 @@ class CurvaturePages:
     (``(n, 8, 8, 8)``), or -1 where every value of that page is 0.  The walk reads a voxel
     through the index (:func:`~dvr_perception.rays._numba_kernels._curv_at`); ``np.asarray``
     gives the dense volume back, :meth:`piece` a dense part of it (what a brick reads).
+    :meth:`from_volume` computes a volume's ``|H|`` straight into pages (no dense array),
+    :meth:`from_dense` pages an array.
 
     Parameters
     ----------
@@ -94,6 +94,20 @@ class CurvaturePages:
         pages = np.zeros((int(kept.sum()), PAGE, PAGE, PAGE), np.float32)
         nk.page_fill(dense, index, pages)
         return cls(index, pages, dense.shape)
+
+    @classmethod
+    def from_volume(cls, volume, spec, *, sigma: float = 1.0, gradient_max=None,
+                    progress=None) -> CurvaturePages:  # fmt: skip
+        """Page ``volume``'s ``|H|`` as it is computed, never holding it dense.
+
+        :func:`~dvr_perception.rays.curvature.curvature_pages`: equal to
+        ``from_dense(curvature_volume(volume, spec, ...)[0])``, pages and their numbers
+        included.
+        """
+        index, pages = curvature_pages(
+            volume, spec, sigma=sigma, gradient_max=gradient_max, progress=progress
+        )
+        return cls(index, pages, volume.data.shape)
 
     def kernel_arg(self) -> tuple:
         """``(index, pages)``: what the numba walk reads."""
@@ -200,7 +214,8 @@ def _paged(dense: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def curvature_source(volume, spec, *, sigma: float = 1.0, memory_limit=None, progress=None):
     """Return the ``curvature`` to give :func:`~dvr_perception.rays.engine.analyze`.
 
-    The float32 volume, in pages (:class:`CurvaturePages`), when the volume, its derived
+    The float32 volume, in pages (:class:`CurvaturePages`, paged as it is computed:
+    :meth:`CurvaturePages.from_volume`), when the volume, its derived
     volumes and a dense float32 array fit the memory
     limit (:func:`~dvr_perception.rays.memory.whole_fits`: the whole-volume analysis's share
     of :func:`~dvr_perception.rays.memory.plan`, however many voxels), else a
@@ -212,8 +227,7 @@ def curvature_source(volume, spec, *, sigma: float = 1.0, memory_limit=None, pro
 
     report = reporter(progress)
     if memory.whole_fits(volume, memory_limit):
-        dense = curvature_volume(volume, spec, sigma=sigma, progress=report)[0]
-        return CurvaturePages.from_dense(dense)
+        return CurvaturePages.from_volume(volume, spec, sigma=sigma, progress=report)
     report(0.0)
     report(1.0)
     return CurvatureField(volume, spec, sigma=sigma)

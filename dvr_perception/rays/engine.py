@@ -290,8 +290,11 @@ def analyze(
     if need["mode"] == "whole" and curv is not None and not hasattr(curv, "kernel_arg"):
         from dvr_perception.rays.curvature_field import CurvatureField, CurvaturePages
 
-        if isinstance(curv, CurvatureField):  # a field, read whole
-            curv = _check_curvature(CurvaturePages.from_dense(np.asarray(curv)), volume)
+        if isinstance(curv, CurvatureField):  # a field, read whole (paged as computed)
+            whole = CurvaturePages.from_volume(
+                curv.volume, curv.spec, sigma=curv.sigma, gradient_max=curv.globals
+            )
+            curv = _check_curvature(whole, volume)
     report(0.0)
     if need["mode"] == "bricks" and subset is not None:  # the bricked walk sets up every ray
         seg = _only_rays(_segments(nk, camera, volume, scene[1]), subset, camera)

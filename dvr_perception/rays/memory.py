@@ -251,8 +251,12 @@ def _voxel_bytes(volume, *, shade: bool, curvature: bool, compact: bool) -> int:
     The voxel records with the table index and the normal codes (4, shaded; else the table
     index, 2: :func:`~dvr_perception.rays._grid.index_in_records` keeps the index only inside
     the records), the compact index (1, tables of at most 256 entries), the cell map (1), the
-    label map (1, with labels) and the float32 ``|H|`` volume (4, with curvature).  The
-    index's own 2 bytes while the records are built count as :data:`TRANSIENT_VOXEL_BYTES`.
+    label map (1, with labels) and the float32 ``|H|`` volume (4, with curvature: its 8^3
+    pages take at most that, and
+    :func:`~dvr_perception.rays.curvature.curvature_pages` computes them holding only a
+    few slices per thread besides, a band of slices per thread with label structures).
+    The index's own 2 bytes while the records are built count as
+    :data:`TRANSIENT_VOXEL_BYTES`.
     """
     n = (4 if shade else 2) + (1 if compact else 0) + 1
     n += 1 if getattr(volume, "labels", None) is not None else 0
