@@ -8,7 +8,9 @@ Kernels, parallel over chunks of image tiles (:func:`dvr_perception.rays.engine.
   index, since ``present`` and the occlusion-free ``assigned`` need every sample.  Both look
   up each sample's block of 4^3 cells in :func:`_grid.block_map` first (small enough to stay
   in the processor's cache): far from anything the ray jumps by whole blocks.  Otherwise the
-  sample's cell class in :func:`_grid.cell_map`: an empty cell is passed over, a plateau
+  block's bits in :func:`_grid.block_occupancy` (8 bytes per block, also cached) say whether
+  the sample's cell is empty: it is passed over without reading the cell map, which does not
+  stay in the cache.  Otherwise the sample's cell class in :func:`_grid.cell_map`: a plateau
   cell gives the table entry without interpolating the 8 corners.
   With ``build`` the walk packs one cache entry per sample with membership > 0 (table index,
   sample index, shading and curvature) into its chunk's region.  Without it (and unless
@@ -337,6 +339,16 @@ def _block_skip(blocks, x, y, z, binv):
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
+def _occupied(occ, ob, x, y, z):
+    """Whether cell ``(x, y, z)`` (in block ``ob`` of :func:`_grid.block_occupancy`) is not empty.
+
+    The same answer as ``cells[z, y, x] != CELL_EMPTY`` from 8 bytes per block, which stay in
+    the processor's cache where the cell map does not.
+    """
+    return (occ[ob] >> np.uint64(((z & 3) << 4) | ((y & 3) << 2) | (x & 3))) & _U1 != 0
+
+
+@njit(cache=True, fastmath=_FM, inline="always")
 def _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, nx, ny, nz):
     """Position of sample ``j`` in voxel coordinates and its cell (clamped to the grid).
 
@@ -378,8 +390,8 @@ def _block_exit(j, n, t_first, step, ax, ay, az, bx, by, bz, x0, y0, z0):
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
-def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j, n,
-          step, shade, has_curv, build, base, cnt, walked, bits, asg, out, ti, ert,
+def _tail(r, tix, cells, blocks, occ, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first,
+          j, n, step, shade, has_curv, build, base, cnt, walked, bits, asg, out, ti, ert,
           geo):  # fmt: skip
     """Walk the rest of a ray after early ray termination: only each sample's table index.
 
@@ -415,6 +427,7 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
     tf = _flat(tix)
     cf = _flat(cells)
     bf = _flat(blocks)
+    of = _flat(occ)
     bnx = blocks.shape[2]
     bnxy = blocks.shape[1] * bnx
     nxy = nx * ny
@@ -455,6 +468,9 @@ def _tail(r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, b
                     continue
             j = _block_exit(j, n, t_first, step, ax, ay, az, bx, by, bz, ((lx >> 2) << 2) + ox,
                             ((ly >> 2) << 2) + oy, ((lz >> 2) << 2) + oz)  # fmt: skip
+            continue
+        if not _occupied(of, ob, lx, ly, lz):
+            j += 1  # an empty cell: the spare entry, which adds nothing (opacity 0, no bit)
             continue
         o = lz * nxy + ly * nx + lx
         cl = cf[o]
@@ -502,7 +518,7 @@ def _walk_ray(
 ):  # fmt: skip
     """Walk one ray, compositing until early ray termination.
 
-    ``maps`` is ``(tix, cells, blocks, rep, lab, lab_base, tail_maps)`` (see
+    ``maps`` is ``(tix, cells, blocks, occ, rep, lab, lab_base, tail_maps)`` (see
     :func:`walk` and :func:`_tail`: with a finite ``cap`` every ``asg`` stays at most ``cap``;
     one tuple because a call with more than 30 arguments becomes ``*args``, which numba cannot
     inline).
@@ -527,13 +543,17 @@ def _walk_ray(
     accumulated opacity of the ray rendered at the importances).
     """
     c_lut, c_j, c_sh, c_curv = out
-    tix, cells, blocks, rep, lab, lab_base, tail_maps = maps
+    tix, cells, blocks, occ, rep, lab, lab_base, tail_maps = maps
     lab_end = (lab_base if lab_base >= 0 else len(ids)) - 1
     cap = tail_maps[6]
     gnx, gny, gnz, ox, oy, oz = geo
     ny, nx = vol.shape[1], vol.shape[2]
     volf = _flat(vol)
     clf = _flat(cells)
+    bf = _flat(blocks)
+    of = _flat(occ)
+    bnx = blocks.shape[2]
+    bnxy = blocks.shape[1] * bnx
     isy = np.uint64(nx)
     nxy = nx * ny
     isz = np.uint64(nxy)
@@ -556,15 +576,19 @@ def _walk_ray(
     while j < n and alive:
         px, py, pz, x, y, z = _sample_at(j, t_first, step, ax, ay, az, bx, by, bz, gnx, gny, gnz)
         walked += 1
-        skip = _block_skip(blocks, x - ox, y - oy, z - oz, binv)
-        if skip:
-            j += skip
+        lx = x - ox
+        ly = y - oy
+        lz = z - oz
+        ob = (lz >> 2) * bnxy + (ly >> 2) * bnx + (lx >> 2)
+        d = bf[ob]
+        if d > 1:  # as _block_skip
+            j += max(int((d - 1) * binv), 1)
             continue
-        o = np.uint64((z - oz) * nxy + (y - oy) * nx + (x - ox))
-        cl = clf[o]
-        if cl == _CELL_EMPTY:
+        if not _occupied(of, ob, lx, ly, lz):  # an empty cell
             j += 1
             continue
+        o = np.uint64(lz * nxy + ly * nx + lx)
+        cl = clf[o]
         fx = min(max(px - x, 0.0), 1.0)
         fy = min(max(py - y, 0.0), 1.0)
         fz = min(max(pz - z, 0.0), 1.0)
@@ -625,8 +649,8 @@ def _walk_ray(
             alive = False
     if j < n and tail:
         cnt, walked, bits, ti = _tail(
-            r, tix, cells, blocks, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first, j,
-            n, step, shade, has_curv, build, base, cnt, walked, bits, asg, out, ti, ert, geo,
+            r, tix, cells, blocks, occ, tail_maps, lab, lab_base, ax, ay, az, bx, by, bz, t_first,
+            j, n, step, shade, has_curv, build, base, cnt, walked, bits, asg, out, ti, ert, geo,
         )  # fmt: skip
     sta[r, 0] = cr
     sta[r, 1] = cg
@@ -730,7 +754,7 @@ def _composite_ray(
 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def walk(
-    vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, smask, sdist, cap,
+    vol, tix, cells, blocks, occ, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, smask, sdist, cap,
     curv, a, b,
     t_first, nsteps, step, order, chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light, tab,
     shade, has_curv, build, tail, chunk_base, ert, rgba, vis, asg, present, cimg, c_lut, c_j,
@@ -741,8 +765,9 @@ def walk(
     ``aimp``: per ray, the accumulated opacity at the importance opacities (``1 - ti`` of
     :func:`_walk_ray`); ``state``: (R, 7) float64 scratch for :func:`_walk_ray`'s state.
 
-    ``tix``, ``cells`` and ``blocks``: :func:`_grid.compact_index`, :func:`_grid.cell_map` and
-    :func:`_grid.block_map`; ``order`` and ``chunk_ptr``: :func:`engine.ray_order`; ``tail``
+    ``tix``, ``cells``, ``blocks`` and ``occ``: :func:`_grid.compact_index`,
+    :func:`_grid.cell_map`, :func:`_grid.block_map` and :func:`_grid.block_occupancy`;
+    ``order`` and ``chunk_ptr``: :func:`engine.ray_order`; ``tail``
     False (only without ``build``): stop every ray at early ray termination, as VTK does, so
     ``asg`` and ``present`` cover only the samples walked; ``rep``: a plateau table entry per
     structure; ``lab``: :func:`_grid.label_map` whose value ``v > 0``
@@ -761,6 +786,7 @@ def walk(
             tix,
             cells,
             blocks,
+            occ,
             rep,
             lab,
             lab_base,
@@ -809,7 +835,7 @@ def walk(
 
 @njit(parallel=True, cache=True, fastmath=_FM, nogil=True)
 def walk_variants(
-    vol, cells, blocks, rep, lab, lab_base, smask, sdist, cam, rays, step, want,
+    vol, cells, blocks, occ, rep, lab, lab_base, smask, sdist, cam, rays, step, want,
     ids, memb, alpha_v, visible, col, light, tab, shade, ert, rgba,
 ):  # fmt: skip
     """Image-only walks of rays with several opacity tables at once (``V`` variants).
@@ -818,7 +844,8 @@ def walk_variants(
     up, ``cam``: :func:`dvr_perception.rays._grid.camera_pack`), wanted in variant ``v``
     where bit ``v`` of ``want[i]`` is set; ``alpha_v[v]`` is that
     variant's opacity table and ``visible[v]`` the bits of the structures it gives any
-    opacity.  Every sample is read and classified once for all the variants of its ray (and
+    opacity (``occ``: :func:`_grid.block_occupancy`, beside ``cells`` and ``blocks``).
+    Every sample is read and classified once for all the variants of its ray (and
     shaded once, where one needs it); each variant composites front to back until its own
     early ray termination, the ray until the last has terminated.  ``rgba[v, i]`` (float32)
     is what :func:`walk` composites for that ray with that table (``occlusion_free=False``,
@@ -841,6 +868,7 @@ def walk_variants(
         st = np.empty((nvar, 4), np.float64)  # per variant: cr, cg, cb, tr
         volf = _flat(vol)
         clf = _flat(cells)
+        of = _flat(occ)
         sf = _flat(smask)
         sd = _flat(sdist)
         nblk = blocks.size
@@ -894,11 +922,11 @@ def walk_variants(
                     j = _block_exit(j, n, tf, step, ax, ay, az, bx, by, bz, (x >> 2) << 2,
                                     (y >> 2) << 2, (z >> 2) << 2)  # fmt: skip
                     continue
-                o = np.uint64(z * nxy + y * nx + x)
-                cl = clf[o]
-                if cl == _CELL_EMPTY:
+                if not _occupied(of, ob, x, y, z):  # an empty cell
                     j += 1
                     continue
+                o = np.uint64(z * nxy + y * nx + x)
+                cl = clf[o]
                 fx = min(max(px - x, 0.0), 1.0)
                 fy = min(max(py - y, 0.0), 1.0)
                 fz = min(max(pz - z, 0.0), 1.0)
