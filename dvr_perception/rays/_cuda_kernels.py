@@ -37,7 +37,7 @@ _SHARED = (
     "_jump_scale",
     "_sample_at",
     "_table_index",
-    "_block_skip",
+    "_entry",
     "_block_exit",
     "_occupied",
     "_shade_at",

@@ -328,6 +328,24 @@ def _table_index(flat, o, sy, sz, one, fx, fy, fz, last):
 
 
 @njit(cache=True, fastmath=_FM, inline="always")
+def _entry(cl, volf, o, isy, isz, px, py, pz, fx, fy, fz, rep, lab, lab_base, lab_end, ox, oy, oz):
+    """Table entry of a sample in a cell of class ``cl`` (not empty) at flat offset ``o``.
+
+    A plateau cell's entry is its structure's ``rep``; in a mixed cell, the label of the
+    sample's nearest voxel (``lab``, voxel ``(ox, oy, oz)`` at ``lab[0, 0, 0]``) where it
+    has one, else VTK's trilinear index (:func:`_table_index`, at most ``lab_end``).  The
+    one classification of :func:`_walk_ray` and :func:`walk_variants`.
+    """
+    if cl != _CELL_MIXED:
+        return rep[cl - 1]
+    if lab_base >= 0:
+        lv = lab[int(pz + 0.5) - oz, int(py + 0.5) - oy, int(px + 0.5) - ox]
+        if lv != 0:
+            return lab_base + lv - 1
+    return _table_index(volf, o, isy, isz, _U1, fx, fy, fz, lab_end)
+
+
+@njit(cache=True, fastmath=_FM, inline="always")
 def _block_skip(blocks, x, y, z, binv):
     """Return how many samples a ray may skip from cell ``(x, y, z)`` (0: look at the cell).
 
@@ -592,14 +610,8 @@ def _walk_ray(
         fx = min(max(px - x, 0.0), 1.0)
         fy = min(max(py - y, 0.0), 1.0)
         fz = min(max(pz - z, 0.0), 1.0)
-        lv = 0
-        if cl != _CELL_MIXED:
-            k = rep[cl - 1]
-        elif lab_base >= 0:
-            lv = lab[int(pz + 0.5) - oz, int(py + 0.5) - oy, int(px + 0.5) - ox]
-            k = lab_base + lv - 1
-        if cl == _CELL_MIXED and lv == 0:
-            k = _table_index(volf, o, isy, isz, _U1, fx, fy, fz, lab_end)
+        k = _entry(cl, volf, o, isy, isz, px, py, pz, fx, fy, fz, rep, lab, lab_base, lab_end,
+                   ox, oy, oz)  # fmt: skip
         if memb[k] <= 0.0:
             j += 1
             continue
@@ -868,6 +880,7 @@ def walk_variants(
         st = np.empty((nvar, 4), np.float64)  # per variant: cr, cg, cb, tr
         volf = _flat(vol)
         clf = _flat(cells)
+        bf = _flat(blocks)
         of = _flat(occ)
         sf = _flat(smask)
         sd = _flat(sdist)
@@ -905,11 +918,11 @@ def walk_variants(
             j = np.int64(0)
             while j < n and alive != 0:
                 px, py, pz, x, y, z = _sample_at(j, tf, step, ax, ay, az, bx, by, bz, nx, ny, nz)
-                skip = _block_skip(blocks, x, y, z, binv)
-                if skip:
-                    j += skip
-                    continue
                 ob = (z >> 2) * bnxy + (y >> 2) * bnx + (x >> 2)
+                d = bf[ob]
+                if d > 1:  # as _block_skip
+                    j += max(int((d - 1) * binv), 1)
+                    continue
                 if (np.uint64(sf[ob]) & seen) == 0:  # only what no variant here can see
                     if has_dist:
                         dmin = 255
@@ -930,14 +943,8 @@ def walk_variants(
                 fx = min(max(px - x, 0.0), 1.0)
                 fy = min(max(py - y, 0.0), 1.0)
                 fz = min(max(pz - z, 0.0), 1.0)
-                lv = 0
-                if cl != _CELL_MIXED:
-                    k = rep[cl - 1]
-                elif lab_base >= 0:
-                    lv = lab[int(pz + 0.5), int(py + 0.5), int(px + 0.5)]
-                    k = lab_base + lv - 1
-                if cl == _CELL_MIXED and lv == 0:
-                    k = _table_index(volf, o, isy, isz, _U1, fx, fy, fz, lab_end)
+                k = _entry(cl, volf, o, isy, isz, px, py, pz, fx, fy, fz, rep, lab, lab_base,
+                           lab_end, 0, 0, 0)  # fmt: skip
                 j += 1
                 if memb[k] <= 0.0:
                     continue
