@@ -57,6 +57,7 @@ def _device_twins() -> dict:
     glb["_curv_at"] = cuda.jit(device=True)(_nk._dense_at)  # the GPU reads a dense |H|
     # its reshape, inlined in the IR: a device function cannot return a view it made
     glb["_flat"] = cuda.jit(device=True, inline="always")(_nk._flat)
+    glb["_prefetch"] = cuda.jit(device=True, inline="always")(_nk._no_prefetch)  # CPU only
     twins = {}
     for name in _SHARED:
         py = getattr(_nk, name).py_func
