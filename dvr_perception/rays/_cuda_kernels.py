@@ -37,8 +37,9 @@ _SHARED = (
     "_jump_scale",
     "_sample_at",
     "_table_index",
-    "_block_skip",
+    "_entry",
     "_block_exit",
+    "_occupied",
     "_shade_at",
     "_tail",
     "_walk_ray",
@@ -56,6 +57,7 @@ def _device_twins() -> dict:
     glb["_curv_at"] = cuda.jit(device=True)(_nk._dense_at)  # the GPU reads a dense |H|
     # its reshape, inlined in the IR: a device function cannot return a view it made
     glb["_flat"] = cuda.jit(device=True, inline="always")(_nk._flat)
+    glb["_prefetch"] = cuda.jit(device=True, inline="always")(_nk._no_prefetch)  # CPU only
     twins = {}
     for name in _SHARED:
         py = getattr(_nk, name).py_func
@@ -71,7 +73,7 @@ _walk_ray = _device_twins()["_walk_ray"]
 
 @cuda.jit
 def walk(
-    vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, smask, sdist, cap,
+    vol, tix, cells, blocks, occ, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, smask, sdist, cap,
     curv, a, b, t_first, nsteps, base, step, ids, memb, alpha_r, alpha_w, col, light, tab, shade,
     has_curv, build, tail, ert, rgba, vis, asg, present, cimg, count, walked, aimp, state, c_lut,
     c_j, c_sh, c_curv, width, height,
@@ -86,7 +88,7 @@ def walk(
         return
     r = y * width + x
     tmaps = (kmap, tids, t_alpha, t_bit, smask, sdist, cap)
-    maps = (tix, cells, blocks, rep, lab, lab_base, tmaps)
+    maps = (tix, cells, blocks, occ, rep, lab, lab_base, tmaps)
     geo = (vol.shape[2], vol.shape[1], vol.shape[0], 0, 0, 0)
     count[r] = 0
     for s in range(vis.shape[0]):

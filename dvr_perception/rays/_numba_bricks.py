@@ -124,7 +124,7 @@ def brick_ranges(a, b, t_first, nsteps, step, lo, hi, gdims, j0, j1):
 
 @njit(parallel=True, cache=True, fastmath=_FM)
 def walk_brick(
-    vol, tix, cells, blocks, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, smask, sdist, cap,
+    vol, tix, cells, blocks, occ, rep, lab, lab_base, kmap, tids, t_alpha, t_bit, smask, sdist, cap,
     curv, a,
     b, t_first, j0, j1, step, order, chunk_ptr, nchunk, ids, memb, alpha_r, alpha_w, col, light,
     tab, shade, has_curv, build, tail, chunk_base, ert, geo, st, bits, vis, asg, c_lut, c_j, c_sh,
@@ -141,6 +141,7 @@ def walk_brick(
             tix,
             cells,
             blocks,
+            occ,
             rep,
             lab,
             lab_base,

@@ -15,6 +15,7 @@ import numpy as np
 from numba import njit, prange
 
 __all__ = [
+    "block_occupancy",
     "cell_classes",
     "empty_blocks",
     "index_volume",
@@ -248,3 +249,25 @@ def empty_blocks(cells, block, out):
                     if not empty:
                         break
                 out[zb, yb, xb] = empty
+
+
+@njit(parallel=True, cache=True)
+def block_occupancy(cells, out):
+    """Per block of 4^3 cells, bit ``(z & 3) * 16 + (y & 3) * 4 + (x & 3)`` set where not empty.
+
+    ``out`` (uint64, one per block as ``empty_blocks``' ``out``).  The last plane of each
+    axis holds no cells: its bits stay 0.
+    """
+    nz, ny, nx = cells.shape[0] - 1, cells.shape[1] - 1, cells.shape[2] - 1
+    bz, by, bx = out.shape
+    one = np.uint64(1)
+    for zb in prange(bz):
+        for yb in range(by):
+            for xb in range(bx):
+                m = np.uint64(0)
+                for z in range(4 * zb, min(4 * zb + 4, nz)):
+                    for y in range(4 * yb, min(4 * yb + 4, ny)):
+                        for x in range(4 * xb, min(4 * xb + 4, nx)):
+                            if cells[z, y, x] != 0:
+                                m |= one << np.uint64(((z & 3) << 4) | ((y & 3) << 2) | (x & 3))
+                out[zb, yb, xb] = m

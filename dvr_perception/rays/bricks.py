@@ -414,7 +414,8 @@ def _piece_arrays(piece: Volume, state: RayState, curvature, derived=None, skip=
     size = t["lut"].size
     lab = (labmap, size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8), -1)
     sm = _grid.skip_maps(piece, tix, t["tail"][3], labmap, lab[1], skip, len(t["rep"]))
-    maps = (tix, cells, blocks, t["rep"], *lab, *t["tail"], *sm)
+    occ = _grid.block_occupancy(piece, cells)
+    maps = (tix, cells, blocks, occ, t["rep"], *lab, *t["tail"], *sm)
     cv = np.zeros((2, 2, 2), np.float32) if curvature is None else curvature
     return vol, maps, cv
 

@@ -784,7 +784,8 @@ def _rewalk_rgba(analysis, variants) -> list[np.ndarray]:
         rows.append(pos)
     rgba = np.empty((len(checked), len(union), 4), np.float32)
     nk.walk_variants(
-        vol, cells, _grid.block_map(volume, cells), rep, *lab, smask, sdist,
+        vol, cells, _grid.block_map(volume, cells), _grid.block_occupancy(volume, cells), rep,
+        *lab, smask, sdist,
         _grid.camera_pack(camera, volume, step), union, step, want, ids, memb, alpha_v, visible,
         cols, light, tab, shade, _tables.ERT, rgba,
     )  # fmt: skip
@@ -848,7 +849,8 @@ def _walk_numba(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k
                         sparse=True)  # fmt: skip
     tail_tables = _tail_tables(ids, memb, alpha_w, rep, k)
     labels = lab[0] if lab[1] >= 0 else None
-    maps = (tix, cells, _grid.block_map(volume, cells), rep, *lab, *tail_tables,
+    maps = (tix, cells, _grid.block_map(volume, cells), _grid.block_occupancy(volume, cells), rep,
+            *lab, *tail_tables,
             *_grid.skip_maps(volume, tix, tail_tables[3], labels, lab[1], skip, k))  # fmt: skip
     layout = (order, chunk_ptr, h, w)
     out = _walk_compact(nk, vol, maps, cv, seg, step, layout, memb, alpha_w, args,
@@ -885,6 +887,7 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
     tix = _grid.compact_index(volume, idx)
     cells = _grid.cell_map(volume, idx, ids, memb, lab[0] if lab[1] >= 0 else None)
     blocks = _grid.block_map(volume, cells)
+    occ = _grid.block_occupancy(volume, cells)
     rep = _plateau_entries(ids, memb, k)
     kmap, tids, t_alpha, t_bit = _tail_tables(ids, memb, alpha_w, rep, k)
     smask, sdist, cap_ = _grid.skip_maps(volume, tix, t_bit, lab[0] if lab[1] >= 0 else None,
@@ -892,7 +895,7 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
     cached = "total" in seg  # a ray set of _cuda.rays_for: kept on the device
     total = seg["total"] if cached else int(n.sum())
     cap = max(total, 1) if build else 1
-    big = (vol, tix, cells, blocks, lab[0], cv)
+    big = (vol, tix, cells, blocks, occ, lab[0], cv)
     entry = 2 + 4 + (4 if shade else 0) + (4 if has_curv else 0)
     need = sum(a.nbytes for a in big) + nrays * 8 * (2 * k + 25) + (cap * entry if build else 0)
     _cuda.check_fits(int(need * 1.1) + (2 * cap * entry if build else 0))
@@ -943,14 +946,14 @@ def _walk_cuda(nk, volume, lab, idx, vol, cv, seg, step, memb, alpha_w, args, k,
         )
         bx, by = ck.BLOCK
         grid = (-(-w // bx), -(-h // by))
-        vol_d, tix_d, cells_d, blocks_d, lab_d, cv_d = dev
+        vol_d, tix_d, cells_d, blocks_d, occ_d, lab_d, cv_d = dev
         with _cuda.quiet_launch():  # small images: no low-occupancy warning per frame
             ck.walk[grid, (bx, by)](
-                vol_d, tix_d, cells_d, blocks_d, small[0], lab_d, np.int64(lab[1]), *small[1:],
-                smask_d, sdist_d, float(cap_), cv_d, *rays, base_d, float(step), *tables,
-                bool(shade), bool(has_curv), bool(build), bool(tail), float(ert), out["rgba"],
-                out["vis"], out["asg"], out["present"], out["cimg"], out["count"], out["walked"],
-                out["aimp"], out["state"], *src, np.int64(w), np.int64(h),
+                vol_d, tix_d, cells_d, blocks_d, occ_d, small[0], lab_d, np.int64(lab[1]),
+                *small[1:], smask_d, sdist_d, float(cap_), cv_d, *rays, base_d, float(step),
+                *tables, bool(shade), bool(has_curv), bool(build), bool(tail), float(ert),
+                out["rgba"], out["vis"], out["asg"], out["present"], out["cimg"], out["count"],
+                out["walked"], out["aimp"], out["state"], *src, np.int64(w), np.int64(h),
             )  # fmt: skip
         # float32 outputs and the image over the background made on the device (as _finish)
         fin = {

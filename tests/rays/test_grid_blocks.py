@@ -121,3 +121,49 @@ def test_ray_order_visits_every_pixel_once_in_tiles(height, width):
     for part in np.split(first, runs):
         assert np.all(np.diff(part // width) >= 0)
     assert not order.flags.writeable
+
+
+def _occupancy_by_hand(cells):
+    """Bit ``(z & 3) * 16 + (y & 3) * 4 + (x & 3)`` of block ``(z >> 2, y >> 2, x >> 2)``."""
+    shape = tuple(-(-(n - 1) // 4) for n in cells.shape)
+    out = np.zeros(shape, np.uint64)
+    for z, y, x in zip(*np.nonzero(cells[:-1, :-1, :-1] != _grid.CELL_EMPTY), strict=True):
+        bit = np.uint64(((z & 3) << 4) | ((y & 3) << 2) | (x & 3))
+        out[z >> 2, y >> 2, x >> 2] |= np.uint64(1) << bit
+    return out
+
+
+def test_one_bright_voxel_occupies_its_eight_cells():
+    data = np.zeros((13, 14, 15), np.uint8)
+    data[3, 4, 5] = 200
+    vol = Volume(data)
+    spec = StructureSpec((Structure("dot", 1.0, (1, 1, 1), range=(100, 255)),))
+    cells, _ = _blocks(vol, spec)
+    occ = _grid.block_occupancy(vol, cells)
+    assert occ.shape == (3, 4, 4)
+    assert occ.dtype == np.uint64
+    # cells z 2-3, y 3-4, x 4-5: block (0, 0, 1) holds y = 3, block (0, 1, 1) y = 4
+    bits = {(0, 0, 1): [(z, 3, x) for z in (2, 3) for x in (4, 5)],
+            (0, 1, 1): [(z, 4, x) for z in (2, 3) for x in (4, 5)]}  # fmt: skip
+    for p in np.ndindex(occ.shape):
+        want = sum(1 << (((z & 3) << 4) | ((y & 3) << 2) | (x & 3)) for z, y, x in bits.get(p, []))
+        assert int(occ[p]) == want, p
+    assert _grid.block_occupancy(vol, cells) is occ  # memoised
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_occupancy_bits_are_the_non_empty_cells(monkeypatch, fast):
+    rng = np.random.default_rng(5)
+    data = np.zeros((19, 22, 26), np.uint8)  # every size not a multiple of 4
+    data[:, :, :11] = rng.random((19, 22, 11)) * 255  # noise in part, empty blocks beside it
+    vol = Volume(data)
+    spec = StructureSpec((Structure("mid", 0.6, (1, 0, 0), range=(90, 160)),
+                          Structure("top", 0.9, (0, 1, 0), range=(200, 255))))  # fmt: skip
+    cells, _ = _blocks(vol, spec)
+    if not fast:
+        monkeypatch.setattr(_grid, "_fast", lambda: None)
+    occ = _grid.block_occupancy(None, cells)  # None: not memoised
+    assert occ.shape == (5, 6, 7)
+    want = _occupancy_by_hand(cells)
+    assert 0 < np.count_nonzero(want) < want.size
+    np.testing.assert_array_equal(occ, want)
