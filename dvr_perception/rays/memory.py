@@ -267,19 +267,20 @@ def whole_volume_bytes(volume, *, shade: bool = True, curvature: bool = True,
                        compact: bool = True) -> int:  # fmt: skip
     """Bytes a whole-volume analysis holds in proportion to the volume.
 
-    The volume itself and its derived volumes (:func:`plan` adds the per-ray buffers, the
-    samples and the scratch).
+    The volume itself and its derived volumes, with the blocks' occupancy bits (one bit a
+    cell, :func:`~dvr_perception.rays._grid.block_occupancy`; :func:`plan` adds the per-ray
+    buffers, the samples and the scratch).
 
     Examples
     --------
     >>> import numpy as np
     >>> vol = np.broadcast_to(np.uint16(0), (452, 512, 512))  # a CT's shape, no memory
-    >>> round(whole_volume_bytes(type("V", (), {"data": vol})()) / 2**30, 2)  # 2 + 10 B
-    1.32
+    >>> round(whole_volume_bytes(type("V", (), {"data": vol})()) / 2**30, 2)  # 2 + 10 + 1/8 B
+    1.34
     """
     data = volume.data
     per = _voxel_bytes(volume, shade=shade, curvature=curvature, compact=compact)
-    return int(data.size) * (per + data.itemsize)
+    return int(data.size) * (per + data.itemsize) + int(data.size) // 8
 
 
 def _whole_share(volume, **kwargs) -> int:

@@ -173,7 +173,8 @@ def test_the_whole_estimate_holds_the_peak_with_the_index_only_in_the_records():
     finally:
         tracemalloc.stop()
     assert res.stats.get("bricks", 0) == 0
-    assert memory.kept_bytes(vol)["whole"] < 6.1 * vol.data.size  # records, compact, cells
+    # records 4, compact 1, cells 1 and the blocks' occupancy bits 1/8 bytes a voxel
+    assert memory.kept_bytes(vol)["whole"] < 6.2 * vol.data.size
     # above the peak (by about 2.3 bytes a voxel: the index beside the records being built
     # is counted), no longer by the 4.3 of an index counted twice
     assert peak <= est["whole"] < peak + 3 * vol.data.size, (peak, est["whole"])
