@@ -193,6 +193,9 @@ class Problem:
             ),
         )
         self.nfev = 0
+        #: Remember transparency's layers, regions and estimates of each rendering, so that
+        #: measuring the same rendering afterwards reuses them (the user's resolution).
+        self.keep_transparency = False
         self._fixed = {}  # (view, whole) -> what does not depend on the parameters
         self._last = {}  # view -> (params, analysis) of the latest rendering
 
@@ -397,7 +400,7 @@ class Problem:
         """
         k = len(self.names)
         region_id, deltas, alpha, empty = transparency_table(
-            analysis, self.eval_spec, calibration=self.calibration
+            analysis, self.eval_spec, calibration=self.calibration, keep=self.keep_transparency
         )
         counts = np.bincount(region_id[m].ravel(), minlength=len(deltas)).astype(np.float64)
         keep = (counts > 0) & ~empty
