@@ -337,9 +337,10 @@ class Problem:
         m, rays = fixed["m"], fixed["rays"]
         # Eq. 2 as measures.visibility computes it (D1), with the lens targets in the target
         acc = np.asarray(analysis.accumulated, float)
-        visible = np.asarray(analysis.visible, float)
+        visible = np.asarray(analysis.visible)  # float32: selected first, then widened (exact)
+        vm = visible[:, m].astype(float)  # (K, masked pixels), each row in pixel order
         acc_r = acc[rays]
-        dev = np.abs(fixed["target"] - visible[:, rays])
+        dev = np.abs(fixed["target"] - visible[:, rays].astype(float))
         d_v = dev.sum(axis=0)
         e_v = float(d_v.mean()) if acc_r.size else 0.0
         coverage = float(acc_r.mean()) if acc_r.size else 0.0
@@ -357,12 +358,11 @@ class Problem:
         else:
             e_t, bad_t, d_t = np.nan, np.full(k, np.nan), np.full(acc.shape, np.nan)
         acc_sum = float(acc[m].sum())
-        shares = {
-            n: (float(visible[i][m].sum()) / acc_sum if acc_sum > 0 else 0.0)
+        shares = {  # a row of vm holds visible[i][m]'s numbers in its order: the same sums
+            n: (float(vm[i].sum()) / acc_sum if acc_sum > 0 else 0.0)
             for i, n in enumerate(self.names)
         }
         lum = np.asarray(analysis.image, float) @ np.asarray(LUMA_WEIGHTS)
-        vm = visible[:, m]
         vsum = vm.sum(axis=1)
         luminance = np.where(vsum > 0, (vm * lum[m]).sum(axis=1) / np.maximum(vsum, 1e-30), 0.0)
         return {
