@@ -78,7 +78,7 @@ __all__ = ["prefetch", "run_stage"]
 SOLVER_MODULE = "scipy.optimize"
 
 
-def prefetch() -> threading.Thread | None:
+def prefetch() -> None:
     """Import :data:`SOLVER_MODULE` in a background thread, if it is not imported yet.
 
     ``scipy.optimize`` takes a tenth to a fifth of a second to import and the opacity stage
@@ -86,20 +86,16 @@ def prefetch() -> threading.Thread | None:
     kernels run without the interpreter lock: the import overlaps them.  Nothing else
     imports while they run (their modules are imported with this one's), so the two
     threads never wait on each other's imports; an import that fails here is left to the
-    stage, which imports the module itself (and reports the error).  Returns the started
-    thread, or ``None`` when the module is already imported.
+    stage, which imports the module itself (and reports the error).
     """
     if SOLVER_MODULE in sys.modules:
-        return None
-    name = SOLVER_MODULE
+        return
 
     def load():
         with contextlib.suppress(Exception):  # the stage's own import reports it
-            importlib.import_module(name)
+            importlib.import_module(SOLVER_MODULE)
 
-    thread = threading.Thread(target=load, name="dvr-prefetch-solver", daemon=True)
-    thread.start()
-    return thread
+    threading.Thread(target=load, name="dvr-prefetch-solver", daemon=True).start()
 
 
 FD_STEP = 1e-2
