@@ -40,9 +40,7 @@ view, the (3, rays) deviations so that a stage can weigh them with its own (boos
 
 from __future__ import annotations
 
-import threading
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -52,7 +50,6 @@ from dvr_perception._numba import serial_below
 from dvr_perception.errors import DVRWarning
 from dvr_perception.measures import shape
 from dvr_perception.measures.luminance import LUMA_WEIGHTS
-from dvr_perception.measures.results import _image_luminance
 from dvr_perception.measures.transparency import transparency_table
 from dvr_perception.measures.visibility import target_composition
 from dvr_perception.rays.engine import reevaluate
@@ -61,21 +58,6 @@ from dvr_perception.structures.spec import Lighting, StructureSpec
 __all__ = ["TERMS", "Params", "Problem", "residue"]
 
 TERMS = ("E_v", "E_s", "E_t")
-
-#: From this many pixels on, an evaluation of every term computes ``E_t`` in a worker thread
-#: while ``E_s`` is computed (the user's resolution; the optimiser's small images in turn).
-OVERLAP_PIXELS = 65536
-
-_POOL: ThreadPoolExecutor | None = None
-_POOL_LOCK = threading.Lock()
-
-
-def _pool() -> ThreadPoolExecutor:
-    global _POOL
-    with _POOL_LOCK:
-        if _POOL is None:
-            _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dvr-terms")
-        return _POOL
 
 
 @dataclass(frozen=True, eq=False)
@@ -365,25 +347,13 @@ class Problem:
         present = fixed["present"]
         cnt = present.sum(axis=1)
         bad_v = np.where(cnt > 0, (dev * present).sum(axis=1) / np.maximum(cnt, 1), 0.0)
-        pending = None
-        if "E_s" in need and "E_t" in need and acc.size >= OVERLAP_PIXELS:
-            # both read the luminance (remembered for the rendering): made once, first
-            _image_luminance(analysis, self.eval_spec, acc.shape)
-            pending = _pool().submit(self._transparency, analysis, m)
-        try:
-            if "E_s" in need:
-                v_share = np.clip(np.asarray(analysis.visible_share, float), 0.0, 1.0)
-                with serial_below(acc.size):  # the optimiser's small images: no wake-ups
-                    e_s, bad_s, d_s = self._shape(analysis, m, v_share)
-            else:
-                e_s, bad_s, d_s = np.nan, np.full(k, np.nan), np.full(acc.shape, np.nan)
-        finally:
-            failed = None if pending is None else pending.exception()  # waits
-        if failed is not None:
-            raise failed
-        if pending is not None:
-            e_t, bad_t, d_t = pending.result()
-        elif "E_t" in need:
+        if "E_s" in need:
+            v_share = np.clip(np.asarray(analysis.visible_share, float), 0.0, 1.0)
+            with serial_below(acc.size):  # the optimiser's small images: no thread wake-ups
+                e_s, bad_s, d_s = self._shape(analysis, m, v_share)
+        else:
+            e_s, bad_s, d_s = np.nan, np.full(k, np.nan), np.full(acc.shape, np.nan)
+        if "E_t" in need:
             e_t, bad_t, d_t = self._transparency(analysis, m)
         else:
             e_t, bad_t, d_t = np.nan, np.full(k, np.nan), np.full(acc.shape, np.nan)
