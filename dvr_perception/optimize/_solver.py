@@ -57,46 +57,19 @@ has converged when :data:`PATIENCE` iterations in a row improve the best ``f`` b
 
 from __future__ import annotations
 
-import contextlib
 import copy
-import importlib
 import itertools
-import sys
-import threading
 import time
 import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import minimize
 
 from dvr_perception.optimize._exact import OpacityModel
 from dvr_perception.optimize._problem import TERMS, public_terms, residue
 
-__all__ = ["prefetch", "run_stage"]
-
-#: The module of SLSQP (the opacity stage's local solver), imported when first needed.
-SOLVER_MODULE = "scipy.optimize"
-
-
-def prefetch() -> None:
-    """Import :data:`SOLVER_MODULE` in a background thread, if it is not imported yet.
-
-    ``scipy.optimize`` takes a tenth to a fifth of a second to import and the opacity stage
-    needs it only after the curvature volume and the views' ray analyses, whose numba
-    kernels run without the interpreter lock: the import overlaps them.  Nothing else
-    imports while they run (their modules are imported with this one's), so the two
-    threads never wait on each other's imports; an import that fails here is left to the
-    stage, which imports the module itself (and reports the error).
-    """
-    if SOLVER_MODULE in sys.modules:
-        return
-
-    def load():
-        with contextlib.suppress(Exception):  # the stage's own import reports it
-            importlib.import_module(SOLVER_MODULE)
-
-    threading.Thread(target=load, name="dvr-prefetch-solver", daemon=True).start()
-
+__all__ = ["run_stage"]
 
 FD_STEP = 1e-2
 FULL_FD = 4  # up to this many parameters: one difference per parameter
@@ -345,8 +318,6 @@ def _run_exact(run, x0, groups, group_structures, max_iter, info, history):
             if cov >= floor and np.all(slack >= 0.0) and e_v < found[1]:
                 found[:] = [np.clip(np.array(y, float), lo, hi), e_v]
             return e_v
-
-        from scipy.optimize import minimize  # see prefetch()
 
         try:
             with warnings.catch_warnings():

@@ -14,7 +14,7 @@ from dvr_perception.measures.visibility import COMPOSITIONS
 from dvr_perception.optimize._exact import OpacityModel
 from dvr_perception.optimize._problem import Params, Problem, public_terms
 from dvr_perception.optimize._region import parse_region, parse_targets, resample_mask
-from dvr_perception.optimize._solver import prefetch, run_stage
+from dvr_perception.optimize._solver import run_stage
 from dvr_perception.optimize.explain import explain
 from dvr_perception.optimize.results import (
     STATUS_MESSAGES,
@@ -295,8 +295,6 @@ def optimize(
     todo = [*views, *(s for s, cam in zip(smalls, views, strict=True) if s is not cam)]
     todo += coarse_cams
     prep = reporter(progress)
-    if any(getattr(STAGES[name], "exact", False) for name in stages):
-        prefetch()  # SLSQP's module, imported while the rays are analysed
     if analyzer is None:
         if curvature is None:
             curvature = curvature_source(volume, spec, progress=prep.sub(0.0, 0.3))
