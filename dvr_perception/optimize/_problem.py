@@ -329,7 +329,7 @@ class Problem:
             total = target.sum()
             share = target.sum(axis=1) / total if total > 0 else np.zeros(k)
             self._fixed[key] = {"m": m, "rays": rays, "present": present, "target": target,
-                                "target_share": share}  # fmt: skip
+                                "target_share": share, "count": present.sum(axis=1)}  # fmt: skip
         return self._fixed[key]
 
     def _view_terms(self, analysis, fixed, need) -> dict:
@@ -345,7 +345,7 @@ class Problem:
         e_v = float(d_v.mean()) if acc_r.size else 0.0
         coverage = float(acc_r.mean()) if acc_r.size else 0.0
         present = fixed["present"]
-        cnt = present.sum(axis=1)
+        cnt = fixed["count"]
         bad_v = np.where(cnt > 0, (dev * present).sum(axis=1) / np.maximum(cnt, 1), 0.0)
         if "E_s" in need:
             v_share = np.clip(np.asarray(analysis.visible_share, float), 0.0, 1.0)
@@ -382,10 +382,9 @@ class Problem:
         pix = sh.nonempty & m
         e_s = float(sh.deviation[pix].mean()) if pix.any() else 0.0
         wts = v_share[:, pix]
+        w_sum = wts.sum(axis=1)
         bad_s = np.where(
-            wts.sum(axis=1) > 0,
-            (wts * sh.deviation[pix]).sum(axis=1) / np.maximum(wts.sum(axis=1), 1e-12),
-            0.0,
+            w_sum > 0, (wts * sh.deviation[pix]).sum(axis=1) / np.maximum(w_sum, 1e-12), 0.0
         )
         return e_s, bad_s, np.where(pix, sh.deviation, 0.0)
 
