@@ -529,8 +529,23 @@ def _since_start() -> float | None:
     return max(0.0, uptime - start)
 
 
+def _sleeping_openmp_threads() -> None:
+    """Let numba's idle OpenMP threads sleep at once (unless the environment says otherwise).
+
+    The optimiser launches hundreds of short parallel regions (re-composites, measures),
+    some from the measures' worker thread.  After each, GNU OpenMP's threads spin for a
+    while by default, and only throttle that when more threads than cores are in use, so
+    the spinning depended on whether the worker thread happened to launch a region: on a
+    busy machine it burnt a core the calling thread needed.  ``OMP_WAIT_POLICY=PASSIVE``
+    (read when numba first starts its threads, after this) makes every run alike.
+    """
+    if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
+        os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+
+
 def run(args: argparse.Namespace) -> int:
     """Execute ``optimize``."""
+    _sleeping_openmp_threads()
     stages = parse_stages(args.stages)
     weights = parse_weights(args.weights)
     if args.seed < 0:

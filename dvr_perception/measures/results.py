@@ -218,6 +218,18 @@ def _remembered(analysis, name, compute):
     return value
 
 
+def _recalled(analysis, name):
+    """Return what :func:`_remembered` holds for ``analysis`` under ``name``, else ``None``.
+
+    Looks only: nothing is computed or stored.
+    """
+    if not isinstance(analysis, RayAnalysis):
+        return None
+    with _MEMO_LOCK:
+        hit = _FIELD_MEMO.get((id(analysis), name))
+    return hit[1] if hit is not None and hit[0]() is analysis else None
+
+
 def _accumulated(analysis) -> np.ndarray:
     """Return the (H, W) accumulated opacity, checked to lie in [0, 1]."""
     return _remembered(analysis, "accumulated", lambda: _accumulated_checked(analysis))

@@ -101,6 +101,8 @@ from dvr_perception.measures.results import (
     _assigned,
     _image_luminance,
     _names,
+    _recalled,
+    _remembered,
     _visible,
 )
 from dvr_perception.rays._results import engine_made
@@ -161,6 +163,65 @@ def _core(analysis, spec, threshold, calibration, tolerance, contrast, enclosure
     return names, expected, rmap, relations, est, notes
 
 
+def _core_key(analysis, spec, threshold, calibration, tolerance, contrast, enclosure):
+    """Return what :func:`_core` reads besides the analysis, as a key (or ``None``).
+
+    The structures' names, expected opacities and importances, the background, and (only for
+    an analysis that does not record the parameters it was rendered with) the rendering
+    opacities and colours; with the options.  ``None`` (nothing kept) for a calibration
+    curve, an analysis the engine did not make or an option that cannot be a key.
+    """
+    if calibration is not None or not engine_made(analysis):
+        return None
+    try:
+        s = spec.structures
+        stats = getattr(analysis, "stats", None)
+        own = isinstance(stats, dict) and stats.get("params") is not None
+        key = (
+            "transparency",
+            tuple(spec.names),
+            tuple(float(x.target_opacity) for x in s),
+            tuple(float(x.importance) for x in s),
+            tuple(float(v) for v in spec.background),
+            None if own else tuple((float(x.render_opacity), tuple(x.colour)) for x in s),
+            threshold, tolerance, contrast, enclosure,
+        )  # fmt: skip
+        hash(key)
+    except (AttributeError, TypeError, ValueError):  # _core says what is wrong
+        return None
+    return key
+
+
+def _core_kept(analysis, spec, threshold, calibration, tolerance, contrast, enclosure, *,
+               keep=False):  # fmt: skip
+    """:func:`_core`, shared by the optimiser's ``E_t`` and the measure of one rendering.
+
+    The optimiser computes ``E_t`` of a rendering at the user's resolution
+    (:func:`transparency_table` with ``keep``) and then measures the same rendering
+    (:func:`transparency`): the layers, regions and estimates, with an enclosing layer's
+    re-composites, are made once.  Only what ``keep`` made is reused (:func:`transparency`
+    stores nothing), keyed by everything :func:`_core` reads (:func:`_core_key`); they are
+    only read afterwards, and the notes are a new list each time.
+    """
+    args = (analysis, spec, threshold, calibration, tolerance, contrast, enclosure)
+    key = _core_key(*args)
+    if key is None:
+        return _core(*args)
+    if keep:
+
+        def compute():
+            names, expected, rmap, relations, est, notes = _core(*args)
+            return names, expected, rmap, relations, est, tuple(notes)
+
+        hit = _remembered(analysis, key, compute)
+    else:
+        hit = _recalled(analysis, key)
+        if hit is None:
+            return _core(*args)
+    names, expected, rmap, relations, est, notes = hit
+    return names, expected, rmap, relations, est, list(notes)
+
+
 def _carried(analysis, spec, assigned: np.ndarray) -> Carried:
     """Opacity each structure carries on each pixel, occlusion ignored (D7).
 
@@ -196,16 +257,19 @@ def _occlusion_free(analysis, shape) -> np.ndarray | None:
     return _assigned(analysis, shape, native=True)  # read in float64
 
 
-def transparency_table(analysis, spec, *, calibration=None):
+def transparency_table(analysis, spec, *, calibration=None, keep=False):
     """E_t's ingredients as arrays, without the per-region records (for the optimiser).
 
     Returns ``(region_id, deltas, alpha_t, skip)``: the (H, W) region map, Eq. 10 per region,
     the (regions, K) calibrated transmittances (NaN: layer absent or undetermined) and the
     mask of the regions left out of ``E_t`` (empty, or all their layers undetermined); the
-    other options are :func:`transparency`'s defaults.
+    other options are :func:`transparency`'s defaults.  ``keep``: remember the layers,
+    regions and estimates of an engine analysis (without a calibration curve), so that
+    :func:`transparency` of the same rendering (same names, expected opacities,
+    importances and background) reuses them.
     """
-    names, _, rmap, _, est, _ = _core(
-        analysis, spec, 0.05, calibration, 0.02, "michelson", "auto"
+    names, _, rmap, _, est, _ = _core_kept(
+        analysis, spec, 0.05, calibration, 0.02, "michelson", "auto", keep=keep
     )  # fmt: skip
     alpha, empty = region_table(est, rmap, len(names))
     return rmap.region_id, est.deltas, alpha, empty
@@ -269,7 +333,7 @@ def transparency(
     DVRWarning
         If ``visible`` does not sum to ``accumulated`` or ``rgba`` is not premultiplied.
     """
-    names, expected, rmap, relations, est, notes = _core(
+    names, expected, rmap, relations, est, notes = _core_kept(
         analysis, spec, threshold, calibration, tolerance, contrast, enclosure
     )
     deltas = est.deltas

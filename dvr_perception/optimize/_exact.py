@@ -282,8 +282,10 @@ class OpacityModel:
         k, n = self.k, rays.size
         alpha, dalpha, ids = self._tables(cache, ops)
         vis, acc = np.empty((k, n)), np.empty(n)
-        m = n if grad else 1
-        dvis, dacc = np.zeros((k, k, m)), np.zeros((k, m))
+        if grad:  # the kernel writes every ray's derivatives
+            dvis, dacc = np.empty((k, k, n)), np.empty((k, n))
+        else:
+            dvis, dacc = np.zeros((k, k, 1)), np.zeros((k, 1))
         composite_grad(rays, cache.start, cache.count, cache.lut, ids, alpha, dalpha,
                        log_step(alpha, dalpha), k, _tables.ERT, grad, vis, dvis, acc,
                        dacc)  # fmt: skip

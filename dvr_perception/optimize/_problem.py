@@ -193,6 +193,9 @@ class Problem:
             ),
         )
         self.nfev = 0
+        #: Remember transparency's layers, regions and estimates of each rendering, so that
+        #: measuring the same rendering afterwards reuses them (the user's resolution).
+        self.keep_transparency = False
         self._fixed = {}  # (view, whole) -> what does not depend on the parameters
         self._last = {}  # view -> (params, analysis) of the latest rendering
 
@@ -326,7 +329,7 @@ class Problem:
             total = target.sum()
             share = target.sum(axis=1) / total if total > 0 else np.zeros(k)
             self._fixed[key] = {"m": m, "rays": rays, "present": present, "target": target,
-                                "target_share": share}  # fmt: skip
+                                "target_share": share, "count": present.sum(axis=1)}  # fmt: skip
         return self._fixed[key]
 
     def _view_terms(self, analysis, fixed, need) -> dict:
@@ -334,14 +337,15 @@ class Problem:
         m, rays = fixed["m"], fixed["rays"]
         # Eq. 2 as measures.visibility computes it (D1), with the lens targets in the target
         acc = np.asarray(analysis.accumulated, float)
-        visible = np.asarray(analysis.visible, float)
+        visible = np.asarray(analysis.visible)  # float32: selected first, then widened (exact)
+        vm = visible[:, m].astype(float)  # (K, masked pixels), each row in pixel order
         acc_r = acc[rays]
-        dev = np.abs(fixed["target"] - visible[:, rays])
+        dev = np.abs(fixed["target"] - visible[:, rays].astype(float))
         d_v = dev.sum(axis=0)
         e_v = float(d_v.mean()) if acc_r.size else 0.0
         coverage = float(acc_r.mean()) if acc_r.size else 0.0
         present = fixed["present"]
-        cnt = present.sum(axis=1)
+        cnt = fixed["count"]
         bad_v = np.where(cnt > 0, (dev * present).sum(axis=1) / np.maximum(cnt, 1), 0.0)
         if "E_s" in need:
             v_share = np.clip(np.asarray(analysis.visible_share, float), 0.0, 1.0)
@@ -354,12 +358,11 @@ class Problem:
         else:
             e_t, bad_t, d_t = np.nan, np.full(k, np.nan), np.full(acc.shape, np.nan)
         acc_sum = float(acc[m].sum())
-        shares = {
-            n: (float(visible[i][m].sum()) / acc_sum if acc_sum > 0 else 0.0)
+        shares = {  # a row of vm holds visible[i][m]'s numbers in its order: the same sums
+            n: (float(vm[i].sum()) / acc_sum if acc_sum > 0 else 0.0)
             for i, n in enumerate(self.names)
         }
         lum = np.asarray(analysis.image, float) @ np.asarray(LUMA_WEIGHTS)
-        vm = visible[:, m]
         vsum = vm.sum(axis=1)
         luminance = np.where(vsum > 0, (vm * lum[m]).sum(axis=1) / np.maximum(vsum, 1e-30), 0.0)
         return {
@@ -379,10 +382,9 @@ class Problem:
         pix = sh.nonempty & m
         e_s = float(sh.deviation[pix].mean()) if pix.any() else 0.0
         wts = v_share[:, pix]
+        w_sum = wts.sum(axis=1)
         bad_s = np.where(
-            wts.sum(axis=1) > 0,
-            (wts * sh.deviation[pix]).sum(axis=1) / np.maximum(wts.sum(axis=1), 1e-12),
-            0.0,
+            w_sum > 0, (wts * sh.deviation[pix]).sum(axis=1) / np.maximum(w_sum, 1e-12), 0.0
         )
         return e_s, bad_s, np.where(pix, sh.deviation, 0.0)
 
@@ -397,7 +399,7 @@ class Problem:
         """
         k = len(self.names)
         region_id, deltas, alpha, empty = transparency_table(
-            analysis, self.eval_spec, calibration=self.calibration
+            analysis, self.eval_spec, calibration=self.calibration, keep=self.keep_transparency
         )
         counts = np.bincount(region_id[m].ravel(), minlength=len(deltas)).astype(np.float64)
         keep = (counts > 0) & ~empty

@@ -313,6 +313,7 @@ def optimize(
     full_masks = [mask] + [None] * (len(views) - 1)
     full_problem = Problem([a.cache for a in full_analyses], full_masks, spec, w, goals,
                            calibration, composition)  # fmt: skip
+    full_problem.keep_transparency = measures  # measured again: its renderings' E_t kept
     same = all(a is b for a, b in zip(full_analyses, opt_analyses, strict=True))
     problem = full_problem
     if not same:
