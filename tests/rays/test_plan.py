@@ -56,13 +56,14 @@ def test_a_ct_over_the_old_voxel_rule_is_whole_when_it_fits():
     need = _plan(vol, spec, lut, memb, "16G")
     assert need["mode"] == "whole"
     # the estimate is the run's peak: the volume (2 B), records (4, the table index inside),
-    # cell map (1) and |H| (4) a voxel (a table of over 256 entries: no compact index), and
+    # cell map (1), |H| (4) and the blocks' occupancy bits (1/8) a voxel (a table of over 256
+    # entries: no compact index), and
     # the per-ray buffers, and 2 a voxel of temporaries while the derived volumes are made
     # (the index beside the records being built); 1.5-2 GB, as measured (issue 31: 1.9 GB
     # peak RSS with the curvature's own temporaries)
     assert lut.size > 256
     per_voxel = 2 + 4 + 1 + 4 + memory.TRANSIENT_VOXEL_BYTES
-    assert need["whole"] == pytest.approx(vol.data.size * per_voxel + 512 * 512
+    assert need["whole"] == pytest.approx(vol.data.size * per_voxel + vol.data.size // 8 + 512 * 512
                                           * memory.ray_bytes(len(spec.structures)))  # fmt: skip
     assert 1.5 * 2**30 < need["whole"] < 2 * 2**30
 
@@ -112,8 +113,8 @@ def test_curvature_is_whole_exactly_when_the_volumes_share_fits():
     need = memory.whole_volume_bytes(vol)
     assert vol.labels is not None
     # the uint8 volume, records (the table index inside them), compact index, cell map,
-    # label map and |H|
-    assert need == 64**3 * (1 + 4 + 1 + 1 + 1 + 4)
+    # label map and |H|, and the blocks' occupancy bits (one bit a cell)
+    assert need == 64**3 * (1 + 4 + 1 + 1 + 1 + 4) + 64**3 // 8
     # with the uint8 label volume and the temporaries made beside the derived volumes
     need += 64**3 * (1 + memory.TRANSIENT_VOXEL_BYTES)
     assert isinstance(curvature_source(vol, spec, memory_limit=need), CurvaturePages)
