@@ -35,6 +35,7 @@ from dvr_perception.rays._numba_kernels import (
     _fill,
     _jump_scale,
     _sample_at,
+    _shade_at,
     _table_index,
     _walk_ray,
 )
@@ -44,6 +45,7 @@ __all__ = [
     "brick_ranges",
     "composite_part",
     "crossing",
+    "fill_from_data",
     "fill_range",
     "place",
     "place_all",
@@ -196,6 +198,52 @@ def fill_range(start, count, c_lut, c_j, c_sh, c_curv, a, b, t_first, step, j0, 
                 _fill(e, j, a[r, 0], a[r, 1], a[r, 2], b[r, 0], b[r, 1], b[r, 2], t_first[r],
                       step, vol, curv, tab, ids[c_lut[e]], shade, has_curv, c_sh, c_curv, g,
                       shift)  # fmt: skip
+
+
+#: :func:`_numba_grid._code` as a call of its own, compiled without fast-math as in the kernels
+#: that make the voxel records (the fast-math kernel that calls it leaves its arithmetic alone).
+_code_call = njit(cache=True)(_code.py_func)
+
+
+@njit(parallel=True, cache=True, fastmath=_FM)
+def fill_from_data(start, count, c_lut, c_j, c_sh, a, b, t_first, step, data, aspect, ids, tab):
+    """Shade every entry whose shading is unset, its cell's 8 normal codes computed from ``data``.
+
+    ``data``: the whole volume (``[z, y, x]``); the codes are :func:`_numba_grid._code`'s,
+    the voxel records' (a brick's corner voxels have their neighbours in its piece, ghost
+    layer included, or lie on the volume's border), so an entry's shading equals
+    :func:`fill_range`'s from the brick's records, without deriving them: a change of light
+    costs the cache's entries instead of every voxel of the bricks not kept.
+    """
+    nz, ny, nx = data.shape
+    ax, ay, az = aspect[0], aspect[1], aspect[2]
+    zero = np.uint64(0)
+    two = np.uint64(2)
+    four = np.uint64(4)
+    for r in prange(len(start)):
+        if count[r] == 0:
+            continue
+        loc = np.empty(8, np.uint32)  # the cell's codes, (z, y, x) corners as in _shade_at
+        for e in range(start[r], start[r] + count[r]):
+            if c_sh[e, 0] != _UNSET:
+                continue
+            px, py, pz, x, y, z = _sample_at(c_j[e], t_first[r], step, a[r, 0], a[r, 1], a[r, 2],
+                                             b[r, 0], b[r, 1], b[r, 2], nx, ny, nz)  # fmt: skip
+            fx = min(max(px - x, 0.0), 1.0)
+            fy = min(max(py - y, 0.0), 1.0)
+            fz = min(max(pz - z, 0.0), 1.0)
+            q = 0
+            for dz in range(2):
+                for dy in range(2):
+                    for dx in range(2):
+                        loc[q] = np.uint32(
+                            _code_call(data, z + dz, y + dy, x + dx, nz, ny, nx, ax, ay, az)
+                        )
+                        q += 1
+            dl, sp = _shade_at(loc, zero, two, four, fx, fy, fz, tab, ids[c_lut[e]],
+                               np.uint32(0))  # fmt: skip
+            c_sh[e, 0] = dl
+            c_sh[e, 1] = sp
 
 
 @njit(parallel=True, cache=True)
