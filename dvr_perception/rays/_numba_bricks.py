@@ -436,44 +436,42 @@ def reached_blocks(index, cells, blocks, rep, lab, lab_base, memb, alpha_r, a, b
                     break
 
 
-@njit(cache=True)
-def _corner_blocks(n):
-    """Per voxel ``v`` of an axis of ``n``, the blocks of cells ``v - 1`` and ``v`` (clamped)."""
-    b0 = np.empty(n, np.int64)
-    b1 = np.empty(n, np.int64)
-    for v in range(n):
-        b0[v] = max(min(v - 1, n - 2), 0) >> 2
-        b1[v] = max(min(v, n - 2), 0) >> 2
-    return b0, b1
-
-
 @njit(parallel=True, cache=True)
 def records_reached(data, aspect, index, mask, out):
     """``index | code << 16`` per voxel, the code only at the corners of cells in ``mask``'s blocks.
 
     :func:`_numba_grid.records_where`'s records where a render can shade
-    (:func:`reached_blocks`); every other voxel gets the zero-gradient code.
+    (:func:`reached_blocks`); every other voxel gets the zero-gradient code.  Every voxel is
+    written with that code first (one pass, no code), then the corners of the cells of each
+    marked block (voxels ``4 b .. 4 b + 4`` per axis, the voxels whose cells ``v - 1`` or
+    ``v`` lie in block ``b``) get theirs: a render's marked blocks are a thin shell (the
+    1024 x 1024 x 904 CT: testing 8 blocks per voxel took 0.15 s a brick).  Neighbouring
+    blocks share a layer of voxels, written with the same value.
     """
     nz, ny, nx = data.shape
     ax, ay, az = aspect[0], aspect[1], aspect[2]
-    # per axis, the blocks of the cells a voxel is a corner of (cells v - 1 and v, clamped)
-    zb0, zb1 = _corner_blocks(nz)
-    yb0, yb1 = _corner_blocks(ny)
-    xb0, xb1 = _corner_blocks(nx)
+    zero = np.uint32(_ZERO_CODE) << np.uint32(16)
     for zz in prange(nz):
         z = np.int64(zz)
         for y in range(ny):
             for x in range(nx):
-                need = (
-                    mask[zb0[z], yb0[y], xb0[x]] or mask[zb0[z], yb0[y], xb1[x]]
-                    or mask[zb0[z], yb1[y], xb0[x]] or mask[zb0[z], yb1[y], xb1[x]]
-                    or mask[zb1[z], yb0[y], xb0[x]] or mask[zb1[z], yb0[y], xb1[x]]
-                    or mask[zb1[z], yb1[y], xb0[x]] or mask[zb1[z], yb1[y], xb1[x]]
-                )  # fmt: skip
-                code = _ZERO_CODE
-                if need:
-                    code = _code(data, z, y, x, nz, ny, nx, ax, ay, az)
-                out[z, y, x] = np.uint32(index[z, y, x]) | (np.uint32(code) << np.uint32(16))
+                out[z, y, x] = np.uint32(index[z, y, x]) | zero
+    mz, my, mx = mask.shape
+    for bz in prange(mz):
+        z0 = np.int64(bz) * _BLOCK
+        for by in range(my):
+            y0 = by * _BLOCK
+            for bx in range(mx):
+                if not mask[bz, by, bx]:
+                    continue
+                x0 = bx * _BLOCK
+                for z in range(z0, min(z0 + _BLOCK + 1, nz)):
+                    for y in range(y0, min(y0 + _BLOCK + 1, ny)):
+                        for x in range(x0, min(x0 + _BLOCK + 1, nx)):
+                            code = _code(data, z, y, x, nz, ny, nx, ax, ay, az)
+                            out[z, y, x] = np.uint32(index[z, y, x]) | (
+                                np.uint32(code) << np.uint32(16)
+                            )
 
 
 @njit(cache=True)

@@ -91,3 +91,36 @@ def test_a_new_light_shades_from_the_volume_as_from_the_records(monkeypatch, spa
         assert np.array_equal(got[True, light, "shading"], got[False, light, "shading"])
         assert np.array_equal(got[True, light].rgba, got[False, light].rgba)
     bricks._MEMO.pop(vol, None)
+
+
+@pytest.mark.parametrize("shape", [(9, 14, 11), (13, 8, 17), (2, 6, 5)])
+def test_records_reached_codes_the_corners_of_the_marked_blocks_only(shape):
+    """A voxel gets its code when a cell it is a corner of (``v - 1`` or ``v``) is marked."""
+    from dvr_perception.rays import _grid
+    from dvr_perception.rays._numba_bricks import records_reached
+    from dvr_perception.rays._numba_grid import _ZERO_CODE
+    from dvr_perception.volume.volume import Volume
+
+    rng = np.random.default_rng(sum(shape))
+    data = rng.integers(0, 4000, shape).astype(np.uint16)
+    index = rng.integers(0, 256, shape).astype(np.uint8)
+    vol = Volume(data, (0.8, 1.0, 1.7), (0.0, 0.0, 0.0))
+    codes = _grid.normal_codes(vol).astype(np.uint32)
+    aspect = (2.0 * np.asarray(vol.spacing) / np.mean(vol.spacing)).astype(np.float32)
+    blocks = tuple(-(-max(n - 1, 1) // 4) for n in shape)
+    for density in (0.0, 0.3, 1.0):
+        mask = rng.random(blocks) < density
+        # per axis, the blocks of cells v - 1 and v (clamped to the cells 0 .. n - 2)
+        b0, b1 = (
+            [np.clip(np.arange(n) + d, 0, max(n - 2, 0)) >> 2 for n in shape] for d in (-1, 0)
+        )
+        need = np.zeros(shape, bool)
+        for bz in (b0[0], b1[0]):
+            for by in (b0[1], b1[1]):
+                for bx in (b0[2], b1[2]):
+                    need |= mask[np.ix_(bz, by, bx)]
+        want = index.astype(np.uint32) | (np.where(need, codes, _ZERO_CODE).astype(np.uint32) << 16)
+        out = np.full(shape, 7, np.uint32)
+        records_reached(data, aspect, index, mask, out)
+        assert np.array_equal(out, want), density
+        assert need.any() == mask.any()
