@@ -1053,14 +1053,6 @@ class _PartialMemo(dict):
         self.used += size
         return True
 
-    def shrink(self, budget: float) -> None:
-        """Drop the back bricks (the last kept) until the rest fits ``budget`` bytes."""
-        self.budget = float(budget)
-        while self and self.used > self.budget:
-            _, derived = self.popitem()
-            self.used -= memory.array_bytes(derived)
-        self.used = max(self.used, 0) if self else 0
-
 
 def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dict | None]:
     """Return the memos of ``volume``'s brick-derived volumes and curvature pieces, or None.
@@ -1096,7 +1088,12 @@ def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dic
         hit["bricks"] = _PartialMemo(room) if partial else {}
     if partial:
         memo = hit["bricks"]
-        memo.shrink(room)  # less room than when they were kept: the back bricks go
+        memo.budget = room
+        # less room than when they were kept: start again (dropping only the back bricks
+        # measured a 6.1 GiB peak in the 1024 CT's bench, over its 5.9 GiB limit)
+        if memo.used > room:
+            memo.clear()
+            memo.used = 0
         hit["curvature"], hit["curvature_key"] = {}, None
         return memo, None
     if curvature is None:

@@ -345,20 +345,6 @@ def test_codes_only_where_a_walk_without_a_cache_shades_equal_every_code(phantom
     assert calls  # the reached codes were used
 
 
-def test_a_partial_memo_with_less_room_drops_its_back_bricks_only():
-    memo = bricks._PartialMemo(1000)
-    sizes = {"front": 300, "middle": 300, "back": 300}
-    for name, n in sizes.items():
-        assert memo.offer(name, (None, np.zeros(n, np.uint8)))
-    assert not memo.offer("more", (None, np.zeros(200, np.uint8)))  # 900 + 200 > 1000
-    memo.shrink(650)
-    assert list(memo) == ["front", "middle"]
-    assert memo.used == 600
-    memo.shrink(100)
-    assert not memo
-    assert memo.used == 0
-
-
 @pytest.mark.parametrize("compact", [True, False])
 def test_compact_and_whole_memo_entries_give_the_same_renders(phantom, monkeypatch, compact):
     """A partial memo's entries without voxel records: the same images, frames and lights."""
