@@ -1139,12 +1139,12 @@ def _refiller(volume_ref, bricks, kept, state):
     """
     kept = [None] * len(bricks) if kept is None else list(kept)
 
-    def todo(missing):
-        pieces = _pieces(volume_ref(), missing, None) if missing else iter(())
+    def todo(missing, from_data):
+        pieces = _pieces(volume_ref(), missing, None) if missing and not from_data else iter(())
         for br, k in zip(bricks, kept, strict=True):
             if k is not None:  # (codes or records, their shift, offset)
                 yield (br, *k)
-            elif not REFILL_FROM_DATA:  # the next missing brick, derived one at a time
+            elif not from_data:  # the next missing brick, derived one at a time
                 _, piece, off, _ = next(pieces)
                 yield br, _records(piece, state), 16, off
 
@@ -1158,14 +1158,16 @@ def _refiller(volume_ref, bricks, kept, state):
             raise DVRInputError(
                 "cache: the volume of this bricked analysis is gone; a new light needs it"
             )
-        for br, vol, shift, off in todo(missing if not REFILL_FROM_DATA else []):
+        # from the volume's data only when it is the rays' whole grid (it always is here)
+        from_data = REFILL_FROM_DATA and (volume is None or volume.data.shape == (gz, gy, gx))
+        for br, vol, shift, off in todo(missing, from_data):
             j0, j1 = _runs(state, br)
             geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
             nb.fill_range(cache.start, cache.count, cache.lut, cache.lazy["steps"], cache.shading,
                           cache.curvature, seg["a"], seg["b"], seg["t"], t["step"], j0, j1, vol,
                           np.zeros((2, 2, 2), np.float32), geo, cache.ids, tab, True, False,
                           np.uint32(shift))  # fmt: skip
-        if missing and REFILL_FROM_DATA:  # every entry still unset is in a brick not kept
+        if missing and from_data:  # every entry still unset is in a brick not kept
             spacing = np.asarray(volume.spacing, float)
             aspect = (2.0 * spacing / spacing.mean()).astype(np.float32)  # as the records'
             nb.fill_from_data(cache.start, cache.count, cache.lut, cache.lazy["steps"],
