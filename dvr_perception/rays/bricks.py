@@ -370,27 +370,72 @@ def _derive_reached(piece: Volume, state: RayState, brick: Brick, offset) -> tup
     brick); every other voxel's record holds the zero-gradient code, which the walk never
     reads.  Not for a memo (another view shades elsewhere).
     """
-    _, nb = _kernels()
-    t, seg = state.tables, state.seg
+    t = state.tables
     lut = t["lut"]
     idx = _grid.index_volume(piece, lut.lo, lut.scale, lut.size)
     labmap = _grid.label_map(piece, t["labels"]) if t["labels"] else None
     cells = _grid.cell_map(piece, idx, t["ids"], t["memb"], labmap)
     blocks = _grid.block_map(piece, cells)
+    rec = _reached_records(piece, state, brick, offset, idx, cells, blocks, labmap)
+    return rec, _grid.compact_index(piece, idx), cells, blocks, labmap
+
+
+def _reached_records(piece, state, brick, offset, index, cells, blocks, labmap) -> np.ndarray:
+    """Return :func:`_derive_reached`'s voxel records from the brick's other derived volumes.
+
+    ``index``: the table index per voxel (or its compact copy, the same values).
+    """
+    _, nb = _kernels()
+    t, seg = state.tables, state.seg
+    lut = t["lut"]
     j0, j1 = _runs(state, brick)
     gz, gy, gx = state.geometry.shape
     geo = np.array([gx, gy, gz, offset[2], offset[1], offset[0]], np.int64)
     lab, lab_base = (labmap, lut.size) if labmap is not None else (np.zeros((2, 2, 2), np.uint8),
                                                                    -1)  # fmt: skip
     mask = np.zeros(blocks.shape, np.bool_)
-    nb.reached_blocks(idx, cells, blocks, t["rep"], lab, lab_base, t["memb"], t["alpha_r"],
+    nb.reached_blocks(index, cells, blocks, t["rep"], lab, lab_base, t["memb"], t["alpha_r"],
                       seg["a"], seg["b"], seg["t"], j0, j1, t["step"],
                       np.ascontiguousarray(state.st[:, 3]), _tables.ERT, geo, mask)  # fmt: skip
+    rec = np.empty(index.shape, np.uint32)
+    nb.records_reached(piece.data, _aspect(piece), index, mask, rec)
+    return rec
+
+
+def _aspect(piece: Volume) -> np.ndarray:
     spacing = np.asarray(piece.spacing, float)
-    aspect = (2.0 * spacing / spacing.mean()).astype(np.float32)  # as _grid.voxel_records
-    rec = np.empty(idx.shape, np.uint32)
-    nb.records_reached(piece.data, aspect, idx, mask, rec)
-    return rec, _grid.compact_index(piece, idx), cells, blocks, labmap
+    return (2.0 * spacing / spacing.mean()).astype(np.float32)  # as _grid.voxel_records
+
+
+def _derive_compact(piece: Volume, state: RayState) -> tuple:
+    """:func:`derive` without the voxel records: a :class:`_PartialMemo` entry.
+
+    ``(None, tix, cells, blocks, labmap)``: the table index (uint8 where the table allows,
+    else the uint16 index), cell classes, block map and labels; about 2 bytes a voxel
+    instead of 7.  :func:`_expand` makes the records again from the brick's piece.
+    """
+    t = state.tables
+    lut = t["lut"]
+    idx = _grid.index_volume(piece, lut.lo, lut.scale, lut.size)
+    labmap = _grid.label_map(piece, t["labels"]) if t["labels"] else None
+    cells = _grid.cell_map(piece, idx, t["ids"], t["memb"], labmap)
+    return None, _grid.compact_index(piece, idx), cells, _grid.block_map(piece, cells), labmap
+
+
+def _expand(piece, state, entry, brick, offset, reached) -> tuple:
+    """:func:`derive`'s volumes from a :func:`_derive_compact` entry and the brick's ``piece``.
+
+    The records are made from the kept table index and cell classes (:func:`derive`'s,
+    bit for bit): for a walk without a cache (``reached``) only where it can shade
+    (:func:`_reached_records`), else wherever shading can read them.
+    """
+    _, tix, cells, blocks, labmap = entry
+    if reached:
+        rec = _reached_records(piece, state, brick, offset, tix, cells, blocks, labmap)
+    else:
+        rec = np.empty(tix.shape, np.uint32)
+        _grid._fast().records_where(piece.data, _aspect(piece), tix, cells, rec)
+    return rec, tix, cells, blocks, labmap
 
 
 def _records(piece: Volume, state: RayState) -> np.ndarray:
@@ -990,7 +1035,9 @@ class _PartialMemo(dict):
 
     Bricks are added as they are walked (front to back) until the budget is spent; the
     others are derived again by every analysis.  A render of a volume too large for the
-    memo then re-derives only the bricks behind those kept.
+    memo then re-derives only the bricks behind those kept.  When shading, the entries are
+    compact (:func:`_derive_compact`: no voxel records, about 2 bytes a voxel instead of 7,
+    so about 3.5 times as many bricks fit); their records are made again from the piece.
     """
 
     def __init__(self, budget: float) -> None:
@@ -1023,8 +1070,9 @@ def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dic
     )  # fmt: skip
     held = sum(math.prod(b - a for a, b in br.voxels(volume.data.shape)) for br in bricks)
     partial = 7 * held > room
-    if partial and room < 7 * max(math.prod(b - a for a, b in br.voxels(volume.data.shape))
-                                  for br in bricks):  # fmt: skip
+    least = _partial_voxel_bytes(t) if partial else 7  # a brick's entry, bytes a voxel
+    if partial and room < least * max(math.prod(b - a for a, b in br.voxels(volume.data.shape))
+                                      for br in bricks):  # fmt: skip
         _MEMO.pop(volume, None)  # not even one brick
         return None, None
     hit = _MEMO.get(volume)
@@ -1042,7 +1090,9 @@ def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dic
     if partial:
         memo = hit["bricks"]
         memo.budget = room
-        if memo.used > room:  # less room than when they were kept: start again
+        # less room than when they were kept: start again (dropping only the back bricks
+        # measured a 6.1 GiB peak in the 1024 CT's bench, over its 5.9 GiB limit)
+        if memo.used > room:
             memo.clear()
             memo.used = 0
         hit["curvature"], hit["curvature_key"] = {}, None
@@ -1061,45 +1111,80 @@ def _memo(volume, state, bricks, room, curvature=None) -> tuple[dict | None, dic
     return hit["bricks"], hit["curvature"]
 
 
+def _records_kept(memo, brick) -> bool:
+    """Whether ``memo`` keeps ``brick``'s voxel records (not a compact entry, or none)."""
+    return memo is not None and memo.get(brick, (None,))[0] is not None
+
+
+#: A :class:`_PartialMemo` keeps compact entries when shading (:func:`_derive_compact`: the
+#: records made again from the piece at each analysis; about 2 bytes a voxel instead of 7).
+#: The 1024 x 1024 x 904 CT under the default limit kept 17 of its 64 bricks at 7 bytes.
+#: ``False``: whole entries (the same results).
+COMPACT_MEMO = True
+
+
+def _partial_voxel_bytes(tables) -> int:
+    """Bytes per voxel of a :class:`_PartialMemo` entry (:func:`_derive_compact`), rounded up."""
+    if not tables["shade"] or not COMPACT_MEMO:
+        return 7  # derive's volumes as they are (the table index is the walk's volume)
+    return 2 if tables["lut"].size <= 256 else 3
+
+
 def _refiller(volume_ref, bricks, kept, state):
     """Recompute every entry's shading brick by brick (after a change of light).
 
     ``kept``: per brick its normal codes (or voxel records), their shift and offset
-    (:func:`walk`'s ``keep_codes``), ``None`` for a brick to re-derive from the volume (slow:
-    done on every change of light), or ``None`` for all of them.
+    (:func:`walk`'s ``keep_codes``), ``None`` for a brick whose entries' normal codes are
+    computed from the volume (:func:`_numba_bricks.fill_from_data`, at each change of
+    light; :data:`REFILL_FROM_DATA`), or ``None`` for all of them.
     """
     kept = [None] * len(bricks) if kept is None else list(kept)
 
-    def todo():
-        missing = [br for br, k in zip(bricks, kept, strict=True) if k is None]
-        pieces = iter(())
-        if missing:
-            volume = volume_ref()
-            if volume is None:
-                raise DVRInputError(
-                    "cache: the volume of this bricked analysis is gone; a new light needs it"
-                )
-            pieces = _pieces(volume, missing, None)
+    def todo(missing, from_data):
+        pieces = _pieces(volume_ref(), missing, None) if missing and not from_data else iter(())
         for br, k in zip(bricks, kept, strict=True):
-            if k is None:  # the next missing brick, derived one at a time
+            if k is not None:  # (codes or records, their shift, offset)
+                yield (br, *k)
+            elif not from_data:  # the next missing brick, derived one at a time
                 _, piece, off, _ = next(pieces)
                 yield br, _records(piece, state), 16, off
-            else:  # (codes or records, their shift, offset)
-                yield (br, *k)
 
     def refill(cache, tab):
         _, nb = _kernels()
         seg, t = state.seg, state.tables
         gz, gy, gx = state.geometry.shape
-        for br, vol, shift, off in todo():
+        missing = [br for br, k in zip(bricks, kept, strict=True) if k is None]
+        volume = volume_ref() if missing else None
+        if missing and volume is None:
+            raise DVRInputError(
+                "cache: the volume of this bricked analysis is gone; a new light needs it"
+            )
+        # from the volume's data only when it is the rays' whole grid (it always is here)
+        from_data = REFILL_FROM_DATA and (volume is None or volume.data.shape == (gz, gy, gx))
+        for br, vol, shift, off in todo(missing, from_data):
             j0, j1 = _runs(state, br)
             geo = np.array([gx, gy, gz, off[2], off[1], off[0]], np.int64)
             nb.fill_range(cache.start, cache.count, cache.lut, cache.lazy["steps"], cache.shading,
                           cache.curvature, seg["a"], seg["b"], seg["t"], t["step"], j0, j1, vol,
                           np.zeros((2, 2, 2), np.float32), geo, cache.ids, tab, True, False,
                           np.uint32(shift))  # fmt: skip
+        if missing and from_data:  # every entry still unset is in a brick not kept
+            spacing = np.asarray(volume.spacing, float)
+            aspect = (2.0 * spacing / spacing.mean()).astype(np.float32)  # as the records'
+            nb.fill_from_data(cache.start, cache.count, cache.lut, cache.lazy["steps"],
+                              cache.shading, seg["a"], seg["b"], seg["t"], t["step"],
+                              volume.data, aspect, cache.ids, tab)  # fmt: skip
 
     return refill
+
+
+#: After a change of light, the bricks whose normal codes were not kept shade their cache
+#: entries from the volume itself (8 codes per entry, :func:`_numba_bricks.fill_from_data`)
+#: instead of deriving their voxel records again (every voxel of every such brick).  The
+#: 1024 x 1024 x 904 CT (61 of 64 bricks without codes, loaded 2-core machine): 29-45 s per
+#: change of light for the optimiser's cache of 96^2 rays, 0.6 s from the volume; its 512^2
+#: cache 58 s, 10 s.  ``False``: derive them (the same shading).
+REFILL_FROM_DATA = True
 
 
 #: Keep the bricks' normal codes for a change of light (front bricks first) while they take at
@@ -1294,7 +1379,8 @@ def _pass(volume, states, bricks, curv, cap, build_cache, report=None, room=0.0,
     # (a partial memo's bricks keep their records; codes for the others, as without a memo)
     codes_kept = memo is None or isinstance(memo, _PartialMemo)
     keep = min(KEEP_CODES_SHARE * cap, room) if build_cache and codes_kept else 0.0
-    known = set(memo) if memo is not None else set()
+    # (compact entries of a partial memo: their pieces are read, for the voxel records)
+    known = {br for br, d in memo.items() if d[0] is not None} if memo is not None else set()
     locked = _CURV_SCRATCH_LOCK.acquire(blocking=False)
     try:
         return _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo, keep,
@@ -1321,6 +1407,8 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
     keep_all = bool(keep) and sum(sizes) <= keep
     partial = isinstance(memo, _PartialMemo)  # some bricks only: re-derived after a new light
     full = memo is not None and not partial
+    compact = partial and states[0].tables["shade"] and COMPACT_MEMO  # entries without records
+    per = _partial_voxel_bytes(states[0].tables) if partial else 7
     # without a cache, one camera: codes only where the walk can shade (_derive_reached)
     reached = (REACHED_CODES and not build_cache and len(states) == 1
                and states[0].tables["shade"])  # fmt: skip
@@ -1343,12 +1431,19 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
             cv = cmemo.setdefault(br, cv)
         pieces_kept.append(cv if lazy_curv else None)
         derived = memo.get(br) if memo is not None else None
+        if derived is not None and derived[0] is None:  # a compact entry: its records anew
+            derived = _expand(piece, states[0], derived, br, off, reached)
         if full and derived is None:
             derived = memo[br] = derive(piece, states[0])
         elif derived is None and reached:  # kept while the memo has room, else codes reached
-            if partial and memo.used + 7 * piece.data.size <= memo.budget:
-                derived = derive(piece, states[0])
-                memo.offer(br, derived)
+            if partial and memo.used + per * piece.data.size <= memo.budget:
+                if compact:
+                    parts = _derive_compact(piece, states[0])
+                    memo.offer(br, parts)
+                    derived = _expand(piece, states[0], parts, br, off, True)
+                else:
+                    derived = derive(piece, states[0])
+                    memo.offer(br, derived)
             else:
                 derived = _derive_reached(piece, states[0], br, off)
         elif partial and derived is None:
@@ -1356,7 +1451,7 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
         if derived is None and len(states) > 1:
             derived = derive(piece, states[0])  # once for every state
         codes = None
-        in_memo = partial and br in memo  # its records serve a new light
+        in_memo = partial and _records_kept(memo, br)  # its records serve a new light
         keep_br = bool(keep) and not in_memo and used + sizes[done - 1] <= keep
         used += sizes[done - 1] if keep_br else 0
         for n, st in enumerate(states):
@@ -1376,7 +1471,7 @@ def _pass_locked(volume, states, bricks, curv, build_cache, report, memo, cmemo,
                 c.codes = None
                 k = (codes, 0)
             else:
-                k = (derived[0], 16) if memo is not None and br in memo else None
+                k = (derived[0], 16) if _records_kept(memo, br) else None
             kept[n].append(None if k is None else (*k, off))
         if report:
             report(done / len(bricks))

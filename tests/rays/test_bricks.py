@@ -285,9 +285,10 @@ def test_a_partial_memo_keeps_the_front_bricks_of_renders(phantom, monkeypatch):
     bricks._MEMO.pop(vol, None)
     monkeypatch.setattr(bricks, "_room", lambda *a: 7.5 * 5 * one)  # about 5 of 27 bricks
     calls = []
-    real, reached = bricks.derive, bricks._derive_reached
+    real, reached, compact = bricks.derive, bricks._derive_reached, bricks._derive_compact
     monkeypatch.setattr(bricks, "derive", lambda *a: calls.append(1) or real(*a))
     monkeypatch.setattr(bricks, "_derive_reached", lambda *a: calls.append(1) or reached(*a))
+    monkeypatch.setattr(bricks, "_derive_compact", lambda *a: calls.append(1) or compact(*a))
     whole = analyze(vol, spec, cam, build_cache=False, occlusion_free=False)
     kw = {"brick": size, "build_cache": False, "occlusion_free": False}
     first = bricks.analyze_bricked(vol, spec, cam, **kw)
@@ -296,6 +297,12 @@ def test_a_partial_memo_keeps_the_front_bricks_of_renders(phantom, monkeypatch):
     assert isinstance(memo, bricks._PartialMemo)
     assert 0 < len(memo) < walked
     assert memo.used <= memo.budget
+    # compact entries (no voxel records): about 2 bytes a voxel, so more than 7.5 * 5 / 7 fit
+    assert all(d[0] is None for d in memo.values())
+    assert len(memo) > 5
+    assert memo.used <= 2.1 * sum(
+        np.prod([b - a for a, b in br.voxels(vol.data.shape)]) for br in memo
+    )
     second = bricks.analyze_bricked(vol, spec, cam, **kw)
     assert len(calls) - walked == walked - len(memo)  # the kept bricks are not derived again
     for got in (first, second):
@@ -336,3 +343,31 @@ def test_codes_only_where_a_walk_without_a_cache_shades_equal_every_code(phantom
                 assert np.array_equal(a, b, equal_nan=True), name
         assert _max_diff(whole, got[True]) <= 1e-6
     assert calls  # the reached codes were used
+
+
+@pytest.mark.parametrize("compact", [True, False])
+def test_compact_and_whole_memo_entries_give_the_same_renders(phantom, monkeypatch, compact):
+    """A partial memo's entries without voxel records: the same images, frames and lights."""
+    vol, spec, curv = phantom
+    monkeypatch.setattr(bricks, "COMPACT_MEMO", compact)
+    cam = Camera.from_view(vol.bounds, width=30, height=26, azimuth=50.0, elevation=-30.0)
+    size = (9, 11, 13)
+    one = max(np.prod([b - a for a, b in br.voxels(vol.data.shape)])
+              for br in bricks.split(vol.data.shape, size))  # fmt: skip
+    bricks._MEMO.pop(vol, None)
+    monkeypatch.setattr(bricks, "_room", lambda *a: 7.5 * 4 * one)  # a few bricks only
+    kw = {"brick": size, "build_cache": False, "occlusion_free": False}
+    whole = analyze(vol, spec, cam, build_cache=False, occlusion_free=False)
+    for _ in range(2):  # the second from the memo
+        got = bricks.analyze_bricked(vol, spec, cam, **kw)
+        assert np.array_equal(whole.rgba, got.rgba)
+    memo = bricks._MEMO[vol]["bricks"]
+    assert len(memo) > 0
+    assert all((d[0] is None) == compact for d in memo.values())
+    full = analyze(vol, spec, cam, curvature=curv, build_cache=True)
+    frame = bricks.analyze_bricked(vol, spec, cam, brick=size, curvature=curv)
+    assert _max_diff(full, frame) <= 1e-6
+    light = (-0.3, 0.6, 0.7)
+    assert _max_diff(reevaluate(full.cache, light_direction=light),
+                     reevaluate(frame.cache, light_direction=light)) <= 1e-6  # fmt: skip
+    bricks._MEMO.pop(vol, None)
