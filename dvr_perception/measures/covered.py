@@ -137,22 +137,33 @@ def _without_many(analysis, spec, pixels: dict) -> dict:
     Each luminance is exact on its mask (an (H, W) bool array) and 0 elsewhere.  An engine
     analysis without a cache walks the masks' rays once for all the layers
     (:func:`~dvr_perception.rays.engine.rewalk_rgba`: the same colour as :func:`_without`'s
-    walk, to the bit, and the same luminance); otherwise each layer is :func:`_without`.
+    walk, to the bit, and the same luminance); one with a numba cache re-composites them after
+    one set-up of its materials and light (:func:`~dvr_perception.rays.engine.reevaluate_rgba`,
+    the same colour as :func:`_without`'s); otherwise each layer is :func:`_without`.
     """
-    from dvr_perception.rays.engine import rewalk_rgba
+    from dvr_perception.rays.engine import RayCache, reevaluate_rgba, rewalk_rgba
 
     params = getattr(analysis, "stats", {}).get("params")
-    if has_cache(analysis) or not can_recomposite(analysis) or params is None:
+    cache = getattr(analysis, "cache", None)
+    numba_cache = isinstance(cache, RayCache) and cache.backend in ("numba", "cuda")
+    if params is None or not (
+        numba_cache or (not has_cache(analysis) and can_recomposite(analysis))
+    ):
         return {e: _without(analysis, spec, e, mask) for e, mask in pixels.items()}
     variants, shape = [], analysis.accumulated.shape
     for e, mask in pixels.items():
         ops = list(params["opacities"])
         ops[e] = 0.0
         variants.append((ops, np.flatnonzero(mask)))
+    if numba_cache:  # one set-up of the materials and light for all the layers
+        rgbas = reevaluate_rgba(cache, variants, colours=params["colours"],
+                                lighting=params["lighting"],
+                                light_direction=params["light_direction"])  # fmt: skip
+    else:
+        rgbas = rewalk_rgba(analysis, variants)
     bg = np.asarray(tuple(spec.background), np.float64)
     out = {}
-    for (e, _), (_, rays), rgba in zip(pixels.items(), variants, rewalk_rgba(analysis, variants),
-                                       strict=True):  # fmt: skip
+    for (e, _), (_, rays), rgba in zip(pixels.items(), variants, rgbas, strict=True):
         y = np.zeros(shape[0] * shape[1])
         y[rays] = np.clip(_composite(np.asarray(rgba, np.float64), bg), 0.0, 1.0)
         out[e] = y.reshape(shape)

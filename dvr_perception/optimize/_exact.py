@@ -60,6 +60,9 @@ def _composite_grad_body(rays, start, count, lut, ids, alpha, dalpha, dlog, k, e
     rays go in blocks of :data:`BLOCK`: each block has its scratch
     (the running ``G``, one ray's ``visible`` and ``d visible``), so a ray's sums stay in a few
     cache lines and are written out once, with the same operations in the same order.
+    ``G_q`` is 0 until structure ``q`` is met on the ray, and adding ``w * 0`` to a
+    derivative that only ever had such terms leaves it 0: only the structures met so far are
+    visited (the same numbers, fewer operations).
     """
     n = rays.shape[0]
     nblock = (n + BLOCK - 1) // BLOCK
@@ -67,12 +70,16 @@ def _composite_grad_body(rays, start, count, lut, ids, alpha, dalpha, dlog, k, e
         g = np.empty(k)
         lv = np.empty(k)
         ld = np.empty(k * k if grad else 1)
+        met = np.empty(k, np.int64)  # the structures met so far on the ray, in order
+        seen = np.empty(k, np.bool_)
         for i in range(b * BLOCK, min((b + 1) * BLOCK, n)):
             r = rays[i]
             tr = 1.0
+            m = 0
             for s in range(k):
                 g[s] = 0.0
                 lv[s] = 0.0
+                seen[s] = False
             if grad:
                 for q in range(k * k):
                     ld[q] = 0.0
@@ -85,8 +92,13 @@ def _composite_grad_body(rays, start, count, lut, ids, alpha, dalpha, dlog, k, e
                 w = al * tr
                 lv[s] += w
                 if grad:
+                    if not seen[s]:
+                        seen[s] = True
+                        met[m] = s
+                        m += 1
                     row = s * k
-                    for q in range(k):
+                    for qi in range(m):  # G is 0 for a structure not met yet: nothing to add
+                        q = met[qi]
                         ld[row + q] += w * g[q]
                     ld[row + s] += dalpha[idx] * tr
                     g[s] -= dlog[idx]

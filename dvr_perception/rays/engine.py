@@ -84,6 +84,7 @@ __all__ = [
     "analyze",
     "analyze_views",
     "reevaluate",
+    "reevaluate_rgba",
     "rewalk",
     "rewalk_rgba",
 ]
@@ -1170,6 +1171,37 @@ def _lighting(z: dict, camera, mats, direction, intensity, shade: bool, k: int) 
     return out
 
 
+def _refresh_shading(cache: RayCache, nk, tab: np.ndarray, key, shade: bool) -> None:
+    """Bring the cached shading up to a change of light or specular powers.
+
+    ``key`` is the new shading key (:func:`_lighting`); nothing is done when it is the
+    cache's own.  ``nk``: the numba kernels (entries marked, shaded again on first use), or
+    None for a numpy cache (every entry shaded again here).
+    """
+    z = cache.lazy
+    if key == z["shading_key"]:
+        return
+    if nk is None:
+        seg = {"a": z["a"], "b": z["b"], "t": z["t"]}
+        cache.shading[:] = _npk.shade_entries(
+            z["volume"], seg, z["step"], cache.start, cache.count, z["steps"],
+            cache.ids[cache.lut], tab, shade,
+        )  # fmt: skip
+    else:
+        # specular powers alone changed: only those structures' entries are recomputed
+        stale = None if z.get("refill") else _tables.stale_structures(z["shading_key"], key)
+        with serial_below(len(cache.shading)):
+            if stale is None:
+                nk.invalidate(cache.shading)
+            else:
+                nk.invalidate_structures(cache.shading, cache.lut, cache.ids, stale)
+        if z.get("fill") is not None:  # a lazily shaded bricked cache: shaded below
+            z["filled"] = None
+        elif z.get("refill") is not None:  # a bricked cache: no whole volume to fill from
+            z["refill"](cache, tab)
+    z["shading_key"] = key
+
+
 @renamed_keyword("colors", "colours")
 def reevaluate(
     cache: RayCache,
@@ -1241,26 +1273,7 @@ def reevaluate(
     args = (cache.ids, alpha_r, cols, light, tab, shade, has_curv, _tables.ERT)
     h, w = camera.height, camera.width
     nk = _numba_kernels() if cache.backend in ("numba", "cuda") else None
-    if key != z["shading_key"]:  # new light or specular powers: shading tables changed
-        if nk is None:
-            seg = {"a": z["a"], "b": z["b"], "t": z["t"]}
-            cache.shading[:] = _npk.shade_entries(
-                z["volume"], seg, z["step"], cache.start, cache.count, z["steps"],
-                cache.ids[cache.lut], tab, shade,
-            )  # fmt: skip
-        else:
-            # specular powers alone changed: only those structures' entries are recomputed
-            stale = None if z.get("refill") else _tables.stale_structures(z["shading_key"], key)
-            with serial_below(len(cache.shading)):
-                if stale is None:
-                    nk.invalidate(cache.shading)
-                else:
-                    nk.invalidate_structures(cache.shading, cache.lut, cache.ids, stale)
-            if z.get("fill") is not None:  # a lazily shaded bricked cache: shaded below
-                z["filled"] = None
-            elif z.get("refill") is not None:  # a bricked cache: no whole volume to fill from
-                z["refill"](cache, tab)
-        z["shading_key"] = key
+    _refresh_shading(cache, nk, tab, key, shade)  # new light or specular powers
     if nk is not None and z.get("fill") is not None:  # what compositing can reach is shaded
         z["fill"](cache, alpha_r, tab)
     if nk is None:
@@ -1316,3 +1329,86 @@ def reevaluate(
         cache,
         cache.importance_accumulated,
     )
+
+
+def reevaluate_rgba(
+    cache: RayCache, variants, *, lighting=None, colours=None, light_direction=None
+) -> list[np.ndarray]:
+    """:func:`reevaluate`'s premultiplied colour for several opacity sets, each on its own rays.
+
+    For each ``(opacities, rays)`` of ``variants``, the float32 ``(len(rays), 4)`` ``rgba``
+    of ``reevaluate(cache, opacities=opacities, rays=rays, ...)`` on those pixels, in
+    ascending pixel order (``rays`` sorted, repeats dropped): the same numbers to the bit.
+    The materials, colours and light (as :func:`reevaluate`'s) are set up once for all the
+    variants; each is then composited from the cache on its own rays.  What DECISIONS D7's
+    view without each enclosing layer needs, for all the enclosers of a cached analysis at
+    once (the optimiser's renderings).
+
+    Parameters
+    ----------
+    cache : RayCache
+        ``analyze(..., build_cache=True).cache`` of the numba or cuda backend.
+    variants : sequence of (array_like, array_like)
+        ``(opacities, rays)``: ``K`` rendering opacities and flat pixel indices.
+    lighting, colours, light_direction : optional
+        As :func:`reevaluate`'s, shared by every variant.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        One float32 ``(n, 4)`` array per variant.
+
+    Raises
+    ------
+    DVRInputError
+        If ``cache`` is not a numba or cuda :class:`RayCache`, or a variant's opacities or
+        rays are not valid.
+
+    Examples
+    --------
+    >>> from dvr_perception.structures.phantom import make_phantom
+    >>> vol, spec = make_phantom(size=24)
+    >>> cam = Camera.from_view(vol.bounds, width=8, height=8)
+    >>> res = analyze(vol, spec, cam, build_cache=True)
+    >>> ops = [s.render_opacity for s in spec.structures]
+    >>> both = reevaluate_rgba(res.cache, [(ops, [28, 27]), ([0.0] + ops[1:], [27])])
+    >>> bool((both[0] == res.rgba[3, 3:5]).all()), both[1].shape
+    (True, (1, 4))
+    """
+    if not isinstance(cache, RayCache) or cache.backend not in ("numba", "cuda"):
+        raise DVRInputError(
+            "cache: expected the numba or cuda RayCache of analyze(..., build_cache=True), "
+            f"got {type(cache).__name__}"
+        )
+    spec, camera = cache.spec, cache.camera
+    k = len(spec.structures)
+    cols, mats = _tables.material(spec, colours=colours, lighting=lighting)
+    rs = spec.rendering
+    direction = rs.light_direction if light_direction is None else light_direction
+    shade = bool(rs.shade)
+    has_curv = cache.curvature.size > 0
+    z = cache.lazy
+    light, tab, key = _lighting(z, camera, mats, direction, rs.light_intensity, shade, k)
+    nk = _numba_kernels()
+    _refresh_shading(cache, nk, tab, key, shade)
+    n = camera.height * camera.width
+    bg = np.asarray(spec.background, np.float32)
+    got = []
+    for opacities, rays in variants:
+        ops = _tables.check_opacities(opacities, k)
+        order, chunk_ptr = _subset_order(rays, n)
+        alpha_r = _tables.alpha_table(cache.ids, cache.membership, ops, cache.ratio)
+        if z.get("fill") is not None:  # what compositing can reach is shaded
+            z["fill"](cache, alpha_r, tab)
+        out = (bg, np.zeros((n, 4), np.float32), np.zeros((n, 3), np.float32),
+               np.zeros(n, np.float32), np.zeros((k, n), np.float32),
+               np.zeros(n, np.float32))  # fmt: skip
+        with serial_below(int(cache.count[order].sum())):  # as reevaluate's
+            nk.composite(
+                cache.start, cache.count, cache.lut, z["steps"], cache.shading,
+                cache.curvature, z["a"], z["b"], z["t"], z["step"], z["volume"],
+                z["curvature_volume"], order, chunk_ptr, len(chunk_ptr) - 1, cache.ids, alpha_r,
+                cols, light, tab, shade, has_curv, _tables.ERT, out,
+            )  # fmt: skip
+        got.append(out[1][order])
+    return got

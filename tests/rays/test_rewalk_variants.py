@@ -167,3 +167,50 @@ def test_the_walks_without_layers_are_recorded_per_analysis():
     assert (rec["layers"], rec["rays"], rec["bytes"]) == (2, 3, 3 * 4 * 4)
     assert rec["seconds"] > 0
     assert recomposites(analyze(vol, spec, cam)) == []  # another analysis: its own record
+
+
+@pytest.mark.parametrize("shade", [False, True])
+def test_cached_variants_equal_their_own_reevaluation_to_the_bit(shade, shell_scene):
+    from dvr_perception.rays.engine import reevaluate, reevaluate_rgba
+    from dvr_perception.structures.spec import Lighting
+
+    vol, spec = shell_scene(shade, inner=6.5)
+    cam = Camera.from_view(vol.bounds, width=34, height=26, azimuth=25, elevation=15)
+    cache = analyze(vol, spec, cam, build_cache=True).cache
+    n = cam.width * cam.height
+    rng = np.random.default_rng(7)
+    mats = [Lighting(0.2, 0.7, 0.5, 30.0), Lighting(0.1, 0.9, 0.2, 8.0), Lighting()]
+    look = {"colours": [(1.0, 0.2, 0.1), (0.1, 0.8, 0.3), (0.9, 0.9, 0.2)], "lighting": mats,
+            "light_direction": (0.3, 0.2, 1.0)}  # fmt: skip
+    variants = [([0.0, 1.0, 1.0], rng.choice(n, 300)), ([0.3, 0.0, 0.8], rng.choice(n, 200)),
+                ([0.3, 1.0, 1.0], np.arange(n)), ([0.0, 0.0, 0.0], [5])]  # fmt: skip
+    reevaluate(cache, opacities=[0.5, 0.5, 0.5])  # another light set up last: shaded again
+    got = reevaluate_rgba(cache, variants, **look)
+    for (ops, rays), rgba in zip(variants, got, strict=True):
+        want = reevaluate(cache, opacities=ops, rays=rays, **look).rgba.reshape(-1, 4)
+        assert rgba.dtype == np.float32
+        assert np.array_equal(rgba, want[np.unique(rays)])
+    assert np.array_equal(
+        got[2], reevaluate(cache, opacities=[0.3, 1.0, 1.0], **look).rgba.reshape(-1, 4)
+    )
+    assert not got[3].any()
+    assert not np.array_equal(got[0][:, :3], got[2][np.unique(variants[0][1]), :3])
+    with pytest.raises(DVRInputError, match="cache"):
+        reevaluate_rgba(analyze(vol, spec, cam), variants)
+    with pytest.raises(DVRInputError, match="rays"):
+        reevaluate_rgba(cache, [([0.3, 1.0, 1.0], [n])])
+
+
+def test_cached_many_layers_luminance_equals_one_layer_at_a_time(shell_scene):
+    vol, spec = shell_scene(True, inner=6.5)
+    cam = Camera.from_view(vol.bounds, width=32, height=28, azimuth=10)
+    res = analyze(vol, spec, cam, build_cache=True)
+    rng = np.random.default_rng(5)
+    masks = {e: rng.random((cam.height, cam.width)) < 0.4 for e in range(3)}
+    many = _without_many(res, spec, masks)
+    for e, mask in masks.items():
+        assert np.array_equal(many[e][mask], _without(res, spec, e, mask)[mask])
+        assert not many[e][~mask].any()
+    walked = _without_many(analyze(vol, spec, cam), spec, masks)  # no cache: walked again
+    for e in masks:
+        np.testing.assert_allclose(many[e], walked[e], rtol=0, atol=1e-6)
