@@ -1297,13 +1297,7 @@ def reevaluate(
             order, chunk_ptr = _subset_order(rays, h * w)
             out[2][:] = np.clip(out[0], 0.0, 1.0)
             work = int(cache.count[order].sum())
-        with serial_below(work):  # few entries: numba's threads cost more than they save
-            nk.composite(
-                cache.start, cache.count, cache.lut, z["steps"], cache.shading,
-                cache.curvature, z["a"], z["b"], z["t"], z["step"], z["volume"],
-                z["curvature_volume"], order, chunk_ptr, len(chunk_ptr) - 1, cache.ids, alpha_r,
-                cols, light, tab, shade, has_curv, _tables.ERT, out,
-            )  # fmt: skip
+        _composite(nk, cache, order, chunk_ptr, work, alpha_r, cols, light, tab, shade, out)
         stats = {"backend": cache.backend, "rays": h * w, "reevaluated": True}
         if rays is not None:
             stats.update(rays=len(order), partial=True)
@@ -1329,6 +1323,22 @@ def reevaluate(
         cache,
         cache.importance_accumulated,
     )
+
+
+def _composite(nk, cache, order, chunk_ptr, work, alpha_r, cols, light, tab, shade, out):
+    """Composite ``cache``'s entries of the rays ``order`` into ``out`` (numba kernel).
+
+    ``work``: the entries composited; few run on the calling thread (numba's threads cost
+    more than they save).
+    """
+    z = cache.lazy
+    with serial_below(work):
+        nk.composite(
+            cache.start, cache.count, cache.lut, z["steps"], cache.shading,
+            cache.curvature, z["a"], z["b"], z["t"], z["step"], z["volume"],
+            z["curvature_volume"], order, chunk_ptr, len(chunk_ptr) - 1, cache.ids, alpha_r,
+            cols, light, tab, shade, cache.curvature.size > 0, _tables.ERT, out,
+        )  # fmt: skip
 
 
 def reevaluate_rgba(
@@ -1386,7 +1396,6 @@ def reevaluate_rgba(
     rs = spec.rendering
     direction = rs.light_direction if light_direction is None else light_direction
     shade = bool(rs.shade)
-    has_curv = cache.curvature.size > 0
     z = cache.lazy
     light, tab, key = _lighting(z, camera, mats, direction, rs.light_intensity, shade, k)
     nk = _numba_kernels()
@@ -1403,12 +1412,7 @@ def reevaluate_rgba(
         out = (bg, np.zeros((n, 4), np.float32), np.zeros((n, 3), np.float32),
                np.zeros(n, np.float32), np.zeros((k, n), np.float32),
                np.zeros(n, np.float32))  # fmt: skip
-        with serial_below(int(cache.count[order].sum())):  # as reevaluate's
-            nk.composite(
-                cache.start, cache.count, cache.lut, z["steps"], cache.shading,
-                cache.curvature, z["a"], z["b"], z["t"], z["step"], z["volume"],
-                z["curvature_volume"], order, chunk_ptr, len(chunk_ptr) - 1, cache.ids, alpha_r,
-                cols, light, tab, shade, has_curv, _tables.ERT, out,
-            )  # fmt: skip
+        work = int(cache.count[order].sum())
+        _composite(nk, cache, order, chunk_ptr, work, alpha_r, cols, light, tab, shade, out)
         got.append(out[1][order])
     return got
