@@ -85,3 +85,28 @@ def _shell_scene(shade: bool, inner: float = 8.5):
 def shell_scene():
     """``shell_scene(shade, inner=8.5)``: (volume, spec) of a shell around two blobs."""
     return _shell_scene
+
+
+def _noisy_blobs(shape=(18, 30, 26), spacing=(1.0, 1.0, 2.0), seed=3, labels=False):
+    """Two soft balls and a slab, with noise (boundaries cross brick and page edges)."""
+    import numpy as np
+
+    from dvr_perception.volume.volume import Volume
+
+    rng = np.random.default_rng(seed)
+    z, y, x = np.mgrid[: shape[0], : shape[1], : shape[2]].astype(np.float64)
+    z = z * spacing[2] / spacing[0]
+    f = 1000 / (1 + np.exp((np.sqrt((z - 14) ** 2 + (y - 12) ** 2 + (x - 10) ** 2) - 8) / 1.5))
+    f += 2000 / (1 + np.exp((np.sqrt((z - 20) ** 2 + (y - 20) ** 2 + (x - 18) ** 2) - 5) / 1.2))
+    f += 300 * (y > 25)
+    f += rng.normal(0, 20, shape)
+    lab = None
+    if labels:  # a label ball
+        lab = (np.sqrt((z - 10) ** 2 + (y - 18) ** 2 + (x - 6) ** 2) < 6).astype(np.uint8) * 3
+    return Volume(np.clip(f, 0, 4000).astype(np.uint16), spacing=spacing, labels=lab)
+
+
+@pytest.fixture
+def noisy_blobs():
+    """``noisy_blobs(shape=, spacing=, seed=, labels=False)``: a uint16 volume of soft blobs."""
+    return _noisy_blobs

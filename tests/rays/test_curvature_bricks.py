@@ -25,18 +25,6 @@ def _spec(*ranges):
     )
 
 
-def _blobs(shape=(18, 30, 26), spacing=(1.0, 1.0, 2.0), seed=3):
-    """Two soft balls and a slab, with noise: boundaries cross every brick edge."""
-    rng = np.random.default_rng(seed)
-    z, y, x = np.mgrid[: shape[0], : shape[1], : shape[2]].astype(np.float64)
-    z = z * spacing[2] / spacing[0]
-    f = 1000 / (1 + np.exp((np.sqrt((z - 14) ** 2 + (y - 12) ** 2 + (x - 10) ** 2) - 8) / 1.5))
-    f += 2000 / (1 + np.exp((np.sqrt((z - 20) ** 2 + (y - 20) ** 2 + (x - 18) ** 2) - 5) / 1.2))
-    f += 300 * (y > 25)
-    f += rng.normal(0, 20, shape)
-    return Volume(np.clip(f, 0, 4000).astype(np.uint16), spacing=spacing)
-
-
 def _reference(vol, spec, sigma=1.0):
     """The previous full-volume implementation (range structures only)."""
     ids = C.classify_structures(vol, spec)
@@ -61,8 +49,8 @@ def backend(request, monkeypatch):
     return request.param
 
 
-def test_full_result_equals_the_reference(backend):
-    vol = _blobs()
+def test_full_result_equals_the_reference(backend, noisy_blobs):
+    vol = noisy_blobs()
     spec = _spec((500, 1500), (1500, 4000))
     curv, bnd = curvature_volume(vol, spec)
     ref, ref_bnd = _reference(vol, spec)
@@ -85,8 +73,8 @@ def _extents(shape, rng, n):
 
 
 @pytest.mark.parametrize("with_globals", [False, True])
-def test_bricks_equal_slices_of_the_full_result(backend, with_globals):
-    vol = _blobs()
+def test_bricks_equal_slices_of_the_full_result(backend, with_globals, noisy_blobs):
+    vol = noisy_blobs()
     spec = _spec((500, 1500), (1500, 4000))
     full, full_bnd = curvature_volume(vol, spec)
     g = curvature_globals(vol, spec) if with_globals else None
@@ -99,10 +87,10 @@ def test_bricks_equal_slices_of_the_full_result(backend, with_globals):
         np.testing.assert_array_equal(curv, full[sl])
 
 
-def test_numba_and_numpy_agree(monkeypatch):
+def test_numba_and_numpy_agree(monkeypatch, noisy_blobs):
     if C._curvature_kernels() is None:
         pytest.skip("numba is not available")
-    vol = _blobs()
+    vol = noisy_blobs()
     spec = _spec((500, 1500), (1500, 4000))
     fast, bnd = curvature_volume(vol, spec)
     g_fast = curvature_globals(vol, spec)
@@ -115,8 +103,8 @@ def test_numba_and_numpy_agree(monkeypatch):
     assert g_fast.offset == g_slow.offset
 
 
-def test_gradient_max_is_the_whole_volume_maximum(backend):
-    vol = _blobs()
+def test_gradient_max_is_the_whole_volume_maximum(backend, noisy_blobs):
+    vol = noisy_blobs()
     spec = _spec((500, 1500))
     f = vol.data.astype(np.float32)
     f -= np.float32(C._offset_of(vol.data))
@@ -220,9 +208,9 @@ def test_ghost():
         curvature_ghost(1.0, (1, 1))
 
 
-def test_brick_reads_only_its_ghost(backend):
+def test_brick_reads_only_its_ghost(backend, noisy_blobs):
     """A brick is computed from the voxels within curvature_ghost of its extent."""
-    vol = _blobs()
+    vol = noisy_blobs()
     spec = _spec((500, 1500), (1500, 4000))
     g = curvature_globals(vol, spec)
     ext = ((5, 11), (8, 20), (6, 15))
@@ -255,10 +243,10 @@ def test_bad_arguments(kwargs, message):
         curvature_volume(vol, _spec((1, 2)), **kwargs)
 
 
-def test_many_threads_cut_more_bands_with_the_same_bits(backend, monkeypatch):
+def test_many_threads_cut_more_bands_with_the_same_bits(backend, monkeypatch, noisy_blobs):
     from dvr_perception.rays import curvature as curvature_module
 
-    vol = _blobs(shape=(18, 70, 26))
+    vol = noisy_blobs(shape=(18, 70, 26))
     spec = _spec((500, 1500), (1500, 4000))
     monkeypatch.setattr(curvature_module, "_threads", lambda: 1)
     one, one_bnd = curvature_volume(vol, spec)
@@ -279,12 +267,12 @@ def test_many_threads_cut_more_bands_with_the_same_bits(backend, monkeypatch):
 
 
 @pytest.mark.parametrize("step", [False, True])
-def test_cell_bounds_bound_every_cells_exact_gradient_maximum(backend, step):
+def test_cell_bounds_bound_every_cells_exact_gradient_maximum(backend, step, noisy_blobs):
     """The branch and bound's per-cell bound lies above the cell's exact maximum, and the
     value range makes it tighter than the neighbour differences alone across a step."""
     from dvr_perception.rays import _curvature_passes as P
 
-    vol = _blobs(shape=(36, 40, 34))
+    vol = noisy_blobs(shape=(36, 40, 34))
     if step:  # a sharp edge: neighbour differences alone bound it by the full step
         data = np.full(vol.data.shape, 100, np.uint16)
         data[:, :, 17:] = 2100
@@ -318,12 +306,12 @@ def test_cell_bounds_bound_every_cells_exact_gradient_maximum(backend, step):
 
 
 @pytest.mark.parametrize("step", [False, True])
-def test_range_bound_lies_above_the_gradient_maximum(step):
+def test_range_bound_lies_above_the_gradient_maximum(step, noisy_blobs):
     """The flatness test's bound from the data range bounds the exact maximum, well below the
     plain ``range * |inv|`` (a third of it at sigma 1, where a step nearly reaches it)."""
     from dvr_perception.rays import _curvature_passes as P
 
-    vol = _blobs(shape=(24, 30, 28))
+    vol = noisy_blobs(shape=(24, 30, 28))
     if step:
         data = np.full(vol.data.shape, 100, np.uint16)
         data[:, 14:] = 2100

@@ -31,21 +31,6 @@ def _spec(*ranges, labels=()):
     return StructureSpec(tuple(structs), labels_file="l" if labels else None)
 
 
-def _blobs(shape=(18, 30, 26), spacing=(1.0, 1.0, 2.0), seed=3, labels=False):
-    """Two soft balls and a slab with noise (no side a multiple of 8); a label ball."""
-    rng = np.random.default_rng(seed)
-    z, y, x = np.mgrid[: shape[0], : shape[1], : shape[2]].astype(np.float64)
-    z = z * spacing[2] / spacing[0]
-    f = 1000 / (1 + np.exp((np.sqrt((z - 14) ** 2 + (y - 12) ** 2 + (x - 10) ** 2) - 8) / 1.5))
-    f += 2000 / (1 + np.exp((np.sqrt((z - 20) ** 2 + (y - 20) ** 2 + (x - 18) ** 2) - 5) / 1.2))
-    f += 300 * (y > 25)
-    f += rng.normal(0, 20, shape)
-    lab = None
-    if labels:
-        lab = (np.sqrt((z - 10) ** 2 + (y - 18) ** 2 + (x - 6) ** 2) < 6).astype(np.uint8) * 3
-    return Volume(np.clip(f, 0, 4000).astype(np.uint16), spacing=spacing, labels=lab)
-
-
 @pytest.fixture(params=["numba", "numpy"])
 def backend(request, monkeypatch):
     """The curvature kernels: numba's, or none (the numpy twins)."""
@@ -95,9 +80,9 @@ def test_a_phantom_pages_as_its_dense_result(backend, size, bands):
     assert not any(whole for _, _, whole in bands)  # the data alone: streamed
 
 
-def test_band_edges_that_would_cut_pages(backend, bands, monkeypatch):
+def test_band_edges_that_would_cut_pages(backend, bands, monkeypatch, noisy_blobs):
     # bands of 8 rows and three threads: the dense run cuts at rows 7, 15, 22, inside pages
-    vol = _blobs()
+    vol = noisy_blobs()
     spec = _spec((300, 900), (900, 4000))
     usual = curvature_volume(vol, spec)[0]  # one band
     monkeypatch.setattr(C, "_BAND_VOXELS", 1 << 10)
@@ -107,9 +92,9 @@ def test_band_edges_that_would_cut_pages(backend, bands, monkeypatch):
     np.testing.assert_array_equal(dense, usual)  # the same bits however it is cut
 
 
-def test_label_structures_keep_a_band_whole(backend, bands, monkeypatch):
+def test_label_structures_keep_a_band_whole(backend, bands, monkeypatch, noisy_blobs):
     monkeypatch.setattr(C, "_BAND_VOXELS", 1 << 10)
-    vol = _blobs(labels=True)
+    vol = noisy_blobs(labels=True)
     spec = _spec((300, 900), labels=(3,))
     _, dense = _assert_same(vol, spec)
     assert all(whole for _, _, whole in bands)
@@ -117,8 +102,8 @@ def test_label_structures_keep_a_band_whole(backend, bands, monkeypatch):
     assert dense[vol.labels == 3].any()  # the label field wrote values too
 
 
-def test_sides_not_multiples_of_eight(backend):
-    vol = _blobs(shape=(9, 17, 33), spacing=(1.0, 1.0, 1.0))
+def test_sides_not_multiples_of_eight(backend, noisy_blobs):
+    vol = noisy_blobs(shape=(9, 17, 33), spacing=(1.0, 1.0, 1.0))
     got, _ = _assert_same(vol, _spec((300, 900)))
     assert got.index.shape == (2, 3, 5)
 

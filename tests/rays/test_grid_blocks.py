@@ -20,11 +20,17 @@ def _blocks(vol, spec):
     return cells, _grid.block_map(vol, cells)
 
 
-def test_one_bright_voxel_gives_block_chessboard_distances():
+def _bright_voxel():
+    """A 13 x 14 x 15 volume with one bright voxel at (3, 4, 5), and its one structure."""
     data = np.zeros((13, 14, 15), np.uint8)
     data[3, 4, 5] = 200
     vol = Volume(data)
     spec = StructureSpec((Structure("dot", 1.0, (1, 1, 1), range=(100, 255)),))
+    return vol, spec
+
+
+def test_one_bright_voxel_gives_block_chessboard_distances():
+    vol, spec = _bright_voxel()
     _, blocks = _blocks(vol, spec)
     # 12 x 13 x 14 cells -> 3 x 4 x 4 blocks; the voxel is a corner of cells z 2-3, y 3-4,
     # x 4-5, i.e. of blocks (0, 0, 1) and (0, 1, 1)
@@ -134,10 +140,7 @@ def _occupancy_by_hand(cells):
 
 
 def test_one_bright_voxel_occupies_its_eight_cells():
-    data = np.zeros((13, 14, 15), np.uint8)
-    data[3, 4, 5] = 200
-    vol = Volume(data)
-    spec = StructureSpec((Structure("dot", 1.0, (1, 1, 1), range=(100, 255)),))
+    vol, spec = _bright_voxel()
     cells, _ = _blocks(vol, spec)
     occ = _grid.block_occupancy(vol, cells)
     assert occ.shape == (3, 4, 4)

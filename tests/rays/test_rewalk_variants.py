@@ -124,16 +124,22 @@ def test_bad_variants_name_the_parameter():
     assert rewalk_rgba(res, []) == []
 
 
-def test_many_layers_luminance_equals_one_layer_at_a_time(shell_scene):
+def _many_and_one_at_a_time(shell_scene, build_cache):
+    """Scene, masks and ``_without_many``'s luminances, checked against one layer at a time."""
     vol, spec = shell_scene(True, inner=6.5)
     cam = Camera.from_view(vol.bounds, width=32, height=28, azimuth=10)
-    res = analyze(vol, spec, cam)
+    res = analyze(vol, spec, cam, build_cache=build_cache)
     rng = np.random.default_rng(5)
     masks = {e: rng.random((cam.height, cam.width)) < 0.4 for e in range(3)}
     many = _without_many(res, spec, masks)
     for e, mask in masks.items():
         assert np.array_equal(many[e][mask], _without(res, spec, e, mask)[mask])
         assert not many[e][~mask].any()
+    return vol, spec, cam, masks, many
+
+
+def test_many_layers_luminance_equals_one_layer_at_a_time(shell_scene):
+    _many_and_one_at_a_time(shell_scene, False)
 
 
 def test_transparency_walks_all_its_enclosers_once(monkeypatch):
@@ -202,15 +208,7 @@ def test_cached_variants_equal_their_own_reevaluation_to_the_bit(shade, shell_sc
 
 
 def test_cached_many_layers_luminance_equals_one_layer_at_a_time(shell_scene):
-    vol, spec = shell_scene(True, inner=6.5)
-    cam = Camera.from_view(vol.bounds, width=32, height=28, azimuth=10)
-    res = analyze(vol, spec, cam, build_cache=True)
-    rng = np.random.default_rng(5)
-    masks = {e: rng.random((cam.height, cam.width)) < 0.4 for e in range(3)}
-    many = _without_many(res, spec, masks)
-    for e, mask in masks.items():
-        assert np.array_equal(many[e][mask], _without(res, spec, e, mask)[mask])
-        assert not many[e][~mask].any()
+    vol, spec, cam, masks, many = _many_and_one_at_a_time(shell_scene, True)
     walked = _without_many(analyze(vol, spec, cam), spec, masks)  # no cache: walked again
     for e in masks:
         np.testing.assert_allclose(many[e], walked[e], rtol=0, atol=1e-6)
